@@ -1,0 +1,505 @@
+//! `record`: simulate a UR10 multiscopic capture, or import an image set, into an MCAP log.
+//!
+//! Exit codes: 0 ok, 1 error, 2 usage, 3 finished but incomplete (interrupted with Ctrl-C: the
+//! log holds the sets completed so far).
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use clap::{Args, Parser, Subcommand};
+use indicatif::{ProgressBar, ProgressStyle};
+use record::capture::{
+    CameraAxis, ErrorInjection, Simulation, SimulationConfig, SimulationError, ViewExposure,
+    ViewPoseError,
+};
+use record::import::{ImportConfig, find_set_dirs, import_set};
+use record::log::{LogOptions, METADATA_NAME, OutputFile};
+use record::rig::RigKind;
+use record::scene::SceneKind;
+use record::{ImageFormat, TOOL_VERSION};
+use tracing::{info, warn};
+
+const EXIT_ERROR: u8 = 1;
+const EXIT_USAGE: u8 = 2;
+const EXIT_INCOMPLETE: u8 = 3;
+
+/// Record multiscopic captures (a simulated UR10 moving a camera in its image plane) as MCAP logs
+/// with Foxglove schemas and ground truth, or import real image sets into the same format.
+#[derive(Debug, Parser)]
+#[command(
+    name = "record",
+    version,
+    args_conflicts_with_subcommands = true,
+    subcommand_negates_reqs = true
+)]
+#[command(
+    after_help = "Examples:\n  record --rig five-view -o capture.mcap\n  record --scene workpiece --captures 3 --image-format png -o metal.mcap\n  record --rotation-error left:z:0.5 --offset-error top:z:1 -o misaligned.mcap\n  record import ../shared/data/middlebury2006-third-dev --focal-px 1246.67 -o middlebury.mcap"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Option<Command>,
+    #[command(flatten)]
+    simulate: SimulateArgs,
+    /// Only print errors.
+    #[arg(short, long, global = true)]
+    quiet: bool,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Import an image set (or a folder of sets, e.g. the Middlebury layout) into a log.
+    Import(ImportArgs),
+}
+
+fn parse_resolution(text: &str) -> Result<(u32, u32), String> {
+    let (w, h) = text
+        .split_once(['x', 'X'])
+        .ok_or_else(|| format!("'{text}' is not WIDTHxHEIGHT, e.g. 1920x1080"))?;
+    let side = |s: &str| {
+        s.trim()
+            .parse::<u32>()
+            .ok()
+            .filter(|v| (8..=16384).contains(v))
+            .ok_or_else(|| format!("'{s}' in '{text}' is not a side length in 8..=16384"))
+    };
+    Ok((side(w)?, side(h)?))
+}
+
+fn parse_positive_mm(text: &str) -> Result<f64, String> {
+    let value: f64 = text
+        .parse()
+        .map_err(|_| format!("'{text}' is not a number"))?;
+    if value > 0.0 && value <= record::capture::MAX_BASELINE_MM {
+        Ok(value)
+    } else {
+        Err(format!(
+            "{value} mm is out of range: must be > 0 and ≤ {}",
+            record::capture::MAX_BASELINE_MM
+        ))
+    }
+}
+
+fn parse_non_negative(text: &str) -> Result<f64, String> {
+    match text.parse::<f64>() {
+        Ok(v) if v.is_finite() && v >= 0.0 => Ok(v),
+        _ => Err(format!("'{text}' is not a non-negative number")),
+    }
+}
+
+fn parse_pose_error(text: &str) -> Result<ViewPoseError, String> {
+    let parts: Vec<&str> = text.split(':').collect();
+    let [role, axis, value] = parts.as_slice() else {
+        return Err(format!("'{text}' is not ROLE:AXIS:VALUE, e.g. left:z:0.5"));
+    };
+    let axis = match axis.to_ascii_lowercase().as_str() {
+        "x" => CameraAxis::X,
+        "y" => CameraAxis::Y,
+        "z" | "roll" => CameraAxis::Z,
+        other => return Err(format!("axis '{other}' in '{text}' is not x, y or z")),
+    };
+    let value: f64 = value
+        .parse()
+        .ok()
+        .filter(|v: &f64| v.is_finite())
+        .ok_or_else(|| format!("'{value}' in '{text}' is not a number"))?;
+    Ok(ViewPoseError {
+        role: (*role).to_owned(),
+        axis,
+        value,
+    })
+}
+
+fn parse_exposure(text: &str) -> Result<ViewExposure, String> {
+    let (role, gain) = text
+        .split_once(':')
+        .ok_or_else(|| format!("'{text}' is not ROLE:GAIN, e.g. right:1.2"))?;
+    let gain: f64 = gain
+        .parse()
+        .ok()
+        .filter(|g: &f64| g.is_finite() && *g > 0.0)
+        .ok_or_else(|| format!("gain '{gain}' in '{text}' is not a positive number"))?;
+    Ok(ViewExposure {
+        role: role.to_owned(),
+        gain,
+    })
+}
+
+fn parse_triple(text: &str) -> Result<[f64; 3], String> {
+    let values: Vec<f64> = text
+        .split(',')
+        .map(|s| {
+            s.trim()
+                .parse::<f64>()
+                .map_err(|_| format!("'{s}' in '{text}' is not a number"))
+        })
+        .collect::<Result<_, _>>()?;
+    <[f64; 3]>::try_from(values)
+        .map_err(|_| format!("'{text}' is not three comma-separated numbers X,Y,Z"))
+}
+
+#[derive(Debug, Args)]
+struct SimulateArgs {
+    /// View layout: five-view (centre, left, right, top, bottom), three-view, stereo, grid3x3.
+    #[arg(long, value_enum, default_value = "five-view")]
+    rig: RigKind,
+    /// Distance between the centre view and each direct neighbour (mm).
+    #[arg(long, default_value = "20", value_parser = parse_positive_mm)]
+    baseline_mm: f64,
+    /// Number of view sets, each from a different arm station.
+    #[arg(long, default_value = "1", value_parser = clap::value_parser!(u32).range(1..=10_000))]
+    captures: u32,
+    /// Scene: toy (textured toys), workpiece (reflective metal part on a metal table), random (from the seed).
+    #[arg(long, value_enum, default_value = "toy")]
+    scene: SceneKind,
+    /// Seed of the scene, stations, noise and errors.
+    #[arg(long, default_value = "0")]
+    seed: u64,
+    /// Image size WIDTHxHEIGHT (the paper's IMX322: 1920x1080).
+    #[arg(long, default_value = "1920x1080", value_parser = parse_resolution)]
+    resolution: (u32, u32),
+    /// Horizontal field of view (degrees).
+    #[arg(long, default_value = "60", value_parser = clap::value_parser!(u32).range(5..=150))]
+    fov_deg: u32,
+    /// Image encoding in the log: raw (foxglove.RawImage rgb8) or png (foxglove.CompressedImage).
+    #[arg(long, value_enum, default_value = "raw")]
+    image_format: ImageFormat,
+    /// Anti-aliasing samples per pixel (4 = rotated grid).
+    #[arg(long, default_value = "4", value_parser = clap::value_parser!(u32).range(1..=64))]
+    samples_per_pixel: u32,
+    /// Sensor noise, standard deviation in 8-bit levels.
+    #[arg(long, default_value = "1.0", value_parser = parse_non_negative)]
+    noise_sigma: f64,
+    /// Robot repeatability: radius of the random flange position error (mm; UR10: 0.1).
+    #[arg(long, default_value = "0.1", value_parser = parse_non_negative)]
+    repeatability_mm: f64,
+    /// Inject a rotation into a view's commanded pose: ROLE:AXIS:DEG (axis z = roll). Repeatable.
+    #[arg(long, value_parser = parse_pose_error, value_name = "ROLE:AXIS:DEG")]
+    rotation_error: Vec<ViewPoseError>,
+    /// Inject an offset into a view's commanded pose: ROLE:AXIS:MM (axis z = out of plane). Repeatable.
+    #[arg(long, value_parser = parse_pose_error, value_name = "ROLE:AXIS:MM")]
+    offset_error: Vec<ViewPoseError>,
+    /// Hand-eye calibration error, translation X,Y,Z (mm, flange frame).
+    #[arg(long, value_parser = parse_triple, value_name = "X,Y,Z", allow_hyphen_values = true)]
+    hand_eye_error_mm: Option<[f64; 3]>,
+    /// Hand-eye calibration error, rotation RX,RY,RZ (degrees).
+    #[arg(long, value_parser = parse_triple, value_name = "RX,RY,RZ", allow_hyphen_values = true)]
+    hand_eye_error_deg: Option<[f64; 3]>,
+    /// Random exposure change per view: gain uniform in [1-J, 1+J].
+    #[arg(long, default_value = "0", value_parser = parse_non_negative, value_name = "J")]
+    exposure_jitter: f64,
+    /// Force a view's exposure gain: ROLE:GAIN. Repeatable.
+    #[arg(long, value_parser = parse_exposure, value_name = "ROLE:GAIN")]
+    exposure: Vec<ViewExposure>,
+    /// Output log.
+    #[arg(short, long, default_value = "capture.mcap")]
+    output: PathBuf,
+    /// zstd level of the log's chunks (1 fastest … 19 smallest).
+    #[arg(long, default_value = "3", value_parser = clap::value_parser!(u32).range(1..=19))]
+    zstd_level: u32,
+}
+
+#[derive(Debug, Args)]
+struct ImportArgs {
+    /// Directory with the view files, or with one sub-directory per set (Middlebury layout).
+    dir: PathBuf,
+    /// Output log.
+    #[arg(short, long, default_value = "import.mcap")]
+    output: PathBuf,
+    /// View layout.
+    #[arg(long, value_enum, default_value = "three-view")]
+    layout: RigKind,
+    /// View files in the layout's order (three-view: left,center,right; five-view: center,left,right,top,bottom).
+    #[arg(long, value_delimiter = ',', default_value = "view0,view1,view2")]
+    views: Vec<String>,
+    /// Ground-truth disparity PNG of the centre view.
+    #[arg(long, default_value = "disp1")]
+    ground_truth: String,
+    /// Import without ground truth.
+    #[arg(long)]
+    no_ground_truth: bool,
+    /// Stored ground-truth value ÷ scale = disparity (px) to a direct neighbour.
+    #[arg(long, default_value = "12", value_parser = parse_non_negative)]
+    ground_truth_scale: f64,
+    /// Baseline between the centre and a direct neighbour (mm).
+    #[arg(long, default_value = "40", value_parser = parse_positive_mm)]
+    baseline_mm: f64,
+    /// Focal length (pixels); Middlebury 2006 third size: 1246.67. Default: from --fov-deg.
+    #[arg(long, value_parser = parse_non_negative)]
+    focal_px: Option<f64>,
+    /// Horizontal field of view used when --focal-px is not given (degrees).
+    #[arg(long, default_value = "60")]
+    fov_deg: f64,
+    /// Only these set directories (comma-separated names).
+    #[arg(long, value_delimiter = ',')]
+    sets: Vec<String>,
+}
+
+/// An error that is the user's input, not the program's: exit 2.
+#[derive(Debug, thiserror::Error)]
+#[error("{0}")]
+struct UsageError(String);
+
+enum Outcome {
+    Complete,
+    Incomplete,
+}
+
+fn main() -> ExitCode {
+    let cli = match Cli::try_parse() {
+        Ok(cli) => cli,
+        Err(error) => {
+            let code = error.exit_code();
+            let _ = error.print();
+            return ExitCode::from(code.clamp(0, 255) as u8);
+        }
+    };
+    let level = if cli.quiet { "error" } else { "info" };
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(level)),
+        )
+        .with_writer(std::io::stderr)
+        .with_target(false)
+        .init();
+    let result = match cli.command {
+        Some(Command::Import(args)) => run_import(&args),
+        None => run_simulation(&cli.simulate, cli.quiet),
+    };
+    match result {
+        Ok(Outcome::Complete) => ExitCode::SUCCESS,
+        Ok(Outcome::Incomplete) => ExitCode::from(EXIT_INCOMPLETE),
+        Err(error) => {
+            let usage = error.chain().any(|cause| cause.is::<UsageError>());
+            eprintln!("error: {error:#}");
+            ExitCode::from(if usage { EXIT_USAGE } else { EXIT_ERROR })
+        }
+    }
+}
+
+fn simulation_config(args: &SimulateArgs) -> SimulationConfig {
+    SimulationConfig {
+        rig: args.rig,
+        baseline_mm: args.baseline_mm,
+        captures: args.captures,
+        scene: args.scene,
+        seed: args.seed,
+        width: args.resolution.0,
+        height: args.resolution.1,
+        horizontal_fov_deg: f64::from(args.fov_deg),
+        image_format: args.image_format,
+        samples_per_pixel: args.samples_per_pixel,
+        noise_sigma_levels: args.noise_sigma,
+        errors: ErrorInjection {
+            repeatability_mm: args.repeatability_mm,
+            rotation_deg: args.rotation_error.clone(),
+            offset_mm: args.offset_error.clone(),
+            hand_eye_translation_mm: args.hand_eye_error_mm.unwrap_or_default(),
+            hand_eye_rotation_deg: args.hand_eye_error_deg.unwrap_or_default(),
+            exposure_jitter: args.exposure_jitter,
+            exposure: args.exposure.clone(),
+        },
+        ..SimulationConfig::default()
+    }
+}
+
+fn progress_bar(total: u64, quiet: bool, unit: &str) -> ProgressBar {
+    if quiet {
+        return ProgressBar::hidden();
+    }
+    let bar = ProgressBar::new(total);
+    let template = format!(
+        "{{spinner}} [{{elapsed_precise}}] {{bar:32}} {{pos}}/{{len}} {unit} ({{eta}} left) {{msg}}"
+    );
+    if let Ok(style) = ProgressStyle::with_template(&template) {
+        bar.set_style(style);
+    }
+    bar
+}
+
+fn interrupt_flag() -> Arc<AtomicBool> {
+    let stop = Arc::new(AtomicBool::new(false));
+    let presses = AtomicU32::new(0);
+    let flag = Arc::clone(&stop);
+    let installed = ctrlc::set_handler(move || {
+        if presses.fetch_add(1, Ordering::SeqCst) == 0 {
+            flag.store(true, Ordering::SeqCst);
+            eprintln!(
+                "\ninterrupt: finishing the log with the sets completed so far (Ctrl-C again to abort)"
+            );
+        } else {
+            eprintln!("\naborted: no log written");
+            std::process::exit(130);
+        }
+    });
+    if let Err(error) = installed {
+        warn!("Ctrl-C handler not installed: {error}");
+    }
+    stop
+}
+
+fn run_simulation(args: &SimulateArgs, quiet: bool) -> Result<Outcome> {
+    let started = Instant::now();
+    let config = simulation_config(args);
+    let mut sim = Simulation::new(config.clone()).map_err(|e| match e {
+        SimulationError::InvalidConfig { .. } | SimulationError::UnknownRole { .. } => {
+            anyhow::Error::new(UsageError(e.to_string()))
+        }
+        other => anyhow::Error::new(other),
+    })?;
+    let (output, writer) =
+        OutputFile::create(&args.output).context("cannot start the output log")?;
+    let mut log = LogOptions::new()
+        .image_format(config.image_format)
+        .zstd_level(args.zstd_level)
+        .create(writer)?;
+    let scene_json = serde_json::to_vec_pretty(sim.scene())?;
+    log.attach(
+        "scene.json",
+        "application/json",
+        sim.time_nanos(),
+        &scene_json,
+    )?;
+    let stop = interrupt_flag();
+    let views_per_set = config.rig.capture_order().len() as u64;
+    let bar = progress_bar(u64::from(config.captures) * views_per_set, quiet, "views");
+    info!(
+        "recording {} {} set(s) of the {} scene at {}x{}, baseline {} mm → {}",
+        config.captures,
+        config.rig.name(),
+        config.scene_name(),
+        config.width,
+        config.height,
+        config.baseline_mm,
+        args.output.display()
+    );
+    let mut completed = 0u32;
+    for index in 0..config.captures {
+        let captured = sim
+            .capture_set(index, &stop, |view| {
+                bar.set_message(format!("set {index} {}", view.role));
+                bar.inc(1);
+            })
+            .with_context(|| format!("recording set {index}"))?;
+        let Some(set) = captured else { break };
+        let hand_eye = *sim.hand_eye_believed();
+        log.write_set(&set, Some(&hand_eye))
+            .with_context(|| format!("writing set {index}"))?;
+        completed += 1;
+        bar.suspend(|| {
+            info!(
+                "set {}/{} done ({} views)",
+                completed,
+                config.captures,
+                set.views.len()
+            )
+        });
+        if stop.load(Ordering::SeqCst) {
+            break;
+        }
+    }
+    bar.finish_and_clear();
+    let interrupted = completed < config.captures;
+    if interrupted && completed == 0 {
+        drop(log);
+        drop(output);
+        eprintln!("interrupted before the first set was complete: no log written");
+        return Ok(Outcome::Incomplete);
+    }
+    let mut metadata = BTreeMap::new();
+    metadata.insert("tool".to_owned(), "record".to_owned());
+    metadata.insert("tool_version".to_owned(), TOOL_VERSION.to_owned());
+    metadata.insert("source".to_owned(), "simulation".to_owned());
+    metadata.insert("seed".to_owned(), config.seed.to_string());
+    metadata.insert("config".to_owned(), serde_json::to_string(&config)?);
+    metadata.insert(
+        "hand_eye_flange_from_camera".to_owned(),
+        serde_json::to_string(&record::log::PoseJson::from(sim.hand_eye_believed()))?,
+    );
+    metadata.insert("requested_sets".to_owned(), config.captures.to_string());
+    metadata.insert("completed_sets".to_owned(), completed.to_string());
+    metadata.insert("interrupted".to_owned(), interrupted.to_string());
+    log.write_metadata(METADATA_NAME, metadata)?;
+    let writer = log.finish()?;
+    let path = output.commit(writer)?;
+    report(&path, completed, started);
+    if interrupted {
+        warn!(
+            "interrupted: the log holds {completed} of {} requested sets",
+            config.captures
+        );
+        return Ok(Outcome::Incomplete);
+    }
+    Ok(Outcome::Complete)
+}
+
+fn report(path: &Path, sets: u32, started: Instant) {
+    let size = std::fs::metadata(path).map(|m| m.len()).unwrap_or(0);
+    info!(
+        "wrote {} ({:.1} MB, {} set(s)) in {:.1} s",
+        path.display(),
+        size as f64 / 1e6,
+        sets,
+        started.elapsed().as_secs_f64()
+    );
+}
+
+fn run_import(args: &ImportArgs) -> Result<Outcome> {
+    let started = Instant::now();
+    if args.ground_truth_scale <= 0.0 {
+        bail!(UsageError(format!(
+            "--ground-truth-scale {} must be positive",
+            args.ground_truth_scale
+        )));
+    }
+    let config = ImportConfig {
+        layout: args.layout,
+        views: args.views.clone(),
+        ground_truth: (!args.no_ground_truth).then(|| args.ground_truth.clone()),
+        ground_truth_scale: args.ground_truth_scale,
+        baseline_mm: args.baseline_mm,
+        focal_px: args.focal_px,
+        horizontal_fov_deg: args.fov_deg,
+        sets: args.sets.clone(),
+    };
+    let expected = config.layout.file_order().len();
+    if config.views.len() != expected {
+        bail!(UsageError(format!(
+            "--layout {} needs {expected} --views, got {}: {}",
+            config.layout.name(),
+            config.views.len(),
+            config.views.join(",")
+        )));
+    }
+    let dirs = find_set_dirs(&args.dir, &config)?;
+    let (output, writer) =
+        OutputFile::create(&args.output).context("cannot start the output log")?;
+    let mut log = LogOptions::new().create(writer)?;
+    let bar = progress_bar(dirs.len() as u64, false, "sets");
+    for (index, dir) in dirs.iter().enumerate() {
+        let set = import_set(dir, index as u32, &config)?;
+        bar.set_message(set.name.clone());
+        log.write_set(&set, None)?;
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    let mut metadata = BTreeMap::new();
+    metadata.insert("tool".to_owned(), "record import".to_owned());
+    metadata.insert("tool_version".to_owned(), TOOL_VERSION.to_owned());
+    metadata.insert(
+        "source".to_owned(),
+        format!("import:{}", args.dir.display()),
+    );
+    metadata.insert("config".to_owned(), serde_json::to_string(&config)?);
+    metadata.insert("completed_sets".to_owned(), dirs.len().to_string());
+    log.write_metadata(METADATA_NAME, metadata)?;
+    let writer = log.finish()?;
+    let path = output.commit(writer)?;
+    report(&path, dirs.len() as u32, started);
+    Ok(Outcome::Complete)
+}

@@ -1,0 +1,908 @@
+//! A deterministic CPU ray tracer (rayon over image rows) for the procedural scenes.
+//!
+//! Per pixel: `samples_per_pixel` primary rays (rotated-grid pattern for 4, stratified grid
+//! otherwise), Blinn-Phong shading with hard shadows from every point light, mirror reflection
+//! up to `max_bounces`, then exposure, a 2.2 display gamma and Gaussian sensor noise from a
+//! counter-based hash (so the result does not depend on thread scheduling). Ground truth comes
+//! from one extra ray through the pixel centre: z-depth (m, along the optical axis) and the
+//! surface class of what it hits.
+
+use nalgebra::{Isometry3, Matrix3, Vector3};
+use rayon::prelude::*;
+
+use crate::camera::PinholeCamera;
+use crate::rng::{gaussian_from_bits, hash4, mix64};
+use crate::scene::{Material, Rgb, Scene, Shape, SurfaceClass, Texture};
+
+type V3 = Vector3<f64>;
+
+/// Offset along the normal that keeps secondary rays from re-hitting their own surface (m).
+const SURFACE_EPSILON_M: f64 = 1e-6;
+/// Texels per side of a baked noise tile.
+const NOISE_TILE_TEXELS: usize = 512;
+/// Lattice cells of the coarsest noise octave across one tile.
+const NOISE_BASE_CELLS: usize = 8;
+/// Octaves of fractal noise.
+const NOISE_OCTAVES: usize = 4;
+/// Rotated-grid supersampling pattern (4 samples), offsets from the pixel centre.
+const RGSS_OFFSETS: [(f64, f64); 4] = [
+    (-0.125, -0.375),
+    (0.375, -0.125),
+    (0.125, 0.375),
+    (-0.375, 0.125),
+];
+
+/// Rendering settings of one view.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RenderSettings {
+    /// Primary rays per pixel (4 uses a rotated grid; other values a stratified n×n grid).
+    pub samples_per_pixel: u32,
+    /// Mirror bounces.
+    pub max_bounces: u32,
+    /// Exposure gain applied before the gamma (1 = nominal).
+    pub exposure_gain: f64,
+    /// Standard deviation of the sensor noise (8-bit levels).
+    pub noise_sigma_levels: f64,
+    /// Seed of the sensor noise of this view.
+    pub noise_seed: u64,
+}
+
+impl Default for RenderSettings {
+    fn default() -> Self {
+        Self {
+            samples_per_pixel: 4,
+            max_bounces: 2,
+            exposure_gain: 1.0,
+            noise_sigma_levels: 1.0,
+            noise_seed: 0,
+        }
+    }
+}
+
+/// One rendered view with its ground truth.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RenderedView {
+    /// Width (pixels).
+    pub width: u32,
+    /// Height (pixels).
+    pub height: u32,
+    /// 8-bit RGB, row-major, 3 bytes per pixel.
+    pub rgb: Vec<u8>,
+    /// Ground-truth z-depth (m) along the optical axis; 0 where no surface is hit.
+    pub depth_m: Vec<f32>,
+    /// Ground-truth surface class per pixel ([`SurfaceClass`] as `u8`).
+    pub surface_class: Vec<u8>,
+}
+
+enum Geometry {
+    Plane {
+        point: V3,
+        normal: V3,
+        u: V3,
+        v: V3,
+    },
+    Box {
+        center: V3,
+        world_from_local: Matrix3<f64>,
+        half: V3,
+    },
+    Sphere {
+        center: V3,
+        radius: f64,
+    },
+    Cylinder {
+        center: V3,
+        axis: V3,
+        u: V3,
+        v: V3,
+        radius: f64,
+        half_length: f64,
+    },
+}
+
+struct Object {
+    geometry: Geometry,
+    material: usize,
+    bound_center: V3,
+    bound_radius: f64,
+}
+
+enum PreparedTexture {
+    Solid(V3),
+    Checker {
+        a: V3,
+        b: V3,
+        inv_cell: f64,
+    },
+    Stripes {
+        a: V3,
+        b: V3,
+        inv_period: f64,
+        direction: (f64, f64),
+    },
+    Noise {
+        a: V3,
+        b: V3,
+        texels: Vec<f32>,
+        inv_tile_u: f64,
+        inv_tile_v: f64,
+    },
+    Patches {
+        palette: Vec<V3>,
+        inv_cell: f64,
+        seed: u64,
+    },
+}
+
+struct PreparedMaterial {
+    texture: PreparedTexture,
+    material: Material,
+    class: SurfaceClass,
+}
+
+struct Hit {
+    t: f64,
+    normal: V3,
+    uv: (f64, f64),
+    material: usize,
+}
+
+/// A scene prepared for tracing: textures baked, shapes in intersection form.
+pub struct PreparedScene {
+    objects: Vec<Object>,
+    materials: Vec<PreparedMaterial>,
+    lights: Vec<(V3, V3)>,
+    ambient: V3,
+    background: V3,
+}
+
+fn v3(a: [f64; 3]) -> V3 {
+    V3::new(a[0], a[1], a[2])
+}
+
+/// Two unit vectors completing `n` to an orthonormal basis.
+fn basis(n: &V3) -> (V3, V3) {
+    let helper = if n.x.abs() < 0.9 { V3::x() } else { V3::y() };
+    let u = n.cross(&helper).normalize();
+    let v = n.cross(&u);
+    (u, v)
+}
+
+fn bake_noise(seed: u64) -> Vec<f32> {
+    let n = NOISE_TILE_TEXELS;
+    let mut texels = vec![0f32; n * n];
+    let mut total_weight = 0.0;
+    let mut weight = 1.0;
+    for octave in 0..NOISE_OCTAVES {
+        let cells = NOISE_BASE_CELLS << octave;
+        let lattice: Vec<f64> = (0..cells * cells)
+            .map(|i| crate::rng::unit_from_bits(hash4(seed, octave as u64, i as u64, 0)))
+            .collect();
+        let scale = cells as f64 / n as f64;
+        for (row, line) in texels.chunks_mut(n).enumerate() {
+            let fy = row as f64 * scale;
+            let y0 = fy.floor() as usize % cells;
+            let y1 = (y0 + 1) % cells;
+            let ty = smooth(fy.fract());
+            for (col, texel) in line.iter_mut().enumerate() {
+                let fx = col as f64 * scale;
+                let x0 = fx.floor() as usize % cells;
+                let x1 = (x0 + 1) % cells;
+                let tx = smooth(fx.fract());
+                let top = lerp(lattice[y0 * cells + x0], lattice[y0 * cells + x1], tx);
+                let bottom = lerp(lattice[y1 * cells + x0], lattice[y1 * cells + x1], tx);
+                *texel += (weight * lerp(top, bottom, ty)) as f32;
+            }
+        }
+        total_weight += weight;
+        weight *= 0.5;
+    }
+    for texel in &mut texels {
+        // Stretch contrast: fractal sums cluster around 0.5.
+        *texel = ((*texel / total_weight as f32 - 0.5) * 2.2 + 0.5).clamp(0.0, 1.0);
+    }
+    texels
+}
+
+fn smooth(t: f64) -> f64 {
+    t * t * (3.0 - 2.0 * t)
+}
+
+fn lerp(a: f64, b: f64, t: f64) -> f64 {
+    a + (b - a) * t
+}
+
+impl PreparedTexture {
+    fn new(texture: &Texture) -> Self {
+        match texture {
+            Texture::Solid { rgb } => Self::Solid(v3(*rgb)),
+            Texture::Checker { a, b, cell_m } => Self::Checker {
+                a: v3(*a),
+                b: v3(*b),
+                inv_cell: 1.0 / cell_m.max(1e-6),
+            },
+            Texture::Stripes {
+                a,
+                b,
+                period_m,
+                angle_deg,
+            } => Self::Stripes {
+                a: v3(*a),
+                b: v3(*b),
+                inv_period: 1.0 / period_m.max(1e-6),
+                direction: (angle_deg.to_radians().cos(), angle_deg.to_radians().sin()),
+            },
+            Texture::Noise {
+                a,
+                b,
+                scale_m,
+                anisotropy,
+                seed,
+            } => {
+                let tile_v = scale_m.max(1e-6) * NOISE_BASE_CELLS as f64;
+                Self::Noise {
+                    a: v3(*a),
+                    b: v3(*b),
+                    texels: bake_noise(*seed),
+                    inv_tile_u: 1.0 / (tile_v * anisotropy.max(1e-3)),
+                    inv_tile_v: 1.0 / tile_v,
+                }
+            }
+            Texture::Patches {
+                palette,
+                cell_m,
+                seed,
+            } => Self::Patches {
+                palette: if palette.is_empty() {
+                    vec![V3::repeat(0.5)]
+                } else {
+                    palette.iter().map(|c| v3(*c)).collect()
+                },
+                inv_cell: 1.0 / cell_m.max(1e-6),
+                seed: *seed,
+            },
+        }
+    }
+
+    fn sample(&self, (u, v): (f64, f64)) -> V3 {
+        match self {
+            Self::Solid(c) => *c,
+            Self::Checker { a, b, inv_cell } => {
+                let parity = ((u * inv_cell).floor() as i64 + (v * inv_cell).floor() as i64) & 1;
+                if parity == 0 { *a } else { *b }
+            }
+            Self::Stripes {
+                a,
+                b,
+                inv_period,
+                direction,
+            } => {
+                let s = (u * direction.0 + v * direction.1) * inv_period;
+                if s - s.floor() < 0.5 { *a } else { *b }
+            }
+            Self::Noise {
+                a,
+                b,
+                texels,
+                inv_tile_u,
+                inv_tile_v,
+            } => {
+                let n = NOISE_TILE_TEXELS;
+                let fx = (u * inv_tile_u).rem_euclid(1.0) * n as f64;
+                let fy = (v * inv_tile_v).rem_euclid(1.0) * n as f64;
+                let x0 = (fx as usize).min(n - 1);
+                let y0 = (fy as usize).min(n - 1);
+                let x1 = (x0 + 1) % n;
+                let y1 = (y0 + 1) % n;
+                let tx = fx - x0 as f64;
+                let ty = fy - y0 as f64;
+                let top = lerp(
+                    f64::from(texels[y0 * n + x0]),
+                    f64::from(texels[y0 * n + x1]),
+                    tx,
+                );
+                let bottom = lerp(
+                    f64::from(texels[y1 * n + x0]),
+                    f64::from(texels[y1 * n + x1]),
+                    tx,
+                );
+                a.lerp(b, lerp(top, bottom, ty))
+            }
+            Self::Patches {
+                palette,
+                inv_cell,
+                seed,
+            } => {
+                let cu = (u * inv_cell).floor() as i64 as u64;
+                let cv = (v * inv_cell).floor() as i64 as u64;
+                palette[(hash4(*seed, cu, cv, 1) % palette.len() as u64) as usize]
+            }
+        }
+    }
+}
+
+impl PreparedScene {
+    /// Bakes textures and converts shapes.
+    pub fn new(scene: &Scene) -> Self {
+        let materials = scene
+            .materials
+            .iter()
+            .map(|m| PreparedMaterial {
+                texture: PreparedTexture::new(&m.texture),
+                material: m.clone(),
+                class: m.surface_class(),
+            })
+            .collect();
+        let objects = scene
+            .objects
+            .iter()
+            .map(|object| {
+                let (geometry, bound_center, bound_radius) = match &object.shape {
+                    Shape::Plane { point, normal } => {
+                        let normal = v3(*normal).normalize();
+                        let (u, v) = basis(&normal);
+                        (
+                            Geometry::Plane {
+                                point: v3(*point),
+                                normal,
+                                u,
+                                v,
+                            },
+                            V3::zeros(),
+                            f64::INFINITY,
+                        )
+                    }
+                    Shape::Box {
+                        center,
+                        half_extents_m,
+                        yaw_deg,
+                        tilt_deg,
+                    } => {
+                        let rotation = nalgebra::Rotation3::from_axis_angle(
+                            &V3::z_axis(),
+                            yaw_deg.to_radians(),
+                        ) * nalgebra::Rotation3::from_axis_angle(
+                            &V3::x_axis(),
+                            tilt_deg.to_radians(),
+                        );
+                        let half = v3(*half_extents_m);
+                        (
+                            Geometry::Box {
+                                center: v3(*center),
+                                world_from_local: *rotation.matrix(),
+                                half,
+                            },
+                            v3(*center),
+                            half.norm(),
+                        )
+                    }
+                    Shape::Sphere { center, radius_m } => (
+                        Geometry::Sphere {
+                            center: v3(*center),
+                            radius: *radius_m,
+                        },
+                        v3(*center),
+                        *radius_m,
+                    ),
+                    Shape::Cylinder {
+                        center,
+                        axis,
+                        radius_m,
+                        half_length_m,
+                    } => {
+                        let axis = v3(*axis).try_normalize(1e-12).unwrap_or_else(V3::z);
+                        let (u, v) = basis(&axis);
+                        (
+                            Geometry::Cylinder {
+                                center: v3(*center),
+                                axis,
+                                u,
+                                v,
+                                radius: *radius_m,
+                                half_length: *half_length_m,
+                            },
+                            v3(*center),
+                            radius_m.hypot(*half_length_m),
+                        )
+                    }
+                };
+                Object {
+                    geometry,
+                    material: object.material.min(scene.materials.len().saturating_sub(1)),
+                    bound_center,
+                    bound_radius,
+                }
+            })
+            .collect();
+        Self {
+            objects,
+            materials,
+            lights: scene
+                .lights
+                .iter()
+                .map(|l| (v3(l.position), v3(l.intensity)))
+                .collect(),
+            ambient: v3(scene.ambient),
+            background: v3(scene.background),
+        }
+    }
+
+    fn closest_hit(&self, origin: &V3, dir: &V3, t_max: f64) -> Option<Hit> {
+        let mut best: Option<Hit> = None;
+        let mut limit = t_max;
+        for object in &self.objects {
+            if !bound_overlaps(object, origin, dir, limit) {
+                continue;
+            }
+            if let Some(hit) = intersect(object, origin, dir, limit) {
+                limit = hit.t;
+                best = Some(hit);
+            }
+        }
+        best
+    }
+
+    fn occluded(&self, origin: &V3, dir: &V3, t_max: f64) -> bool {
+        self.objects.iter().any(|object| {
+            bound_overlaps(object, origin, dir, t_max)
+                && intersect(object, origin, dir, t_max).is_some()
+        })
+    }
+
+    fn trace(&self, origin: &V3, dir: &V3, bounces_left: u32) -> V3 {
+        let Some(hit) = self.closest_hit(origin, dir, f64::INFINITY) else {
+            return self.background;
+        };
+        let prepared = &self.materials[hit.material];
+        let material = &prepared.material;
+        let point = origin + dir * hit.t;
+        let mut normal = hit.normal;
+        if normal.dot(dir) > 0.0 {
+            normal = -normal;
+        }
+        let albedo = prepared.texture.sample(hit.uv);
+        let lifted = point + normal * SURFACE_EPSILON_M * (1.0 + point.norm());
+        let mut diffuse = self.ambient;
+        let mut specular = V3::zeros();
+        for (position, intensity) in &self.lights {
+            let to_light = position - point;
+            let distance = to_light.norm();
+            let l = to_light / distance;
+            let n_dot_l = normal.dot(&l);
+            if n_dot_l <= 0.0 || self.occluded(&lifted, &l, distance) {
+                continue;
+            }
+            diffuse += intensity * (material.diffuse * n_dot_l);
+            if material.specular > 0.0 {
+                let half = (l - dir).normalize();
+                let n_dot_h = normal.dot(&half).max(0.0);
+                specular += intensity * (material.specular * n_dot_h.powf(material.shininess));
+            }
+        }
+        let local = albedo.component_mul(&diffuse) + specular;
+        if material.mirror > 0.0 && bounces_left > 0 {
+            let reflected = dir - normal * (2.0 * dir.dot(&normal));
+            let mirrored = self.trace(&lifted, &reflected, bounces_left - 1);
+            local * (1.0 - material.mirror)
+                + mirrored.component_mul(&v3(material.mirror_tint)) * material.mirror
+        } else {
+            local
+        }
+    }
+
+    /// Renders one view seen from `world_from_camera`.
+    pub fn render(
+        &self,
+        camera: &PinholeCamera,
+        world_from_camera: &Isometry3<f64>,
+        settings: &RenderSettings,
+    ) -> RenderedView {
+        let width = camera.width as usize;
+        let height = camera.height as usize;
+        let offsets = sample_offsets(settings.samples_per_pixel);
+        let inv_samples = 1.0 / offsets.len() as f64;
+        let rotation = world_from_camera.rotation.to_rotation_matrix();
+        let origin = world_from_camera.translation.vector;
+        let gamma_lut: Vec<f64> = (0..=GAMMA_LUT_SIZE)
+            .map(|i| 255.0 * (i as f64 / GAMMA_LUT_SIZE as f64).powf(1.0 / 2.2))
+            .collect();
+        let mut rgb = vec![0u8; width * height * 3];
+        let mut depth_m = vec![0f32; width * height];
+        let mut surface_class = vec![0u8; width * height];
+        rgb.par_chunks_mut(width * 3)
+            .zip(depth_m.par_chunks_mut(width))
+            .zip(surface_class.par_chunks_mut(width))
+            .enumerate()
+            .for_each(|(row, ((rgb_row, depth_row), class_row))| {
+                for col in 0..width {
+                    let mut color = V3::zeros();
+                    for (dx, dy) in &offsets {
+                        let dir_camera = camera.ray_direction(col as f64 + dx, row as f64 + dy);
+                        let dir = rotation * dir_camera;
+                        color += self.trace(&origin, &dir, settings.max_bounces);
+                    }
+                    let dir_camera = camera.ray_direction(col as f64, row as f64);
+                    let dir = rotation * dir_camera;
+                    match self.closest_hit(&origin, &dir, f64::INFINITY) {
+                        Some(hit) => {
+                            depth_row[col] = (hit.t * dir_camera.z) as f32;
+                            class_row[col] = self.materials[hit.material].class as u8;
+                        }
+                        None => {
+                            depth_row[col] = 0.0;
+                            class_row[col] = SurfaceClass::Empty as u8;
+                        }
+                    }
+                    let pixel = (row * width + col) as u64;
+                    for channel in 0..3 {
+                        let linear =
+                            (color[channel] * inv_samples * settings.exposure_gain).clamp(0.0, 1.0);
+                        let display = gamma_lut[(linear * GAMMA_LUT_SIZE as f64) as usize];
+                        let noise = if settings.noise_sigma_levels > 0.0 {
+                            let bits = hash4(settings.noise_seed, pixel, channel as u64, 0);
+                            settings.noise_sigma_levels
+                                * gaussian_from_bits(bits, mix64(bits ^ 0x5851_F42D))
+                        } else {
+                            0.0
+                        };
+                        rgb_row[col * 3 + channel] =
+                            (display + noise).round().clamp(0.0, 255.0) as u8;
+                    }
+                }
+            });
+        RenderedView {
+            width: camera.width,
+            height: camera.height,
+            rgb,
+            depth_m,
+            surface_class,
+        }
+    }
+}
+
+const GAMMA_LUT_SIZE: usize = 4096;
+
+fn sample_offsets(samples_per_pixel: u32) -> Vec<(f64, f64)> {
+    match samples_per_pixel {
+        0 | 1 => vec![(0.0, 0.0)],
+        4 => RGSS_OFFSETS.to_vec(),
+        n => {
+            let side = (f64::from(n).sqrt().ceil() as u32).max(1);
+            let step = 1.0 / f64::from(side);
+            (0..side * side)
+                .map(|i| {
+                    (
+                        (f64::from(i % side) + 0.5) * step - 0.5,
+                        (f64::from(i / side) + 0.5) * step - 0.5,
+                    )
+                })
+                .collect()
+        }
+    }
+}
+
+fn bound_overlaps(object: &Object, origin: &V3, dir: &V3, t_max: f64) -> bool {
+    if !object.bound_radius.is_finite() {
+        return true;
+    }
+    let oc = object.bound_center - origin;
+    let along = oc.dot(dir);
+    let r2 = object.bound_radius * object.bound_radius;
+    let perpendicular2 = oc.norm_squared() - along * along;
+    perpendicular2 <= r2 && along + object.bound_radius > 0.0 && along - object.bound_radius < t_max
+}
+
+fn intersect(object: &Object, origin: &V3, dir: &V3, t_max: f64) -> Option<Hit> {
+    let t_min = SURFACE_EPSILON_M * 0.5;
+    let material = object.material;
+    match &object.geometry {
+        Geometry::Plane {
+            point,
+            normal,
+            u,
+            v,
+        } => {
+            let denom = normal.dot(dir);
+            if denom.abs() < 1e-12 {
+                return None;
+            }
+            let t = (point - origin).dot(normal) / denom;
+            if t <= t_min || t >= t_max {
+                return None;
+            }
+            let p = origin + dir * t - point;
+            Some(Hit {
+                t,
+                normal: *normal,
+                uv: (p.dot(u), p.dot(v)),
+                material,
+            })
+        }
+        Geometry::Sphere { center, radius } => {
+            let oc = origin - center;
+            let b = oc.dot(dir);
+            let c = oc.norm_squared() - radius * radius;
+            let disc = b * b - c;
+            if disc < 0.0 {
+                return None;
+            }
+            let sq = disc.sqrt();
+            let t = if -b - sq > t_min { -b - sq } else { -b + sq };
+            if t <= t_min || t >= t_max {
+                return None;
+            }
+            let local = origin + dir * t - center;
+            let normal = local / *radius;
+            Some(Hit {
+                t,
+                normal,
+                uv: planar_uv(&local, &normal),
+                material,
+            })
+        }
+        Geometry::Box {
+            center,
+            world_from_local,
+            half,
+        } => {
+            let o = world_from_local.tr_mul(&(origin - center));
+            let d = world_from_local.tr_mul(dir);
+            let mut t_near = f64::NEG_INFINITY;
+            let mut t_far = f64::INFINITY;
+            let mut near_axis = 0;
+            let mut far_axis = 0;
+            for axis in 0..3 {
+                if d[axis].abs() < 1e-15 {
+                    if o[axis].abs() > half[axis] {
+                        return None;
+                    }
+                    continue;
+                }
+                let inv = 1.0 / d[axis];
+                let mut t0 = (-half[axis] - o[axis]) * inv;
+                let mut t1 = (half[axis] - o[axis]) * inv;
+                if t0 > t1 {
+                    std::mem::swap(&mut t0, &mut t1);
+                }
+                if t0 > t_near {
+                    t_near = t0;
+                    near_axis = axis;
+                }
+                if t1 < t_far {
+                    t_far = t1;
+                    far_axis = axis;
+                }
+                if t_near > t_far {
+                    return None;
+                }
+            }
+            let (t, axis) = if t_near > t_min {
+                (t_near, near_axis)
+            } else {
+                (t_far, far_axis)
+            };
+            if t <= t_min || t >= t_max {
+                return None;
+            }
+            let local = o + d * t;
+            let mut local_normal = V3::zeros();
+            local_normal[axis] = local[axis].signum();
+            let uv = match axis {
+                0 => (local.y, local.z),
+                1 => (local.x, local.z),
+                _ => (local.x, local.y),
+            };
+            Some(Hit {
+                t,
+                normal: world_from_local * local_normal,
+                uv,
+                material,
+            })
+        }
+        Geometry::Cylinder {
+            center,
+            axis,
+            u,
+            v,
+            radius,
+            half_length,
+        } => {
+            let oc = origin - center;
+            let o_axial = oc.dot(axis);
+            let d_axial = dir.dot(axis);
+            let o_perp = oc - axis * o_axial;
+            let d_perp = dir - axis * d_axial;
+            let mut best: Option<(f64, V3, (f64, f64))> = None;
+            let a = d_perp.norm_squared();
+            if a > 1e-15 {
+                let b = o_perp.dot(&d_perp);
+                let c = o_perp.norm_squared() - radius * radius;
+                let disc = b * b - a * c;
+                if disc >= 0.0 {
+                    let sq = disc.sqrt();
+                    for t in [(-b - sq) / a, (-b + sq) / a] {
+                        if t > t_min && t < t_max {
+                            let h = o_axial + d_axial * t;
+                            if h.abs() <= *half_length {
+                                let radial = o_perp + d_perp * t;
+                                let angle = radial.dot(v).atan2(radial.dot(u));
+                                best = Some((t, radial / *radius, (angle * radius, h)));
+                                break;
+                            }
+                        }
+                    }
+                }
+            }
+            if d_axial.abs() > 1e-15 {
+                for cap in [-*half_length, *half_length] {
+                    let t = (cap - o_axial) / d_axial;
+                    if t > t_min && t < t_max && best.as_ref().is_none_or(|(bt, _, _)| t < *bt) {
+                        let radial = o_perp + d_perp * t;
+                        if radial.norm_squared() <= radius * radius {
+                            best = Some((t, axis * cap.signum(), (radial.dot(u), radial.dot(v))));
+                        }
+                    }
+                }
+            }
+            best.map(|(t, normal, uv)| Hit {
+                t,
+                normal,
+                uv,
+                material,
+            })
+        }
+    }
+}
+
+/// Texture coordinates from the two axes least aligned with the normal.
+fn planar_uv(local: &V3, normal: &V3) -> (f64, f64) {
+    let n = normal.abs();
+    if n.z >= n.x && n.z >= n.y {
+        (local.x, local.y)
+    } else if n.y >= n.x {
+        (local.x, local.z)
+    } else {
+        (local.y, local.z)
+    }
+}
+
+/// Linear colour to a display value (used by tests and the importer's previews).
+pub fn display_value(linear: Rgb) -> [u8; 3] {
+    linear.map(|c| (255.0 * c.clamp(0.0, 1.0).powf(1.0 / 2.2)).round() as u8)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::scene::{Light, SceneKind, SceneObject};
+
+    fn plane_scene(distance_m: f64) -> Scene {
+        Scene {
+            kind: SceneKind::Toy,
+            seed: 0,
+            materials: vec![Material {
+                name: "grey".into(),
+                texture: Texture::Checker {
+                    a: [0.2; 3],
+                    b: [0.8; 3],
+                    cell_m: 0.05,
+                },
+                diffuse: 1.0,
+                specular: 0.0,
+                shininess: 1.0,
+                mirror: 0.0,
+                mirror_tint: [1.0; 3],
+            }],
+            objects: vec![SceneObject {
+                name: "wall".into(),
+                shape: Shape::Plane {
+                    point: [0.0, 0.0, distance_m],
+                    normal: [0.0, 0.0, -1.0],
+                },
+                material: 0,
+            }],
+            lights: vec![Light {
+                position: [0.0, 0.0, 0.0],
+                intensity: [0.5; 3],
+            }],
+            ambient: [0.2; 3],
+            background: [0.0; 3],
+            camera_height_m: distance_m,
+        }
+    }
+
+    #[test]
+    fn fronto_parallel_plane_has_constant_z_depth() {
+        let scene = PreparedScene::new(&plane_scene(0.75));
+        let camera = PinholeCamera::from_horizontal_fov(64, 48, 60.0);
+        let view = scene.render(&camera, &Isometry3::identity(), &RenderSettings::default());
+        assert!(view.depth_m.iter().all(|d| (d - 0.75).abs() < 1e-6));
+        assert!(
+            view.surface_class
+                .iter()
+                .all(|c| *c == SurfaceClass::Diffuse as u8)
+        );
+    }
+
+    #[test]
+    fn rendering_is_deterministic_and_noise_is_seeded() {
+        let scene = PreparedScene::new(&Scene::build(SceneKind::Toy, 3));
+        let camera = PinholeCamera::from_horizontal_fov(48, 32, 60.0);
+        let pose = Isometry3::face_towards(
+            &nalgebra::Point3::new(0.8, 0.0, 0.6),
+            &nalgebra::Point3::new(0.8, 0.0, 0.0),
+            &V3::x(),
+        );
+        let settings = RenderSettings::default();
+        let a = scene.render(&camera, &pose, &settings);
+        let b = scene.render(&camera, &pose, &settings);
+        assert_eq!(a, b);
+        let c = scene.render(
+            &camera,
+            &pose,
+            &RenderSettings {
+                noise_seed: 99,
+                ..settings
+            },
+        );
+        assert_ne!(a.rgb, c.rgb);
+        assert_eq!(a.depth_m, c.depth_m);
+    }
+
+    #[test]
+    fn shapes_report_correct_distances() {
+        let origin = V3::zeros();
+        let dir = V3::z();
+        let sphere = Object {
+            geometry: Geometry::Sphere {
+                center: V3::new(0.0, 0.0, 2.0),
+                radius: 0.5,
+            },
+            material: 0,
+            bound_center: V3::new(0.0, 0.0, 2.0),
+            bound_radius: 0.5,
+        };
+        assert!((intersect(&sphere, &origin, &dir, 10.0).unwrap().t - 1.5).abs() < 1e-12);
+        let cube = Object {
+            geometry: Geometry::Box {
+                center: V3::new(0.0, 0.0, 3.0),
+                world_from_local: Matrix3::identity(),
+                half: V3::repeat(0.25),
+            },
+            material: 0,
+            bound_center: V3::new(0.0, 0.0, 3.0),
+            bound_radius: 0.5,
+        };
+        let hit = intersect(&cube, &origin, &dir, 10.0).unwrap();
+        assert!((hit.t - 2.75).abs() < 1e-12 && (hit.normal + V3::z()).norm() < 1e-12);
+        let rod = Object {
+            geometry: Geometry::Cylinder {
+                center: V3::new(0.0, 0.0, 1.0),
+                axis: V3::x(),
+                u: V3::y(),
+                v: V3::z(),
+                radius: 0.1,
+                half_length: 1.0,
+            },
+            material: 0,
+            bound_center: V3::new(0.0, 0.0, 1.0),
+            bound_radius: 1.01,
+        };
+        assert!((intersect(&rod, &origin, &dir, 10.0).unwrap().t - 0.9).abs() < 1e-12);
+        let can = Object {
+            geometry: Geometry::Cylinder {
+                center: V3::new(0.0, 0.0, 1.0),
+                axis: V3::z(),
+                u: V3::x(),
+                v: V3::y(),
+                radius: 0.1,
+                half_length: 0.2,
+            },
+            material: 0,
+            bound_center: V3::new(0.0, 0.0, 1.0),
+            bound_radius: 0.3,
+        };
+        let cap = intersect(&can, &origin, &dir, 10.0).unwrap();
+        assert!((cap.t - 0.8).abs() < 1e-12 && (cap.normal + V3::z()).norm() < 1e-12);
+    }
+}

@@ -1,0 +1,127 @@
+//! Multiscopic rig layouts: which views a set has, their roles and their offsets on the grid of
+//! camera positions (in baselines, along the reference camera's own x and y axes).
+
+use serde::{Deserialize, Serialize};
+
+/// The role of the reference view in every layout.
+pub const REFERENCE_ROLE: &str = "center";
+
+/// Rig layouts.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum RigKind {
+    /// Centre, left, right, top, bottom (the paper's five-view rig).
+    FiveView,
+    /// Left, centre, right on one horizontal line (the paper's Middlebury setting).
+    ThreeView,
+    /// Centre (reference) and right: two-view stereo.
+    Stereo,
+    /// 3 × 3 grid of views around the centre.
+    #[value(name = "grid3x3")]
+    #[serde(rename = "grid3x3")]
+    Grid3x3,
+}
+
+/// One view position of a rig.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ViewSlot {
+    /// Role name, readable in topics and entity paths (`center`, `left`, `top-right`, …).
+    pub role: &'static str,
+    /// Offset in baselines: `[dx, dy]` along the reference camera's x (right) and y (down) axes.
+    pub grid_offset: [i32; 2],
+}
+
+const fn slot(role: &'static str, dx: i32, dy: i32) -> ViewSlot {
+    ViewSlot {
+        role,
+        grid_offset: [dx, dy],
+    }
+}
+
+impl RigKind {
+    /// Views in capture order; the reference (`center`) comes first so that the neighbours are
+    /// planned from where the reference camera actually was.
+    pub fn capture_order(self) -> Vec<ViewSlot> {
+        match self {
+            Self::FiveView => vec![
+                slot("center", 0, 0),
+                slot("left", -1, 0),
+                slot("right", 1, 0),
+                slot("top", 0, -1),
+                slot("bottom", 0, 1),
+            ],
+            Self::ThreeView => vec![
+                slot("center", 0, 0),
+                slot("left", -1, 0),
+                slot("right", 1, 0),
+            ],
+            Self::Stereo => vec![slot("center", 0, 0), slot("right", 1, 0)],
+            Self::Grid3x3 => vec![
+                slot("center", 0, 0),
+                slot("top-left", -1, -1),
+                slot("top", 0, -1),
+                slot("top-right", 1, -1),
+                slot("right", 1, 0),
+                slot("bottom-right", 1, 1),
+                slot("bottom", 0, 1),
+                slot("bottom-left", -1, 1),
+                slot("left", -1, 0),
+            ],
+        }
+    }
+
+    /// Views in the layout's documented file order (what `record import --views` lists):
+    /// five-view: center, left, right, top, bottom; three-view: left, center, right; stereo:
+    /// center, right; grid3x3: row-major from top-left.
+    pub fn file_order(self) -> Vec<ViewSlot> {
+        match self {
+            Self::ThreeView => vec![
+                slot("left", -1, 0),
+                slot("center", 0, 0),
+                slot("right", 1, 0),
+            ],
+            Self::Grid3x3 => {
+                let mut slots = self.capture_order();
+                slots.sort_by_key(|s| (s.grid_offset[1], s.grid_offset[0]));
+                slots
+            }
+            other => other.capture_order(),
+        }
+    }
+
+    /// The name used on the command line and in the log.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::FiveView => "five-view",
+            Self::ThreeView => "three-view",
+            Self::Stereo => "stereo",
+            Self::Grid3x3 => "grid3x3",
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_rig_has_one_reference_first_and_unique_roles() {
+        for rig in [
+            RigKind::FiveView,
+            RigKind::ThreeView,
+            RigKind::Stereo,
+            RigKind::Grid3x3,
+        ] {
+            let order = rig.capture_order();
+            assert_eq!(order[0].role, REFERENCE_ROLE);
+            assert_eq!(order[0].grid_offset, [0, 0]);
+            let mut roles: Vec<_> = order.iter().map(|s| s.role).collect();
+            roles.sort_unstable();
+            roles.dedup();
+            assert_eq!(roles.len(), order.len());
+            assert_eq!(rig.file_order().len(), order.len());
+        }
+        assert_eq!(RigKind::Grid3x3.file_order()[0].role, "top-left");
+        assert_eq!(RigKind::ThreeView.file_order()[1].role, "center");
+    }
+}

@@ -1,0 +1,815 @@
+//! Procedural scenes: shapes, materials, procedural textures and lights, in the robot's base
+//! frame (`world`, z up, the table top at z = 0, the arm's base at the origin).
+//!
+//! A scene is plain data (serde), so the effective scene of a recording is attached to the log
+//! as JSON. [`SceneKind`] builds the three built-in families: `toy` (the paper's textured toy
+//! scene), `workpiece` (a reflective metal part on a metal table: the hard case) and `random`
+//! (varied scenes from the seed, the synthetic training set).
+
+use serde::{Deserialize, Serialize};
+
+use crate::rng::SplitMix64;
+
+/// Where the arm looks: the centre of the work area on the table (m, world frame).
+pub const WORK_AREA_CENTER_M: [f64; 3] = [0.80, 0.0, 0.0];
+
+/// An RGB colour, linear, components in [0, 1].
+pub type Rgb = [f64; 3];
+
+/// The scene families `record --scene` offers.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum SceneKind {
+    /// Textured toys, blocks, a ball, pencils and a textureless box on a wooden table.
+    Toy,
+    /// A mirror-like machined metal part and bolts on a brushed-metal table.
+    Workpiece,
+    /// Varied geometry, textures, materials and depth ranges drawn from the seed.
+    Random,
+}
+
+/// A texture: a function from surface coordinates (m) to albedo.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case", tag = "type")]
+pub enum Texture {
+    /// One colour: a textureless surface.
+    Solid {
+        /// Albedo.
+        rgb: Rgb,
+    },
+    /// A checkerboard.
+    Checker {
+        /// First colour.
+        a: Rgb,
+        /// Second colour.
+        b: Rgb,
+        /// Cell size (m).
+        cell_m: f64,
+    },
+    /// Parallel stripes.
+    Stripes {
+        /// First colour.
+        a: Rgb,
+        /// Second colour.
+        b: Rgb,
+        /// Stripe period (m).
+        period_m: f64,
+        /// Stripe direction in the surface plane (degrees).
+        angle_deg: f64,
+    },
+    /// Fractal value noise blending two colours (wood, stone, brushed metal).
+    Noise {
+        /// Colour at noise 0.
+        a: Rgb,
+        /// Colour at noise 1.
+        b: Rgb,
+        /// Feature size of the coarsest octave (m).
+        scale_m: f64,
+        /// Stretch along the surface u axis (1 = isotropic, > 1 = brushed or grain).
+        anisotropy: f64,
+        /// Noise seed.
+        seed: u64,
+    },
+    /// Random coloured cells (a "patches" pattern like printed packaging).
+    Patches {
+        /// Colours drawn per cell.
+        palette: Vec<Rgb>,
+        /// Cell size (m).
+        cell_m: f64,
+        /// Pattern seed.
+        seed: u64,
+    },
+}
+
+/// Surface reflectance: diffuse albedo texture, Blinn-Phong highlight, mirror reflection.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Material {
+    /// Human-readable name.
+    pub name: String,
+    /// Albedo texture.
+    pub texture: Texture,
+    /// Diffuse weight.
+    pub diffuse: f64,
+    /// Blinn-Phong specular weight.
+    pub specular: f64,
+    /// Blinn-Phong exponent.
+    pub shininess: f64,
+    /// Fraction of light mirrored (0 = matte, 1 = perfect mirror).
+    pub mirror: f64,
+    /// Colour of the mirrored light (metal tint).
+    pub mirror_tint: Rgb,
+}
+
+/// Specular weight above which a surface counts as glossy in the ground-truth mask.
+pub const GLOSSY_SPECULAR_THRESHOLD: f64 = 0.25;
+/// Mirror fraction above which a surface counts as a mirror in the ground-truth mask.
+pub const MIRROR_THRESHOLD: f64 = 0.05;
+
+/// Ground-truth surface class logged per pixel (`mono8`): view-dependent surfaces break the
+/// photo-consistency that matching relies on.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[repr(u8)]
+pub enum SurfaceClass {
+    /// Lambertian or weakly glossy: photo-consistent across views.
+    Diffuse = 0,
+    /// Strong Blinn-Phong highlights.
+    Glossy = 128,
+    /// Mirror-like metal: shows reflections of the scene.
+    Mirror = 255,
+    /// No surface hit (nothing visible along the ray).
+    Empty = 64,
+}
+
+impl Material {
+    /// The ground-truth class of this material.
+    pub fn surface_class(&self) -> SurfaceClass {
+        if self.mirror > MIRROR_THRESHOLD {
+            SurfaceClass::Mirror
+        } else if self.specular > GLOSSY_SPECULAR_THRESHOLD {
+            SurfaceClass::Glossy
+        } else {
+            SurfaceClass::Diffuse
+        }
+    }
+
+    fn matte(name: &str, texture: Texture) -> Self {
+        Self {
+            name: name.to_owned(),
+            texture,
+            diffuse: 0.9,
+            specular: 0.05,
+            shininess: 16.0,
+            mirror: 0.0,
+            mirror_tint: [1.0; 3],
+        }
+    }
+
+    fn glossy(name: &str, texture: Texture) -> Self {
+        Self {
+            specular: 0.45,
+            shininess: 60.0,
+            diffuse: 0.8,
+            ..Self::matte(name, texture)
+        }
+    }
+
+    fn metal(name: &str, texture: Texture, mirror: f64) -> Self {
+        Self {
+            name: name.to_owned(),
+            texture,
+            diffuse: 0.35,
+            specular: 0.8,
+            shininess: 120.0,
+            mirror,
+            mirror_tint: [0.92, 0.93, 0.95],
+        }
+    }
+}
+
+/// A geometric primitive in the world frame.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case", tag = "type")]
+pub enum Shape {
+    /// An infinite plane.
+    Plane {
+        /// A point on the plane (m).
+        point: [f64; 3],
+        /// Unit normal.
+        normal: [f64; 3],
+    },
+    /// An oriented box.
+    Box {
+        /// Centre (m).
+        center: [f64; 3],
+        /// Half sizes along the box's own axes (m).
+        half_extents_m: [f64; 3],
+        /// Rotation about world z (yaw, degrees), then about the box x axis (tilt, degrees).
+        yaw_deg: f64,
+        /// Tilt about the box's x axis (degrees).
+        tilt_deg: f64,
+    },
+    /// A sphere.
+    Sphere {
+        /// Centre (m).
+        center: [f64; 3],
+        /// Radius (m).
+        radius_m: f64,
+    },
+    /// A capped cylinder (thin ones make wires and pencils).
+    Cylinder {
+        /// Centre of the axis segment (m).
+        center: [f64; 3],
+        /// Axis direction (normalised on use).
+        axis: [f64; 3],
+        /// Radius (m).
+        radius_m: f64,
+        /// Half length along the axis (m).
+        half_length_m: f64,
+    },
+}
+
+/// A shape with a material.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SceneObject {
+    /// Name (for humans and the attached scene description).
+    pub name: String,
+    /// Geometry.
+    pub shape: Shape,
+    /// Index into [`Scene::materials`].
+    pub material: usize,
+}
+
+/// A point light with hard shadows.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Light {
+    /// Position (m, world).
+    pub position: [f64; 3],
+    /// Radiance scale per channel.
+    pub intensity: Rgb,
+}
+
+/// A complete scene.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Scene {
+    /// Which family built it.
+    pub kind: SceneKind,
+    /// Seed it was built from.
+    pub seed: u64,
+    /// Materials referenced by index.
+    pub materials: Vec<Material>,
+    /// Objects.
+    pub objects: Vec<SceneObject>,
+    /// Lights.
+    pub lights: Vec<Light>,
+    /// Ambient light level.
+    pub ambient: Rgb,
+    /// Colour seen where a ray escapes.
+    pub background: Rgb,
+    /// Suggested distance from the camera to the table for this scene (m).
+    pub camera_height_m: f64,
+}
+
+impl Scene {
+    /// Builds the scene of a family for a seed.
+    pub fn build(kind: SceneKind, seed: u64) -> Self {
+        match kind {
+            SceneKind::Toy => toy_scene(seed),
+            SceneKind::Workpiece => workpiece_scene(seed),
+            SceneKind::Random => random_scene(seed),
+        }
+    }
+
+    fn add_material(&mut self, material: Material) -> usize {
+        self.materials.push(material);
+        self.materials.len() - 1
+    }
+
+    fn add(&mut self, name: &str, shape: Shape, material: usize) {
+        self.objects.push(SceneObject {
+            name: name.to_owned(),
+            shape,
+            material,
+        });
+    }
+
+    fn empty(kind: SceneKind, seed: u64, camera_height_m: f64) -> Self {
+        Self {
+            kind,
+            seed,
+            materials: Vec::new(),
+            objects: Vec::new(),
+            lights: Vec::new(),
+            ambient: [0.18; 3],
+            background: [0.55, 0.6, 0.65],
+            camera_height_m,
+        }
+    }
+
+    /// Room around the table so that reflections and grazing rays see something.
+    fn add_room(&mut self) {
+        let wall = self.add_material(Material::matte(
+            "wall",
+            Texture::Noise {
+                a: [0.55, 0.55, 0.52],
+                b: [0.7, 0.68, 0.64],
+                scale_m: 0.4,
+                anisotropy: 1.0,
+                seed: 7,
+            },
+        ));
+        let c = WORK_AREA_CENTER_M;
+        self.add(
+            "back_wall",
+            Shape::Plane {
+                point: [c[0] + 1.6, 0.0, 0.0],
+                normal: [-1.0, 0.0, 0.0],
+            },
+            wall,
+        );
+        // Ceiling panels and fittings: what mirror-like metal reflects.
+        let ceiling = self.add_material(Material::matte(
+            "ceiling_panels",
+            Texture::Patches {
+                palette: vec![
+                    [0.75, 0.75, 0.72],
+                    [0.35, 0.37, 0.4],
+                    [0.95, 0.95, 0.9],
+                    [0.2, 0.22, 0.25],
+                    [0.6, 0.5, 0.4],
+                ],
+                cell_m: 0.08,
+                seed: 11,
+            },
+        ));
+        self.add(
+            "ceiling",
+            Shape::Plane {
+                point: [0.0, 0.0, 2.6],
+                normal: [0.0, 0.0, -1.0],
+            },
+            ceiling,
+        );
+    }
+
+    fn add_lights(&mut self, rng: &mut SplitMix64) {
+        let c = WORK_AREA_CENTER_M;
+        self.lights.push(Light {
+            position: [
+                c[0] + rng.range(-0.6, 0.6),
+                c[1] + rng.range(-1.0, -0.4),
+                1.9,
+            ],
+            intensity: [0.62, 0.6, 0.57],
+        });
+        self.lights.push(Light {
+            position: [c[0] + rng.range(-0.6, 0.6), c[1] + rng.range(0.4, 1.0), 2.1],
+            intensity: [0.3, 0.32, 0.35],
+        });
+    }
+}
+
+fn table(scene: &mut Scene, material: usize) {
+    scene.add(
+        "table",
+        Shape::Plane {
+            point: [0.0, 0.0, 0.0],
+            normal: [0.0, 0.0, 1.0],
+        },
+        material,
+    );
+}
+
+fn toy_scene(seed: u64) -> Scene {
+    let mut rng = SplitMix64::new(seed ^ 0x746f_79);
+    let mut scene = Scene::empty(SceneKind::Toy, seed, 0.62);
+    let wood = scene.add_material(Material::matte(
+        "wood",
+        Texture::Noise {
+            a: [0.45, 0.3, 0.17],
+            b: [0.7, 0.5, 0.3],
+            scale_m: 0.012,
+            anisotropy: 5.0,
+            seed: rng.next_u64(),
+        },
+    ));
+    table(&mut scene, wood);
+    scene.add_room();
+    let checker = scene.add_material(Material::matte(
+        "checker",
+        Texture::Checker {
+            a: [0.85, 0.2, 0.15],
+            b: [0.95, 0.9, 0.8],
+            cell_m: 0.02,
+        },
+    ));
+    let patches = scene.add_material(Material::matte(
+        "patches",
+        Texture::Patches {
+            palette: vec![
+                [0.9, 0.75, 0.1],
+                [0.1, 0.35, 0.8],
+                [0.15, 0.6, 0.25],
+                [0.85, 0.85, 0.85],
+                [0.6, 0.1, 0.5],
+            ],
+            cell_m: 0.012,
+            seed: rng.next_u64(),
+        },
+    ));
+    let stripes = scene.add_material(Material::glossy(
+        "stripes",
+        Texture::Stripes {
+            a: [0.1, 0.1, 0.12],
+            b: [0.9, 0.8, 0.2],
+            period_m: 0.015,
+            angle_deg: 30.0,
+        },
+    ));
+    let plain = scene.add_material(Material::matte(
+        "textureless",
+        Texture::Solid {
+            rgb: [0.8, 0.8, 0.78],
+        },
+    ));
+    let stone = scene.add_material(Material::matte(
+        "stone",
+        Texture::Noise {
+            a: [0.25, 0.3, 0.35],
+            b: [0.75, 0.72, 0.65],
+            scale_m: 0.015,
+            anisotropy: 1.0,
+            seed: rng.next_u64(),
+        },
+    ));
+    let pencil = scene.add_material(Material::glossy(
+        "pencil",
+        Texture::Solid {
+            rgb: [0.9, 0.55, 0.05],
+        },
+    ));
+    let c = WORK_AREA_CENTER_M;
+    scene.add(
+        "checker_block",
+        Shape::Box {
+            center: [c[0] - 0.05, c[1] - 0.12, 0.06],
+            half_extents_m: [0.05, 0.07, 0.06],
+            yaw_deg: 20.0,
+            tilt_deg: 0.0,
+        },
+        checker,
+    );
+    scene.add(
+        "patch_box",
+        Shape::Box {
+            center: [c[0] + 0.1, c[1] + 0.08, 0.04],
+            half_extents_m: [0.08, 0.05, 0.04],
+            yaw_deg: -15.0,
+            tilt_deg: 0.0,
+        },
+        patches,
+    );
+    scene.add(
+        "ball",
+        Shape::Sphere {
+            center: [c[0] - 0.09, c[1] + 0.12, 0.055],
+            radius_m: 0.055,
+        },
+        stone,
+    );
+    scene.add(
+        "striped_can",
+        Shape::Cylinder {
+            center: [c[0] + 0.12, c[1] - 0.1, 0.07],
+            axis: [0.0, 0.0, 1.0],
+            radius_m: 0.035,
+            half_length_m: 0.07,
+        },
+        stripes,
+    );
+    scene.add(
+        "textureless_box",
+        Shape::Box {
+            center: [c[0] + 0.02, c[1] + 0.0, 0.025],
+            half_extents_m: [0.04, 0.04, 0.025],
+            yaw_deg: 40.0,
+            tilt_deg: 0.0,
+        },
+        plain,
+    );
+    for (i, (dx, dy, yaw)) in [
+        (-0.16, -0.02, 10.0f64),
+        (0.16, 0.14, 80.0),
+        (-0.02, 0.2, -35.0),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let yaw = yaw.to_radians();
+        scene.add(
+            &format!("pencil_{i}"),
+            Shape::Cylinder {
+                center: [c[0] + dx, c[1] + dy, 0.004],
+                axis: [yaw.cos(), yaw.sin(), 0.0],
+                radius_m: 0.004,
+                half_length_m: 0.08,
+            },
+            pencil,
+        );
+    }
+    // A thin wire arch standing above the table: a thin structure in front of the background.
+    scene.add(
+        "wire",
+        Shape::Cylinder {
+            center: [c[0] - 0.02, c[1] - 0.02, 0.15],
+            axis: [0.3, 1.0, 0.0],
+            radius_m: 0.0025,
+            half_length_m: 0.2,
+        },
+        pencil,
+    );
+    scene.add_lights(&mut rng);
+    scene
+}
+
+fn workpiece_scene(seed: u64) -> Scene {
+    let mut rng = SplitMix64::new(seed ^ 0x776f_726b);
+    let mut scene = Scene::empty(SceneKind::Workpiece, seed, 0.6);
+    let brushed = scene.add_material(Material::metal(
+        "brushed_steel_table",
+        Texture::Noise {
+            a: [0.42, 0.43, 0.45],
+            b: [0.62, 0.63, 0.66],
+            scale_m: 0.01,
+            anisotropy: 12.0,
+            seed: rng.next_u64(),
+        },
+        0.25,
+    ));
+    table(&mut scene, brushed);
+    scene.add_room();
+    let polished = scene.add_material(Material::metal(
+        "polished_aluminium",
+        Texture::Noise {
+            a: [0.55, 0.56, 0.58],
+            b: [0.7, 0.71, 0.73],
+            scale_m: 0.02,
+            anisotropy: 1.0,
+            seed: rng.next_u64(),
+        },
+        0.75,
+    ));
+    let bolt = scene.add_material(Material::metal(
+        "zinc_bolt",
+        Texture::Solid {
+            rgb: [0.6, 0.6, 0.55],
+        },
+        0.4,
+    ));
+    let cardboard = scene.add_material(Material::matte(
+        "cardboard_label",
+        Texture::Patches {
+            palette: vec![
+                [0.7, 0.55, 0.35],
+                [0.15, 0.15, 0.15],
+                [0.85, 0.8, 0.7],
+                [0.75, 0.2, 0.1],
+            ],
+            cell_m: 0.01,
+            seed: rng.next_u64(),
+        },
+    ));
+    let rubber = scene.add_material(Material::matte(
+        "rubber_mat",
+        Texture::Checker {
+            a: [0.12, 0.12, 0.12],
+            b: [0.3, 0.3, 0.32],
+            cell_m: 0.015,
+        },
+    ));
+    let c = WORK_AREA_CENTER_M;
+    scene.add(
+        "rubber_mat",
+        Shape::Box {
+            center: [c[0] - 0.14, c[1] + 0.1, 0.002],
+            half_extents_m: [0.09, 0.11, 0.002],
+            yaw_deg: 5.0,
+            tilt_deg: 0.0,
+        },
+        rubber,
+    );
+    // The machined part: a flange plate with a boss and a shaft.
+    scene.add(
+        "part_plate",
+        Shape::Box {
+            center: [c[0] + 0.02, c[1] - 0.02, 0.015],
+            half_extents_m: [0.1, 0.07, 0.015],
+            yaw_deg: 12.0,
+            tilt_deg: 0.0,
+        },
+        polished,
+    );
+    scene.add(
+        "part_boss",
+        Shape::Cylinder {
+            center: [c[0] + 0.03, c[1] - 0.02, 0.05],
+            axis: [0.0, 0.0, 1.0],
+            radius_m: 0.045,
+            half_length_m: 0.02,
+        },
+        polished,
+    );
+    scene.add(
+        "part_shaft",
+        Shape::Cylinder {
+            center: [c[0] + 0.03, c[1] - 0.02, 0.1],
+            axis: [0.0, 0.0, 1.0],
+            radius_m: 0.015,
+            half_length_m: 0.04,
+        },
+        polished,
+    );
+    scene.add(
+        "part_ball",
+        Shape::Sphere {
+            center: [c[0] - 0.1, c[1] - 0.13, 0.04],
+            radius_m: 0.04,
+        },
+        polished,
+    );
+    for i in 0..5 {
+        let angle = f64::from(i) * 0.9 + rng.range(0.0, 0.3);
+        let x = c[0] + 0.13 + 0.04 * angle.cos();
+        let y = c[1] + 0.12 + 0.05 * angle.sin();
+        scene.add(
+            &format!("bolt_{i}"),
+            Shape::Cylinder {
+                center: [x, y, 0.008],
+                axis: [angle.cos(), angle.sin(), 0.0],
+                radius_m: 0.006,
+                half_length_m: 0.03,
+            },
+            bolt,
+        );
+    }
+    scene.add(
+        "label_box",
+        Shape::Box {
+            center: [c[0] - 0.16, c[1] - 0.02, 0.045],
+            half_extents_m: [0.035, 0.05, 0.045],
+            yaw_deg: -8.0,
+            tilt_deg: 0.0,
+        },
+        cardboard,
+    );
+    scene.add_lights(&mut rng);
+    scene
+}
+
+fn random_color(rng: &mut SplitMix64) -> Rgb {
+    [
+        rng.range(0.05, 0.95),
+        rng.range(0.05, 0.95),
+        rng.range(0.05, 0.95),
+    ]
+}
+
+fn random_texture(rng: &mut SplitMix64) -> Texture {
+    match rng.below(10) {
+        0 | 1 => Texture::Solid {
+            rgb: random_color(rng),
+        },
+        2 | 3 => Texture::Checker {
+            a: random_color(rng),
+            b: random_color(rng),
+            cell_m: rng.range(0.004, 0.05),
+        },
+        4 | 5 => Texture::Stripes {
+            a: random_color(rng),
+            b: random_color(rng),
+            period_m: rng.range(0.004, 0.04),
+            angle_deg: rng.range(0.0, 180.0),
+        },
+        6 | 7 => Texture::Noise {
+            a: random_color(rng),
+            b: random_color(rng),
+            scale_m: rng.range(0.004, 0.08),
+            anisotropy: if rng.below(3) == 0 {
+                rng.range(2.0, 12.0)
+            } else {
+                1.0
+            },
+            seed: rng.next_u64(),
+        },
+        _ => Texture::Patches {
+            palette: (0..rng.range_usize(2, 6))
+                .map(|_| random_color(rng))
+                .collect(),
+            cell_m: rng.range(0.003, 0.03),
+            seed: rng.next_u64(),
+        },
+    }
+}
+
+fn random_material(rng: &mut SplitMix64, name: &str) -> Material {
+    let texture = random_texture(rng);
+    match rng.below(10) {
+        0..=5 => Material::matte(name, texture),
+        6..=7 => Material::glossy(name, texture),
+        _ => Material::metal(name, texture, rng.range(0.2, 0.85)),
+    }
+}
+
+fn random_scene(seed: u64) -> Scene {
+    let mut rng = SplitMix64::new(seed ^ 0x7261_6e64);
+    let camera_height_m = rng.range(0.4, 1.1);
+    let mut scene = Scene::empty(SceneKind::Random, seed, camera_height_m);
+    let table_material = random_material(&mut rng, "table");
+    let table_material = scene.add_material(table_material);
+    table(&mut scene, table_material);
+    scene.add_room();
+    // Field of view at table height scales with the camera height; spread objects over it.
+    let spread = 0.45 * camera_height_m;
+    let object_count = rng.range_usize(6, 26);
+    let c = WORK_AREA_CENTER_M;
+    for index in 0..object_count {
+        let material = random_material(&mut rng, &format!("material_{index}"));
+        let material = scene.add_material(material);
+        let x = c[0] + rng.range(-spread, spread);
+        let y = c[1] + rng.range(-spread, spread);
+        let size = rng.range(0.01, 0.12) * camera_height_m / 0.6;
+        // Some objects float at varied heights (shelves, hanging parts): depth variety.
+        let lift = if rng.below(4) == 0 {
+            rng.range(0.0, 0.45 * camera_height_m)
+        } else {
+            0.0
+        };
+        let shape = match rng.below(8) {
+            0..=2 => Shape::Box {
+                center: [x, y, lift + size],
+                half_extents_m: [size * rng.range(0.4, 1.5), size * rng.range(0.4, 1.5), size],
+                yaw_deg: rng.range(0.0, 90.0),
+                tilt_deg: if lift > 0.0 {
+                    rng.range(-30.0, 30.0)
+                } else {
+                    0.0
+                },
+            },
+            3 | 4 => Shape::Sphere {
+                center: [x, y, lift + size],
+                radius_m: size,
+            },
+            5 | 6 => {
+                let upright = rng.below(2) == 0;
+                let yaw = rng.range(0.0, std::f64::consts::TAU);
+                let radius = size * rng.range(0.3, 0.8);
+                Shape::Cylinder {
+                    center: [x, y, lift + if upright { size } else { radius }],
+                    axis: if upright {
+                        [0.0, 0.0, 1.0]
+                    } else {
+                        [yaw.cos(), yaw.sin(), 0.0]
+                    },
+                    radius_m: radius,
+                    half_length_m: size,
+                }
+            }
+            _ => {
+                // Thin structure: a rod or wire, possibly slanted and floating.
+                let yaw = rng.range(0.0, std::f64::consts::TAU);
+                let pitch = rng.range(-0.4, 0.4);
+                Shape::Cylinder {
+                    center: [x, y, lift + 0.01],
+                    axis: [
+                        yaw.cos() * pitch.cos(),
+                        yaw.sin() * pitch.cos(),
+                        pitch.sin().abs() * 0.2,
+                    ],
+                    radius_m: rng.range(0.0015, 0.006),
+                    half_length_m: rng.range(0.05, 0.25),
+                }
+            }
+        };
+        scene.add(&format!("object_{index}"), shape, material);
+    }
+    scene.ambient = [rng.range(0.1, 0.3); 3];
+    scene.add_lights(&mut rng);
+    scene
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn random_scenes_vary_with_the_seed() {
+        let a = Scene::build(SceneKind::Random, 1);
+        let b = Scene::build(SceneKind::Random, 2);
+        assert_ne!(a, b);
+        assert_eq!(a, Scene::build(SceneKind::Random, 1));
+        let heights: Vec<f64> = (0..20)
+            .map(|s| Scene::build(SceneKind::Random, s).camera_height_m)
+            .collect();
+        let (min, max) = heights
+            .iter()
+            .fold((f64::MAX, f64::MIN), |(lo, hi), h| (lo.min(*h), hi.max(*h)));
+        assert!(
+            max - min > 0.3,
+            "camera heights {min}..{max} do not vary the depth range"
+        );
+        let counts: Vec<usize> = (0..20)
+            .map(|s| Scene::build(SceneKind::Random, s).objects.len())
+            .collect();
+        assert!(counts.iter().max() > counts.iter().min());
+    }
+
+    #[test]
+    fn workpiece_has_mirror_metal() {
+        let scene = Scene::build(SceneKind::Workpiece, 0);
+        assert!(
+            scene
+                .materials
+                .iter()
+                .any(|m| m.surface_class() == SurfaceClass::Mirror)
+        );
+    }
+}
