@@ -1,1 +1,216 @@
-//! x
+//! Helpers for the end-to-end tests: locating (and building) the real binaries, the Python
+//! reference clients, and reading logs back through the `mcap` crate.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+use std::sync::OnceLock;
+
+use foxglove::messages::{FrameTransforms, RawImage};
+use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
+use record::log::{CAPTURE_EVENTS_TOPIC, CaptureEvent, TF_TOPIC};
+
+/// The workspace root.
+pub fn workspace_root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .map(Path::to_path_buf)
+        .unwrap_or_else(|| PathBuf::from("."))
+}
+
+/// `../shared/data` beside the checkout, where the real evaluation scenes live.
+pub fn shared_data() -> PathBuf {
+    workspace_root().join("../shared/data")
+}
+
+/// Path of a workspace binary in the profile the tests run with, built on first use so that the
+/// tests never run a stale binary.
+pub fn binary(name: &str) -> PathBuf {
+    static BUILT: OnceLock<Result<(), String>> = OnceLock::new();
+    let profile_dir = std::env::current_exe()
+        .ok()
+        .and_then(|exe| exe.parent().and_then(Path::parent).map(Path::to_path_buf))
+        .unwrap_or_else(|| workspace_root().join("target/debug"));
+    let built = BUILT.get_or_init(|| {
+        let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+        let mut command = Command::new(cargo);
+        command
+            .current_dir(workspace_root())
+            .args(["build", "--workspace", "--bins", "--quiet"]);
+        if profile_dir.ends_with("release") {
+            command.arg("--release");
+        }
+        match command.status() {
+            Ok(status) if status.success() => Ok(()),
+            Ok(status) => Err(format!("cargo build of the binaries failed: {status}")),
+            Err(e) => Err(format!("cannot run cargo to build the binaries: {e}")),
+        }
+    });
+    if let Err(message) = built {
+        panic!("{message}");
+    }
+    profile_dir.join(name)
+}
+
+/// Runs a command and returns its output (panics only if it cannot start).
+pub fn run(command: &mut Command) -> Output {
+    match command.output() {
+        Ok(output) => output,
+        Err(e) => panic!("cannot run {command:?}: {e}"),
+    }
+}
+
+/// Runs `record` with arguments.
+pub fn record(args: &[&str]) -> Output {
+    run(Command::new(binary("record")).args(args))
+}
+
+/// Asserts success and returns stderr for messages.
+pub fn assert_success(output: &Output, what: &str) {
+    assert!(
+        output.status.success(),
+        "{what} failed with {:?}\nstdout:\n{}\nstderr:\n{}",
+        output.status.code(),
+        String::from_utf8_lossy(&output.stdout),
+        String::from_utf8_lossy(&output.stderr)
+    );
+}
+
+/// The Python interpreter with the reference MCAP clients: `$MULTISCOPIC_PYTHON`, else the
+/// checkout's `.venv` that `.ci/run` creates. Panics with instructions when neither works,
+/// so that a missing client fails the test instead of passing silently.
+pub fn python_with_mcap() -> PathBuf {
+    let candidate = std::env::var_os("MULTISCOPIC_PYTHON")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| workspace_root().join(".venv/bin/python"));
+    let probe = Command::new(&candidate)
+        .args(["-c", "import mcap, mcap_protobuf"])
+        .output();
+    match probe {
+        Ok(output) if output.status.success() => candidate,
+        _ => panic!(
+            "the Python MCAP clients are missing: {} cannot import mcap and mcap_protobuf. \
+             Run .ci/run once (it creates .venv with `pip install mcap mcap-protobuf-support`) \
+             or set MULTISCOPIC_PYTHON to an interpreter that has them.",
+            candidate.display()
+        ),
+    }
+}
+
+/// One message of a log.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LoggedMessage {
+    /// Topic.
+    pub topic: String,
+    /// Log time (ns).
+    pub log_time: u64,
+    /// Payload.
+    pub data: Vec<u8>,
+}
+
+/// A whole log read into memory (for small test logs).
+#[derive(Debug, Clone)]
+pub struct Log {
+    /// Messages in file order.
+    pub messages: Vec<LoggedMessage>,
+    /// Metadata records by name.
+    pub metadata: BTreeMap<String, BTreeMap<String, String>>,
+}
+
+impl Log {
+    /// Reads a log with the `mcap` crate (CRCs checked by the reader).
+    pub fn read(path: &Path) -> Self {
+        let bytes =
+            std::fs::read(path).unwrap_or_else(|e| panic!("cannot read {}: {e}", path.display()));
+        let mut messages = Vec::new();
+        for message in
+            mcap::MessageStream::new(&bytes).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+        {
+            let message = message.unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+            messages.push(LoggedMessage {
+                topic: message.channel.topic.clone(),
+                log_time: message.log_time,
+                data: message.data.into_owned(),
+            });
+        }
+        let mut metadata = BTreeMap::new();
+        let summary = mcap::Summary::read(&bytes)
+            .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+            .unwrap_or_else(|| panic!("{} has no summary", path.display()));
+        for index in &summary.metadata_indexes {
+            let record = mcap::read::metadata(&bytes, index)
+                .unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+            metadata.insert(record.name.clone(), record.metadata.clone());
+        }
+        Self { messages, metadata }
+    }
+
+    /// Capture events in time order.
+    pub fn events(&self) -> Vec<CaptureEvent> {
+        let mut events: Vec<CaptureEvent> = self
+            .messages
+            .iter()
+            .filter(|m| m.topic == CAPTURE_EVENTS_TOPIC)
+            .map(|m| {
+                serde_json::from_slice(&m.data).unwrap_or_else(|e| panic!("bad capture event: {e}"))
+            })
+            .collect();
+        events.sort_by_key(|e| (e.capture_time_nanos, e.set_index));
+        events
+    }
+
+    /// The message on `topic` at `log_time`.
+    pub fn message(&self, topic: &str, log_time: u64) -> &LoggedMessage {
+        self.messages
+            .iter()
+            .find(|m| m.topic == topic && m.log_time == log_time)
+            .unwrap_or_else(|| panic!("no message on {topic} at {log_time}"))
+    }
+
+    /// A `foxglove.RawImage` on `topic` at `log_time`.
+    pub fn raw_image(&self, topic: &str, log_time: u64) -> RawImage {
+        prost::Message::decode(self.message(topic, log_time).data.as_slice())
+            .unwrap_or_else(|e| panic!("{topic}: not a RawImage: {e}"))
+    }
+
+    /// `world_from_<frame>` composed from the `/tf` message at `log_time`.
+    pub fn world_from(&self, frame: &str, log_time: u64) -> Isometry3<f64> {
+        let tf: FrameTransforms =
+            prost::Message::decode(self.message(TF_TOPIC, log_time).data.as_slice())
+                .unwrap_or_else(|e| panic!("/tf: {e}"));
+        let mut pose = Isometry3::identity();
+        let mut child = frame.to_owned();
+        while let Some(t) = tf.transforms.iter().find(|t| t.child_frame_id == child) {
+            let translation = t.translation.unwrap_or_default();
+            let rotation = t.rotation.unwrap_or_default();
+            let parent_from_child = Isometry3::from_parts(
+                Translation3::new(translation.x, translation.y, translation.z),
+                UnitQuaternion::from_quaternion(Quaternion::new(
+                    rotation.w, rotation.x, rotation.y, rotation.z,
+                )),
+            );
+            pose = parent_from_child * pose;
+            child = t.parent_frame_id.clone();
+        }
+        assert_eq!(
+            child,
+            record::log::WORLD_FRAME,
+            "the /tf chain from {frame} does not reach world"
+        );
+        pose
+    }
+}
+
+/// Decodes little-endian f32 pixels.
+pub fn f32_pixels(image: &RawImage) -> Vec<f32> {
+    image
+        .data
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        .collect()
+}
+
+/// A fresh temporary directory.
+pub fn temp_dir() -> tempfile::TempDir {
+    tempfile::tempdir().unwrap_or_else(|e| panic!("cannot create a temporary directory: {e}"))
+}

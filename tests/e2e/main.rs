@@ -1,1 +1,8 @@
-//! x
+//! End-to-end tests: they run the real binaries and read what they write, with our own reader
+//! and with the reference Python clients.
+
+mod record_cli;
+mod record_geometry;
+mod record_ground_truth;
+mod record_import;
+mod record_log;
