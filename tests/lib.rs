@@ -77,22 +77,69 @@ pub fn assert_success(output: &Output, what: &str) {
 }
 
 /// The Python interpreter with the reference MCAP clients: `$MULTISCOPIC_PYTHON`, else the
-/// checkout's `.venv` that `.ci/run` creates. Panics with instructions when neither works,
-/// so that a missing client fails the test instead of passing silently.
+/// checkout's `.venv`, created with `tests/python/requirements.txt` on first use when missing
+/// (`.ci/run` creates it up front). Panics with instructions when neither works, so that a
+/// missing client fails the test instead of passing silently.
 pub fn python_with_mcap() -> PathBuf {
-    let candidate = std::env::var_os("MULTISCOPIC_PYTHON")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| workspace_root().join(".venv/bin/python"));
-    let probe = Command::new(&candidate)
-        .args(["-c", "import mcap, mcap_protobuf"])
-        .output();
-    match probe {
-        Ok(output) if output.status.success() => candidate,
-        _ => panic!(
-            "the Python MCAP clients are missing: {} cannot import mcap and mcap_protobuf. \
-             Run .ci/run once (it creates .venv with `pip install mcap mcap-protobuf-support`) \
-             or set MULTISCOPIC_PYTHON to an interpreter that has them.",
-            candidate.display()
+    static PYTHON: OnceLock<Result<PathBuf, String>> = OnceLock::new();
+    let found = PYTHON.get_or_init(|| {
+        let has_clients = |python: &Path| {
+            Command::new(python)
+                .args(["-c", "import mcap, mcap_protobuf"])
+                .output()
+                .is_ok_and(|o| o.status.success())
+        };
+        if let Some(explicit) = std::env::var_os("MULTISCOPIC_PYTHON").map(PathBuf::from) {
+            return if has_clients(&explicit) {
+                Ok(explicit)
+            } else {
+                Err(format!(
+                    "MULTISCOPIC_PYTHON={} cannot import mcap and mcap_protobuf",
+                    explicit.display()
+                ))
+            };
+        }
+        let root = workspace_root();
+        let venv_python = root.join(".venv/bin/python");
+        if !has_clients(&venv_python) {
+            eprintln!(
+                "setting up {} with tests/python/requirements.txt",
+                root.join(".venv").display()
+            );
+            let created = venv_python.exists()
+                || Command::new("python3")
+                    .current_dir(&root)
+                    .args(["-m", "venv", ".venv"])
+                    .status()
+                    .is_ok_and(|s| s.success());
+            let installed = created
+                && Command::new(&venv_python)
+                    .current_dir(&root)
+                    .args([
+                        "-m",
+                        "pip",
+                        "install",
+                        "--quiet",
+                        "--disable-pip-version-check",
+                        "-r",
+                        "tests/python/requirements.txt",
+                    ])
+                    .status()
+                    .is_ok_and(|s| s.success());
+            if !installed {
+                return Err(format!(
+                    "could not install the Python MCAP clients into {}",
+                    root.join(".venv").display()
+                ));
+            }
+        }
+        Ok(venv_python)
+    });
+    match found {
+        Ok(python) => python.clone(),
+        Err(message) => panic!(
+            "the Python MCAP clients are missing: {message}. Run .ci/run (it creates .venv with \
+             `pip install -r tests/python/requirements.txt`) or set MULTISCOPIC_PYTHON to an interpreter that has them."
         ),
     }
 }

@@ -1,0 +1,24 @@
+#!/usr/bin/env bash
+# Benchmark of issue 2: a five-view 1920x1080 capture must record in <= 15 s wall with a peak RSS
+# <= 1.5 GB on the 2-core machine. Runs the release binary three times and reports every run.
+# Usage: scripts/bench-record.sh [extra record arguments]
+set -euo pipefail
+cd "$(dirname "$0")/.."
+WALL_LIMIT_SECS=15
+RSS_LIMIT_KB=$((1536 * 1024))
+cargo build --release --quiet -p record
+out=$(mktemp -d)
+trap 'rm -rf "$out"' EXIT
+status=0
+for run in 1 2 3; do
+    /usr/bin/time -f "%e %M" -o "$out/time" target/release/record --rig five-view -o "$out/capture.mcap" -q "$@"
+    read -r wall rss_kb < "$out/time"
+    size=$(stat -c %s "$out/capture.mcap")
+    verdict=ok
+    awk -v w="$wall" -v l="$WALL_LIMIT_SECS" 'BEGIN { exit !(w > l) }' && verdict=FAIL
+    [ "$rss_kb" -gt "$RSS_LIMIT_KB" ] && verdict=FAIL
+    [ "$verdict" = ok ] || status=1
+    printf '{"run": %d, "wall_secs": %s, "peak_rss_mb": %.1f, "log_mb": %.1f, "limits": {"wall_secs": %d, "peak_rss_mb": 1536}, "verdict": "%s"}\n' \
+        "$run" "$wall" "$(awk -v k="$rss_kb" 'BEGIN { print k / 1024 }')" "$(awk -v b="$size" 'BEGIN { print b / 1e6 }')" "$WALL_LIMIT_SECS" "$verdict"
+done
+exit $status
