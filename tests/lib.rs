@@ -85,7 +85,7 @@ pub fn python_with_mcap() -> PathBuf {
     let found = PYTHON.get_or_init(|| {
         let has_clients = |python: &Path| {
             Command::new(python)
-                .args(["-c", "import mcap, mcap_protobuf"])
+                .args(["-c", "import mcap, mcap_protobuf, rerun"])
                 .output()
                 .is_ok_and(|o| o.status.success())
         };
@@ -94,7 +94,7 @@ pub fn python_with_mcap() -> PathBuf {
                 Ok(explicit)
             } else {
                 Err(format!(
-                    "MULTISCOPIC_PYTHON={} cannot import mcap and mcap_protobuf",
+                    "MULTISCOPIC_PYTHON={} cannot import mcap, mcap_protobuf and rerun",
                     explicit.display()
                 ))
             };
@@ -142,6 +142,21 @@ pub fn python_with_mcap() -> PathBuf {
              `pip install -r tests/python/requirements.txt`) or set MULTISCOPIC_PYTHON to an interpreter that has them."
         ),
     }
+}
+
+/// The Rerun CLI of the same environment (`rerun-sdk==0.36.3`), with analytics off.
+pub fn rerun_cli() -> Command {
+    let python = python_with_mcap();
+    let rerun = python.with_file_name("rerun");
+    let mut command = Command::new(if rerun.exists() {
+        rerun
+    } else {
+        PathBuf::from("rerun")
+    });
+    command
+        .env("RERUN_ANALYTICS", "off")
+        .env("TELEMETRY_ENABLED", "false");
+    command
 }
 
 /// One message of a log.

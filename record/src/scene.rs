@@ -360,7 +360,7 @@ fn table(scene: &mut Scene, material: usize) {
 }
 
 fn toy_scene(seed: u64) -> Scene {
-    let mut rng = SplitMix64::new(seed ^ 0x746f_79);
+    let mut rng = SplitMix64::new(seed ^ 0x0074_6f79);
     let mut scene = Scene::empty(SceneKind::Toy, seed, 0.62);
     let wood = scene.add_material(Material::matte(
         "wood",
@@ -709,17 +709,17 @@ fn random_scene(seed: u64) -> Scene {
     scene.add_room();
     // Field of view at table height scales with the camera height; spread objects over it.
     let spread = 0.45 * camera_height_m;
-    let object_count = rng.range_usize(6, 26);
+    let object_count = rng.range_usize(8, 30);
     let c = WORK_AREA_CENTER_M;
     for index in 0..object_count {
         let material = random_material(&mut rng, &format!("material_{index}"));
         let material = scene.add_material(material);
         let x = c[0] + rng.range(-spread, spread);
         let y = c[1] + rng.range(-spread, spread);
-        let size = rng.range(0.01, 0.12) * camera_height_m / 0.6;
+        let size = rng.range(0.008, 0.07) * camera_height_m / 0.6;
         // Some objects float at varied heights (shelves, hanging parts): depth variety.
         let lift = if rng.below(4) == 0 {
-            rng.range(0.0, 0.45 * camera_height_m)
+            rng.range(0.0, 0.35 * camera_height_m)
         } else {
             0.0
         };

@@ -136,9 +136,8 @@ fn ctrl_c_finishes_a_readable_log_of_the_completed_sets() {
     let mut seen = String::new();
     // Wait until two sets are complete, then interrupt.
     loop {
-        let line = match lines.next() {
-            Some(Ok(line)) => line,
-            _ => panic!("record ended before two sets were done:\n{seen}"),
+        let Some(Ok(line)) = lines.next() else {
+            panic!("record ended before two sets were done:\n{seen}");
         };
         seen.push_str(&line);
         seen.push('\n');

@@ -2,7 +2,7 @@
 
 use std::process::Command;
 
-use multiscopic_tests::{Log, assert_success, python_with_mcap, record, run, temp_dir};
+use multiscopic_tests::{Log, assert_success, python_with_mcap, record, rerun_cli, run, temp_dir};
 
 const SMALL: &[&str] = &["--resolution", "96x64", "--samples-per-pixel", "1", "-q"];
 
@@ -141,4 +141,44 @@ fn metadata_holds_the_effective_configuration() {
     assert_eq!((config.width, config.height), (96, 64));
     assert_eq!(metadata["completed_sets"], "1");
     assert_eq!(metadata["interrupted"], "false");
+}
+
+#[test]
+fn rerun_opens_the_log_directly_with_images_pinholes_and_transforms() {
+    let dir = temp_dir();
+    let path = record_small(dir.path(), "rerun.mcap", &["--rig", "three-view"]);
+    let rrd = dir.path().join("rerun.rrd");
+    let output = run(rerun_cli()
+        .args(["mcap", "convert"])
+        .arg(&path)
+        .arg("-o")
+        .arg(&rrd));
+    assert_success(&output, "rerun mcap convert");
+    let output = run(rerun_cli().args(["rrd", "print"]).arg(&rrd));
+    assert_success(&output, "rerun rrd print");
+    let printed = String::from_utf8_lossy(&output.stdout);
+    let columns_of = |entity: &str| -> String {
+        printed
+            .lines()
+            .filter(|line| line.contains(&format!(" - {entity} - ")))
+            .collect::<Vec<_>>()
+            .join("\n")
+    };
+    for role in ["center", "left", "right"] {
+        let image = columns_of(&format!("/camera/{role}/image"));
+        assert!(
+            image.contains("Image:buffer") && image.contains("CoordinateFrame:frame"),
+            "{role} image: {image}"
+        );
+        let calibration = columns_of(&format!("/camera/{role}/calibration"));
+        assert!(
+            calibration.contains("Pinhole:image_from_camera"),
+            "{role} calibration: {calibration}"
+        );
+    }
+    let tf = columns_of("/tf");
+    assert!(
+        tf.contains("Transform3D:translation") && tf.contains("Transform3D:child_frame"),
+        "/tf: {tf}"
+    );
 }
