@@ -3,8 +3,94 @@
 //! (winner-take-all, SGM, graph cuts).
 //!
 //! This crate is the leaf of the workspace: plain buffers in, disparity out. No log formats, no
-//! command line, no viewer (see ARCHITECTURE.md). It starts with the geometry every method
-//! shares: disparity and depth of a rectified, equal-baseline multiscopic rig.
+//! command line, no viewer (see ARCHITECTURE.md).
+//!
+//! - [`volume::Problem`]: the reference view, its neighbours (with their grid offsets) and the
+//!   disparity range; [`cost`] and [`fusion`] build the fused data term band by band.
+//! - [`methods`]: every method behind the [`methods::Method`] trait, listed in
+//!   [`methods::registry`].
+//! - [`metrics`]: the paper's error measures against ground truth.
+
+pub mod cost;
+pub mod fusion;
+pub mod image;
+pub mod methods;
+pub mod metrics;
+pub mod postprocess;
+pub mod sgm;
+pub mod volume;
+pub mod wta;
+
+pub use image::{DisparityImage, GrayImage};
+pub use volume::{Neighbour, Problem};
+
+/// Errors of the algorithms; each carries the offending values.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum FuseError {
+    /// A buffer does not match its image size.
+    #[error("{what} of {width}x{height} has {len} values")]
+    ImageSize {
+        /// Which buffer.
+        what: &'static str,
+        /// Width.
+        width: usize,
+        /// Height.
+        height: usize,
+        /// Values present.
+        len: usize,
+    },
+    /// A neighbour's size differs from the reference.
+    #[error(
+        "neighbour '{role}' is {width}x{height}, the reference is {reference_width}x{reference_height}"
+    )]
+    SizeMismatch {
+        /// Role.
+        role: String,
+        /// Width.
+        width: usize,
+        /// Height.
+        height: usize,
+        /// Reference width.
+        reference_width: usize,
+        /// Reference height.
+        reference_height: usize,
+    },
+    /// A neighbour sits at the reference position.
+    #[error("neighbour '{role}' has a zero offset (zero baseline): no disparity to search")]
+    ZeroOffset {
+        /// Role.
+        role: String,
+    },
+    /// The set has no neighbour.
+    #[error("the view set has no neighbour view")]
+    NoNeighbours,
+    /// The disparity range is empty or too large.
+    #[error("disparity range {min_disparity}+{num_disparities} is invalid (1..=1024 disparities)")]
+    DisparityRange {
+        /// First disparity.
+        min_disparity: usize,
+        /// Count.
+        num_disparities: usize,
+    },
+    /// A configuration value is out of range.
+    #[error("invalid configuration {field} = {value}: {reason}")]
+    Config {
+        /// Field.
+        field: &'static str,
+        /// Value.
+        value: String,
+        /// What is allowed.
+        reason: &'static str,
+    },
+    /// No method has this name.
+    #[error("unknown method '{name}' (known: {known})")]
+    UnknownMethod {
+        /// Name given.
+        name: String,
+        /// Registered names.
+        known: String,
+    },
+}
 
 /// Disparity (pixels) of a point at z-depth `depth_m` for a neighbour at `baseline_m`:
 /// `d = f·b / z`. Returns `None` for unknown depth (≤ 0 or not finite).

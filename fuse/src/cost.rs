@@ -1,0 +1,283 @@
+//! Matching costs between the reference view and one neighbour, and their box aggregation.
+//!
+//! Costs are `u16`, laid out per image row as `[x][d]` (disparity fastest), and computed for the
+//! correspondence `q = p − offset·d`, where `offset` is the neighbour's position in baselines
+//! along the reference camera's x and y (right `[1, 0]`, left `[-1, 0]`, top `[0, -1]`, …).
+//! One code path therefore serves horizontal, vertical and diagonal neighbours.
+
+use serde::{Deserialize, Serialize};
+
+use crate::image::GrayImage;
+
+/// Marks a cost whose correspondence falls outside the neighbour image.
+pub const INVALID_COST: u16 = u16::MAX;
+/// Largest block radius: (2·7+1)² · 255 still fits `u16`.
+pub const MAX_BLOCK_RADIUS: usize = 7;
+/// Largest census window radius (a 7×9 window fills 63 bits).
+pub const MAX_CENSUS_RADIUS: usize = 3;
+
+/// Per-pixel dissimilarity.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case", tag = "kind")]
+pub enum PixelCost {
+    /// Absolute difference of grey values (summed over the block: SAD).
+    AbsoluteDifference,
+    /// Birchfield–Tomasi, the paper's variant: the neighbour's half-pixel interpolants are taken
+    /// over its 4-neighbourhood (left, right, up, down), which tolerates small epipolar errors.
+    BirchfieldTomasi,
+    /// Census transform over a `(2r+1)×(2r+1)` window, Hamming distance.
+    Census {
+        /// Window radius (1..=3).
+        radius: usize,
+    },
+}
+
+/// A view prepared for one pixel cost: grey values plus what the cost needs.
+#[derive(Debug, Clone)]
+pub struct PreparedView {
+    gray: GrayImage,
+    /// Birchfield–Tomasi: smallest half-pixel interpolant around each pixel.
+    bt_min: Vec<u8>,
+    /// Birchfield–Tomasi: largest half-pixel interpolant around each pixel.
+    bt_max: Vec<u8>,
+    /// Census codes.
+    census: Vec<u64>,
+}
+
+impl PreparedView {
+    /// Prepares `gray` for `cost`.
+    pub fn new(gray: GrayImage, cost: PixelCost) -> Self {
+        let (mut bt_min, mut bt_max, mut census) = (Vec::new(), Vec::new(), Vec::new());
+        match cost {
+            PixelCost::AbsoluteDifference => {}
+            PixelCost::BirchfieldTomasi => {
+                let (w, h) = (gray.width as isize, gray.height as isize);
+                bt_min.reserve(gray.data.len());
+                bt_max.reserve(gray.data.len());
+                for y in 0..h {
+                    for x in 0..w {
+                        let c = u16::from(gray.clamped(x, y));
+                        let mut lo = c;
+                        let mut hi = c;
+                        for (dx, dy) in [(-1, 0), (1, 0), (0, -1), (0, 1)] {
+                            let half = (c + u16::from(gray.clamped(x + dx, y + dy))) / 2;
+                            lo = lo.min(half);
+                            hi = hi.max(half);
+                        }
+                        bt_min.push(lo as u8);
+                        bt_max.push(hi as u8);
+                    }
+                }
+            }
+            PixelCost::Census { radius } => {
+                let r = radius.clamp(1, MAX_CENSUS_RADIUS) as isize;
+                let (w, h) = (gray.width as isize, gray.height as isize);
+                census.reserve(gray.data.len());
+                for y in 0..h {
+                    for x in 0..w {
+                        let c = gray.clamped(x, y);
+                        let mut code = 0u64;
+                        for dy in -r..=r {
+                            for dx in -r..=r {
+                                if dx != 0 || dy != 0 {
+                                    code =
+                                        (code << 1) | u64::from(gray.clamped(x + dx, y + dy) < c);
+                                }
+                            }
+                        }
+                        census.push(code);
+                    }
+                }
+            }
+        }
+        Self {
+            gray,
+            bt_min,
+            bt_max,
+            census,
+        }
+    }
+
+    /// The grey image.
+    pub fn gray(&self) -> &GrayImage {
+        &self.gray
+    }
+}
+
+/// Pixel costs of reference row `y` against a neighbour for disparities
+/// `min_disparity .. min_disparity + disparities`, written as `[x][d]` into `out`
+/// (`width × disparities`). Correspondences outside the neighbour are clamped to its border
+/// here; [`mark_invalid`] flags them after aggregation.
+#[allow(clippy::too_many_arguments)]
+pub fn pixel_cost_row(
+    cost: PixelCost,
+    reference: &PreparedView,
+    neighbour: &PreparedView,
+    offset: [i32; 2],
+    y: usize,
+    min_disparity: usize,
+    disparities: usize,
+    out: &mut [u16],
+) {
+    let width = reference.gray.width;
+    let height = neighbour.gray.height as isize;
+    let (ox, oy) = (offset[0] as isize, offset[1] as isize);
+    let reference_row = &reference.gray.data[y * width..(y + 1) * width];
+    for (x, costs) in out.chunks_exact_mut(disparities).enumerate() {
+        let base_qx = x as isize - ox * min_disparity as isize;
+        let base_qy = y as isize - oy * min_disparity as isize;
+        let index = |d: usize| {
+            let qx = (base_qx - ox * d as isize).clamp(0, width as isize - 1) as usize;
+            let qy = (base_qy - oy * d as isize).clamp(0, height - 1) as usize;
+            qy * width + qx
+        };
+        match cost {
+            PixelCost::AbsoluteDifference => {
+                let c = reference_row[x];
+                for (d, out) in costs.iter_mut().enumerate() {
+                    *out = u16::from(c.abs_diff(neighbour.gray.data[index(d)]));
+                }
+            }
+            PixelCost::BirchfieldTomasi => {
+                let c = reference_row[x];
+                for (d, out) in costs.iter_mut().enumerate() {
+                    let q = index(d);
+                    let above = c.saturating_sub(neighbour.bt_max[q]);
+                    let below = neighbour.bt_min[q].saturating_sub(c);
+                    *out = u16::from(above.max(below));
+                }
+            }
+            PixelCost::Census { .. } => {
+                let c = reference.census[y * width + x];
+                for (d, out) in costs.iter_mut().enumerate() {
+                    *out = (c ^ neighbour.census[index(d)]).count_ones() as u16;
+                }
+            }
+        }
+    }
+}
+
+/// Horizontal box sum of radius `r` over a `[x][d]` row (borders replicate the edge column).
+pub fn box_sum_row(input: &[u16], output: &mut [u16], width: usize, disparities: usize, r: usize) {
+    if r == 0 {
+        output.copy_from_slice(input);
+        return;
+    }
+    let column = |x: isize| {
+        let x = x.clamp(0, width as isize - 1) as usize;
+        &input[x * disparities..(x + 1) * disparities]
+    };
+    let mut acc = vec![0u16; disparities];
+    for x in -(r as isize)..=(r as isize) {
+        for (a, v) in acc.iter_mut().zip(column(x)) {
+            *a = a.wrapping_add(*v);
+        }
+    }
+    for x in 0..width {
+        output[x * disparities..(x + 1) * disparities].copy_from_slice(&acc);
+        let incoming = column(x as isize + r as isize + 1);
+        let outgoing = column(x as isize - r as isize);
+        for ((a, i), o) in acc.iter_mut().zip(incoming).zip(outgoing) {
+            *a = a.wrapping_add(*i).wrapping_sub(*o);
+        }
+    }
+}
+
+/// Sets to [`INVALID_COST`] every `(x, d)` of row `y` whose correspondence lies outside the
+/// neighbour image.
+pub fn mark_invalid(
+    row: &mut [u16],
+    offset: [i32; 2],
+    y: usize,
+    size: (usize, usize),
+    min_disparity: usize,
+    disparities: usize,
+) {
+    let (width, height) = (size.0 as isize, size.1 as isize);
+    let (ox, oy) = (offset[0] as isize, offset[1] as isize);
+    for (x, costs) in row.chunks_exact_mut(disparities).enumerate() {
+        for (d, cost) in costs.iter_mut().enumerate() {
+            let disparity = (min_disparity + d) as isize;
+            let qx = x as isize - ox * disparity;
+            let qy = y as isize - oy * disparity;
+            if qx < 0 || qx >= width || qy < 0 || qy >= height {
+                *cost = INVALID_COST;
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn ramp(width: usize, height: usize) -> GrayImage {
+        let data = (0..width * height)
+            .map(|i| ((i % width) * 9 % 256) as u8)
+            .collect();
+        GrayImage {
+            width,
+            height,
+            data,
+        }
+    }
+
+    #[test]
+    fn shifted_copy_has_zero_cost_at_its_shift() {
+        // The right neighbour sees the scene shifted left by 3 px: q = p − 3.
+        let reference = ramp(20, 4);
+        let mut shifted = reference.clone();
+        for y in 0..4 {
+            for x in 0..20 {
+                shifted.data[y * 20 + x] = reference.clamped(x as isize + 3, y as isize);
+            }
+        }
+        for cost in [
+            PixelCost::AbsoluteDifference,
+            PixelCost::BirchfieldTomasi,
+            PixelCost::Census { radius: 1 },
+        ] {
+            let a = PreparedView::new(reference.clone(), cost);
+            let b = PreparedView::new(shifted.clone(), cost);
+            let mut row = vec![0u16; 20 * 8];
+            pixel_cost_row(cost, &a, &b, [1, 0], 2, 0, 8, &mut row);
+            for x in 5..15 {
+                assert_eq!(row[x * 8 + 3], 0, "{cost:?} x {x}");
+                assert!(
+                    row[x * 8 + 1] > 0 || matches!(cost, PixelCost::Census { .. }),
+                    "{cost:?}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn box_sum_matches_brute_force() {
+        let (width, disparities, r) = (9, 3, 2);
+        let input: Vec<u16> = (0..width * disparities)
+            .map(|i| (i * 7 % 13) as u16)
+            .collect();
+        let mut output = vec![0; input.len()];
+        box_sum_row(&input, &mut output, width, disparities, r);
+        for x in 0..width {
+            for d in 0..disparities {
+                let expected: u16 = (x as isize - r as isize..=x as isize + r as isize)
+                    .map(|xx| input[xx.clamp(0, width as isize - 1) as usize * disparities + d])
+                    .sum();
+                assert_eq!(output[x * disparities + d], expected);
+            }
+        }
+    }
+
+    #[test]
+    fn out_of_image_correspondences_are_invalid() {
+        let mut row = vec![0u16; 5 * 4];
+        mark_invalid(&mut row, [1, 0], 0, (5, 5), 0, 4);
+        // x = 1: d ≥ 2 leaves the image on the left.
+        assert_eq!(&row[4..8], &[0, 0, INVALID_COST, INVALID_COST]);
+        let mut row = vec![0u16; 5 * 4];
+        mark_invalid(&mut row, [0, -1], 3, (5, 5), 0, 4);
+        // top neighbour: q_y = y + d; y = 3: d ≥ 2 leaves the bottom.
+        assert_eq!(&row[0..4], &[0, 0, INVALID_COST, INVALID_COST]);
+    }
+}

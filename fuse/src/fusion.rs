@@ -1,0 +1,126 @@
+//! Fusion of the per-neighbour costs into one data term (paper, section III-B): mean, min and
+//! the heuristic rule. Costs whose correspondence leaves the neighbour image are left out.
+
+use serde::{Deserialize, Serialize};
+
+use crate::cost::INVALID_COST;
+
+/// How the neighbours' costs become one.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Fusion {
+    /// Two-view stereo: only one neighbour (the `right` view when there is one).
+    Stereo,
+    /// `c_ave`: the mean of the valid costs.
+    Mean,
+    /// `c_min`: the smallest cost.
+    Min,
+    /// `c_heu`: sort, keep the three smallest; if `c³ > 3·c²` average the two smallest, else the
+    /// three. With two valid costs it is the minimum; with one, that cost.
+    Heuristic,
+}
+
+/// Fuses one value per neighbour.
+#[inline]
+pub fn fuse_values(fusion: Fusion, values: &[u16]) -> u16 {
+    match fusion {
+        Fusion::Stereo => values.first().copied().unwrap_or(INVALID_COST),
+        Fusion::Min => values.iter().copied().min().unwrap_or(INVALID_COST),
+        Fusion::Mean => {
+            let (sum, count) = values
+                .iter()
+                .filter(|v| **v != INVALID_COST)
+                .fold((0u32, 0u32), |(s, n), v| (s + u32::from(*v), n + 1));
+            if count == 0 {
+                INVALID_COST
+            } else {
+                ((sum + count / 2) / count) as u16
+            }
+        }
+        Fusion::Heuristic => {
+            let mut smallest = [INVALID_COST; 3];
+            for &v in values {
+                if v < smallest[2] {
+                    if v < smallest[1] {
+                        smallest[2] = smallest[1];
+                        if v < smallest[0] {
+                            smallest[1] = smallest[0];
+                            smallest[0] = v;
+                        } else {
+                            smallest[1] = v;
+                        }
+                    } else {
+                        smallest[2] = v;
+                    }
+                }
+            }
+            let [c1, c2, c3] = smallest.map(u32::from);
+            if smallest[1] == INVALID_COST || smallest[2] == INVALID_COST {
+                // One or two valid costs: the minimum.
+                smallest[0]
+            } else if c3 > 3 * c2 {
+                ((c1 + c2 + 1) / 2) as u16
+            } else {
+                ((c1 + c2 + c3 + 1) / 3) as u16
+            }
+        }
+    }
+}
+
+/// Fuses rows of costs (`rows[k]` = neighbour k, all the same length) into `out`.
+pub fn fuse_rows(fusion: Fusion, rows: &[&[u16]], out: &mut [u16]) {
+    match (fusion, rows) {
+        (_, [only]) | (Fusion::Stereo, [only, ..]) => out.copy_from_slice(only),
+        (Fusion::Min, _) => {
+            out.fill(INVALID_COST);
+            for row in rows {
+                for (o, v) in out.iter_mut().zip(row.iter()) {
+                    *o = (*o).min(*v);
+                }
+            }
+        }
+        _ => {
+            let mut values = Vec::with_capacity(rows.len());
+            for (i, o) in out.iter_mut().enumerate() {
+                values.clear();
+                values.extend(rows.iter().map(|row| row[i]));
+                *o = fuse_values(fusion, &values);
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const X: u16 = INVALID_COST;
+
+    #[test]
+    fn heuristic_follows_the_paper() {
+        // c3 = 40 > 3·c2 = 30: drop it, average the two smallest.
+        assert_eq!(fuse_values(Fusion::Heuristic, &[40, 10, 100, 8]), 9);
+        // c3 = 20 ≤ 3·c2 = 30: average the three smallest.
+        assert_eq!(fuse_values(Fusion::Heuristic, &[20, 10, 100, 9]), 13);
+        // Two neighbours: the minimum.
+        assert_eq!(fuse_values(Fusion::Heuristic, &[20, 7]), 7);
+        // Invalid costs do not count.
+        assert_eq!(fuse_values(Fusion::Heuristic, &[X, 12, X, 30]), 12);
+        assert_eq!(fuse_values(Fusion::Heuristic, &[X, X, X, X]), X);
+    }
+
+    #[test]
+    fn mean_and_min_skip_invalid_costs() {
+        assert_eq!(fuse_values(Fusion::Mean, &[10, X, 20]), 15);
+        assert_eq!(fuse_values(Fusion::Min, &[10, X, 4]), 4);
+        let a = [1u16, X, 9];
+        let b = [5u16, 3, X];
+        let mut out = [0u16; 3];
+        fuse_rows(Fusion::Min, &[&a, &b], &mut out);
+        assert_eq!(out, [1, 3, 9]);
+        fuse_rows(Fusion::Heuristic, &[&a, &b], &mut out);
+        assert_eq!(out, [1, 3, 9]);
+        fuse_rows(Fusion::Mean, &[&a, &b], &mut out);
+        assert_eq!(out, [3, 3, 9]);
+    }
+}

@@ -1,0 +1,136 @@
+//! Block matching: box-aggregated costs, fused over the neighbours, winner-take-all with
+//! sub-pixel refinement (paper, section III-B). Streams bands of rows: no full volume is held.
+
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use super::{Method, MethodEntry, Progress, apply_overrides};
+use crate::FuseError;
+use crate::cost::PixelCost;
+use crate::fusion::Fusion;
+use crate::image::DisparityImage;
+use crate::volume::{BAND_ROWS, CostSpec, PreparedProblem, Problem};
+use crate::wta::winner_take_all;
+
+/// Configuration of block matching.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BlockMatchingConfig {
+    /// Cost fusion over the neighbours.
+    pub fusion: Fusion,
+    /// Per-pixel cost.
+    pub cost: PixelCost,
+    /// Block radius ρ (block side 2ρ+1).
+    pub block_radius: usize,
+    /// Sub-pixel parabola refinement.
+    pub subpixel: bool,
+    /// Fill pixels without an estimate from their row neighbours (dense output).
+    pub fill_invalid: bool,
+}
+
+impl Default for BlockMatchingConfig {
+    fn default() -> Self {
+        Self {
+            fusion: Fusion::Heuristic,
+            cost: PixelCost::AbsoluteDifference,
+            block_radius: 4,
+            subpixel: true,
+            fill_invalid: true,
+        }
+    }
+}
+
+/// Block matching with one fusion.
+pub struct BlockMatching {
+    name: &'static str,
+    config: BlockMatchingConfig,
+}
+
+impl BlockMatching {
+    /// A method with a configuration.
+    pub fn new(name: &'static str, config: BlockMatchingConfig) -> Self {
+        Self { name, config }
+    }
+}
+
+impl Method for BlockMatching {
+    fn name(&self) -> &str {
+        self.name
+    }
+
+    fn config_json(&self) -> serde_json::Value {
+        serde_json::to_value(&self.config).unwrap_or_default()
+    }
+
+    fn run(&self, problem: &Problem, progress: Progress<'_>) -> Result<DisparityImage, FuseError> {
+        let spec = CostSpec {
+            pixel: self.config.cost,
+            block_radius: self.config.block_radius,
+        };
+        let prepared = PreparedProblem::new(problem, spec, self.config.fusion)?;
+        let (w, h, nd) = (prepared.width(), prepared.height(), prepared.disparities());
+        let mut data = vec![f32::INFINITY; w * h];
+        let bands = h.div_ceil(BAND_ROWS);
+        let done = AtomicUsize::new(0);
+        data.par_chunks_mut(BAND_ROWS * w)
+            .enumerate()
+            .for_each(|(band, out)| {
+                let start = band * BAND_ROWS;
+                let rows = start..start + out.len() / w;
+                let mut costs = vec![0u16; rows.len() * w * nd];
+                prepared.fused_band(rows, &mut costs);
+                winner_take_all(&costs, nd, problem.min_disparity, self.config.subpixel, out);
+                progress((done.fetch_add(1, Ordering::Relaxed) + 1) as f32 / bands as f32);
+            });
+        let mut disparity = DisparityImage {
+            width: w,
+            height: h,
+            data,
+        };
+        if self.config.fill_invalid {
+            disparity.fill_invalid_from_row_neighbours();
+        }
+        Ok(disparity)
+    }
+}
+
+fn build(
+    name: &'static str,
+    fusion: Fusion,
+    overrides: Option<&serde_json::Value>,
+) -> Result<Box<dyn Method>, FuseError> {
+    let config = apply_overrides(
+        BlockMatchingConfig {
+            fusion,
+            ..BlockMatchingConfig::default()
+        },
+        overrides,
+    )?;
+    Ok(Box::new(BlockMatching::new(name, config)))
+}
+
+/// Registry entries.
+pub const ENTRIES: &[MethodEntry] = &[
+    MethodEntry {
+        name: "bm-stereo",
+        summary: "block matching (SAD), two-view stereo against the right view, winner-take-all",
+        build: |o| build("bm-stereo", Fusion::Stereo, o),
+    },
+    MethodEntry {
+        name: "bm-mean",
+        summary: "block matching (SAD), mean of the neighbours' costs (c_ave)",
+        build: |o| build("bm-mean", Fusion::Mean, o),
+    },
+    MethodEntry {
+        name: "bm-min",
+        summary: "block matching (SAD), minimum of the neighbours' costs (c_min)",
+        build: |o| build("bm-min", Fusion::Min, o),
+    },
+    MethodEntry {
+        name: "bm-heuristic",
+        summary: "block matching (SAD), the paper's heuristic fusion (c_heu)",
+        build: |o| build("bm-heuristic", Fusion::Heuristic, o),
+    },
+];

@@ -1,0 +1,132 @@
+//! Fusion methods behind one small trait, each with a serde `Config` and `Default`, listed in
+//! one registry. Adding a method: one file here implementing [`Method`], plus one line in
+//! [`registry`].
+
+pub mod block_matching;
+pub mod sgm;
+
+use serde::Serialize;
+use serde::de::DeserializeOwned;
+
+use crate::FuseError;
+use crate::image::DisparityImage;
+use crate::volume::Problem;
+
+/// Progress callback: the fraction of the work done, in [0, 1].
+pub type Progress<'a> = &'a (dyn Fn(f32) + Sync);
+
+/// A depth method: a problem in, the reference view's disparity out.
+pub trait Method: Send + Sync {
+    /// Registry name (`bm-heuristic`, …).
+    fn name(&self) -> &str;
+    /// The effective configuration, as JSON (for run summaries).
+    fn config_json(&self) -> serde_json::Value;
+    /// Computes the disparity of the reference view (`f32::INFINITY` = no estimate).
+    fn run(&self, problem: &Problem, progress: Progress<'_>) -> Result<DisparityImage, FuseError>;
+}
+
+/// A registry entry.
+pub struct MethodEntry {
+    /// Name used on the command line.
+    pub name: &'static str,
+    /// One line for `--list-methods`.
+    pub summary: &'static str,
+    /// Builds the method from its default configuration, with optional JSON overrides.
+    pub build: fn(Option<&serde_json::Value>) -> Result<Box<dyn Method>, FuseError>,
+}
+
+/// Every method, in the order `--list-methods` shows them.
+pub fn registry() -> Vec<&'static MethodEntry> {
+    let mut entries = Vec::new();
+    entries.extend(block_matching::ENTRIES);
+    entries.extend(sgm::ENTRIES);
+    entries
+}
+
+/// Builds a method by name.
+pub fn build(
+    name: &str,
+    overrides: Option<&serde_json::Value>,
+) -> Result<Box<dyn Method>, FuseError> {
+    match registry().into_iter().find(|e| e.name == name) {
+        Some(entry) => (entry.build)(overrides),
+        None => Err(FuseError::UnknownMethod {
+            name: name.to_owned(),
+            known: registry()
+                .iter()
+                .map(|e| e.name)
+                .collect::<Vec<_>>()
+                .join(", "),
+        }),
+    }
+}
+
+/// Applies JSON overrides (an object of fields) to a configuration; unknown fields are errors.
+pub fn apply_overrides<C: Serialize + DeserializeOwned>(
+    config: C,
+    overrides: Option<&serde_json::Value>,
+) -> Result<C, FuseError> {
+    let Some(overrides) = overrides else {
+        return Ok(config);
+    };
+    let mut value = serde_json::to_value(&config).map_err(|e| FuseError::Config {
+        field: "config",
+        value: String::new(),
+        reason: leak(e.to_string()),
+    })?;
+    match (value.as_object_mut(), overrides.as_object()) {
+        (Some(base), Some(changes)) => {
+            for (key, change) in changes {
+                if !base.contains_key(key) {
+                    return Err(FuseError::Config {
+                        field: "config",
+                        value: key.clone(),
+                        reason: "unknown field",
+                    });
+                }
+                base.insert(key.clone(), change.clone());
+            }
+        }
+        _ => {
+            return Err(FuseError::Config {
+                field: "config",
+                value: overrides.to_string(),
+                reason: "overrides must be a JSON object",
+            });
+        }
+    }
+    serde_json::from_value(value).map_err(|e| FuseError::Config {
+        field: "config",
+        value: overrides.to_string(),
+        reason: leak(e.to_string()),
+    })
+}
+
+fn leak(message: String) -> &'static str {
+    // Configuration errors are rare and end the run; a leaked message keeps the error type simple.
+    Box::leak(message.into_boxed_str())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn registry_names_are_unique_and_buildable() {
+        let names: Vec<&str> = registry().iter().map(|e| e.name).collect();
+        let mut sorted = names.clone();
+        sorted.sort_unstable();
+        sorted.dedup();
+        assert_eq!(sorted.len(), names.len());
+        for name in names {
+            let method = build(name, None).unwrap_or_else(|e| panic!("{name}: {e}"));
+            assert_eq!(method.name(), name);
+        }
+        assert!(matches!(
+            build("nope", None),
+            Err(FuseError::UnknownMethod { .. })
+        ));
+        let overrides = serde_json::json!({"no_such_field": 1});
+        assert!(build("bm-heuristic", Some(&overrides)).is_err());
+    }
+}

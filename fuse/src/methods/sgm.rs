@@ -1,0 +1,148 @@
+//! Semi-global matching over the fused cost volume: the strong classical method.
+
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use super::{Method, MethodEntry, Progress, apply_overrides};
+use crate::FuseError;
+use crate::cost::PixelCost;
+use crate::fusion::Fusion;
+use crate::image::DisparityImage;
+use crate::postprocess::median3x3;
+use crate::sgm::aggregate;
+use crate::volume::{BAND_ROWS, CostSpec, PreparedProblem, Problem};
+use crate::wta::winner_take_all;
+
+/// Configuration of SGM.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SgmConfig {
+    /// Cost fusion over the neighbours.
+    pub fusion: Fusion,
+    /// Per-pixel cost.
+    pub cost: PixelCost,
+    /// Block radius of the cost aggregation before SGM (0 = pixel-wise).
+    pub block_radius: usize,
+    /// Penalty for a ±1 disparity change between neighbouring pixels (in cost units).
+    pub p1: u16,
+    /// Penalty for larger disparity changes.
+    pub p2: u16,
+    /// Sub-pixel parabola refinement.
+    pub subpixel: bool,
+    /// 3×3 median filter on the result.
+    pub median: bool,
+}
+
+impl Default for SgmConfig {
+    fn default() -> Self {
+        Self {
+            fusion: Fusion::Heuristic,
+            cost: PixelCost::Census { radius: 3 },
+            block_radius: 1,
+            p1: 40,
+            p2: 400,
+            subpixel: true,
+            median: true,
+        }
+    }
+}
+
+/// SGM with one fusion.
+pub struct Sgm {
+    name: &'static str,
+    config: SgmConfig,
+}
+
+impl Method for Sgm {
+    fn name(&self) -> &str {
+        self.name
+    }
+
+    fn config_json(&self) -> serde_json::Value {
+        serde_json::to_value(&self.config).unwrap_or_default()
+    }
+
+    fn run(&self, problem: &Problem, progress: Progress<'_>) -> Result<DisparityImage, FuseError> {
+        let spec = CostSpec {
+            pixel: self.config.cost,
+            block_radius: self.config.block_radius,
+        };
+        let prepared = PreparedProblem::new(problem, spec, self.config.fusion)?;
+        let (w, h, nd) = (prepared.width(), prepared.height(), prepared.disparities());
+        let bands = h.div_ceil(BAND_ROWS);
+        let done = AtomicUsize::new(0);
+        // Cost volume: the first half of the work; aggregation the rest.
+        let volume = prepared.fused_volume(&|| {
+            progress(0.5 * (done.fetch_add(1, Ordering::Relaxed) + 1) as f32 / bands as f32)
+        });
+        let summed = aggregate(
+            &volume,
+            w,
+            h,
+            nd,
+            spec.max_cost(),
+            self.config.p1,
+            self.config.p2,
+        );
+        drop(volume);
+        progress(0.95);
+        let mut data = vec![f32::INFINITY; w * h];
+        data.par_chunks_mut(w)
+            .zip(summed.par_chunks(w * nd))
+            .for_each(|(out, costs)| {
+                winner_take_all(costs, nd, problem.min_disparity, self.config.subpixel, out);
+            });
+        let mut disparity = DisparityImage {
+            width: w,
+            height: h,
+            data,
+        };
+        disparity.fill_invalid_from_row_neighbours();
+        if self.config.median {
+            disparity = median3x3(&disparity);
+        }
+        progress(1.0);
+        Ok(disparity)
+    }
+}
+
+fn build(
+    name: &'static str,
+    fusion: Fusion,
+    overrides: Option<&serde_json::Value>,
+) -> Result<Box<dyn Method>, FuseError> {
+    let config = apply_overrides(
+        SgmConfig {
+            fusion,
+            ..SgmConfig::default()
+        },
+        overrides,
+    )?;
+    Ok(Box::new(Sgm { name, config }))
+}
+
+/// Registry entries.
+pub const ENTRIES: &[MethodEntry] = &[
+    MethodEntry {
+        name: "sgm-stereo",
+        summary: "semi-global matching (census, 8 paths), two-view stereo against the right view",
+        build: |o| build("sgm-stereo", Fusion::Stereo, o),
+    },
+    MethodEntry {
+        name: "sgm-mean",
+        summary: "semi-global matching over the mean-fused cost volume",
+        build: |o| build("sgm-mean", Fusion::Mean, o),
+    },
+    MethodEntry {
+        name: "sgm-min",
+        summary: "semi-global matching over the min-fused cost volume",
+        build: |o| build("sgm-min", Fusion::Min, o),
+    },
+    MethodEntry {
+        name: "sgm-heuristic",
+        summary: "semi-global matching over the heuristic-fused cost volume (the best classical method)",
+        build: |o| build("sgm-heuristic", Fusion::Heuristic, o),
+    },
+];

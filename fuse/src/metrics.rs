@@ -1,0 +1,106 @@
+//! Error measures against ground-truth disparity, as in the paper's evaluation code: over every
+//! pixel whose ground truth is known (finite and > 0), RMS, AvgErr (mean absolute error) and the
+//! percentages of pixels with an error above 0.5, 1 and 2 px. A pixel without an estimate counts
+//! as an error of the whole search range (it is never silently left out).
+
+use serde::{Deserialize, Serialize};
+
+/// Metrics of one disparity map.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Metrics {
+    /// Root-mean-square error (px).
+    pub rms: f64,
+    /// Mean absolute error (px).
+    pub avg_err: f64,
+    /// % of pixels with error > 0.5 px.
+    pub bad_0_5: f64,
+    /// % of pixels with error > 1 px.
+    pub bad_1: f64,
+    /// % of pixels with error > 2 px.
+    pub bad_2: f64,
+    /// Pixels with known ground truth.
+    pub pixels: usize,
+    /// Of those, pixels the method left without an estimate.
+    pub missing: usize,
+}
+
+/// Compares `estimate` with `ground_truth` over the pixels where `mask` (if any) is true and the
+/// ground truth is known. Missing estimates count as an error of `missing_error_px`.
+pub fn evaluate(
+    estimate: &[f32],
+    ground_truth: &[f32],
+    mask: Option<&[bool]>,
+    missing_error_px: f64,
+) -> Option<Metrics> {
+    let mut n = 0usize;
+    let mut missing = 0usize;
+    let (mut sum_abs, mut sum_sq) = (0.0f64, 0.0f64);
+    let mut bad = [0usize; 3];
+    for (i, (&e, &g)) in estimate.iter().zip(ground_truth).enumerate() {
+        if !(g.is_finite() && g > 0.0) || mask.is_some_and(|m| !m[i]) {
+            continue;
+        }
+        let error = if e.is_finite() {
+            f64::from((e - g).abs())
+        } else {
+            missing += 1;
+            missing_error_px
+        };
+        n += 1;
+        sum_abs += error;
+        sum_sq += error * error;
+        for (count, threshold) in bad.iter_mut().zip([0.5, 1.0, 2.0]) {
+            if error > threshold {
+                *count += 1;
+            }
+        }
+    }
+    (n > 0).then(|| {
+        let percent = |c: usize| 100.0 * c as f64 / n as f64;
+        Metrics {
+            rms: (sum_sq / n as f64).sqrt(),
+            avg_err: sum_abs / n as f64,
+            bad_0_5: percent(bad[0]),
+            bad_1: percent(bad[1]),
+            bad_2: percent(bad[2]),
+            pixels: n,
+            missing,
+        }
+    })
+}
+
+/// The mean of per-scene metrics (the paper averages per scene).
+pub fn average(scenes: &[Metrics]) -> Option<Metrics> {
+    let n = scenes.len() as f64;
+    (!scenes.is_empty()).then(|| Metrics {
+        rms: scenes.iter().map(|m| m.rms).sum::<f64>() / n,
+        avg_err: scenes.iter().map(|m| m.avg_err).sum::<f64>() / n,
+        bad_0_5: scenes.iter().map(|m| m.bad_0_5).sum::<f64>() / n,
+        bad_1: scenes.iter().map(|m| m.bad_1).sum::<f64>() / n,
+        bad_2: scenes.iter().map(|m| m.bad_2).sum::<f64>() / n,
+        pixels: scenes.iter().map(|m| m.pixels).sum(),
+        missing: scenes.iter().map(|m| m.missing).sum(),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn metrics_of_a_known_error_pattern() {
+        let gt = [10.0f32, 10.0, 10.0, 10.0, 0.0];
+        let estimate = [10.0f32, 10.6, 11.5, 13.0, 99.0];
+        let m = evaluate(&estimate, &gt, None, 64.0).unwrap_or_else(|| panic!("no pixels"));
+        assert_eq!(m.pixels, 4);
+        assert!((m.avg_err - (0.0 + 0.6 + 1.5 + 3.0) / 4.0).abs() < 1e-6);
+        assert!((m.bad_0_5 - 75.0).abs() < 1e-9);
+        assert!((m.bad_1 - 50.0).abs() < 1e-9);
+        assert!((m.bad_2 - 25.0).abs() < 1e-9);
+        let rms = ((0.36f64 + 2.25 + 9.0) / 4.0).sqrt();
+        assert!((m.rms - rms).abs() < 1e-5);
+        let missing =
+            evaluate(&[f32::INFINITY], &[5.0], None, 32.0).unwrap_or_else(|| panic!("no pixels"));
+        assert_eq!((missing.missing, missing.avg_err), (1, 32.0));
+    }
+}

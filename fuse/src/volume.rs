@@ -1,0 +1,275 @@
+//! The fused cost volume, computed in bands of rows (in parallel), never holding one full volume
+//! per neighbour: per band, each neighbour's costs are aggregated over the block and fused
+//! straight into the caller's buffer (`[y][x][d]`, `u16`).
+
+use std::ops::Range;
+
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use crate::FuseError;
+use crate::cost::{
+    MAX_BLOCK_RADIUS, MAX_CENSUS_RADIUS, PixelCost, PreparedView, box_sum_row, mark_invalid,
+    pixel_cost_row,
+};
+use crate::fusion::{Fusion, fuse_rows};
+use crate::image::GrayImage;
+
+/// Rows per band of parallel work.
+pub const BAND_ROWS: usize = 32;
+/// The role a stereo method matches against when the set has it.
+pub const STEREO_ROLE: &str = "right";
+
+/// A neighbour view of a multiscopic set.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Neighbour {
+    /// Role (`left`, `right`, `top`, …).
+    pub role: String,
+    /// Grey image, same size as the reference.
+    pub image: GrayImage,
+    /// Position in baselines along the reference camera's x (right) and y (down).
+    pub offset: [i32; 2],
+}
+
+/// What a method gets: the reference view, its neighbours and the disparity search range.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Problem {
+    /// The reference (centre) view.
+    pub reference: GrayImage,
+    /// Neighbours at one baseline (or grid offsets) from the reference.
+    pub neighbours: Vec<Neighbour>,
+    /// Smallest disparity searched (px).
+    pub min_disparity: usize,
+    /// Number of disparities searched.
+    pub num_disparities: usize,
+}
+
+impl Problem {
+    /// Checks sizes, offsets and the search range.
+    pub fn validate(&self) -> Result<(), FuseError> {
+        if self.neighbours.is_empty() {
+            return Err(FuseError::NoNeighbours);
+        }
+        if self.num_disparities == 0 || self.num_disparities > 1024 {
+            return Err(FuseError::DisparityRange {
+                min_disparity: self.min_disparity,
+                num_disparities: self.num_disparities,
+            });
+        }
+        for n in &self.neighbours {
+            if (n.image.width, n.image.height) != (self.reference.width, self.reference.height) {
+                return Err(FuseError::SizeMismatch {
+                    role: n.role.clone(),
+                    width: n.image.width,
+                    height: n.image.height,
+                    reference_width: self.reference.width,
+                    reference_height: self.reference.height,
+                });
+            }
+            if n.offset == [0, 0] {
+                return Err(FuseError::ZeroOffset {
+                    role: n.role.clone(),
+                });
+            }
+        }
+        Ok(())
+    }
+
+    /// The neighbours a fusion uses: one for stereo (`right` if present), all otherwise.
+    pub fn neighbours_for(&self, fusion: Fusion) -> Vec<&Neighbour> {
+        match fusion {
+            Fusion::Stereo => self
+                .neighbours
+                .iter()
+                .find(|n| n.role == STEREO_ROLE)
+                .or_else(|| self.neighbours.first())
+                .into_iter()
+                .collect(),
+            _ => self.neighbours.iter().collect(),
+        }
+    }
+}
+
+/// The data term: pixel cost and aggregation block.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct CostSpec {
+    /// Per-pixel dissimilarity.
+    pub pixel: PixelCost,
+    /// Aggregation block radius ρ: costs are summed over `(2ρ+1)²` pixels.
+    pub block_radius: usize,
+}
+
+impl CostSpec {
+    /// Checks the radii.
+    pub fn validate(&self) -> Result<(), FuseError> {
+        if self.block_radius > MAX_BLOCK_RADIUS {
+            return Err(FuseError::Config {
+                field: "block_radius",
+                value: self.block_radius.to_string(),
+                reason: "must be ≤ 7 (costs are u16)",
+            });
+        }
+        if let PixelCost::Census { radius } = self.pixel
+            && !(1..=MAX_CENSUS_RADIUS).contains(&radius)
+        {
+            return Err(FuseError::Config {
+                field: "census radius",
+                value: radius.to_string(),
+                reason: "must be 1..=3",
+            });
+        }
+        Ok(())
+    }
+
+    /// Largest aggregated cost this spec can produce.
+    pub fn max_cost(&self) -> u32 {
+        let per_pixel = match self.pixel {
+            PixelCost::AbsoluteDifference | PixelCost::BirchfieldTomasi => 255,
+            PixelCost::Census { radius } => ((2 * radius + 1) * (2 * radius + 1) - 1) as u32,
+        };
+        let side = 2 * self.block_radius as u32 + 1;
+        per_pixel * side * side
+    }
+}
+
+/// A problem with its views prepared for one cost.
+pub struct PreparedProblem {
+    reference: PreparedView,
+    neighbours: Vec<(PreparedView, [i32; 2])>,
+    width: usize,
+    height: usize,
+    min_disparity: usize,
+    disparities: usize,
+    spec: CostSpec,
+    fusion: Fusion,
+}
+
+impl PreparedProblem {
+    /// Prepares the views a fusion needs (census codes, BT interpolants).
+    pub fn new(problem: &Problem, spec: CostSpec, fusion: Fusion) -> Result<Self, FuseError> {
+        problem.validate()?;
+        spec.validate()?;
+        let neighbours = problem
+            .neighbours_for(fusion)
+            .into_par_iter()
+            .map(|n| (PreparedView::new(n.image.clone(), spec.pixel), n.offset))
+            .collect();
+        Ok(Self {
+            reference: PreparedView::new(problem.reference.clone(), spec.pixel),
+            neighbours,
+            width: problem.reference.width,
+            height: problem.reference.height,
+            min_disparity: problem.min_disparity,
+            disparities: problem.num_disparities,
+            spec,
+            fusion,
+        })
+    }
+
+    /// Image width.
+    pub fn width(&self) -> usize {
+        self.width
+    }
+
+    /// Image height.
+    pub fn height(&self) -> usize {
+        self.height
+    }
+
+    /// Disparities per pixel.
+    pub fn disparities(&self) -> usize {
+        self.disparities
+    }
+
+    /// The reference grey image.
+    pub fn reference(&self) -> &GrayImage {
+        self.reference.gray()
+    }
+
+    /// Fused, aggregated costs of `rows` into `out` (`rows.len() × width × disparities`).
+    pub fn fused_band(&self, rows: Range<usize>, out: &mut [u16]) {
+        let (w, nd, r) = (self.width, self.disparities, self.spec.block_radius);
+        let row_len = w * nd;
+        let ext = rows.start.saturating_sub(r)..(rows.end + r).min(self.height);
+        let mut pixel_row = vec![0u16; row_len];
+        // Horizontally aggregated rows of the extended band, per neighbour.
+        let mut horizontal: Vec<Vec<u16>> = Vec::with_capacity(self.neighbours.len());
+        for (view, offset) in &self.neighbours {
+            let mut rows_h = vec![0u16; ext.len() * row_len];
+            for (i, y) in ext.clone().enumerate() {
+                pixel_cost_row(
+                    self.spec.pixel,
+                    &self.reference,
+                    view,
+                    *offset,
+                    y,
+                    self.min_disparity,
+                    nd,
+                    &mut pixel_row,
+                );
+                box_sum_row(
+                    &pixel_row,
+                    &mut rows_h[i * row_len..(i + 1) * row_len],
+                    w,
+                    nd,
+                    r,
+                );
+            }
+            horizontal.push(rows_h);
+        }
+        let clamp_row = |y: isize| (y.clamp(0, self.height as isize - 1) as usize) - ext.start;
+        let mut vertical: Vec<Vec<u16>> = vec![vec![0u16; row_len]; self.neighbours.len()];
+        for (k, rows_h) in horizontal.iter().enumerate() {
+            let acc = &mut vertical[k];
+            for y in rows.start as isize - r as isize..=rows.start as isize + r as isize {
+                let source = &rows_h[clamp_row(y) * row_len..(clamp_row(y) + 1) * row_len];
+                for (a, v) in acc.iter_mut().zip(source) {
+                    *a = a.wrapping_add(*v);
+                }
+            }
+        }
+        let mut finished: Vec<Vec<u16>> = vec![vec![0u16; row_len]; self.neighbours.len()];
+        for (i, y) in rows.clone().enumerate() {
+            for (k, (_, offset)) in self.neighbours.iter().enumerate() {
+                finished[k].copy_from_slice(&vertical[k]);
+                mark_invalid(
+                    &mut finished[k],
+                    *offset,
+                    y,
+                    (w, self.height),
+                    self.min_disparity,
+                    nd,
+                );
+                // Slide the vertical window down by one row.
+                let rows_h = &horizontal[k];
+                let incoming = clamp_row(y as isize + r as isize + 1);
+                let outgoing = clamp_row(y as isize - r as isize);
+                let (inc, out_row) = (
+                    &rows_h[incoming * row_len..(incoming + 1) * row_len],
+                    &rows_h[outgoing * row_len..(outgoing + 1) * row_len],
+                );
+                for ((a, v), o) in vertical[k].iter_mut().zip(inc).zip(out_row) {
+                    *a = a.wrapping_add(*v).wrapping_sub(*o);
+                }
+            }
+            let refs: Vec<&[u16]> = finished.iter().map(Vec::as_slice).collect();
+            fuse_rows(self.fusion, &refs, &mut out[i * row_len..(i + 1) * row_len]);
+        }
+    }
+
+    /// The whole fused volume `[y][x][d]` (for global optimisers), computed band-parallel.
+    pub fn fused_volume(&self, on_band: &(dyn Fn() + Sync)) -> Vec<u16> {
+        let row_len = self.width * self.disparities;
+        let mut volume = vec![0u16; self.height * row_len];
+        volume
+            .par_chunks_mut(BAND_ROWS * row_len)
+            .enumerate()
+            .for_each(|(band, chunk)| {
+                let start = band * BAND_ROWS;
+                let rows = start..start + chunk.len() / row_len;
+                self.fused_band(rows, chunk);
+                on_band();
+            });
+        volume
+    }
+}
