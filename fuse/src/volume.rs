@@ -240,6 +240,9 @@ impl PreparedProblem {
                     self.min_disparity,
                     nd,
                 );
+                if y + 1 == rows.end {
+                    continue;
+                }
                 // Slide the vertical window down by one row.
                 let rows_h = &horizontal[k];
                 let incoming = clamp_row(y as isize + r as isize + 1);

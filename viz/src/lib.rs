@@ -1,8 +1,10 @@
 //! `viz`: what users look at — captures, cost volumes, disparity and point clouds streamed to the
 //! Rerun viewer, or written as files (colour-mapped PNG, PFM, PLY) for people without a viewer.
 //!
-//! It never depends on `replay`; binaries hand it plain data. It starts with the colour map
-//! every disparity image uses.
+//! It never depends on `replay`; binaries hand it plain data. [`files`] writes PFM, 16-bit
+//! depth PNG and colour-mapped disparity PNG; [`turbo`] is the colour map.
+
+pub mod files;
 
 /// Turbo colour map (Mikhailov, Google 2019) at `t` ∈ [0, 1], as 8-bit RGB, by the published
 /// polynomial approximation. Values outside [0, 1] are clamped; NaN maps to black.

@@ -1,0 +1,147 @@
+//! Evaluation of methods over many view sets: the paper's table (RMS, AvgErr, Bad0.5, Bad1,
+//! Bad2 over pixels with known ground truth, averaged per scene) and the change against the
+//! stereo method of the same family (`bm-*` against `bm-stereo`, `sgm-*` against `sgm-stereo`).
+
+use std::time::Instant;
+
+use fuse::metrics::{Metrics, average, evaluate};
+use serde::Serialize;
+
+use crate::ReplayError;
+use crate::viewset::ViewSet;
+
+/// One method's row of the table.
+#[derive(Debug, Clone, Serialize)]
+pub struct EvalRow {
+    /// Method name.
+    pub method: String,
+    /// Metrics averaged over scenes.
+    pub mean: Metrics,
+    /// Per-scene metrics.
+    pub scenes: Vec<(String, Metrics)>,
+    /// The stereo method compared against.
+    pub baseline: Option<String>,
+    /// Relative change of AvgErr against the baseline (%; negative = better).
+    pub avg_err_change_percent: Option<f64>,
+    /// Relative change of RMS against the baseline (%).
+    pub rms_change_percent: Option<f64>,
+    /// Total run time of the method over all scenes (s).
+    pub seconds: f64,
+}
+
+/// The stereo method of a method's family.
+pub fn baseline_of(method: &str) -> Option<String> {
+    let (family, _) = method.split_once('-')?;
+    let baseline = format!("{family}-stereo");
+    (baseline != method).then_some(baseline)
+}
+
+/// Runs `methods` on every set with ground truth and tabulates the results.
+pub fn evaluate_sets(
+    sets: &[ViewSet],
+    methods: &[String],
+    num_disparities: Option<usize>,
+    mut on_progress: impl FnMut(&str, &str),
+) -> Result<Vec<EvalRow>, ReplayError> {
+    let mut rows = Vec::new();
+    for name in methods {
+        let method = fuse::methods::build(name, None).map_err(|source| ReplayError::Fuse { set: 0, source })?;
+        let mut scenes = Vec::new();
+        let started = Instant::now();
+        for set in sets {
+            let Some(truth) = set.ground_truth_disparity() else { continue };
+            on_progress(name, &set.name);
+            let nd = num_disparities.unwrap_or_else(|| set.default_num_disparities());
+            let problem = set.problem(0, nd)?;
+            let disparity = method.run(&problem, &|_| {}).map_err(|source| ReplayError::Fuse { set: set.index, source })?;
+            if let Some(metrics) = evaluate(&disparity.data, &truth, None, nd as f64) {
+                scenes.push((set.name.clone(), metrics));
+            }
+        }
+        let seconds = started.elapsed().as_secs_f64();
+        let per_scene: Vec<Metrics> = scenes.iter().map(|(_, m)| *m).collect();
+        if let Some(mean) = average(&per_scene) {
+            rows.push(EvalRow {
+                method: name.clone(),
+                mean,
+                scenes,
+                baseline: None,
+                avg_err_change_percent: None,
+                rms_change_percent: None,
+                seconds,
+            });
+        }
+    }
+    let snapshot = rows.clone();
+    for row in &mut rows {
+        if let Some(baseline) = baseline_of(&row.method)
+            && let Some(base) = snapshot.iter().find(|r| r.method == baseline)
+        {
+            row.avg_err_change_percent = Some(100.0 * (row.mean.avg_err - base.mean.avg_err) / base.mean.avg_err);
+            row.rms_change_percent = Some(100.0 * (row.mean.rms - base.mean.rms) / base.mean.rms);
+            row.baseline = Some(baseline);
+        }
+    }
+    Ok(rows)
+}
+
+fn change(value: Option<f64>) -> String {
+    value.map_or_else(|| "–".to_owned(), |v| format!("{v:+.1} %"))
+}
+
+/// The table as Markdown.
+pub fn markdown(rows: &[EvalRow]) -> String {
+    let mut out = String::from("| method | scenes | RMS | AvgErr | Bad0.5 (%) | Bad1 (%) | Bad2 (%) | AvgErr vs stereo | RMS vs stereo | time (s) |\n");
+    out.push_str("|---|---|---|---|---|---|---|---|---|---|\n");
+    for r in rows {
+        out.push_str(&format!(
+            "| {} | {} | {:.3} | {:.3} | {:.2} | {:.2} | {:.2} | {} | {} | {:.1} |\n",
+            r.method,
+            r.scenes.len(),
+            r.mean.rms,
+            r.mean.avg_err,
+            r.mean.bad_0_5,
+            r.mean.bad_1,
+            r.mean.bad_2,
+            change(r.avg_err_change_percent),
+            change(r.rms_change_percent),
+            r.seconds
+        ));
+    }
+    out
+}
+
+/// The table as CSV (one row per method and scene, plus the mean).
+pub fn csv(rows: &[EvalRow]) -> String {
+    let mut out = String::from("method,scene,rms,avg_err,bad_0_5,bad_1,bad_2,pixels,missing,avg_err_change_percent\n");
+    for r in rows {
+        for (scene, m) in r.scenes.iter().map(|(s, m)| (s.as_str(), m)).chain(std::iter::once(("mean", &r.mean))) {
+            out.push_str(&format!(
+                "{},{},{:.4},{:.4},{:.3},{:.3},{:.3},{},{},{}\n",
+                r.method,
+                scene,
+                m.rms,
+                m.avg_err,
+                m.bad_0_5,
+                m.bad_1,
+                m.bad_2,
+                m.pixels,
+                m.missing,
+                if scene == "mean" { r.avg_err_change_percent.map_or(String::new(), |v| format!("{v:.2}")) } else { String::new() }
+            ));
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn baselines_are_the_family_stereo_method() {
+        assert_eq!(baseline_of("bm-heuristic").as_deref(), Some("bm-stereo"));
+        assert_eq!(baseline_of("sgm-min").as_deref(), Some("sgm-stereo"));
+        assert_eq!(baseline_of("bm-stereo"), None);
+    }
+}

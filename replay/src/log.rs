@@ -1,0 +1,365 @@
+//! Reading a log into view sets.
+//!
+//! The messages are scanned in file order; every complete message is kept, so a recording that
+//! was cut off (no summary, a torn last chunk) still yields the sets it completed, and
+//! [`LogContents::truncation`] says what was lost. Capture events say which image is which view
+//! of which set; the images, calibrations and ground truth are looked up by topic and log time.
+
+use std::collections::{BTreeMap, HashMap};
+use std::path::Path;
+
+use foxglove::messages::{CameraCalibration, CompressedImage, RawImage};
+use record::camera::PinholeCamera;
+use record::log::{CAPTURE_EVENTS_TOPIC, CaptureEvent, PoseJson};
+use record::rig::REFERENCE_ROLE;
+
+use crate::ReplayError;
+use crate::viewset::{View, ViewSet};
+
+/// What a log holds.
+#[derive(Debug, Clone)]
+pub struct LogContents {
+    /// Complete view sets, in set order.
+    pub sets: Vec<ViewSet>,
+    /// Sets named by capture events but missing messages (cut off), with the reason.
+    pub incomplete_sets: Vec<(u32, String)>,
+    /// Messages read.
+    pub messages: usize,
+    /// Why the scan stopped early, when it did (a cut-off or corrupted file).
+    pub truncation: Option<String>,
+    /// Metadata records.
+    pub metadata: BTreeMap<String, BTreeMap<String, String>>,
+}
+
+/// Reads a log file.
+pub fn read_log_file(path: &Path) -> Result<LogContents, ReplayError> {
+    let bytes = std::fs::read(path).map_err(|source| ReplayError::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    read_log(&bytes)
+}
+
+/// Capture events of a log (linear scan), recovering what a cut-off log holds.
+pub fn read_capture_events(mcap_bytes: &[u8]) -> Result<Vec<CaptureEvent>, ReplayError> {
+    let mut events = Vec::new();
+    scan(mcap_bytes, |topic| topic == CAPTURE_EVENTS_TOPIC, |topic, log_time, data| {
+        if topic == CAPTURE_EVENTS_TOPIC {
+            let event = serde_json::from_slice(data).map_err(|source| ReplayError::BadEvent {
+                topic: CAPTURE_EVENTS_TOPIC,
+                log_time,
+                source,
+            })?;
+            events.push(event);
+        }
+        Ok(())
+    })?;
+    Ok(events)
+}
+
+/// Scans messages in file order, handing those whose topic `wanted` accepts to `on_message`.
+/// Returns the message count and, when the file ends early or is corrupt, the reason.
+fn scan(
+    bytes: &[u8],
+    wanted: impl Fn(&str) -> bool,
+    mut on_message: impl FnMut(&str, u64, &[u8]) -> Result<(), ReplayError>,
+) -> Result<(usize, Option<String>), ReplayError> {
+    let stream = mcap::MessageStream::new(bytes).map_err(|source| ReplayError::Mcap { source })?;
+    let mut count = 0;
+    for message in stream {
+        match message {
+            Ok(message) => {
+                count += 1;
+                if wanted(&message.channel.topic) {
+                    on_message(&message.channel.topic, message.log_time, &message.data)?;
+                }
+            }
+            Err(error) => return Ok((count, Some(error.to_string()))),
+        }
+    }
+    Ok((count, None))
+}
+
+/// Reads a log held in memory.
+pub fn read_log(bytes: &[u8]) -> Result<LogContents, ReplayError> {
+    let mut events: Vec<CaptureEvent> = Vec::new();
+    let mut payloads: HashMap<(String, u64), Vec<u8>> = HashMap::new();
+    let (messages, truncation) = scan(
+        bytes,
+        |topic| topic == CAPTURE_EVENTS_TOPIC || topic.starts_with("/camera/"),
+        |topic, log_time, data| {
+            if topic == CAPTURE_EVENTS_TOPIC {
+                events.push(serde_json::from_slice(data).map_err(|source| ReplayError::BadEvent {
+                    topic: CAPTURE_EVENTS_TOPIC,
+                    log_time,
+                    source,
+                })?);
+            } else {
+                payloads.insert((topic.to_owned(), log_time), data.to_vec());
+            }
+            Ok(())
+        },
+    )?;
+    if messages == 0
+        && let Some(reason) = &truncation
+    {
+        return Err(ReplayError::Mcap {
+            source: mcap::McapError::Io(std::io::Error::new(std::io::ErrorKind::InvalidData, reason.clone())),
+        });
+    }
+    let mut by_set: BTreeMap<u32, Vec<CaptureEvent>> = BTreeMap::new();
+    for event in events {
+        by_set.entry(event.set_index).or_default().push(event);
+    }
+    let mut sets = Vec::new();
+    let mut incomplete_sets = Vec::new();
+    for (index, events) in by_set {
+        let expected = events.first().map_or(0, |e| e.views_in_set as usize);
+        if events.len() < expected {
+            incomplete_sets.push((index, format!("{} of {expected} views logged", events.len())));
+            continue;
+        }
+        match assemble_set(index, &events, &payloads) {
+            Ok(set) => sets.push(set),
+            Err(error) if truncation.is_some() => incomplete_sets.push((index, error.to_string())),
+            Err(error) => return Err(error),
+        }
+    }
+    Ok(LogContents {
+        sets,
+        incomplete_sets,
+        messages,
+        truncation,
+        metadata: read_metadata(bytes),
+    })
+}
+
+fn read_metadata(bytes: &[u8]) -> BTreeMap<String, BTreeMap<String, String>> {
+    let mut out = BTreeMap::new();
+    if let Ok(Some(summary)) = mcap::Summary::read(bytes) {
+        for index in &summary.metadata_indexes {
+            if let Ok(record) = mcap::read::metadata(bytes, index) {
+                out.insert(record.name.clone(), record.metadata.clone());
+            }
+        }
+    }
+    out
+}
+
+fn decode_error<'a>(set: u32, topic: &'a str, schema: &'static str) -> impl Fn(prost::DecodeError) -> ReplayError + 'a {
+    move |e| ReplayError::Decode {
+        set,
+        topic: topic.to_owned(),
+        schema,
+        reason: e.to_string(),
+    }
+}
+
+fn payload<'a>(payloads: &'a HashMap<(String, u64), Vec<u8>>, set: u32, event: &CaptureEvent, topic: &str) -> Result<&'a [u8], ReplayError> {
+    payloads
+        .get(&(topic.to_owned(), event.capture_time_nanos))
+        .map(Vec::as_slice)
+        .ok_or_else(|| ReplayError::MissingMessage {
+            set,
+            role: event.role.clone(),
+            topic: topic.to_owned(),
+            log_time: event.capture_time_nanos,
+        })
+}
+
+fn decode_rgb(set: u32, topic: &str, data: &[u8]) -> Result<(u32, u32, Vec<u8>), ReplayError> {
+    // A CompressedImage has `format` (field 3) and no `width`; try RawImage first by its fields.
+    if let Ok(raw) = <RawImage as prost::Message>::decode(data)
+        && raw.width > 0
+        && !raw.encoding.is_empty()
+    {
+        return raw_to_rgb(set, topic, &raw).map(|rgb| (raw.width, raw.height, rgb));
+    }
+    let compressed: CompressedImage = prost::Message::decode(data).map_err(decode_error(set, topic, "foxglove.RawImage or foxglove.CompressedImage"))?;
+    if compressed.format.to_ascii_lowercase() != "png" {
+        return Err(ReplayError::UnknownEncoding {
+            set,
+            topic: topic.to_owned(),
+            encoding: compressed.format,
+        });
+    }
+    decode_png(&compressed.data).map_err(|reason| ReplayError::Decode {
+        set,
+        topic: topic.to_owned(),
+        schema: "PNG",
+        reason,
+    })
+}
+
+fn decode_png(data: &[u8]) -> Result<(u32, u32, Vec<u8>), String> {
+    let mut decoder = png::Decoder::new(std::io::Cursor::new(data));
+    decoder.set_transformations(png::Transformations::EXPAND | png::Transformations::STRIP_16);
+    let mut reader = decoder.read_info().map_err(|e| e.to_string())?;
+    let size = reader.output_buffer_size().ok_or("image too large")?;
+    let mut buffer = vec![0; size];
+    let info = reader.next_frame(&mut buffer).map_err(|e| e.to_string())?;
+    buffer.truncate(info.buffer_size());
+    let rgb = match info.color_type {
+        png::ColorType::Rgb => buffer,
+        png::ColorType::Rgba => buffer.chunks_exact(4).flat_map(|p| [p[0], p[1], p[2]]).collect(),
+        png::ColorType::Grayscale => buffer.iter().flat_map(|v| [*v; 3]).collect(),
+        png::ColorType::GrayscaleAlpha => buffer.chunks_exact(2).flat_map(|p| [p[0]; 3]).collect(),
+        png::ColorType::Indexed => return Err("indexed PNG after expansion".into()),
+    };
+    Ok((info.width, info.height, rgb))
+}
+
+fn raw_to_rgb(set: u32, topic: &str, raw: &RawImage) -> Result<Vec<u8>, ReplayError> {
+    let (w, h, step) = (raw.width as usize, raw.height as usize, raw.step as usize);
+    let channels = match raw.encoding.as_str() {
+        "rgb8" | "bgr8" | "8UC3" => 3,
+        "rgba8" | "bgra8" => 4,
+        "mono8" | "8UC1" => 1,
+        other => {
+            return Err(ReplayError::UnknownEncoding {
+                set,
+                topic: topic.to_owned(),
+                encoding: other.to_owned(),
+            });
+        }
+    };
+    if step < w * channels || raw.data.len() < step * h.saturating_sub(1) + w * channels {
+        return Err(ReplayError::BadField {
+            set,
+            topic: topic.to_owned(),
+            field: "data",
+            value: format!("{} bytes for {w}x{h} {} with step {step}", raw.data.len(), raw.encoding),
+        });
+    }
+    let bgr = raw.encoding.starts_with("bgr") || raw.encoding == "8UC3";
+    let mut rgb = Vec::with_capacity(w * h * 3);
+    for row in 0..h {
+        let line = &raw.data[row * step..row * step + w * channels];
+        for p in line.chunks_exact(channels) {
+            match (channels, bgr) {
+                (1, _) => rgb.extend_from_slice(&[p[0]; 3]),
+                (_, true) => rgb.extend_from_slice(&[p[2], p[1], p[0]]),
+                (_, false) => rgb.extend_from_slice(&p[..3]),
+            }
+        }
+    }
+    Ok(rgb)
+}
+
+fn decode_depth(set: u32, topic: &str, data: &[u8], size: (u32, u32)) -> Result<Vec<f32>, ReplayError> {
+    let raw: RawImage = prost::Message::decode(data).map_err(decode_error(set, topic, "foxglove.RawImage"))?;
+    if raw.encoding != record::log::DEPTH_ENCODING {
+        return Err(ReplayError::UnknownEncoding {
+            set,
+            topic: topic.to_owned(),
+            encoding: raw.encoding,
+        });
+    }
+    if (raw.width, raw.height) != size || raw.data.len() < (raw.width * raw.height * 4) as usize {
+        return Err(ReplayError::BadField {
+            set,
+            topic: topic.to_owned(),
+            field: "width/height/data",
+            value: format!("{}x{} with {} bytes, image is {}x{}", raw.width, raw.height, raw.data.len(), size.0, size.1),
+        });
+    }
+    let step = (raw.step as usize).max(raw.width as usize * 4);
+    let mut depth = Vec::with_capacity((raw.width * raw.height) as usize);
+    for row in 0..raw.height as usize {
+        for b in raw.data[row * step..row * step + raw.width as usize * 4].chunks_exact(4) {
+            let z = f32::from_le_bytes([b[0], b[1], b[2], b[3]]);
+            if !z.is_finite() || z < 0.0 {
+                return Err(ReplayError::BadField {
+                    set,
+                    topic: topic.to_owned(),
+                    field: "depth",
+                    value: format!("{z} at pixel {} (ground truth must be finite metres ≥ 0; 0 = unknown)", depth.len()),
+                });
+            }
+            depth.push(z);
+        }
+    }
+    Ok(depth)
+}
+
+fn assemble_set(index: u32, events: &[CaptureEvent], payloads: &HashMap<(String, u64), Vec<u8>>) -> Result<ViewSet, ReplayError> {
+    let mut views = Vec::with_capacity(events.len());
+    let mut ground_truth = None;
+    let mut surface = None;
+    let reference_event = events.iter().find(|e| e.role == REFERENCE_ROLE).ok_or_else(|| ReplayError::MissingView {
+        set: index,
+        role: REFERENCE_ROLE.into(),
+    })?;
+    if !(reference_event.baseline_m.is_finite() && reference_event.baseline_m > 0.0) {
+        return Err(ReplayError::BadField {
+            set: index,
+            topic: CAPTURE_EVENTS_TOPIC.into(),
+            field: "baseline_m",
+            value: reference_event.baseline_m.to_string(),
+        });
+    }
+    for event in events {
+        let (width, height, rgb) = decode_rgb(index, &event.image_topic, payload(payloads, index, event, &event.image_topic)?)?;
+        let calibration: CameraCalibration = prost::Message::decode(payload(payloads, index, event, &event.calibration_topic)?)
+            .map_err(decode_error(index, &event.calibration_topic, "foxglove.CameraCalibration"))?;
+        if calibration.k.len() != 9 || calibration.k[0] <= 0.0 || !calibration.k[0].is_finite() {
+            return Err(ReplayError::BadField {
+                set: index,
+                topic: event.calibration_topic.clone(),
+                field: "k",
+                value: format!("{:?}", calibration.k),
+            });
+        }
+        let camera = PinholeCamera {
+            width,
+            height,
+            fx: calibration.k[0],
+            fy: calibration.k[4],
+            cx: calibration.k[2],
+            cy: calibration.k[5],
+        };
+        if event.role == REFERENCE_ROLE {
+            if let Some(topic) = &event.depth_topic {
+                ground_truth = Some(decode_depth(index, topic, payload(payloads, index, event, topic)?, (width, height))?);
+            }
+            if let Some(topic) = &event.surface_topic {
+                let raw: RawImage = prost::Message::decode(payload(payloads, index, event, topic)?).map_err(decode_error(index, topic, "foxglove.RawImage"))?;
+                surface = Some(raw.data.to_vec());
+            }
+        }
+        views.push(View {
+            role: event.role.clone(),
+            offset: event.grid_offset,
+            camera,
+            rgb,
+            world_from_camera: event.world_from_camera.to_isometry(),
+            true_world_from_camera: event.true_world_from_camera.as_ref().map(PoseJson::to_isometry),
+            capture_time_nanos: event.capture_time_nanos,
+        });
+    }
+    let reference_position = views.iter().position(|v| v.role == REFERENCE_ROLE).unwrap_or(0);
+    let reference = views.remove(reference_position);
+    for view in &views {
+        if (view.camera.width, view.camera.height) != (reference.camera.width, reference.camera.height) {
+            return Err(ReplayError::SizeMismatch {
+                set: index,
+                role: view.role.clone(),
+                topic: record::log::image_topic(&view.role),
+                width: view.camera.width,
+                height: view.camera.height,
+                reference_width: reference.camera.width,
+                reference_height: reference.camera.height,
+            });
+        }
+    }
+    Ok(ViewSet {
+        index,
+        name: reference_event.set_name.clone(),
+        rig: reference_event.rig.clone(),
+        baseline_m: reference_event.baseline_m,
+        reference,
+        neighbours: views,
+        ground_truth_depth_m: ground_truth,
+        surface_class: surface,
+    })
+}

@@ -1,0 +1,282 @@
+//! `replay`: run depth methods on the view sets of a multiscopic log, or evaluate them.
+//!
+//! Exit codes: 0 ok, 1 error, 2 usage, 3 finished but something was wrong or lost (a cut-off
+//! log was recovered, or sets were incomplete).
+
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use clap::{Args, Parser, Subcommand, ValueEnum};
+use indicatif::{ProgressBar, ProgressStyle};
+use replay::eval::{csv, evaluate_sets, markdown};
+use replay::log::read_log_file;
+use replay::outputs::write_set_outputs;
+use replay::viewset::ViewSet;
+use tracing::{info, warn};
+
+const EXIT_ERROR: u8 = 1;
+const EXIT_USAGE: u8 = 2;
+const EXIT_INCOMPLETE: u8 = 3;
+
+/// Run multiscopic depth methods on the view sets of an MCAP log (from `record`), write the
+/// results and evaluate them against ground truth.
+#[derive(Debug, Parser)]
+#[command(name = "replay", version, args_conflicts_with_subcommands = true)]
+#[command(after_help = "Examples:\n  replay capture.mcap --method sgm-heuristic --out results\n  replay --list-methods\n  replay eval ../shared/data/middlebury2006-third-dev --methods bm-stereo,bm-heuristic,sgm-stereo,sgm-heuristic")]
+struct Cli {
+    #[command(subcommand)]
+    command: Option<Command>,
+    #[command(flatten)]
+    run: RunArgs,
+    /// List the methods with one line each and exit.
+    #[arg(long)]
+    list_methods: bool,
+    /// Only print errors.
+    #[arg(short, long, global = true)]
+    quiet: bool,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Evaluate methods over logs and dataset folders; prints the paper's table.
+    Eval(EvalArgs),
+}
+
+#[derive(Debug, Args)]
+struct RunArgs {
+    /// The log to replay.
+    log: Option<PathBuf>,
+    /// Method (see --list-methods).
+    #[arg(long, default_value = "sgm-heuristic")]
+    method: String,
+    /// Method configuration overrides as a JSON object, e.g. '{"block_radius": 3}'.
+    #[arg(long, value_name = "JSON")]
+    config: Option<String>,
+    /// Output directory for the result files.
+    #[arg(long, default_value = "results")]
+    out: PathBuf,
+    /// Disparities searched (default: width/15 rounded up to a multiple of 16).
+    #[arg(long)]
+    num_disparities: Option<usize>,
+    /// Smallest disparity searched.
+    #[arg(long, default_value = "0")]
+    min_disparity: usize,
+    /// Only these sets (indexes, comma-separated).
+    #[arg(long, value_delimiter = ',')]
+    sets: Vec<u32>,
+}
+
+#[derive(Debug, Clone, Copy, ValueEnum)]
+enum TableFormat {
+    Markdown,
+    Csv,
+    Json,
+}
+
+#[derive(Debug, Args)]
+struct EvalArgs {
+    /// Logs (.mcap) and dataset folders (e.g. ../shared/data/middlebury2006-third-dev).
+    #[arg(required = true)]
+    inputs: Vec<PathBuf>,
+    /// Methods to compare (comma-separated).
+    #[arg(long, value_delimiter = ',', default_value = "bm-stereo,bm-mean,bm-min,bm-heuristic,sgm-stereo,sgm-heuristic")]
+    methods: Vec<String>,
+    /// Disparities searched (default: per set, width/15 rounded up to a multiple of 16).
+    #[arg(long)]
+    num_disparities: Option<usize>,
+    /// Table format on stdout.
+    #[arg(long, value_enum, default_value = "markdown")]
+    format: TableFormat,
+    /// Also write the table as Markdown, CSV and JSON into this directory.
+    #[arg(long)]
+    out: Option<PathBuf>,
+}
+
+#[derive(Debug, thiserror::Error)]
+#[error("{0}")]
+struct UsageError(String);
+
+enum Outcome {
+    Complete,
+    Incomplete,
+}
+
+fn main() -> ExitCode {
+    let cli = match Cli::try_parse() {
+        Ok(cli) => cli,
+        Err(error) => {
+            let code = error.exit_code();
+            let _ = error.print();
+            return ExitCode::from(code.clamp(0, 255) as u8);
+        }
+    };
+    let level = if cli.quiet { "error" } else { "info" };
+    tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(level)))
+        .with_writer(std::io::stderr)
+        .with_target(false)
+        .init();
+    let result = if cli.list_methods {
+        for entry in fuse::methods::registry() {
+            println!("{:<16} {}", entry.name, entry.summary);
+        }
+        Ok(Outcome::Complete)
+    } else {
+        match &cli.command {
+            Some(Command::Eval(args)) => run_eval(args),
+            None => run_method(&cli.run, cli.quiet),
+        }
+    };
+    match result {
+        Ok(Outcome::Complete) => ExitCode::SUCCESS,
+        Ok(Outcome::Incomplete) => ExitCode::from(EXIT_INCOMPLETE),
+        Err(error) => {
+            let usage = error.chain().any(|c| c.is::<UsageError>());
+            eprintln!("error: {error:#}");
+            ExitCode::from(if usage { EXIT_USAGE } else { EXIT_ERROR })
+        }
+    }
+}
+
+fn bar(total: u64, quiet: bool) -> ProgressBar {
+    if quiet {
+        return ProgressBar::hidden();
+    }
+    let bar = ProgressBar::new(total);
+    if let Ok(style) = ProgressStyle::with_template("{spinner} [{elapsed_precise}] {bar:32} {percent:>3}% {msg}") {
+        bar.set_style(style);
+    }
+    bar
+}
+
+fn run_method(args: &RunArgs, quiet: bool) -> Result<Outcome> {
+    let Some(log) = &args.log else {
+        return Err(UsageError("no log given: replay LOG --method NAME (or --list-methods)".into()).into());
+    };
+    let overrides = match &args.config {
+        Some(text) => Some(serde_json::from_str::<serde_json::Value>(text).map_err(|e| UsageError(format!("--config is not JSON: {e}")))?),
+        None => None,
+    };
+    let method = fuse::methods::build(&args.method, overrides.as_ref()).map_err(|e| UsageError(e.to_string()))?;
+    let started = Instant::now();
+    let contents = read_log_file(log).with_context(|| format!("reading {}", log.display()))?;
+    if let Some(reason) = &contents.truncation {
+        warn!("{} is cut off or corrupt after {} messages ({reason}); recovered {} complete set(s)", log.display(), contents.messages, contents.sets.len());
+    }
+    for (set, reason) in &contents.incomplete_sets {
+        warn!("set {set} is incomplete and skipped: {reason}");
+    }
+    let sets: Vec<&ViewSet> = contents.sets.iter().filter(|s| args.sets.is_empty() || args.sets.contains(&s.index)).collect();
+    if sets.is_empty() {
+        anyhow::bail!("{} holds no complete view set to replay", log.display());
+    }
+    std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
+    let mut summaries = Vec::new();
+    for set in sets {
+        let nd = args.num_disparities.unwrap_or_else(|| set.default_num_disparities());
+        let problem = set.problem(args.min_disparity, nd)?;
+        let progress = bar(1000, quiet);
+        progress.set_message(format!("set {} {} ({} neighbours, {nd} disparities)", set.index, method.name(), problem.neighbours.len()));
+        let method_started = Instant::now();
+        let disparity = method
+            .run(&problem, &|fraction| progress.set_position((fraction * 1000.0) as u64))
+            .with_context(|| format!("set {}: {}", set.index, method.name()))?;
+        let seconds = method_started.elapsed().as_secs_f64();
+        progress.finish_and_clear();
+        let metrics = set
+            .ground_truth_disparity()
+            .and_then(|truth| fuse::metrics::evaluate(&disparity.data, &truth, None, nd as f64));
+        let outputs = write_set_outputs(&args.out, set, method.name(), &disparity, metrics)?;
+        match &metrics {
+            Some(m) => info!(
+                "set {} ({}): {} in {seconds:.2} s — AvgErr {:.3} px, RMS {:.3}, Bad1 {:.2} % → {}",
+                set.index,
+                set.name,
+                method.name(),
+                m.avg_err,
+                m.rms,
+                m.bad_1,
+                outputs.dir.display()
+            ),
+            None => info!("set {} ({}): {} in {seconds:.2} s → {}", set.index, set.name, method.name(), outputs.dir.display()),
+        }
+        summaries.push(serde_json::json!({"outputs": outputs, "seconds": seconds, "num_disparities": nd}));
+    }
+    let summary = serde_json::json!({
+        "tool": "replay",
+        "tool_version": env!("CARGO_PKG_VERSION"),
+        "log": log,
+        "method": method.name(),
+        "config": method.config_json(),
+        "min_disparity": args.min_disparity,
+        "sets": summaries,
+        "incomplete_sets": contents.incomplete_sets,
+        "truncation": contents.truncation,
+        "log_metadata": contents.metadata,
+        "seconds": started.elapsed().as_secs_f64(),
+    });
+    let summary_path = args.out.join("summary.json");
+    std::fs::write(&summary_path, serde_json::to_string_pretty(&summary)?).with_context(|| format!("writing {}", summary_path.display()))?;
+    info!("wrote {}", summary_path.display());
+    if contents.truncation.is_some() || !contents.incomplete_sets.is_empty() {
+        return Ok(Outcome::Incomplete);
+    }
+    Ok(Outcome::Complete)
+}
+
+fn read_inputs(inputs: &[PathBuf]) -> Result<Vec<ViewSet>> {
+    let mut sets = Vec::new();
+    for input in inputs {
+        if input.is_dir() {
+            sets.extend(replay::dataset::read_dataset(input).with_context(|| format!("reading dataset {}", input.display()))?);
+        } else {
+            let contents = read_log_file(input).with_context(|| format!("reading {}", input.display()))?;
+            let name = input.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+            for mut set in contents.sets {
+                set.name = format!("{name}/{}", set.name);
+                sets.push(set);
+            }
+        }
+    }
+    Ok(sets)
+}
+
+fn run_eval(args: &EvalArgs) -> Result<Outcome> {
+    for name in &args.methods {
+        if !fuse::methods::registry().iter().any(|e| e.name == name) {
+            return Err(UsageError(format!("unknown method '{name}' (see --list-methods)")).into());
+        }
+    }
+    let sets = read_inputs(&args.inputs)?;
+    let with_truth = sets.iter().filter(|s| s.ground_truth_depth_m.is_some()).count();
+    if with_truth == 0 {
+        anyhow::bail!("none of the {} view sets has ground truth", sets.len());
+    }
+    let progress = bar((args.methods.len() * with_truth) as u64, false);
+    let rows = evaluate_sets(&sets, &args.methods, args.num_disparities, |method, scene| {
+        progress.set_message(format!("{method} on {scene}"));
+        progress.inc(1);
+    })?;
+    progress.finish_and_clear();
+    let table = markdown(&rows);
+    match args.format {
+        TableFormat::Markdown => print!("{table}"),
+        TableFormat::Csv => print!("{}", csv(&rows)),
+        TableFormat::Json => println!("{}", serde_json::to_string_pretty(&rows)?),
+    }
+    if let Some(dir) = &args.out {
+        write_tables(dir, &rows, &table)?;
+    }
+    Ok(Outcome::Complete)
+}
+
+fn write_tables(dir: &Path, rows: &[replay::eval::EvalRow], table: &str) -> Result<()> {
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    std::fs::write(dir.join("eval.md"), table)?;
+    std::fs::write(dir.join("eval.csv"), csv(rows))?;
+    std::fs::write(dir.join("eval.json"), serde_json::to_string_pretty(rows)?)?;
+    info!("wrote eval.md, eval.csv and eval.json to {}", dir.display());
+    Ok(())
+}

@@ -1,0 +1,138 @@
+//! View sets: the reference view, its neighbours with their roles and grid offsets, intrinsics,
+//! poses, baseline and ground truth, as replay and the methods need them.
+
+use nalgebra::Isometry3;
+use record::camera::PinholeCamera;
+use record::rig::REFERENCE_ROLE;
+use record::{CapturedSet, CapturedView};
+
+use crate::ReplayError;
+
+/// One view of a set.
+#[derive(Debug, Clone, PartialEq)]
+pub struct View {
+    /// Role (`center`, `left`, …).
+    pub role: String,
+    /// Position in baselines along the reference camera's x and y.
+    pub offset: [i32; 2],
+    /// Intrinsics.
+    pub camera: PinholeCamera,
+    /// 8-bit RGB.
+    pub rgb: Vec<u8>,
+    /// Pose as logged (`/tf` at the image time).
+    pub world_from_camera: Isometry3<f64>,
+    /// Ground-truth pose, when the log has it (simulation).
+    pub true_world_from_camera: Option<Isometry3<f64>>,
+    /// Image time (ns).
+    pub capture_time_nanos: u64,
+}
+
+/// A multiscopic view set.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ViewSet {
+    /// Index in the log.
+    pub index: u32,
+    /// Name.
+    pub name: String,
+    /// Rig layout name.
+    pub rig: String,
+    /// Commanded baseline (m).
+    pub baseline_m: f64,
+    /// The reference view.
+    pub reference: View,
+    /// The neighbours.
+    pub neighbours: Vec<View>,
+    /// Ground-truth z-depth of the reference (m, 0 = unknown).
+    pub ground_truth_depth_m: Option<Vec<f32>>,
+    /// Ground-truth surface classes of the reference (simulation).
+    pub surface_class: Option<Vec<u8>>,
+}
+
+fn view_from_captured(view: &CapturedView) -> View {
+    View {
+        role: view.role.clone(),
+        offset: view.grid_offset,
+        camera: view.camera,
+        rgb: view.rgb.clone(),
+        world_from_camera: view.world_from_camera,
+        true_world_from_camera: view.world_from_camera_true,
+        capture_time_nanos: view.capture_time_nanos,
+    }
+}
+
+impl ViewSet {
+    /// A set from a captured (simulated or imported) set.
+    pub fn from_captured(set: &CapturedSet) -> Result<Self, ReplayError> {
+        let reference = set
+            .views
+            .iter()
+            .find(|v| v.role == REFERENCE_ROLE)
+            .ok_or_else(|| ReplayError::MissingView {
+                set: set.index,
+                role: REFERENCE_ROLE.into(),
+            })?;
+        Ok(Self {
+            index: set.index,
+            name: set.name.clone(),
+            rig: set.rig.name().to_owned(),
+            baseline_m: set.baseline_m,
+            reference: view_from_captured(reference),
+            neighbours: set.views.iter().filter(|v| v.role != REFERENCE_ROLE).map(view_from_captured).collect(),
+            ground_truth_depth_m: reference.depth_m.clone(),
+            surface_class: reference.surface_class.clone(),
+        })
+    }
+
+    /// Image width.
+    pub fn width(&self) -> usize {
+        self.reference.camera.width as usize
+    }
+
+    /// Image height.
+    pub fn height(&self) -> usize {
+        self.reference.camera.height as usize
+    }
+
+    /// Disparities searched when none are given: about a fifteenth of the width, rounded up to
+    /// a multiple of 16 (32 for Middlebury's third size, 128 for 1920 px).
+    pub fn default_num_disparities(&self) -> usize {
+        (self.width() / 15).div_ceil(16).clamp(1, 16) * 16
+    }
+
+    /// Ground-truth disparity `f·b/z` of the reference to a direct neighbour (0 = unknown).
+    pub fn ground_truth_disparity(&self) -> Option<Vec<f32>> {
+        let fb = self.reference.camera.fx * self.baseline_m;
+        self.ground_truth_depth_m.as_ref().map(|depth| {
+            depth
+                .iter()
+                .map(|z| fuse::disparity_from_depth(fb, 1.0, f64::from(*z)).map_or(0.0, |d| d as f32))
+                .collect()
+        })
+    }
+
+    /// The matching problem of this set (grey images).
+    pub fn problem(&self, min_disparity: usize, num_disparities: usize) -> Result<fuse::Problem, ReplayError> {
+        let gray = |view: &View| {
+            fuse::GrayImage::from_rgb(view.camera.width as usize, view.camera.height as usize, &view.rgb).map_err(|source| ReplayError::Fuse {
+                set: self.index,
+                source,
+            })
+        };
+        Ok(fuse::Problem {
+            reference: gray(&self.reference)?,
+            neighbours: self
+                .neighbours
+                .iter()
+                .map(|n| {
+                    Ok(fuse::Neighbour {
+                        role: n.role.clone(),
+                        image: gray(n)?,
+                        offset: n.offset,
+                    })
+                })
+                .collect::<Result<_, ReplayError>>()?,
+            min_disparity,
+            num_disparities,
+        })
+    }
+}

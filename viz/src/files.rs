@@ -1,0 +1,206 @@
+//! Result files other tools open: PFM (Middlebury's float format), 16-bit PNG depth in
+//! millimetres, and colour-mapped PNG with the value range in the file name.
+
+use std::fs::File;
+use std::io::{BufWriter, Write};
+use std::path::{Path, PathBuf};
+
+use crate::turbo;
+
+/// Errors writing files.
+#[derive(Debug, thiserror::Error)]
+pub enum FileError {
+    /// The file could not be written.
+    #[error("cannot write '{path}': {source}")]
+    Io {
+        /// File.
+        path: PathBuf,
+        /// Cause.
+        #[source]
+        source: std::io::Error,
+    },
+    /// PNG encoding failed.
+    #[error("cannot encode '{path}' as PNG: {reason}")]
+    Png {
+        /// File.
+        path: PathBuf,
+        /// Cause.
+        reason: String,
+    },
+    /// The buffer does not match the size.
+    #[error("'{path}': {len} values for {width}x{height}")]
+    Size {
+        /// File.
+        path: PathBuf,
+        /// Values present.
+        len: usize,
+        /// Width.
+        width: usize,
+        /// Height.
+        height: usize,
+    },
+}
+
+fn check(path: &Path, len: usize, width: usize, height: usize) -> Result<(), FileError> {
+    if len == width * height {
+        Ok(())
+    } else {
+        Err(FileError::Size {
+            path: path.to_path_buf(),
+            len,
+            width,
+            height,
+        })
+    }
+}
+
+/// Writes a single-channel PFM (`Pf`, little-endian, rows bottom to top, as Middlebury's tools
+/// expect). Invalid values should be `+inf`.
+pub fn write_pfm(path: &Path, width: usize, height: usize, data: &[f32]) -> Result<(), FileError> {
+    check(path, data.len(), width, height)?;
+    let io = |source| FileError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    let mut out = BufWriter::new(File::create(path).map_err(io)?);
+    write!(out, "Pf\n{width} {height}\n-1\n").map_err(io)?;
+    for row in data.chunks_exact(width).rev() {
+        for v in row {
+            out.write_all(&v.to_le_bytes()).map_err(io)?;
+        }
+    }
+    out.flush().map_err(io)
+}
+
+/// Reads a single-channel PFM written by [`write_pfm`] (either endianness, any row order flag).
+pub fn read_pfm(path: &Path) -> Result<(usize, usize, Vec<f32>), FileError> {
+    let bytes = std::fs::read(path).map_err(|source| FileError::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    let bad = |reason: &str| FileError::Io {
+        path: path.to_path_buf(),
+        source: std::io::Error::new(std::io::ErrorKind::InvalidData, reason.to_owned()),
+    };
+    let mut fields = Vec::new();
+    let mut start = 0;
+    let mut header_end = 0;
+    for (i, b) in bytes.iter().enumerate() {
+        if b.is_ascii_whitespace() {
+            if i > start {
+                fields.push(String::from_utf8_lossy(&bytes[start..i]).into_owned());
+            }
+            start = i + 1;
+            if fields.len() == 4 {
+                header_end = i + 1;
+                break;
+            }
+        }
+    }
+    if fields.len() < 4 || fields[0] != "Pf" {
+        return Err(bad("not a single-channel PFM"));
+    }
+    let width: usize = fields[1].parse().map_err(|_| bad("bad width"))?;
+    let height: usize = fields[2].parse().map_err(|_| bad("bad height"))?;
+    let scale: f32 = fields[3].parse().map_err(|_| bad("bad scale"))?;
+    let body = &bytes[header_end..];
+    if body.len() < width * height * 4 {
+        return Err(bad("truncated data"));
+    }
+    let mut rows: Vec<Vec<f32>> = body[..width * height * 4]
+        .chunks_exact(width * 4)
+        .map(|row| {
+            row.chunks_exact(4)
+                .map(|b| {
+                    let b = [b[0], b[1], b[2], b[3]];
+                    if scale < 0.0 { f32::from_le_bytes(b) } else { f32::from_be_bytes(b) }
+                })
+                .collect()
+        })
+        .collect();
+    rows.reverse();
+    Ok((width, height, rows.concat()))
+}
+
+fn write_png(path: &Path, width: usize, height: usize, color: png::ColorType, depth: png::BitDepth, data: &[u8]) -> Result<(), FileError> {
+    let io = |source| FileError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    let png_error = |e: png::EncodingError| FileError::Png {
+        path: path.to_path_buf(),
+        reason: e.to_string(),
+    };
+    let file = File::create(path).map_err(io)?;
+    let mut encoder = png::Encoder::new(BufWriter::new(file), width as u32, height as u32);
+    encoder.set_color(color);
+    encoder.set_depth(depth);
+    let mut writer = encoder.write_header().map_err(png_error)?;
+    writer.write_image_data(data).map_err(png_error)?;
+    writer.finish().map_err(png_error)
+}
+
+/// Writes depth (m) as a 16-bit PNG in millimetres (0 = unknown, saturating at 65.535 m).
+pub fn write_depth_png_mm(path: &Path, width: usize, height: usize, depth_m: &[f32]) -> Result<(), FileError> {
+    check(path, depth_m.len(), width, height)?;
+    let mut bytes = Vec::with_capacity(depth_m.len() * 2);
+    for d in depth_m {
+        let mm = if d.is_finite() && *d > 0.0 { (d * 1000.0).round().min(65535.0) as u16 } else { 0 };
+        bytes.extend_from_slice(&mm.to_be_bytes());
+    }
+    write_png(path, width, height, png::ColorType::Grayscale, png::BitDepth::Sixteen, &bytes)
+}
+
+/// Writes 8-bit RGB.
+pub fn write_rgb_png(path: &Path, width: usize, height: usize, rgb: &[u8]) -> Result<(), FileError> {
+    check(path, rgb.len(), width * 3, height)?;
+    write_png(path, width, height, png::ColorType::Rgb, png::BitDepth::Eight, rgb)
+}
+
+/// Colour-maps values with turbo over `[low, high]`; non-finite values are black.
+pub fn colorize(values: &[f32], low: f32, high: f32) -> Vec<u8> {
+    let span = (high - low).max(f32::EPSILON);
+    values
+        .iter()
+        .flat_map(|v| if v.is_finite() { turbo(f64::from((v - low) / span)) } else { [0, 0, 0] })
+        .collect()
+}
+
+/// The finite range of values (`None` when nothing is finite).
+pub fn finite_range(values: &[f32]) -> Option<(f32, f32)> {
+    values
+        .iter()
+        .filter(|v| v.is_finite())
+        .fold(None, |acc, v| Some(acc.map_or((*v, *v), |(lo, hi): (f32, f32)| (lo.min(*v), hi.max(*v)))))
+}
+
+/// Writes a colour-mapped PNG named `<stem>_<low>-<high>px.png` in `dir` (the range in the name
+/// is the legend) and returns its path.
+pub fn write_colormap_png(dir: &Path, stem: &str, width: usize, height: usize, values: &[f32], range: (f32, f32)) -> Result<PathBuf, FileError> {
+    let path = dir.join(format!("{stem}_{:.1}-{:.1}px.png", range.0, range.1));
+    let rgb = colorize(values, range.0, range.1);
+    write_rgb_png(&path, width, height, &rgb)?;
+    Ok(path)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn pfm_round_trips_with_infinity() {
+        let dir = std::env::temp_dir().join(format!("viz-pfm-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap_or_else(|e| panic!("{e}"));
+        let path = dir.join("d.pfm");
+        let data = vec![1.0, 2.5, f32::INFINITY, 4.0, 5.0, 6.0];
+        write_pfm(&path, 3, 2, &data).unwrap_or_else(|e| panic!("{e}"));
+        let (w, h, back) = read_pfm(&path).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!((w, h), (3, 2));
+        assert_eq!(back, data);
+        // Rows are stored bottom-up: the file's first float is the last row's first value.
+        let bytes = std::fs::read(&path).unwrap_or_else(|e| panic!("{e}"));
+        let header = b"Pf\n3 2\n-1\n".len();
+        assert_eq!(f32::from_le_bytes([bytes[header], bytes[header + 1], bytes[header + 2], bytes[header + 3]]), 4.0);
+        let _ = std::fs::remove_dir_all(dir);
+    }
+}
