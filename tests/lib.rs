@@ -148,14 +148,8 @@ pub fn python_with_mcap() -> PathBuf {
 pub fn rerun_cli() -> Command {
     let python = python_with_mcap();
     let rerun = python.with_file_name("rerun");
-    let mut command = Command::new(if rerun.exists() {
-        rerun
-    } else {
-        PathBuf::from("rerun")
-    });
-    command
-        .env("RERUN_ANALYTICS", "off")
-        .env("TELEMETRY_ENABLED", "false");
+    let mut command = Command::new(if rerun.exists() { rerun } else { PathBuf::from("rerun") });
+    command.env("RERUN_ANALYTICS", "off").env("TELEMETRY_ENABLED", "false");
     command
 }
 
@@ -182,12 +176,9 @@ pub struct Log {
 impl Log {
     /// Reads a log with the `mcap` crate (CRCs checked by the reader).
     pub fn read(path: &Path) -> Self {
-        let bytes =
-            std::fs::read(path).unwrap_or_else(|e| panic!("cannot read {}: {e}", path.display()));
+        let bytes = std::fs::read(path).unwrap_or_else(|e| panic!("cannot read {}: {e}", path.display()));
         let mut messages = Vec::new();
-        for message in
-            mcap::MessageStream::new(&bytes).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
-        {
+        for message in mcap::MessageStream::new(&bytes).unwrap_or_else(|e| panic!("{}: {e}", path.display())) {
             let message = message.unwrap_or_else(|e| panic!("{}: {e}", path.display()));
             messages.push(LoggedMessage {
                 topic: message.channel.topic.clone(),
@@ -200,8 +191,7 @@ impl Log {
             .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
             .unwrap_or_else(|| panic!("{} has no summary", path.display()));
         for index in &summary.metadata_indexes {
-            let record = mcap::read::metadata(&bytes, index)
-                .unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+            let record = mcap::read::metadata(&bytes, index).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
             metadata.insert(record.name.clone(), record.metadata.clone());
         }
         Self { messages, metadata }
@@ -213,9 +203,7 @@ impl Log {
             .messages
             .iter()
             .filter(|m| m.topic == CAPTURE_EVENTS_TOPIC)
-            .map(|m| {
-                serde_json::from_slice(&m.data).unwrap_or_else(|e| panic!("bad capture event: {e}"))
-            })
+            .map(|m| serde_json::from_slice(&m.data).unwrap_or_else(|e| panic!("bad capture event: {e}")))
             .collect();
         events.sort_by_key(|e| (e.capture_time_nanos, e.set_index));
         events
@@ -237,9 +225,8 @@ impl Log {
 
     /// `world_from_<frame>` composed from the `/tf` message at `log_time`.
     pub fn world_from(&self, frame: &str, log_time: u64) -> Isometry3<f64> {
-        let tf: FrameTransforms =
-            prost::Message::decode(self.message(TF_TOPIC, log_time).data.as_slice())
-                .unwrap_or_else(|e| panic!("/tf: {e}"));
+        let tf: FrameTransforms = prost::Message::decode(self.message(TF_TOPIC, log_time).data.as_slice())
+            .unwrap_or_else(|e| panic!("/tf: {e}"));
         let mut pose = Isometry3::identity();
         let mut child = frame.to_owned();
         while let Some(t) = tf.transforms.iter().find(|t| t.child_frame_id == child) {
@@ -247,9 +234,7 @@ impl Log {
             let rotation = t.rotation.unwrap_or_default();
             let parent_from_child = Isometry3::from_parts(
                 Translation3::new(translation.x, translation.y, translation.z),
-                UnitQuaternion::from_quaternion(Quaternion::new(
-                    rotation.w, rotation.x, rotation.y, rotation.z,
-                )),
+                UnitQuaternion::from_quaternion(Quaternion::new(rotation.w, rotation.x, rotation.y, rotation.z)),
             );
             pose = parent_from_child * pose;
             child = t.parent_frame_id.clone();

@@ -7,7 +7,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::image::GrayImage;
+use crate::image::Image;
 
 /// Marks a cost whose correspondence falls outside the neighbour image.
 pub const INVALID_COST: u16 = u16::MAX;
@@ -16,7 +16,8 @@ pub const MAX_BLOCK_RADIUS: usize = 7;
 /// Largest census window radius (a 7×9 window fills 63 bits).
 pub const MAX_CENSUS_RADIUS: usize = 3;
 
-/// Per-pixel dissimilarity.
+/// Per-pixel dissimilarity. Absolute difference and Birchfield–Tomasi use every channel of the
+/// views (the mean over R, G, B for colour views); census uses luma.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case", tag = "kind")]
 pub enum PixelCost {
@@ -32,56 +33,57 @@ pub enum PixelCost {
     },
 }
 
-/// A view prepared for one pixel cost: grey values plus what the cost needs.
+/// A view prepared for one pixel cost: its pixels plus what the cost needs.
 #[derive(Debug, Clone)]
 pub struct PreparedView {
-    gray: GrayImage,
-    /// Birchfield–Tomasi: smallest half-pixel interpolant around each pixel.
+    image: Image,
+    /// Birchfield–Tomasi: smallest half-pixel interpolant around each pixel, per channel.
     bt_min: Vec<u8>,
-    /// Birchfield–Tomasi: largest half-pixel interpolant around each pixel.
+    /// Birchfield–Tomasi: largest half-pixel interpolant around each pixel, per channel.
     bt_max: Vec<u8>,
-    /// Census codes.
+    /// Census codes (of the luma).
     census: Vec<u64>,
 }
 
 impl PreparedView {
-    /// Prepares `gray` for `cost`.
-    pub fn new(gray: GrayImage, cost: PixelCost) -> Self {
+    /// Prepares `image` for `cost`.
+    pub fn new(image: Image, cost: PixelCost) -> Self {
         let (mut bt_min, mut bt_max, mut census) = (Vec::new(), Vec::new(), Vec::new());
+        let (w, h) = (image.width as isize, image.height as isize);
         match cost {
             PixelCost::AbsoluteDifference => {}
             PixelCost::BirchfieldTomasi => {
-                let (w, h) = (gray.width as isize, gray.height as isize);
-                bt_min.reserve(gray.data.len());
-                bt_max.reserve(gray.data.len());
+                bt_min.reserve(image.data.len());
+                bt_max.reserve(image.data.len());
                 for y in 0..h {
                     for x in 0..w {
-                        let c = u16::from(gray.clamped(x, y));
-                        let mut lo = c;
-                        let mut hi = c;
-                        for (dx, dy) in [(-1, 0), (1, 0), (0, -1), (0, 1)] {
-                            let half = (c + u16::from(gray.clamped(x + dx, y + dy))) / 2;
-                            lo = lo.min(half);
-                            hi = hi.max(half);
+                        for channel in 0..image.channels {
+                            let c = u16::from(image.clamped(x, y, channel));
+                            let mut lo = c;
+                            let mut hi = c;
+                            for (dx, dy) in [(-1, 0), (1, 0), (0, -1), (0, 1)] {
+                                let half = (c + u16::from(image.clamped(x + dx, y + dy, channel))) / 2;
+                                lo = lo.min(half);
+                                hi = hi.max(half);
+                            }
+                            bt_min.push(lo as u8);
+                            bt_max.push(hi as u8);
                         }
-                        bt_min.push(lo as u8);
-                        bt_max.push(hi as u8);
                     }
                 }
             }
             PixelCost::Census { radius } => {
+                let gray = image.to_gray();
                 let r = radius.clamp(1, MAX_CENSUS_RADIUS) as isize;
-                let (w, h) = (gray.width as isize, gray.height as isize);
                 census.reserve(gray.data.len());
                 for y in 0..h {
                     for x in 0..w {
-                        let c = gray.clamped(x, y);
+                        let c = gray.clamped(x, y, 0);
                         let mut code = 0u64;
                         for dy in -r..=r {
                             for dx in -r..=r {
                                 if dx != 0 || dy != 0 {
-                                    code =
-                                        (code << 1) | u64::from(gray.clamped(x + dx, y + dy) < c);
+                                    code = (code << 1) | u64::from(gray.clamped(x + dx, y + dy, 0) < c);
                                 }
                             }
                         }
@@ -91,16 +93,16 @@ impl PreparedView {
             }
         }
         Self {
-            gray,
+            image,
             bt_min,
             bt_max,
             census,
         }
     }
 
-    /// The grey image.
-    pub fn gray(&self) -> &GrayImage {
-        &self.gray
+    /// The view's pixels.
+    pub fn image(&self) -> &Image {
+        &self.image
     }
 }
 
@@ -119,38 +121,50 @@ pub fn pixel_cost_row(
     disparities: usize,
     out: &mut [u16],
 ) {
-    let width = reference.gray.width;
-    let height = neighbour.gray.height as isize;
+    let width = reference.image.width;
+    let height = neighbour.image.height as isize;
+    let channels = reference.image.channels;
     let (ox, oy) = (offset[0] as isize, offset[1] as isize);
-    let reference_row = &reference.gray.data[y * width..(y + 1) * width];
     for (x, costs) in out.chunks_exact_mut(disparities).enumerate() {
         let base_qx = x as isize - ox * min_disparity as isize;
         let base_qy = y as isize - oy * min_disparity as isize;
-        let index = |d: usize| {
+        let pixel = |d: usize| {
             let qx = (base_qx - ox * d as isize).clamp(0, width as isize - 1) as usize;
             let qy = (base_qy - oy * d as isize).clamp(0, height - 1) as usize;
             qy * width + qx
         };
-        match cost {
-            PixelCost::AbsoluteDifference => {
-                let c = reference_row[x];
+        let p = (y * width + x) * channels;
+        let c = &reference.image.data[p..p + channels];
+        match (cost, channels) {
+            (PixelCost::AbsoluteDifference, 1) => {
                 for (d, out) in costs.iter_mut().enumerate() {
-                    *out = u16::from(c.abs_diff(neighbour.gray.data[index(d)]));
+                    *out = u16::from(c[0].abs_diff(neighbour.image.data[pixel(d)]));
                 }
             }
-            PixelCost::BirchfieldTomasi => {
-                let c = reference_row[x];
+            (PixelCost::AbsoluteDifference, _) => {
                 for (d, out) in costs.iter_mut().enumerate() {
-                    let q = index(d);
-                    let above = c.saturating_sub(neighbour.bt_max[q]);
-                    let below = neighbour.bt_min[q].saturating_sub(c);
-                    *out = u16::from(above.max(below));
+                    let q = pixel(d) * channels;
+                    let n = &neighbour.image.data[q..q + channels];
+                    let sum: u16 = c.iter().zip(n).map(|(a, b)| u16::from(a.abs_diff(*b))).sum();
+                    *out = sum / channels as u16;
                 }
             }
-            PixelCost::Census { .. } => {
-                let c = reference.census[y * width + x];
+            (PixelCost::BirchfieldTomasi, _) => {
                 for (d, out) in costs.iter_mut().enumerate() {
-                    *out = (c ^ neighbour.census[index(d)]).count_ones() as u16;
+                    let q = pixel(d) * channels;
+                    let mut sum = 0u16;
+                    for (k, value) in c.iter().enumerate() {
+                        let above = value.saturating_sub(neighbour.bt_max[q + k]);
+                        let below = neighbour.bt_min[q + k].saturating_sub(*value);
+                        sum += u16::from(above.max(below));
+                    }
+                    *out = sum / channels as u16;
+                }
+            }
+            (PixelCost::Census { .. }, _) => {
+                let code = reference.census[y * width + x];
+                for (d, out) in costs.iter_mut().enumerate() {
+                    *out = (code ^ neighbour.census[pixel(d)]).count_ones() as u16;
                 }
             }
         }
@@ -211,15 +225,9 @@ pub fn mark_invalid(
 mod tests {
     use super::*;
 
-    fn ramp(width: usize, height: usize) -> GrayImage {
-        let data = (0..width * height)
-            .map(|i| ((i % width) * 9 % 256) as u8)
-            .collect();
-        GrayImage {
-            width,
-            height,
-            data,
-        }
+    fn ramp(width: usize, height: usize) -> Image {
+        let data = (0..width * height).map(|i| ((i % width) * 9 % 256) as u8).collect();
+        Image::gray(width, height, data).unwrap_or_else(|e| panic!("{e}"))
     }
 
     #[test]
@@ -229,7 +237,7 @@ mod tests {
         let mut shifted = reference.clone();
         for y in 0..4 {
             for x in 0..20 {
-                shifted.data[y * 20 + x] = reference.clamped(x as isize + 3, y as isize);
+                shifted.data[y * 20 + x] = reference.clamped(x as isize + 3, y as isize, 0);
             }
         }
         for cost in [
@@ -254,9 +262,7 @@ mod tests {
     #[test]
     fn box_sum_matches_brute_force() {
         let (width, disparities, r) = (9, 3, 2);
-        let input: Vec<u16> = (0..width * disparities)
-            .map(|i| (i * 7 % 13) as u16)
-            .collect();
+        let input: Vec<u16> = (0..width * disparities).map(|i| (i * 7 % 13) as u16).collect();
         let mut output = vec![0; input.len()];
         box_sum_row(&input, &mut output, width, disparities, r);
         for x in 0..width {

@@ -31,11 +31,9 @@ pub fn fuse_values(fusion: Fusion, values: &[u16]) -> u16 {
                 .iter()
                 .filter(|v| **v != INVALID_COST)
                 .fold((0u32, 0u32), |(s, n), v| (s + u32::from(*v), n + 1));
-            if count == 0 {
-                INVALID_COST
-            } else {
-                ((sum + count / 2) / count) as u16
-            }
+            (sum + count / 2)
+                .checked_div(count)
+                .map_or(INVALID_COST, |mean| mean as u16)
         }
         Fusion::Heuristic => {
             let mut smallest = [INVALID_COST; 3];
@@ -59,7 +57,7 @@ pub fn fuse_values(fusion: Fusion, values: &[u16]) -> u16 {
                 // One or two valid costs: the minimum.
                 smallest[0]
             } else if c3 > 3 * c2 {
-                ((c1 + c2 + 1) / 2) as u16
+                (c1 + c2).div_ceil(2) as u16
             } else {
                 ((c1 + c2 + c3 + 1) / 3) as u16
             }

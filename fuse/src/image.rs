@@ -1,24 +1,26 @@
-//! Plain image buffers: 8-bit grey input views and f32 disparity output.
+//! Plain image buffers: 8-bit input views (grey or RGB) and f32 disparity output.
 
 use crate::FuseError;
 
-/// An 8-bit single-channel image, row-major.
+/// An 8-bit image with 1 (grey) or 3 (RGB) interleaved channels, row-major.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub struct GrayImage {
+pub struct Image {
     /// Width (pixels).
     pub width: usize,
     /// Height (pixels).
     pub height: usize,
-    /// `width × height` values.
+    /// Channels per pixel: 1 or 3.
+    pub channels: usize,
+    /// `width × height × channels` values.
     pub data: Vec<u8>,
 }
 
-impl GrayImage {
+impl Image {
     /// Wraps a buffer, checking its size.
-    pub fn new(width: usize, height: usize, data: Vec<u8>) -> Result<Self, FuseError> {
-        if data.len() != width * height || width == 0 || height == 0 {
+    pub fn new(width: usize, height: usize, channels: usize, data: Vec<u8>) -> Result<Self, FuseError> {
+        if data.len() != width * height * channels || width == 0 || height == 0 || !(channels == 1 || channels == 3) {
             return Err(FuseError::ImageSize {
-                what: "grey image",
+                what: if channels == 3 { "RGB image" } else { "grey image" },
                 width,
                 height,
                 len: data.len(),
@@ -27,55 +29,51 @@ impl GrayImage {
         Ok(Self {
             width,
             height,
+            channels,
             data,
         })
     }
 
-    /// Luma (BT.601, rounded) of an 8-bit RGB buffer.
-    pub fn from_rgb(width: usize, height: usize, rgb: &[u8]) -> Result<Self, FuseError> {
-        if rgb.len() != width * height * 3 || width == 0 || height == 0 {
-            return Err(FuseError::ImageSize {
-                what: "RGB image",
-                width,
-                height,
-                len: rgb.len(),
-            });
+    /// A grey image.
+    pub fn gray(width: usize, height: usize, data: Vec<u8>) -> Result<Self, FuseError> {
+        Self::new(width, height, 1, data)
+    }
+
+    /// An RGB image.
+    pub fn rgb(width: usize, height: usize, data: Vec<u8>) -> Result<Self, FuseError> {
+        Self::new(width, height, 3, data)
+    }
+
+    /// Luma (BT.601, rounded) of this image (a copy when already grey).
+    pub fn to_gray(&self) -> Self {
+        if self.channels == 1 {
+            return self.clone();
         }
-        let data = rgb
+        let data = self
+            .data
             .chunks_exact(3)
-            .map(|p| {
-                ((299 * u32::from(p[0]) + 587 * u32::from(p[1]) + 114 * u32::from(p[2]) + 500)
-                    / 1000) as u8
-            })
+            .map(|p| ((299 * u32::from(p[0]) + 587 * u32::from(p[1]) + 114 * u32::from(p[2]) + 500) / 1000) as u8)
             .collect();
-        Ok(Self {
-            width,
-            height,
+        Self {
+            width: self.width,
+            height: self.height,
+            channels: 1,
             data,
-        })
+        }
     }
 
-    /// Value at `(x, y)` with coordinates clamped into the image.
+    /// Index of the first channel of `(x, y)` with coordinates clamped into the image.
     #[inline]
-    pub fn clamped(&self, x: isize, y: isize) -> u8 {
+    pub fn clamped_index(&self, x: isize, y: isize) -> usize {
         let x = x.clamp(0, self.width as isize - 1) as usize;
         let y = y.clamp(0, self.height as isize - 1) as usize;
-        self.data[y * self.width + x]
+        (y * self.width + x) * self.channels
     }
 
-    /// The image transposed (rows become columns).
-    pub fn transposed(&self) -> Self {
-        let mut data = vec![0; self.data.len()];
-        for y in 0..self.height {
-            for x in 0..self.width {
-                data[x * self.height + y] = self.data[y * self.width + x];
-            }
-        }
-        Self {
-            width: self.height,
-            height: self.width,
-            data,
-        }
+    /// Channel `c` at `(x, y)` with coordinates clamped into the image.
+    #[inline]
+    pub fn clamped(&self, x: isize, y: isize, c: usize) -> u8 {
+        self.data[self.clamped_index(x, y) + c]
     }
 }
 
@@ -145,12 +143,11 @@ mod tests {
     }
 
     #[test]
-    fn transpose_twice_is_identity() {
-        let image = GrayImage::new(3, 2, vec![1, 2, 3, 4, 5, 6]).unwrap_or_else(|e| panic!("{e}"));
-        let t = image.transposed();
-        assert_eq!((t.width, t.height), (2, 3));
-        assert_eq!(t.data, vec![1, 4, 2, 5, 3, 6]);
-        assert_eq!(t.transposed(), image);
-        assert!(GrayImage::new(3, 3, vec![0; 8]).is_err());
+    fn grey_conversion_and_size_checks() {
+        let image = Image::rgb(2, 1, vec![255, 255, 255, 0, 0, 255]).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(image.to_gray().data, vec![255, 29]);
+        assert!(Image::gray(3, 3, vec![0; 8]).is_err());
+        assert!(Image::new(1, 1, 2, vec![0; 2]).is_err());
+        assert_eq!(image.clamped(5, -3, 2), 255);
     }
 }

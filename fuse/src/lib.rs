@@ -21,7 +21,7 @@ pub mod sgm;
 pub mod volume;
 pub mod wta;
 
-pub use image::{DisparityImage, GrayImage};
+pub use image::{DisparityImage, Image};
 pub use volume::{Neighbour, Problem};
 
 /// Errors of the algorithms; each carries the offending values.
@@ -40,9 +40,7 @@ pub enum FuseError {
         len: usize,
     },
     /// A neighbour's size differs from the reference.
-    #[error(
-        "neighbour '{role}' is {width}x{height}, the reference is {reference_width}x{reference_height}"
-    )]
+    #[error("neighbour '{role}' is {width}x{height}, the reference is {reference_width}x{reference_height}")]
     SizeMismatch {
         /// Role.
         role: String,

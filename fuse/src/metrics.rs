@@ -99,8 +99,7 @@ mod tests {
         assert!((m.bad_2 - 25.0).abs() < 1e-9);
         let rms = ((0.36f64 + 2.25 + 9.0) / 4.0).sqrt();
         assert!((m.rms - rms).abs() < 1e-5);
-        let missing =
-            evaluate(&[f32::INFINITY], &[5.0], None, 32.0).unwrap_or_else(|| panic!("no pixels"));
+        let missing = evaluate(&[f32::INFINITY], &[5.0], None, 32.0).unwrap_or_else(|| panic!("no pixels"));
         assert_eq!((missing.missing, missing.avg_err), (1, 32.0));
     }
 }

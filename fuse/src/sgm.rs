@@ -17,15 +17,7 @@ pub fn cost_shift(max_cost: u32, p2: u32) -> u32 {
 }
 
 #[inline]
-fn path_step(
-    cost: &[u16],
-    previous: Option<&[u16]>,
-    out: &mut [u16],
-    p1: u16,
-    p2: u16,
-    shift: u32,
-    cap: u16,
-) {
+fn path_step(cost: &[u16], previous: Option<&[u16]>, out: &mut [u16], p1: u16, p2: u16, shift: u32, cap: u16) {
     match previous {
         None => {
             for (o, c) in out.iter_mut().zip(cost) {
@@ -144,6 +136,6 @@ mod tests {
     fn costs_are_scaled_to_fit_u16() {
         assert_eq!(cost_shift(100, 50), 0);
         let shift = cost_shift(81 * 255, 500);
-        assert!(8 * ((81 * 255 >> shift) + 500) < 65_535);
+        assert!(8 * (((81 * 255) >> shift) + 500) < 65_535);
     }
 }

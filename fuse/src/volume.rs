@@ -9,11 +9,10 @@ use serde::{Deserialize, Serialize};
 
 use crate::FuseError;
 use crate::cost::{
-    MAX_BLOCK_RADIUS, MAX_CENSUS_RADIUS, PixelCost, PreparedView, box_sum_row, mark_invalid,
-    pixel_cost_row,
+    MAX_BLOCK_RADIUS, MAX_CENSUS_RADIUS, PixelCost, PreparedView, box_sum_row, mark_invalid, pixel_cost_row,
 };
 use crate::fusion::{Fusion, fuse_rows};
-use crate::image::GrayImage;
+use crate::image::Image;
 
 /// Rows per band of parallel work.
 pub const BAND_ROWS: usize = 32;
@@ -25,8 +24,8 @@ pub const STEREO_ROLE: &str = "right";
 pub struct Neighbour {
     /// Role (`left`, `right`, `top`, …).
     pub role: String,
-    /// Grey image, same size as the reference.
-    pub image: GrayImage,
+    /// Image (grey or RGB), same size and channels as the reference.
+    pub image: Image,
     /// Position in baselines along the reference camera's x (right) and y (down).
     pub offset: [i32; 2],
 }
@@ -34,8 +33,8 @@ pub struct Neighbour {
 /// What a method gets: the reference view, its neighbours and the disparity search range.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Problem {
-    /// The reference (centre) view.
-    pub reference: GrayImage,
+    /// The reference (centre) view (grey or RGB).
+    pub reference: Image,
     /// Neighbours at one baseline (or grid offsets) from the reference.
     pub neighbours: Vec<Neighbour>,
     /// Smallest disparity searched (px).
@@ -57,7 +56,9 @@ impl Problem {
             });
         }
         for n in &self.neighbours {
-            if (n.image.width, n.image.height) != (self.reference.width, self.reference.height) {
+            if (n.image.width, n.image.height, n.image.channels)
+                != (self.reference.width, self.reference.height, self.reference.channels)
+            {
                 return Err(FuseError::SizeMismatch {
                     role: n.role.clone(),
                     width: n.image.width,
@@ -67,9 +68,7 @@ impl Problem {
                 });
             }
             if n.offset == [0, 0] {
-                return Err(FuseError::ZeroOffset {
-                    role: n.role.clone(),
-                });
+                return Err(FuseError::ZeroOffset { role: n.role.clone() });
             }
         }
         Ok(())
@@ -181,9 +180,9 @@ impl PreparedProblem {
         self.disparities
     }
 
-    /// The reference grey image.
-    pub fn reference(&self) -> &GrayImage {
-        self.reference.gray()
+    /// The reference image.
+    pub fn reference(&self) -> &Image {
+        self.reference.image()
     }
 
     /// Fused, aggregated costs of `rows` into `out` (`rows.len() × width × disparities`).
@@ -207,13 +206,7 @@ impl PreparedProblem {
                     nd,
                     &mut pixel_row,
                 );
-                box_sum_row(
-                    &pixel_row,
-                    &mut rows_h[i * row_len..(i + 1) * row_len],
-                    w,
-                    nd,
-                    r,
-                );
+                box_sum_row(&pixel_row, &mut rows_h[i * row_len..(i + 1) * row_len], w, nd, r);
             }
             horizontal.push(rows_h);
         }
@@ -232,14 +225,7 @@ impl PreparedProblem {
         for (i, y) in rows.clone().enumerate() {
             for (k, (_, offset)) in self.neighbours.iter().enumerate() {
                 finished[k].copy_from_slice(&vertical[k]);
-                mark_invalid(
-                    &mut finished[k],
-                    *offset,
-                    y,
-                    (w, self.height),
-                    self.min_disparity,
-                    nd,
-                );
+                mark_invalid(&mut finished[k], *offset, y, (w, self.height), self.min_disparity, nd);
                 if y + 1 == rows.end {
                     continue;
                 }

@@ -6,13 +6,7 @@ use crate::cost::INVALID_COST;
 /// rows) and writes `min_disparity + d + δ` into `out`, where δ ∈ (−½, ½) is the vertex of the
 /// parabola through the costs at `d − 1, d, d + 1` (when `subpixel` and both exist). Pixels whose
 /// best cost is [`INVALID_COST`] get `f32::INFINITY`.
-pub fn winner_take_all(
-    costs: &[u16],
-    disparities: usize,
-    min_disparity: usize,
-    subpixel: bool,
-    out: &mut [f32],
-) {
+pub fn winner_take_all(costs: &[u16], disparities: usize, min_disparity: usize, subpixel: bool, out: &mut [f32]) {
     for (pixel, c) in out.iter_mut().zip(costs.chunks_exact(disparities)) {
         let (best, best_cost) = c.iter().enumerate().fold(
             (0usize, u16::MAX),
@@ -23,17 +17,9 @@ pub fn winner_take_all(
             continue;
         }
         let mut delta = 0.0f32;
-        if subpixel
-            && best > 0
-            && best + 1 < disparities
-            && c[best - 1] != INVALID_COST
-            && c[best + 1] != INVALID_COST
+        if subpixel && best > 0 && best + 1 < disparities && c[best - 1] != INVALID_COST && c[best + 1] != INVALID_COST
         {
-            let (left, centre, right) = (
-                f32::from(c[best - 1]),
-                f32::from(best_cost),
-                f32::from(c[best + 1]),
-            );
+            let (left, centre, right) = (f32::from(c[best - 1]), f32::from(best_cost), f32::from(c[best + 1]));
             let curvature = left - 2.0 * centre + right;
             if curvature > 0.0 {
                 delta = (0.5 * (left - right) / curvature).clamp(-0.5, 0.5);
@@ -50,9 +36,7 @@ mod tests {
     #[test]
     fn parabola_vertex_is_recovered() {
         // Costs sampled from (d − 2.3)²: the minimum sits at 2.3.
-        let costs: Vec<u16> = (0..6)
-            .map(|d| ((d as f32 - 2.3).powi(2) * 100.0) as u16)
-            .collect();
+        let costs: Vec<u16> = (0..6).map(|d| ((d as f32 - 2.3).powi(2) * 100.0) as u16).collect();
         let mut out = [0.0f32];
         winner_take_all(&costs, 6, 10, true, &mut out);
         assert!((out[0] - 12.3).abs() < 0.02, "{}", out[0]);

@@ -41,9 +41,7 @@ fn render_view(c: &mut Criterion) {
 
 fn write_set(c: &mut Criterion) {
     let config = SimulationConfig::default();
-    let set = match Simulation::new(config)
-        .and_then(|mut sim| sim.capture_set(0, &AtomicBool::new(false), |_| {}))
-    {
+    let set = match Simulation::new(config).and_then(|mut sim| sim.capture_set(0, &AtomicBool::new(false), |_| {})) {
         Ok(Some(set)) => set,
         other => panic!("simulation failed: {:?}", other.err()),
     };
@@ -57,14 +55,8 @@ fn write_set(c: &mut Criterion) {
                     .image_format(format)
                     .create(std::io::Cursor::new(Vec::with_capacity(64 << 20)))
                     .unwrap_or_else(|e| panic!("{e}"));
-                log.write_set(&set, Some(&hand_eye))
-                    .unwrap_or_else(|e| panic!("{e}"));
-                black_box(
-                    log.finish()
-                        .unwrap_or_else(|e| panic!("{e}"))
-                        .into_inner()
-                        .len(),
-                )
+                log.write_set(&set, Some(&hand_eye)).unwrap_or_else(|e| panic!("{e}"));
+                black_box(log.finish().unwrap_or_else(|e| panic!("{e}")).into_inner().len())
             })
         });
     }

@@ -15,10 +15,7 @@ use crate::render::{PreparedScene, RenderSettings};
 use crate::rig::{REFERENCE_ROLE, RigKind, ViewSlot};
 use crate::rng::{SplitMix64, hash4};
 use crate::scene::{Scene, SceneKind, WORK_AREA_CENTER_M};
-use crate::ur10::{
-    HOME_JOINTS_RAD, Joints, KinematicsError, Ur10, interpolate_joint_velocities,
-    interpolate_joints,
-};
+use crate::ur10::{HOME_JOINTS_RAD, Joints, KinematicsError, Ur10, interpolate_joint_velocities, interpolate_joints};
 use crate::{CapturedSet, CapturedView, ImageFormat, MotionSample};
 
 /// Start of simulated time: 2020-01-01T00:00:00Z (ns since the Unix epoch).
@@ -209,10 +206,7 @@ pub fn look_at(eye: Point3<f64>, target: Point3<f64>, up_hint: Vector3<f64>) -> 
     let down_hint = -up_hint;
     let y = (down_hint - z * down_hint.dot(&z)).normalize();
     let x = y.cross(&z);
-    Isometry3::from_parts(
-        Translation3::from(eye.coords),
-        crate::ur10::rotation_from_axes(x, y, z),
-    )
+    Isometry3::from_parts(Translation3::from(eye.coords), crate::ur10::rotation_from_axes(x, y, z))
 }
 
 /// The simulator: scene, arm, camera and planner state.
@@ -239,11 +233,7 @@ impl Simulation {
         validate(&config)?;
         let scene = Scene::build(config.scene, config.seed);
         let prepared = PreparedScene::new(&scene);
-        let camera = PinholeCamera::from_horizontal_fov(
-            config.width,
-            config.height,
-            config.horizontal_fov_deg,
-        );
+        let camera = PinholeCamera::from_horizontal_fov(config.width, config.height, config.horizontal_fov_deg);
         let hand_eye_true = default_hand_eye();
         let e = &config.errors;
         let error = Isometry3::from_parts(
@@ -318,11 +308,7 @@ impl Simulation {
         } else {
             let angle = f64::from(index) * 2.399_963; // golden angle: stations spread evenly
             let radius = 0.05 + 0.1 * (f64::from(index) / f64::from(self.config.captures.max(1)));
-            Point3::new(
-                c[0] + radius * angle.cos(),
-                c[1] + radius * angle.sin(),
-                height,
-            )
+            Point3::new(c[0] + radius * angle.cos(), c[1] + radius * angle.sin(), height)
         };
         look_at(eye, target, Vector3::x())
     }
@@ -410,16 +396,12 @@ impl Simulation {
             f64::from(slot.grid_offset[1]) * baseline_m,
             0.0,
         );
-        let mut commanded =
-            reference * Isometry3::translation(displacement.x, displacement.y, displacement.z);
+        let mut commanded = reference * Isometry3::translation(displacement.x, displacement.y, displacement.z);
         let errors = self.config.errors.clone();
         for e in errors.rotation_deg.iter().filter(|e| e.role == slot.role) {
             commanded *= Isometry3::from_parts(
                 Translation3::identity(),
-                UnitQuaternion::from_axis_angle(
-                    &nalgebra::Unit::new_normalize(e.axis.unit()),
-                    e.value.to_radians(),
-                ),
+                UnitQuaternion::from_axis_angle(&nalgebra::Unit::new_normalize(e.axis.unit()), e.value.to_radians()),
             );
         }
         for e in errors.offset_mm.iter().filter(|e| e.role == slot.role) {
@@ -434,13 +416,9 @@ impl Simulation {
         // Repeatability: the arm settles within a small ball around the commanded flange pose.
         let repeatability_m = errors.repeatability_mm / 1000.0;
         let reached_joints = if repeatability_m > 0.0 {
-            let direction = Vector3::new(
-                self.rng.gaussian(),
-                self.rng.gaussian(),
-                self.rng.gaussian(),
-            )
-            .try_normalize(1e-12)
-            .unwrap_or_else(Vector3::x);
+            let direction = Vector3::new(self.rng.gaussian(), self.rng.gaussian(), self.rng.gaussian())
+                .try_normalize(1e-12)
+                .unwrap_or_else(Vector3::x);
             let radius = repeatability_m * self.rng.unit().cbrt();
             let offset = direction * radius;
             let reached = Isometry3::translation(offset.x, offset.y, offset.z) * flange_target;
@@ -486,9 +464,7 @@ impl Simulation {
             noise_sigma_levels: self.config.noise_sigma_levels,
             noise_seed: hash4(self.config.seed, view_index, 0x6e6f, 0),
         };
-        let rendered = self
-            .prepared
-            .render(&self.camera, &world_from_camera_true, &settings);
+        let rendered = self.prepared.render(&self.camera, &world_from_camera_true, &settings);
         Ok(CapturedView {
             role: slot.role.to_owned(),
             grid_offset: slot.grid_offset,
@@ -523,25 +499,11 @@ pub const MAX_IMAGE_SIDE: u32 = 16_384;
 pub const MAX_BASELINE_MM: f64 = 1000.0;
 
 fn validate(config: &SimulationConfig) -> Result<(), SimulationError> {
-    let invalid = |field, value: String, reason| {
-        Err(SimulationError::InvalidConfig {
-            field,
-            value,
-            reason,
-        })
-    };
+    let invalid = |field, value: String, reason| Err(SimulationError::InvalidConfig { field, value, reason });
     if !(config.baseline_mm > 0.0 && config.baseline_mm <= MAX_BASELINE_MM) {
-        return invalid(
-            "baseline_mm",
-            config.baseline_mm.to_string(),
-            "must be > 0 and ≤ 1000",
-        );
+        return invalid("baseline_mm", config.baseline_mm.to_string(), "must be > 0 and ≤ 1000");
     }
-    if config.width < 8
-        || config.height < 8
-        || config.width > MAX_IMAGE_SIDE
-        || config.height > MAX_IMAGE_SIDE
-    {
+    if config.width < 8 || config.height < 8 || config.width > MAX_IMAGE_SIDE || config.height > MAX_IMAGE_SIDE {
         return invalid(
             "resolution",
             format!("{}x{}", config.width, config.height),
@@ -615,18 +577,11 @@ mod tests {
             ..SimulationConfig::default()
         });
         let mut sim = Simulation::new(config).unwrap();
-        let set = sim
-            .capture_set(0, &AtomicBool::new(false), |_| {})
-            .unwrap()
-            .unwrap();
+        let set = sim.capture_set(0, &AtomicBool::new(false), |_| {}).unwrap().unwrap();
         let center = set.views[0].world_from_camera_true.unwrap();
         for view in &set.views {
             let relative = center.inverse() * view.world_from_camera_true.unwrap();
-            let expected = Vector3::new(
-                f64::from(view.grid_offset[0]),
-                f64::from(view.grid_offset[1]),
-                0.0,
-            ) * 0.02;
+            let expected = Vector3::new(f64::from(view.grid_offset[0]), f64::from(view.grid_offset[1]), 0.0) * 0.02;
             assert!(
                 (relative.translation.vector - expected).norm() < 1e-9,
                 "{}: {}",
@@ -636,11 +591,7 @@ mod tests {
             assert!(relative.rotation.angle() < 1e-9);
         }
         // Time only moves forward.
-        assert!(
-            set.motion
-                .windows(2)
-                .all(|w| w[0].time_nanos <= w[1].time_nanos)
-        );
+        assert!(set.motion.windows(2).all(|w| w[0].time_nanos <= w[1].time_nanos));
     }
 
     #[test]

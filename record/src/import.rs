@@ -100,9 +100,7 @@ pub enum ImportError {
         reason: String,
     },
     /// Views of a set (or the ground truth) differ in size.
-    #[error(
-        "'{path}' is {width}x{height}, but the reference view is {expected_width}x{expected_height}"
-    )]
+    #[error("'{path}' is {width}x{height}, but the reference view is {expected_width}x{expected_height}")]
     SizeMismatch {
         /// File.
         path: PathBuf,
@@ -151,9 +149,7 @@ fn read_png(path: &Path) -> Result<Image8, ImportError> {
         .output_buffer_size()
         .ok_or_else(|| decode("image too large".into()))?;
     let mut data = vec![0; size];
-    let info = reader
-        .next_frame(&mut data)
-        .map_err(|e| decode(e.to_string()))?;
+    let info = reader.next_frame(&mut data).map_err(|e| decode(e.to_string()))?;
     data.truncate(info.buffer_size());
     let channels = match info.color_type {
         png::ColorType::Grayscale => 1,
@@ -174,21 +170,14 @@ impl Image8 {
     fn to_rgb(&self) -> Vec<u8> {
         match self.channels {
             3 => self.data.clone(),
-            4 => self
-                .data
-                .chunks_exact(4)
-                .flat_map(|p| [p[0], p[1], p[2]])
-                .collect(),
+            4 => self.data.chunks_exact(4).flat_map(|p| [p[0], p[1], p[2]]).collect(),
             2 => self.data.chunks_exact(2).flat_map(|p| [p[0]; 3]).collect(),
             _ => self.data.iter().flat_map(|v| [*v; 3]).collect(),
         }
     }
 
     fn first_channel(&self) -> Vec<u8> {
-        self.data
-            .chunks_exact(self.channels)
-            .map(|p| p[0])
-            .collect()
+        self.data.chunks_exact(self.channels).map(|p| p[0]).collect()
     }
 }
 
@@ -216,24 +205,15 @@ pub fn find_set_dirs(dir: &Path, config: &ImportConfig) -> Result<Vec<PathBuf>, 
         .filter(|p| p.is_dir() && holds_views(p))
         .filter(|p| {
             config.sets.is_empty()
-                || p.file_name().is_some_and(|n| {
-                    config
-                        .sets
-                        .iter()
-                        .any(|s| s.as_str() == n.to_string_lossy())
-                })
+                || p.file_name()
+                    .is_some_and(|n| config.sets.iter().any(|s| s.as_str() == n.to_string_lossy()))
         })
         .collect();
     dirs.sort();
     if dirs.is_empty() {
         return Err(ImportError::NoSets {
             dir: dir.to_path_buf(),
-            expected: config
-                .views
-                .iter()
-                .map(|v| file_name(v))
-                .collect::<Vec<_>>()
-                .join(", "),
+            expected: config.views.iter().map(|v| file_name(v)).collect::<Vec<_>>().join(", "),
         });
     }
     Ok(dirs)
@@ -269,11 +249,7 @@ fn validate(config: &ImportConfig) -> Result<(), ImportError> {
 }
 
 /// Reads one set directory.
-pub fn import_set(
-    dir: &Path,
-    index: u32,
-    config: &ImportConfig,
-) -> Result<CapturedSet, ImportError> {
+pub fn import_set(dir: &Path, index: u32, config: &ImportConfig) -> Result<CapturedSet, ImportError> {
     validate(config)?;
     let slots = config.layout.file_order();
     let baseline_m = config.baseline_mm / 1000.0;
@@ -285,14 +261,8 @@ pub fn import_set(
             read_png(&path).map(|image| (path, image))
         })
         .collect::<Result<Vec<_>, _>>()?;
-    let reference_position = slots
-        .iter()
-        .position(|s| s.role == REFERENCE_ROLE)
-        .unwrap_or(0);
-    let (width, height) = (
-        images[reference_position].1.width,
-        images[reference_position].1.height,
-    );
+    let reference_position = slots.iter().position(|s| s.role == REFERENCE_ROLE).unwrap_or(0);
+    let (width, height) = (images[reference_position].1.width, images[reference_position].1.height);
     for (path, image) in &images {
         if (image.width, image.height) != (width, height) {
             return Err(ImportError::SizeMismatch {
@@ -331,8 +301,7 @@ pub fn import_set(
                         if v == 0 {
                             0.0
                         } else {
-                            (focal_times_baseline / (f64::from(v) / config.ground_truth_scale))
-                                as f32
+                            (focal_times_baseline / (f64::from(v) / config.ground_truth_scale)) as f32
                         }
                     })
                     .collect::<Vec<f32>>(),

@@ -13,8 +13,8 @@ use std::path::{Path, PathBuf};
 use bytes::Bytes;
 use foxglove::Encode;
 use foxglove::messages::{
-    CameraCalibration, CompressedImage, FrameTransform, FrameTransforms, JointState, JointStates,
-    Pose, PoseInFrame, Quaternion, RawImage, Timestamp, Vector3,
+    CameraCalibration, CompressedImage, FrameTransform, FrameTransforms, JointState, JointStates, Pose, PoseInFrame,
+    Quaternion, RawImage, Timestamp, Vector3,
 };
 use nalgebra::Isometry3;
 use serde::{Deserialize, Serialize};
@@ -209,9 +209,7 @@ pub enum LogError {
         source: std::io::Error,
     },
     /// A view's buffers do not match its size.
-    #[error(
-        "set {set} view '{role}': {field} has {actual} values, expected {expected} for {width}x{height}"
-    )]
+    #[error("set {set} view '{role}': {field} has {actual} values, expected {expected} for {width}x{height}")]
     BufferSize {
         /// Set index.
         set: u32,
@@ -313,18 +311,11 @@ pub struct LogWriter<W: Write + Seek> {
 }
 
 fn timestamp(nanos: u64) -> Timestamp {
-    Timestamp::new(
-        (nanos / 1_000_000_000) as u32,
-        (nanos % 1_000_000_000) as u32,
-    )
+    Timestamp::new((nanos / 1_000_000_000) as u32, (nanos % 1_000_000_000) as u32)
 }
 
 fn vector3(v: &nalgebra::Vector3<f64>) -> Vector3 {
-    Vector3 {
-        x: v.x,
-        y: v.y,
-        z: v.z,
-    }
+    Vector3 { x: v.x, y: v.y, z: v.z }
 }
 
 fn quaternion(q: &nalgebra::UnitQuaternion<f64>) -> Quaternion {
@@ -336,12 +327,7 @@ fn quaternion(q: &nalgebra::UnitQuaternion<f64>) -> Quaternion {
     }
 }
 
-fn frame_transform(
-    nanos: u64,
-    parent: &str,
-    child: &str,
-    parent_from_child: &Isometry3<f64>,
-) -> FrameTransform {
+fn frame_transform(nanos: u64, parent: &str, child: &str, parent_from_child: &Isometry3<f64>) -> FrameTransform {
     FrameTransform {
         timestamp: Some(timestamp(nanos)),
         parent_frame_id: parent.to_owned(),
@@ -389,13 +375,7 @@ impl<W: Write + Seek> LogWriter<W> {
         Ok(id)
     }
 
-    fn write_raw(
-        &mut self,
-        channel_id: u16,
-        topic: &str,
-        log_time: u64,
-        data: &[u8],
-    ) -> Result<(), LogError> {
+    fn write_raw(&mut self, channel_id: u16, topic: &str, log_time: u64, data: &[u8]) -> Result<(), LogError> {
         let sequence = self.sequences.entry(channel_id).or_insert(0);
         *sequence += 1;
         let header = mcap::records::MessageHeader {
@@ -410,12 +390,7 @@ impl<W: Write + Seek> LogWriter<W> {
     }
 
     /// Writes a Foxglove message.
-    pub fn write_message<T: Encode>(
-        &mut self,
-        topic: &str,
-        log_time: u64,
-        message: &T,
-    ) -> Result<(), LogError> {
+    pub fn write_message<T: Encode>(&mut self, topic: &str, log_time: u64, message: &T) -> Result<(), LogError> {
         let schema = T::get_schema().ok_or_else(|| LogError::Encode {
             topic: topic.to_owned(),
             reason: "message type has no schema".into(),
@@ -453,11 +428,7 @@ impl<W: Write + Seek> LogWriter<W> {
     }
 
     /// Writes a metadata record.
-    pub fn write_metadata(
-        &mut self,
-        name: &str,
-        metadata: BTreeMap<String, String>,
-    ) -> Result<(), LogError> {
+    pub fn write_metadata(&mut self, name: &str, metadata: BTreeMap<String, String>) -> Result<(), LogError> {
         self.writer
             .write_metadata(&mcap::records::Metadata {
                 name: name.to_owned(),
@@ -467,13 +438,7 @@ impl<W: Write + Seek> LogWriter<W> {
     }
 
     /// Writes an attachment.
-    pub fn attach(
-        &mut self,
-        name: &str,
-        media_type: &str,
-        log_time: u64,
-        data: &[u8],
-    ) -> Result<(), LogError> {
+    pub fn attach(&mut self, name: &str, media_type: &str, log_time: u64, data: &[u8]) -> Result<(), LogError> {
         self.writer
             .attach(&mcap::Attachment {
                 log_time,
@@ -493,12 +458,7 @@ impl<W: Write + Seek> LogWriter<W> {
     ) -> Result<(), LogError> {
         let links = self.arm.link_transforms(&sample.joints);
         let mut transforms = Vec::with_capacity(JOINT_COUNT + 2);
-        transforms.push(frame_transform(
-            nanos,
-            WORLD_FRAME,
-            BASE_FRAME,
-            &Isometry3::identity(),
-        ));
+        transforms.push(frame_transform(nanos, WORLD_FRAME, BASE_FRAME, &Isometry3::identity()));
         let mut parent = BASE_FRAME;
         for (link, name) in links.iter().zip(LINK_FRAME_NAMES) {
             transforms.push(frame_transform(nanos, parent, name, link));
@@ -544,12 +504,7 @@ impl<W: Write + Seek> LogWriter<W> {
             if set.motion.is_empty() {
                 // No arm: the camera pose is given directly.
                 let t = view.capture_time_nanos;
-                let transforms = vec![frame_transform(
-                    t,
-                    WORLD_FRAME,
-                    CAMERA_FRAME,
-                    &view.world_from_camera,
-                )];
+                let transforms = vec![frame_transform(t, WORLD_FRAME, CAMERA_FRAME, &view.world_from_camera)];
                 self.write_message(TF_TOPIC, t, &FrameTransforms { transforms })?;
             }
             self.write_view(set, view)?;
@@ -603,11 +558,12 @@ impl<W: Write + Seek> LogWriter<W> {
                 },
             )?,
             ImageFormat::Png => {
-                let data = encode_png_rgb8(&view.rgb, width, height, self.options.png_compression)
-                    .map_err(|e| LogError::Encode {
+                let data = encode_png_rgb8(&view.rgb, width, height, self.options.png_compression).map_err(|e| {
+                    LogError::Encode {
                         topic: image.clone(),
                         reason: e.to_string(),
-                    })?;
+                    }
+                })?;
                 self.write_message(
                     &image,
                     t,
@@ -634,9 +590,7 @@ impl<W: Write + Seek> LogWriter<W> {
                 d: vec![0.0; 5],
                 k: c.k_row_major().to_vec(),
                 r: vec![1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
-                p: vec![
-                    c.fx, 0.0, c.cx, 0.0, 0.0, c.fy, c.cy, 0.0, 0.0, 0.0, 1.0, 0.0,
-                ],
+                p: vec![c.fx, 0.0, c.cx, 0.0, 0.0, c.fy, c.cy, 0.0, 0.0, 0.0, 1.0, 0.0],
             },
         )?;
         let depth = match &view.depth_m {
@@ -805,11 +759,7 @@ impl OutputFile {
     pub fn commit(mut self, writer: BufWriter<File>) -> Result<PathBuf, LogError> {
         let io = |action| {
             let path = self.temp_path.clone();
-            move |source| LogError::Io {
-                action,
-                path,
-                source,
-            }
+            move |source| LogError::Io { action, path, source }
         };
         let file = writer
             .into_inner()
@@ -817,8 +767,7 @@ impl OutputFile {
             .map_err(io("cannot flush"))?;
         file.sync_all().map_err(io("cannot sync"))?;
         drop(file);
-        std::fs::rename(&self.temp_path, &self.final_path)
-            .map_err(io("cannot rename into place"))?;
+        std::fs::rename(&self.temp_path, &self.final_path).map_err(io("cannot rename into place"))?;
         self.committed = true;
         Ok(self.final_path.clone())
     }

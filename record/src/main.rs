@@ -14,8 +14,7 @@ use anyhow::{Context, Result, bail};
 use clap::{Args, Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
 use record::capture::{
-    CameraAxis, ErrorInjection, Simulation, SimulationConfig, SimulationError, ViewExposure,
-    ViewPoseError,
+    CameraAxis, ErrorInjection, Simulation, SimulationConfig, SimulationError, ViewExposure, ViewPoseError,
 };
 use record::import::{ImportConfig, find_set_dirs, import_set};
 use record::log::{LogOptions, METADATA_NAME, OutputFile};
@@ -71,9 +70,7 @@ fn parse_resolution(text: &str) -> Result<(u32, u32), String> {
 }
 
 fn parse_positive_mm(text: &str) -> Result<f64, String> {
-    let value: f64 = text
-        .parse()
-        .map_err(|_| format!("'{text}' is not a number"))?;
+    let value: f64 = text.parse().map_err(|_| format!("'{text}' is not a number"))?;
     if value > 0.0 && value <= record::capture::MAX_BASELINE_MM {
         Ok(value)
     } else {
@@ -138,8 +135,7 @@ fn parse_triple(text: &str) -> Result<[f64; 3], String> {
                 .map_err(|_| format!("'{s}' in '{text}' is not a number"))
         })
         .collect::<Result<_, _>>()?;
-    <[f64; 3]>::try_from(values)
-        .map_err(|_| format!("'{text}' is not three comma-separated numbers X,Y,Z"))
+    <[f64; 3]>::try_from(values).map_err(|_| format!("'{text}' is not three comma-separated numbers X,Y,Z"))
 }
 
 #[derive(Debug, Args)]
@@ -313,9 +309,8 @@ fn progress_bar(total: u64, quiet: bool, unit: &str) -> ProgressBar {
         return ProgressBar::hidden();
     }
     let bar = ProgressBar::new(total);
-    let template = format!(
-        "{{spinner}} [{{elapsed_precise}}] {{bar:32}} {{pos}}/{{len}} {unit} ({{eta}} left) {{msg}}"
-    );
+    let template =
+        format!("{{spinner}} [{{elapsed_precise}}] {{bar:32}} {{pos}}/{{len}} {unit} ({{eta}} left) {{msg}}");
     if let Ok(style) = ProgressStyle::with_template(&template) {
         bar.set_style(style);
     }
@@ -329,9 +324,7 @@ fn interrupt_flag() -> Arc<AtomicBool> {
     let installed = ctrlc::set_handler(move || {
         if presses.fetch_add(1, Ordering::SeqCst) == 0 {
             flag.store(true, Ordering::SeqCst);
-            eprintln!(
-                "\ninterrupt: finishing the log with the sets completed so far (Ctrl-C again to abort)"
-            );
+            eprintln!("\ninterrupt: finishing the log with the sets completed so far (Ctrl-C again to abort)");
         } else {
             eprintln!("\naborted: no log written");
             std::process::exit(130);
@@ -352,19 +345,13 @@ fn run_simulation(args: &SimulateArgs, quiet: bool) -> Result<Outcome> {
         }
         other => anyhow::Error::new(other),
     })?;
-    let (output, writer) =
-        OutputFile::create(&args.output).context("cannot start the output log")?;
+    let (output, writer) = OutputFile::create(&args.output).context("cannot start the output log")?;
     let mut log = LogOptions::new()
         .image_format(config.image_format)
         .zstd_level(args.zstd_level)
         .create(writer)?;
     let scene_json = serde_json::to_vec_pretty(sim.scene())?;
-    log.attach(
-        "scene.json",
-        "application/json",
-        sim.time_nanos(),
-        &scene_json,
-    )?;
+    log.attach("scene.json", "application/json", sim.time_nanos(), &scene_json)?;
     let stop = interrupt_flag();
     let views_per_set = config.rig.capture_order().len() as u64;
     let bar = progress_bar(u64::from(config.captures) * views_per_set, quiet, "views");
@@ -391,14 +378,7 @@ fn run_simulation(args: &SimulateArgs, quiet: bool) -> Result<Outcome> {
         log.write_set(&set, Some(&hand_eye))
             .with_context(|| format!("writing set {index}"))?;
         completed += 1;
-        bar.suspend(|| {
-            info!(
-                "set {}/{} done ({} views)",
-                completed,
-                config.captures,
-                set.views.len()
-            )
-        });
+        bar.suspend(|| info!("set {}/{} done ({} views)", completed, config.captures, set.views.len()));
         if stop.load(Ordering::SeqCst) {
             break;
         }
@@ -477,8 +457,7 @@ fn run_import(args: &ImportArgs) -> Result<Outcome> {
         )));
     }
     let dirs = find_set_dirs(&args.dir, &config)?;
-    let (output, writer) =
-        OutputFile::create(&args.output).context("cannot start the output log")?;
+    let (output, writer) = OutputFile::create(&args.output).context("cannot start the output log")?;
     let mut log = LogOptions::new().create(writer)?;
     let bar = progress_bar(dirs.len() as u64, false, "sets");
     for (index, dir) in dirs.iter().enumerate() {
@@ -491,10 +470,7 @@ fn run_import(args: &ImportArgs) -> Result<Outcome> {
     let mut metadata = BTreeMap::new();
     metadata.insert("tool".to_owned(), "record import".to_owned());
     metadata.insert("tool_version".to_owned(), TOOL_VERSION.to_owned());
-    metadata.insert(
-        "source".to_owned(),
-        format!("import:{}", args.dir.display()),
-    );
+    metadata.insert("source".to_owned(), format!("import:{}", args.dir.display()));
     metadata.insert("config".to_owned(), serde_json::to_string(&config)?);
     metadata.insert("completed_sets".to_owned(), dirs.len().to_string());
     log.write_metadata(METADATA_NAME, metadata)?;

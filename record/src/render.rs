@@ -25,12 +25,7 @@ const NOISE_BASE_CELLS: usize = 8;
 /// Octaves of fractal noise.
 const NOISE_OCTAVES: usize = 4;
 /// Rotated-grid supersampling pattern (4 samples), offsets from the pixel centre.
-const RGSS_OFFSETS: [(f64, f64); 4] = [
-    (-0.125, -0.375),
-    (0.375, -0.125),
-    (0.125, 0.375),
-    (-0.375, 0.125),
-];
+const RGSS_OFFSETS: [(f64, f64); 4] = [(-0.125, -0.375), (0.375, -0.125), (0.125, 0.375), (-0.375, 0.125)];
 
 /// Rendering settings of one view.
 #[derive(Debug, Clone, PartialEq)]
@@ -248,11 +243,7 @@ impl PreparedTexture {
                     inv_tile_v: 1.0 / tile_v,
                 }
             }
-            Texture::Patches {
-                palette,
-                cell_m,
-                seed,
-            } => Self::Patches {
+            Texture::Patches { palette, cell_m, seed } => Self::Patches {
                 palette: if palette.is_empty() {
                     vec![V3::repeat(0.5)]
                 } else {
@@ -296,16 +287,8 @@ impl PreparedTexture {
                 let y1 = (y0 + 1) % n;
                 let tx = fx - x0 as f64;
                 let ty = fy - y0 as f64;
-                let top = lerp(
-                    f64::from(texels[y0 * n + x0]),
-                    f64::from(texels[y0 * n + x1]),
-                    tx,
-                );
-                let bottom = lerp(
-                    f64::from(texels[y1 * n + x0]),
-                    f64::from(texels[y1 * n + x1]),
-                    tx,
-                );
+                let top = lerp(f64::from(texels[y0 * n + x0]), f64::from(texels[y0 * n + x1]), tx);
+                let bottom = lerp(f64::from(texels[y1 * n + x0]), f64::from(texels[y1 * n + x1]), tx);
                 a.lerp(b, lerp(top, bottom, ty))
             }
             Self::Patches {
@@ -358,13 +341,8 @@ impl PreparedScene {
                         yaw_deg,
                         tilt_deg,
                     } => {
-                        let rotation = nalgebra::Rotation3::from_axis_angle(
-                            &V3::z_axis(),
-                            yaw_deg.to_radians(),
-                        ) * nalgebra::Rotation3::from_axis_angle(
-                            &V3::x_axis(),
-                            tilt_deg.to_radians(),
-                        );
+                        let rotation = nalgebra::Rotation3::from_axis_angle(&V3::z_axis(), yaw_deg.to_radians())
+                            * nalgebra::Rotation3::from_axis_angle(&V3::x_axis(), tilt_deg.to_radians());
                         let half = v3(*half_extents_m);
                         (
                             Geometry::Box {
@@ -417,11 +395,7 @@ impl PreparedScene {
         Self {
             objects,
             materials,
-            lights: scene
-                .lights
-                .iter()
-                .map(|l| (v3(l.position), v3(l.intensity)))
-                .collect(),
+            lights: scene.lights.iter().map(|l| (v3(l.position), v3(l.intensity))).collect(),
             ambient: v3(scene.ambient),
             background: v3(scene.background),
         }
@@ -443,10 +417,9 @@ impl PreparedScene {
     }
 
     fn occluded(&self, origin: &V3, dir: &V3, t_max: f64) -> bool {
-        self.objects.iter().any(|object| {
-            bound_overlaps(object, origin, dir, t_max)
-                && intersect(object, origin, dir, t_max).is_some()
-        })
+        self.objects
+            .iter()
+            .any(|object| bound_overlaps(object, origin, dir, t_max) && intersect(object, origin, dir, t_max).is_some())
     }
 
     fn trace(&self, origin: &V3, dir: &V3, bounces_left: u32) -> V3 {
@@ -483,8 +456,7 @@ impl PreparedScene {
         if material.mirror > 0.0 && bounces_left > 0 {
             let reflected = dir - normal * (2.0 * dir.dot(&normal));
             let mirrored = self.trace(&lifted, &reflected, bounces_left - 1);
-            local * (1.0 - material.mirror)
-                + mirrored.component_mul(&v3(material.mirror_tint)) * material.mirror
+            local * (1.0 - material.mirror) + mirrored.component_mul(&v3(material.mirror_tint)) * material.mirror
         } else {
             local
         }
@@ -535,18 +507,15 @@ impl PreparedScene {
                     }
                     let pixel = (row * width + col) as u64;
                     for channel in 0..3 {
-                        let linear =
-                            (color[channel] * inv_samples * settings.exposure_gain).clamp(0.0, 1.0);
+                        let linear = (color[channel] * inv_samples * settings.exposure_gain).clamp(0.0, 1.0);
                         let display = gamma_lut[(linear * GAMMA_LUT_SIZE as f64) as usize];
                         let noise = if settings.noise_sigma_levels > 0.0 {
                             let bits = hash4(settings.noise_seed, pixel, channel as u64, 0);
-                            settings.noise_sigma_levels
-                                * gaussian_from_bits(bits, mix64(bits ^ 0x5851_F42D))
+                            settings.noise_sigma_levels * gaussian_from_bits(bits, mix64(bits ^ 0x5851_F42D))
                         } else {
                             0.0
                         };
-                        rgb_row[col * 3 + channel] =
-                            (display + noise).round().clamp(0.0, 255.0) as u8;
+                        rgb_row[col * 3 + channel] = (display + noise).round().clamp(0.0, 255.0) as u8;
                     }
                 }
             });
@@ -596,12 +565,7 @@ fn intersect(object: &Object, origin: &V3, dir: &V3, t_max: f64) -> Option<Hit> 
     let t_min = SURFACE_EPSILON_M * 0.5;
     let material = object.material;
     match &object.geometry {
-        Geometry::Plane {
-            point,
-            normal,
-            u,
-            v,
-        } => {
+        Geometry::Plane { point, normal, u, v } => {
             let denom = normal.dot(dir);
             if denom.abs() < 1e-12 {
                 return None;
@@ -817,11 +781,7 @@ mod tests {
         let camera = PinholeCamera::from_horizontal_fov(64, 48, 60.0);
         let view = scene.render(&camera, &Isometry3::identity(), &RenderSettings::default());
         assert!(view.depth_m.iter().all(|d| (d - 0.75).abs() < 1e-6));
-        assert!(
-            view.surface_class
-                .iter()
-                .all(|c| *c == SurfaceClass::Diffuse as u8)
-        );
+        assert!(view.surface_class.iter().all(|c| *c == SurfaceClass::Diffuse as u8));
     }
 
     #[test]

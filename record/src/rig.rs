@@ -50,11 +50,7 @@ impl RigKind {
                 slot("top", 0, -1),
                 slot("bottom", 0, 1),
             ],
-            Self::ThreeView => vec![
-                slot("center", 0, 0),
-                slot("left", -1, 0),
-                slot("right", 1, 0),
-            ],
+            Self::ThreeView => vec![slot("center", 0, 0), slot("left", -1, 0), slot("right", 1, 0)],
             Self::Stereo => vec![slot("center", 0, 0), slot("right", 1, 0)],
             Self::Grid3x3 => vec![
                 slot("center", 0, 0),
@@ -75,11 +71,7 @@ impl RigKind {
     /// center, right; grid3x3: row-major from top-left.
     pub fn file_order(self) -> Vec<ViewSlot> {
         match self {
-            Self::ThreeView => vec![
-                slot("left", -1, 0),
-                slot("center", 0, 0),
-                slot("right", 1, 0),
-            ],
+            Self::ThreeView => vec![slot("left", -1, 0), slot("center", 0, 0), slot("right", 1, 0)],
             Self::Grid3x3 => {
                 let mut slots = self.capture_order();
                 slots.sort_by_key(|s| (s.grid_offset[1], s.grid_offset[0]));
@@ -106,12 +98,7 @@ mod tests {
 
     #[test]
     fn every_rig_has_one_reference_first_and_unique_roles() {
-        for rig in [
-            RigKind::FiveView,
-            RigKind::ThreeView,
-            RigKind::Stereo,
-            RigKind::Grid3x3,
-        ] {
+        for rig in [RigKind::FiveView, RigKind::ThreeView, RigKind::Stereo, RigKind::Grid3x3] {
             let order = rig.capture_order();
             assert_eq!(order[0].role, REFERENCE_ROLE);
             assert_eq!(order[0].grid_offset, [0, 0]);

@@ -55,10 +55,7 @@ pub fn mix64(mut z: u64) -> u64 {
 
 /// Hash of a seed and three counters.
 pub fn hash4(seed: u64, a: u64, b: u64, c: u64) -> u64 {
-    mix64(
-        mix64(mix64(seed ^ a.wrapping_mul(0x9E37_79B9_7F4A_7C15)) ^ b)
-            ^ c.wrapping_mul(0xD6E8_FEB8_6659_FD93),
-    )
+    mix64(mix64(mix64(seed ^ a.wrapping_mul(0x9E37_79B9_7F4A_7C15)) ^ b) ^ c.wrapping_mul(0xD6E8_FEB8_6659_FD93))
 }
 
 /// Uniform in [0, 1) from 64 bits.

@@ -334,11 +334,7 @@ impl Scene {
     fn add_lights(&mut self, rng: &mut SplitMix64) {
         let c = WORK_AREA_CENTER_M;
         self.lights.push(Light {
-            position: [
-                c[0] + rng.range(-0.6, 0.6),
-                c[1] + rng.range(-1.0, -0.4),
-                1.9,
-            ],
+            position: [c[0] + rng.range(-0.6, 0.6), c[1] + rng.range(-1.0, -0.4), 1.9],
             intensity: [0.62, 0.6, 0.57],
         });
         self.lights.push(Light {
@@ -405,12 +401,7 @@ fn toy_scene(seed: u64) -> Scene {
             angle_deg: 30.0,
         },
     ));
-    let plain = scene.add_material(Material::matte(
-        "textureless",
-        Texture::Solid {
-            rgb: [0.8, 0.8, 0.78],
-        },
-    ));
+    let plain = scene.add_material(Material::matte("textureless", Texture::Solid { rgb: [0.8, 0.8, 0.78] }));
     let stone = scene.add_material(Material::matte(
         "stone",
         Texture::Noise {
@@ -421,12 +412,7 @@ fn toy_scene(seed: u64) -> Scene {
             seed: rng.next_u64(),
         },
     ));
-    let pencil = scene.add_material(Material::glossy(
-        "pencil",
-        Texture::Solid {
-            rgb: [0.9, 0.55, 0.05],
-        },
-    ));
+    let pencil = scene.add_material(Material::glossy("pencil", Texture::Solid { rgb: [0.9, 0.55, 0.05] }));
     let c = WORK_AREA_CENTER_M;
     scene.add(
         "checker_block",
@@ -476,13 +462,9 @@ fn toy_scene(seed: u64) -> Scene {
         },
         plain,
     );
-    for (i, (dx, dy, yaw)) in [
-        (-0.16, -0.02, 10.0f64),
-        (0.16, 0.14, 80.0),
-        (-0.02, 0.2, -35.0),
-    ]
-    .into_iter()
-    .enumerate()
+    for (i, (dx, dy, yaw)) in [(-0.16, -0.02, 10.0f64), (0.16, 0.14, 80.0), (-0.02, 0.2, -35.0)]
+        .into_iter()
+        .enumerate()
     {
         let yaw = yaw.to_radians();
         scene.add(
@@ -540,9 +522,7 @@ fn workpiece_scene(seed: u64) -> Scene {
     ));
     let bolt = scene.add_material(Material::metal(
         "zinc_bolt",
-        Texture::Solid {
-            rgb: [0.6, 0.6, 0.55],
-        },
+        Texture::Solid { rgb: [0.6, 0.6, 0.55] },
         0.4,
     ));
     let cardboard = scene.add_material(Material::matte(
@@ -646,18 +626,12 @@ fn workpiece_scene(seed: u64) -> Scene {
 }
 
 fn random_color(rng: &mut SplitMix64) -> Rgb {
-    [
-        rng.range(0.05, 0.95),
-        rng.range(0.05, 0.95),
-        rng.range(0.05, 0.95),
-    ]
+    [rng.range(0.05, 0.95), rng.range(0.05, 0.95), rng.range(0.05, 0.95)]
 }
 
 fn random_texture(rng: &mut SplitMix64) -> Texture {
     match rng.below(10) {
-        0 | 1 => Texture::Solid {
-            rgb: random_color(rng),
-        },
+        0 | 1 => Texture::Solid { rgb: random_color(rng) },
         2 | 3 => Texture::Checker {
             a: random_color(rng),
             b: random_color(rng),
@@ -673,17 +647,11 @@ fn random_texture(rng: &mut SplitMix64) -> Texture {
             a: random_color(rng),
             b: random_color(rng),
             scale_m: rng.range(0.004, 0.08),
-            anisotropy: if rng.below(3) == 0 {
-                rng.range(2.0, 12.0)
-            } else {
-                1.0
-            },
+            anisotropy: if rng.below(3) == 0 { rng.range(2.0, 12.0) } else { 1.0 },
             seed: rng.next_u64(),
         },
         _ => Texture::Patches {
-            palette: (0..rng.range_usize(2, 6))
-                .map(|_| random_color(rng))
-                .collect(),
+            palette: (0..rng.range_usize(2, 6)).map(|_| random_color(rng)).collect(),
             cell_m: rng.range(0.003, 0.03),
             seed: rng.next_u64(),
         },
@@ -728,11 +696,7 @@ fn random_scene(seed: u64) -> Scene {
                 center: [x, y, lift + size],
                 half_extents_m: [size * rng.range(0.4, 1.5), size * rng.range(0.4, 1.5), size],
                 yaw_deg: rng.range(0.0, 90.0),
-                tilt_deg: if lift > 0.0 {
-                    rng.range(-30.0, 30.0)
-                } else {
-                    0.0
-                },
+                tilt_deg: if lift > 0.0 { rng.range(-30.0, 30.0) } else { 0.0 },
             },
             3 | 4 => Shape::Sphere {
                 center: [x, y, lift + size],

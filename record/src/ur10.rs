@@ -94,9 +94,7 @@ pub enum KinematicsError {
         distance_m: f64,
     },
     /// Solutions exist but every one violates a joint limit.
-    #[error(
-        "all {solutions} IK solutions violate the joint limits (joint {joint} wants {value_rad:.3} rad)"
-    )]
+    #[error("all {solutions} IK solutions violate the joint limits (joint {joint} wants {value_rad:.3} rad)")]
     JointLimits {
         /// Number of solutions found.
         solutions: usize,
@@ -148,14 +146,7 @@ fn dh_link(theta: f64, d: f64, a: f64, alpha: f64) -> Isometry3<f64> {
 impl Ur10 {
     /// `parent_from_child` for every joint frame, base to flange (for the logged transform tree).
     pub fn link_transforms(&self, joints: &Joints) -> [Isometry3<f64>; JOINT_COUNT] {
-        std::array::from_fn(|i| {
-            dh_link(
-                joints[i],
-                self.dh.d_m[i],
-                self.dh.a_m[i],
-                self.dh.alpha_rad[i],
-            )
-        })
+        std::array::from_fn(|i| dh_link(joints[i], self.dh.d_m[i], self.dh.a_m[i], self.dh.alpha_rad[i]))
     }
 
     /// `base_from_link` for every joint frame (cumulative), base to flange.
@@ -177,11 +168,7 @@ impl Ur10 {
 
     /// All closed-form IK solutions for `base_from_flange` (angles in (−π, π]), each verified
     /// by forward kinematics. At a wrist singularity θ6 is taken from `hint`.
-    pub fn inverse_kinematics(
-        &self,
-        base_from_flange: &Isometry3<f64>,
-        hint: &Joints,
-    ) -> Vec<Joints> {
+    pub fn inverse_kinematics(&self, base_from_flange: &Isometry3<f64>, hint: &Joints) -> Vec<Joints> {
         let DhParameters { a_m: a, d_m: d, .. } = self.dh;
         let (a2, a3, d1, d4, d5, d6) = (a[1], a[2], d[0], d[3], d[4], d[5]);
         let t: Matrix4<f64> = base_from_flange.to_homogeneous();
@@ -216,8 +203,7 @@ impl Ur10 {
                 };
                 // Remove joints 1, 5 and 6 and solve the planar 3R chain of joints 2–4.
                 let frame1 = dh_link(theta1, d1, 0.0, FRAC_PI_2);
-                let wrist_chain =
-                    dh_link(theta5, d5, 0.0, -FRAC_PI_2) * dh_link(theta6, d6, 0.0, 0.0);
+                let wrist_chain = dh_link(theta5, d5, 0.0, -FRAC_PI_2) * dh_link(theta6, d6, 0.0, 0.0);
                 let link1_from_link4 = frame1.inverse() * base_from_flange * wrist_chain.inverse();
                 let m = link1_from_link4.to_homogeneous();
                 // Frame 3 origin = frame 4 origin minus d4 along the common joint axis (z1).
@@ -232,8 +218,7 @@ impl Ur10 {
                     let theta2 = py.atan2(px) - (a3 * theta3.sin()).atan2(a2 + a3 * theta3.cos());
                     let theta234 = m[(1, 0)].atan2(m[(0, 0)]);
                     let theta4 = theta234 - theta2 - theta3;
-                    let candidate =
-                        [theta1, theta2, theta3, theta4, theta5, theta6].map(wrap_to_pi);
+                    let candidate = [theta1, theta2, theta3, theta4, theta5, theta6].map(wrap_to_pi);
                     if self.matches(&candidate, base_from_flange) {
                         solutions.push(candidate);
                     }
@@ -327,12 +312,7 @@ pub fn interpolate_joints(from: &Joints, to: &Joints, fraction: f64) -> Joints {
 }
 
 /// Joint velocities (rad/s) along the same move, for a move lasting `duration_secs`.
-pub fn interpolate_joint_velocities(
-    from: &Joints,
-    to: &Joints,
-    fraction: f64,
-    duration_secs: f64,
-) -> Joints {
+pub fn interpolate_joint_velocities(from: &Joints, to: &Joints, fraction: f64, duration_secs: f64) -> Joints {
     if duration_secs <= 0.0 {
         return [0.0; JOINT_COUNT];
     }
@@ -342,11 +322,7 @@ pub fn interpolate_joint_velocities(
 
 fn wrap_to_pi(angle: f64) -> f64 {
     let wrapped = (angle + PI).rem_euclid(TAU) - PI;
-    if wrapped <= -PI {
-        wrapped + TAU
-    } else {
-        wrapped
-    }
+    if wrapped <= -PI { wrapped + TAU } else { wrapped }
 }
 
 /// `angle + k·2π` closest to `reference` inside `[lower, upper]`, if any.
@@ -368,14 +344,10 @@ pub fn rotation_deg(axis: Vector3<f64>, angle_deg: f64) -> UnitQuaternion<f64> {
 }
 
 /// `Rotation3` from the columns of a right-handed orthonormal frame.
-pub fn rotation_from_axes(
-    x: Vector3<f64>,
-    y: Vector3<f64>,
-    z: Vector3<f64>,
-) -> UnitQuaternion<f64> {
-    UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(
-        nalgebra::Matrix3::from_columns(&[x, y, z]),
-    ))
+pub fn rotation_from_axes(x: Vector3<f64>, y: Vector3<f64>, z: Vector3<f64>) -> UnitQuaternion<f64> {
+    UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(nalgebra::Matrix3::from_columns(&[
+        x, y, z,
+    ])))
 }
 
 #[cfg(test)]
@@ -409,11 +381,7 @@ mod tests {
         for joints in sample_joints() {
             let target = arm.forward_kinematics(&joints);
             let solutions = arm.inverse_kinematics(&target, &joints);
-            assert!(
-                solutions.len() >= 2,
-                "{joints:?}: {} solutions",
-                solutions.len()
-            );
+            assert!(solutions.len() >= 2, "{joints:?}: {} solutions", solutions.len());
             for solution in &solutions {
                 let reached = arm.forward_kinematics(solution);
                 assert!((reached.translation.vector - target.translation.vector).norm() < 1e-9);

@@ -36,24 +36,30 @@ pub fn baseline_of(method: &str) -> Option<String> {
     (baseline != method).then_some(baseline)
 }
 
-/// Runs `methods` on every set with ground truth and tabulates the results.
+/// Runs `methods` (with optional configuration overrides for all) on every set with ground
+/// truth and tabulates the results.
 pub fn evaluate_sets(
     sets: &[ViewSet],
     methods: &[String],
     num_disparities: Option<usize>,
+    overrides: Option<&serde_json::Value>,
     mut on_progress: impl FnMut(&str, &str),
 ) -> Result<Vec<EvalRow>, ReplayError> {
     let mut rows = Vec::new();
     for name in methods {
-        let method = fuse::methods::build(name, None).map_err(|source| ReplayError::Fuse { set: 0, source })?;
+        let method = fuse::methods::build(name, overrides).map_err(|source| ReplayError::Fuse { set: 0, source })?;
         let mut scenes = Vec::new();
         let started = Instant::now();
         for set in sets {
-            let Some(truth) = set.ground_truth_disparity() else { continue };
+            let Some(truth) = set.ground_truth_disparity() else {
+                continue;
+            };
             on_progress(name, &set.name);
             let nd = num_disparities.unwrap_or_else(|| set.default_num_disparities());
             let problem = set.problem(0, nd)?;
-            let disparity = method.run(&problem, &|_| {}).map_err(|source| ReplayError::Fuse { set: set.index, source })?;
+            let disparity = method
+                .run(&problem, &|_| {})
+                .map_err(|source| ReplayError::Fuse { set: set.index, source })?;
             if let Some(metrics) = evaluate(&disparity.data, &truth, None, nd as f64) {
                 scenes.push((set.name.clone(), metrics));
             }
@@ -91,7 +97,9 @@ fn change(value: Option<f64>) -> String {
 
 /// The table as Markdown.
 pub fn markdown(rows: &[EvalRow]) -> String {
-    let mut out = String::from("| method | scenes | RMS | AvgErr | Bad0.5 (%) | Bad1 (%) | Bad2 (%) | AvgErr vs stereo | RMS vs stereo | time (s) |\n");
+    let mut out = String::from(
+        "| method | scenes | RMS | AvgErr | Bad0.5 (%) | Bad1 (%) | Bad2 (%) | AvgErr vs stereo | RMS vs stereo | time (s) |\n",
+    );
     out.push_str("|---|---|---|---|---|---|---|---|---|---|\n");
     for r in rows {
         out.push_str(&format!(
@@ -115,7 +123,12 @@ pub fn markdown(rows: &[EvalRow]) -> String {
 pub fn csv(rows: &[EvalRow]) -> String {
     let mut out = String::from("method,scene,rms,avg_err,bad_0_5,bad_1,bad_2,pixels,missing,avg_err_change_percent\n");
     for r in rows {
-        for (scene, m) in r.scenes.iter().map(|(s, m)| (s.as_str(), m)).chain(std::iter::once(("mean", &r.mean))) {
+        for (scene, m) in r
+            .scenes
+            .iter()
+            .map(|(s, m)| (s.as_str(), m))
+            .chain(std::iter::once(("mean", &r.mean)))
+        {
             out.push_str(&format!(
                 "{},{},{:.4},{:.4},{:.3},{:.3},{:.3},{},{},{}\n",
                 r.method,
@@ -127,7 +140,11 @@ pub fn csv(rows: &[EvalRow]) -> String {
                 m.bad_2,
                 m.pixels,
                 m.missing,
-                if scene == "mean" { r.avg_err_change_percent.map_or(String::new(), |v| format!("{v:.2}")) } else { String::new() }
+                if scene == "mean" {
+                    r.avg_err_change_percent.map_or(String::new(), |v| format!("{v:.2}"))
+                } else {
+                    String::new()
+                }
             ));
         }
     }

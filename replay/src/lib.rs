@@ -76,7 +76,9 @@ pub enum ReplayError {
         reason: String,
     },
     /// An image encoding replay does not read.
-    #[error("set {set} topic {topic}: unsupported image encoding '{encoding}' (supported: rgb8, bgr8, rgba8, bgra8, mono8, png)")]
+    #[error(
+        "set {set} topic {topic}: unsupported image encoding '{encoding}' (supported: rgb8, bgr8, rgba8, bgra8, mono8, png)"
+    )]
     UnknownEncoding {
         /// Set.
         set: u32,
@@ -98,7 +100,9 @@ pub enum ReplayError {
         value: String,
     },
     /// A view's size differs from the reference.
-    #[error("set {set} view '{role}' ({topic}) is {width}x{height}, the reference is {reference_width}x{reference_height}")]
+    #[error(
+        "set {set} view '{role}' ({topic}) is {width}x{height}, the reference is {reference_width}x{reference_height}"
+    )]
     SizeMismatch {
         /// Set.
         set: u32,

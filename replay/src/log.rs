@@ -43,17 +43,21 @@ pub fn read_log_file(path: &Path) -> Result<LogContents, ReplayError> {
 /// Capture events of a log (linear scan), recovering what a cut-off log holds.
 pub fn read_capture_events(mcap_bytes: &[u8]) -> Result<Vec<CaptureEvent>, ReplayError> {
     let mut events = Vec::new();
-    scan(mcap_bytes, |topic| topic == CAPTURE_EVENTS_TOPIC, |topic, log_time, data| {
-        if topic == CAPTURE_EVENTS_TOPIC {
-            let event = serde_json::from_slice(data).map_err(|source| ReplayError::BadEvent {
-                topic: CAPTURE_EVENTS_TOPIC,
-                log_time,
-                source,
-            })?;
-            events.push(event);
-        }
-        Ok(())
-    })?;
+    scan(
+        mcap_bytes,
+        |topic| topic == CAPTURE_EVENTS_TOPIC,
+        |topic, log_time, data| {
+            if topic == CAPTURE_EVENTS_TOPIC {
+                let event = serde_json::from_slice(data).map_err(|source| ReplayError::BadEvent {
+                    topic: CAPTURE_EVENTS_TOPIC,
+                    log_time,
+                    source,
+                })?;
+                events.push(event);
+            }
+            Ok(())
+        },
+    )?;
     Ok(events)
 }
 
@@ -155,7 +159,12 @@ fn decode_error<'a>(set: u32, topic: &'a str, schema: &'static str) -> impl Fn(p
     }
 }
 
-fn payload<'a>(payloads: &'a HashMap<(String, u64), Vec<u8>>, set: u32, event: &CaptureEvent, topic: &str) -> Result<&'a [u8], ReplayError> {
+fn payload<'a>(
+    payloads: &'a HashMap<(String, u64), Vec<u8>>,
+    set: u32,
+    event: &CaptureEvent,
+    topic: &str,
+) -> Result<&'a [u8], ReplayError> {
     payloads
         .get(&(topic.to_owned(), event.capture_time_nanos))
         .map(Vec::as_slice)
@@ -175,8 +184,12 @@ fn decode_rgb(set: u32, topic: &str, data: &[u8]) -> Result<(u32, u32, Vec<u8>),
     {
         return raw_to_rgb(set, topic, &raw).map(|rgb| (raw.width, raw.height, rgb));
     }
-    let compressed: CompressedImage = prost::Message::decode(data).map_err(decode_error(set, topic, "foxglove.RawImage or foxglove.CompressedImage"))?;
-    if compressed.format.to_ascii_lowercase() != "png" {
+    let compressed: CompressedImage = prost::Message::decode(data).map_err(decode_error(
+        set,
+        topic,
+        "foxglove.RawImage or foxglove.CompressedImage",
+    ))?;
+    if !compressed.format.eq_ignore_ascii_case("png") {
         return Err(ReplayError::UnknownEncoding {
             set,
             topic: topic.to_owned(),
@@ -260,7 +273,14 @@ fn decode_depth(set: u32, topic: &str, data: &[u8], size: (u32, u32)) -> Result<
             set,
             topic: topic.to_owned(),
             field: "width/height/data",
-            value: format!("{}x{} with {} bytes, image is {}x{}", raw.width, raw.height, raw.data.len(), size.0, size.1),
+            value: format!(
+                "{}x{} with {} bytes, image is {}x{}",
+                raw.width,
+                raw.height,
+                raw.data.len(),
+                size.0,
+                size.1
+            ),
         });
     }
     let step = (raw.step as usize).max(raw.width as usize * 4);
@@ -273,7 +293,10 @@ fn decode_depth(set: u32, topic: &str, data: &[u8], size: (u32, u32)) -> Result<
                     set,
                     topic: topic.to_owned(),
                     field: "depth",
-                    value: format!("{z} at pixel {} (ground truth must be finite metres ≥ 0; 0 = unknown)", depth.len()),
+                    value: format!(
+                        "{z} at pixel {} (ground truth must be finite metres ≥ 0; 0 = unknown)",
+                        depth.len()
+                    ),
                 });
             }
             depth.push(z);
@@ -282,14 +305,21 @@ fn decode_depth(set: u32, topic: &str, data: &[u8], size: (u32, u32)) -> Result<
     Ok(depth)
 }
 
-fn assemble_set(index: u32, events: &[CaptureEvent], payloads: &HashMap<(String, u64), Vec<u8>>) -> Result<ViewSet, ReplayError> {
+fn assemble_set(
+    index: u32,
+    events: &[CaptureEvent],
+    payloads: &HashMap<(String, u64), Vec<u8>>,
+) -> Result<ViewSet, ReplayError> {
     let mut views = Vec::with_capacity(events.len());
     let mut ground_truth = None;
     let mut surface = None;
-    let reference_event = events.iter().find(|e| e.role == REFERENCE_ROLE).ok_or_else(|| ReplayError::MissingView {
-        set: index,
-        role: REFERENCE_ROLE.into(),
-    })?;
+    let reference_event = events
+        .iter()
+        .find(|e| e.role == REFERENCE_ROLE)
+        .ok_or_else(|| ReplayError::MissingView {
+            set: index,
+            role: REFERENCE_ROLE.into(),
+        })?;
     if !(reference_event.baseline_m.is_finite() && reference_event.baseline_m > 0.0) {
         return Err(ReplayError::BadField {
             set: index,
@@ -299,9 +329,15 @@ fn assemble_set(index: u32, events: &[CaptureEvent], payloads: &HashMap<(String,
         });
     }
     for event in events {
-        let (width, height, rgb) = decode_rgb(index, &event.image_topic, payload(payloads, index, event, &event.image_topic)?)?;
-        let calibration: CameraCalibration = prost::Message::decode(payload(payloads, index, event, &event.calibration_topic)?)
-            .map_err(decode_error(index, &event.calibration_topic, "foxglove.CameraCalibration"))?;
+        let (width, height, rgb) = decode_rgb(
+            index,
+            &event.image_topic,
+            payload(payloads, index, event, &event.image_topic)?,
+        )?;
+        let calibration: CameraCalibration =
+            prost::Message::decode(payload(payloads, index, event, &event.calibration_topic)?).map_err(
+                decode_error(index, &event.calibration_topic, "foxglove.CameraCalibration"),
+            )?;
         if calibration.k.len() != 9 || calibration.k[0] <= 0.0 || !calibration.k[0].is_finite() {
             return Err(ReplayError::BadField {
                 set: index,
@@ -320,10 +356,16 @@ fn assemble_set(index: u32, events: &[CaptureEvent], payloads: &HashMap<(String,
         };
         if event.role == REFERENCE_ROLE {
             if let Some(topic) = &event.depth_topic {
-                ground_truth = Some(decode_depth(index, topic, payload(payloads, index, event, topic)?, (width, height))?);
+                ground_truth = Some(decode_depth(
+                    index,
+                    topic,
+                    payload(payloads, index, event, topic)?,
+                    (width, height),
+                )?);
             }
             if let Some(topic) = &event.surface_topic {
-                let raw: RawImage = prost::Message::decode(payload(payloads, index, event, topic)?).map_err(decode_error(index, topic, "foxglove.RawImage"))?;
+                let raw: RawImage = prost::Message::decode(payload(payloads, index, event, topic)?)
+                    .map_err(decode_error(index, topic, "foxglove.RawImage"))?;
                 surface = Some(raw.data.to_vec());
             }
         }
@@ -362,4 +404,107 @@ fn assemble_set(index: u32, events: &[CaptureEvent], payloads: &HashMap<(String,
         ground_truth_depth_m: ground_truth,
         surface_class: surface,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use record::rig::RigKind;
+    use record::{CapturedSet, CapturedView};
+
+    fn set(index: u32) -> CapturedSet {
+        let camera = PinholeCamera::from_horizontal_fov(4, 3, 60.0);
+        let view = |role: &str, dx: i32, time: u64| CapturedView {
+            role: role.into(),
+            grid_offset: [dx, 0],
+            camera,
+            capture_time_nanos: time,
+            rgb: (0..36).map(|i| (i * 7 + dx as i64 * 3) as u8).collect(),
+            depth_m: Some(vec![0.5; 12]),
+            surface_class: None,
+            world_from_camera: nalgebra::Isometry3::translation(f64::from(dx) * 0.02, 0.0, 0.0),
+            world_from_camera_true: None,
+            commanded_world_from_camera: None,
+            joints: None,
+            exposure_gain: 1.0,
+        };
+        let t = u64::from(index) * 1_000;
+        CapturedSet {
+            index,
+            name: format!("s{index}"),
+            rig: RigKind::ThreeView,
+            baseline_m: 0.02,
+            motion: Vec::new(),
+            views: vec![
+                view("center", 0, t + 1),
+                view("left", -1, t + 2),
+                view("right", 1, t + 3),
+            ],
+        }
+    }
+
+    fn log_bytes(sets: &[CapturedSet]) -> Vec<u8> {
+        let mut writer = record::log::LogOptions::new()
+            .create(std::io::Cursor::new(Vec::new()))
+            .unwrap_or_else(|e| panic!("{e}"));
+        for s in sets {
+            writer.write_set(s, None).unwrap_or_else(|e| panic!("{e}"));
+        }
+        writer.finish().unwrap_or_else(|e| panic!("{e}")).into_inner()
+    }
+
+    #[test]
+    fn view_sets_round_trip_through_an_in_memory_log() {
+        let written = [set(0), set(1)];
+        let contents = read_log(&log_bytes(&written)).unwrap_or_else(|e| panic!("{e}"));
+        assert!(contents.truncation.is_none());
+        assert_eq!(contents.sets.len(), 2);
+        for (read, original) in contents.sets.iter().zip(&written) {
+            assert_eq!(read.reference.role, "center");
+            assert_eq!(read.reference.rgb, original.views[0].rgb);
+            let roles: Vec<&str> = read.neighbours.iter().map(|n| n.role.as_str()).collect();
+            assert_eq!(roles, ["left", "right"]);
+            assert_eq!(read.neighbours[0].offset, [-1, 0]);
+            assert_eq!(read.ground_truth_depth_m.as_deref(), Some(&[0.5f32; 12][..]));
+            assert!((read.baseline_m - 0.02).abs() < 1e-12);
+        }
+        assert_eq!(
+            read_capture_events(&log_bytes(&written)).map(|e| e.len()).unwrap_or(0),
+            6
+        );
+    }
+
+    #[test]
+    fn a_cut_off_log_keeps_its_complete_sets() {
+        // One chunk per set: force small chunks so that a cut lands after the first set.
+        let mut writer = record::log::LogOptions::new()
+            .chunk_size(64)
+            .create(std::io::Cursor::new(Vec::new()))
+            .unwrap_or_else(|e| panic!("{e}"));
+        for s in [set(0), set(1)] {
+            writer.write_set(&s, None).unwrap_or_else(|e| panic!("{e}"));
+        }
+        let bytes = writer.finish().unwrap_or_else(|e| panic!("{e}")).into_inner();
+        let full = read_log(&bytes).unwrap_or_else(|e| panic!("{e}"));
+        let mut recovered_some = false;
+        for cut in (16..bytes.len()).step_by(37) {
+            match read_log(&bytes[..cut]) {
+                Ok(contents) => {
+                    assert!(contents.sets.len() <= full.sets.len());
+                    for s in &contents.sets {
+                        assert_eq!(s.reference.rgb, full.sets[s.index as usize].reference.rgb);
+                    }
+                    recovered_some |= !contents.sets.is_empty() && contents.truncation.is_some();
+                }
+                Err(ReplayError::Mcap { .. }) => {}
+                Err(other) => panic!("cut at {cut}: unexpected error {other}"),
+            }
+        }
+        assert!(recovered_some, "no cut recovered a complete set");
+    }
+
+    #[test]
+    fn garbage_is_an_error_not_a_panic() {
+        assert!(matches!(read_log(b"not an mcap file"), Err(ReplayError::Mcap { .. })));
+    }
 }

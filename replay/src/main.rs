@@ -24,7 +24,9 @@ const EXIT_INCOMPLETE: u8 = 3;
 /// results and evaluate them against ground truth.
 #[derive(Debug, Parser)]
 #[command(name = "replay", version, args_conflicts_with_subcommands = true)]
-#[command(after_help = "Examples:\n  replay capture.mcap --method sgm-heuristic --out results\n  replay --list-methods\n  replay eval ../shared/data/middlebury2006-third-dev --methods bm-stereo,bm-heuristic,sgm-stereo,sgm-heuristic")]
+#[command(
+    after_help = "Examples:\n  replay capture.mcap --method sgm-heuristic --out results\n  replay --list-methods\n  replay eval ../shared/data/middlebury2006-third-dev --methods bm-stereo,bm-heuristic,sgm-stereo,sgm-heuristic"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Option<Command>,
@@ -81,7 +83,11 @@ struct EvalArgs {
     #[arg(required = true)]
     inputs: Vec<PathBuf>,
     /// Methods to compare (comma-separated).
-    #[arg(long, value_delimiter = ',', default_value = "bm-stereo,bm-mean,bm-min,bm-heuristic,sgm-stereo,sgm-heuristic")]
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "bm-stereo,bm-mean,bm-min,bm-heuristic,sgm-stereo,sgm-heuristic"
+    )]
     methods: Vec<String>,
     /// Disparities searched (default: per set, width/15 rounded up to a multiple of 16).
     #[arg(long)]
@@ -92,6 +98,9 @@ struct EvalArgs {
     /// Also write the table as Markdown, CSV and JSON into this directory.
     #[arg(long)]
     out: Option<PathBuf>,
+    /// Configuration overrides applied to every method, as a JSON object.
+    #[arg(long, value_name = "JSON")]
+    config: Option<String>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -114,7 +123,10 @@ fn main() -> ExitCode {
     };
     let level = if cli.quiet { "error" } else { "info" };
     tracing_subscriber::fmt()
-        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(level)))
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(level)),
+        )
         .with_writer(std::io::stderr)
         .with_target(false)
         .init();
@@ -156,19 +168,31 @@ fn run_method(args: &RunArgs, quiet: bool) -> Result<Outcome> {
         return Err(UsageError("no log given: replay LOG --method NAME (or --list-methods)".into()).into());
     };
     let overrides = match &args.config {
-        Some(text) => Some(serde_json::from_str::<serde_json::Value>(text).map_err(|e| UsageError(format!("--config is not JSON: {e}")))?),
+        Some(text) => Some(
+            serde_json::from_str::<serde_json::Value>(text)
+                .map_err(|e| UsageError(format!("--config is not JSON: {e}")))?,
+        ),
         None => None,
     };
     let method = fuse::methods::build(&args.method, overrides.as_ref()).map_err(|e| UsageError(e.to_string()))?;
     let started = Instant::now();
     let contents = read_log_file(log).with_context(|| format!("reading {}", log.display()))?;
     if let Some(reason) = &contents.truncation {
-        warn!("{} is cut off or corrupt after {} messages ({reason}); recovered {} complete set(s)", log.display(), contents.messages, contents.sets.len());
+        warn!(
+            "{} is cut off or corrupt after {} messages ({reason}); recovered {} complete set(s)",
+            log.display(),
+            contents.messages,
+            contents.sets.len()
+        );
     }
     for (set, reason) in &contents.incomplete_sets {
         warn!("set {set} is incomplete and skipped: {reason}");
     }
-    let sets: Vec<&ViewSet> = contents.sets.iter().filter(|s| args.sets.is_empty() || args.sets.contains(&s.index)).collect();
+    let sets: Vec<&ViewSet> = contents
+        .sets
+        .iter()
+        .filter(|s| args.sets.is_empty() || args.sets.contains(&s.index))
+        .collect();
     if sets.is_empty() {
         anyhow::bail!("{} holds no complete view set to replay", log.display());
     }
@@ -178,7 +202,12 @@ fn run_method(args: &RunArgs, quiet: bool) -> Result<Outcome> {
         let nd = args.num_disparities.unwrap_or_else(|| set.default_num_disparities());
         let problem = set.problem(args.min_disparity, nd)?;
         let progress = bar(1000, quiet);
-        progress.set_message(format!("set {} {} ({} neighbours, {nd} disparities)", set.index, method.name(), problem.neighbours.len()));
+        progress.set_message(format!(
+            "set {} {} ({} neighbours, {nd} disparities)",
+            set.index,
+            method.name(),
+            problem.neighbours.len()
+        ));
         let method_started = Instant::now();
         let disparity = method
             .run(&problem, &|fraction| progress.set_position((fraction * 1000.0) as u64))
@@ -200,7 +229,13 @@ fn run_method(args: &RunArgs, quiet: bool) -> Result<Outcome> {
                 m.bad_1,
                 outputs.dir.display()
             ),
-            None => info!("set {} ({}): {} in {seconds:.2} s → {}", set.index, set.name, method.name(), outputs.dir.display()),
+            None => info!(
+                "set {} ({}): {} in {seconds:.2} s → {}",
+                set.index,
+                set.name,
+                method.name(),
+                outputs.dir.display()
+            ),
         }
         summaries.push(serde_json::json!({"outputs": outputs, "seconds": seconds, "num_disparities": nd}));
     }
@@ -218,7 +253,8 @@ fn run_method(args: &RunArgs, quiet: bool) -> Result<Outcome> {
         "seconds": started.elapsed().as_secs_f64(),
     });
     let summary_path = args.out.join("summary.json");
-    std::fs::write(&summary_path, serde_json::to_string_pretty(&summary)?).with_context(|| format!("writing {}", summary_path.display()))?;
+    std::fs::write(&summary_path, serde_json::to_string_pretty(&summary)?)
+        .with_context(|| format!("writing {}", summary_path.display()))?;
     info!("wrote {}", summary_path.display());
     if contents.truncation.is_some() || !contents.incomplete_sets.is_empty() {
         return Ok(Outcome::Incomplete);
@@ -230,10 +266,15 @@ fn read_inputs(inputs: &[PathBuf]) -> Result<Vec<ViewSet>> {
     let mut sets = Vec::new();
     for input in inputs {
         if input.is_dir() {
-            sets.extend(replay::dataset::read_dataset(input).with_context(|| format!("reading dataset {}", input.display()))?);
+            sets.extend(
+                replay::dataset::read_dataset(input).with_context(|| format!("reading dataset {}", input.display()))?,
+            );
         } else {
             let contents = read_log_file(input).with_context(|| format!("reading {}", input.display()))?;
-            let name = input.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+            let name = input
+                .file_stem()
+                .map(|s| s.to_string_lossy().into_owned())
+                .unwrap_or_default();
             for mut set in contents.sets {
                 set.name = format!("{name}/{}", set.name);
                 sets.push(set);
@@ -249,16 +290,29 @@ fn run_eval(args: &EvalArgs) -> Result<Outcome> {
             return Err(UsageError(format!("unknown method '{name}' (see --list-methods)")).into());
         }
     }
+    let overrides = match &args.config {
+        Some(text) => Some(
+            serde_json::from_str::<serde_json::Value>(text)
+                .map_err(|e| UsageError(format!("--config is not JSON: {e}")))?,
+        ),
+        None => None,
+    };
     let sets = read_inputs(&args.inputs)?;
     let with_truth = sets.iter().filter(|s| s.ground_truth_depth_m.is_some()).count();
     if with_truth == 0 {
         anyhow::bail!("none of the {} view sets has ground truth", sets.len());
     }
     let progress = bar((args.methods.len() * with_truth) as u64, false);
-    let rows = evaluate_sets(&sets, &args.methods, args.num_disparities, |method, scene| {
-        progress.set_message(format!("{method} on {scene}"));
-        progress.inc(1);
-    })?;
+    let rows = evaluate_sets(
+        &sets,
+        &args.methods,
+        args.num_disparities,
+        overrides.as_ref(),
+        |method, scene| {
+            progress.set_message(format!("{method} on {scene}"));
+            progress.inc(1);
+        },
+    )?;
     progress.finish_and_clear();
     let table = markdown(&rows);
     match args.format {

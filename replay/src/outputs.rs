@@ -28,7 +28,13 @@ pub struct SetOutputs {
 }
 
 /// Writes the files of one set into `dir/<set name>/`.
-pub fn write_set_outputs(dir: &Path, set: &ViewSet, method: &str, disparity: &DisparityImage, metrics: Option<Metrics>) -> Result<SetOutputs, viz::files::FileError> {
+pub fn write_set_outputs(
+    dir: &Path,
+    set: &ViewSet,
+    method: &str,
+    disparity: &DisparityImage,
+    metrics: Option<Metrics>,
+) -> Result<SetOutputs, viz::files::FileError> {
     let set_dir = dir.join(sanitize(&format!("{:03}-{}", set.index, set.name)));
     std::fs::create_dir_all(&set_dir).map_err(|source| viz::files::FileError::Io {
         path: set_dir.clone(),
@@ -53,7 +59,14 @@ pub fn write_set_outputs(dir: &Path, set: &ViewSet, method: &str, disparity: &Di
     files.push(depth_png);
     let range = viz::files::finite_range(&disparity.data);
     if let Some(range) = range {
-        files.push(viz::files::write_colormap_png(&set_dir, &format!("{method}_disparity"), w, h, &disparity.data, range)?);
+        files.push(viz::files::write_colormap_png(
+            &set_dir,
+            &format!("{method}_disparity"),
+            w,
+            h,
+            &disparity.data,
+            range,
+        )?);
     }
     if let Some(metrics) = metrics {
         let path = set_dir.join(format!("{method}_metrics.json"));
@@ -64,7 +77,10 @@ pub fn write_set_outputs(dir: &Path, set: &ViewSet, method: &str, disparity: &Di
             "metrics": metrics,
         }))
         .unwrap_or_default();
-        std::fs::write(&path, json).map_err(|source| viz::files::FileError::Io { path: path.clone(), source })?;
+        std::fs::write(&path, json).map_err(|source| viz::files::FileError::Io {
+            path: path.clone(),
+            source,
+        })?;
         files.push(path);
     }
     Ok(SetOutputs {
@@ -78,5 +94,13 @@ pub fn write_set_outputs(dir: &Path, set: &ViewSet, method: &str, disparity: &Di
 }
 
 fn sanitize(name: &str) -> String {
-    name.chars().map(|c| if c.is_ascii_alphanumeric() || c == '-' || c == '_' { c } else { '_' }).collect()
+    name.chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '-' || c == '_' {
+                c
+            } else {
+                '_'
+            }
+        })
+        .collect()
 }

@@ -63,21 +63,26 @@ fn view_from_captured(view: &CapturedView) -> View {
 impl ViewSet {
     /// A set from a captured (simulated or imported) set.
     pub fn from_captured(set: &CapturedSet) -> Result<Self, ReplayError> {
-        let reference = set
-            .views
-            .iter()
-            .find(|v| v.role == REFERENCE_ROLE)
-            .ok_or_else(|| ReplayError::MissingView {
-                set: set.index,
-                role: REFERENCE_ROLE.into(),
-            })?;
+        let reference =
+            set.views
+                .iter()
+                .find(|v| v.role == REFERENCE_ROLE)
+                .ok_or_else(|| ReplayError::MissingView {
+                    set: set.index,
+                    role: REFERENCE_ROLE.into(),
+                })?;
         Ok(Self {
             index: set.index,
             name: set.name.clone(),
             rig: set.rig.name().to_owned(),
             baseline_m: set.baseline_m,
             reference: view_from_captured(reference),
-            neighbours: set.views.iter().filter(|v| v.role != REFERENCE_ROLE).map(view_from_captured).collect(),
+            neighbours: set
+                .views
+                .iter()
+                .filter(|v| v.role != REFERENCE_ROLE)
+                .map(view_from_captured)
+                .collect(),
             ground_truth_depth_m: reference.depth_m.clone(),
             surface_class: reference.surface_class.clone(),
         })
@@ -110,10 +115,15 @@ impl ViewSet {
         })
     }
 
-    /// The matching problem of this set (grey images).
+    /// The matching problem of this set (RGB images).
     pub fn problem(&self, min_disparity: usize, num_disparities: usize) -> Result<fuse::Problem, ReplayError> {
         let gray = |view: &View| {
-            fuse::GrayImage::from_rgb(view.camera.width as usize, view.camera.height as usize, &view.rgb).map_err(|source| ReplayError::Fuse {
+            fuse::Image::rgb(
+                view.camera.width as usize,
+                view.camera.height as usize,
+                view.rgb.clone(),
+            )
+            .map_err(|source| ReplayError::Fuse {
                 set: self.index,
                 source,
             })

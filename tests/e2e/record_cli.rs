@@ -31,12 +31,7 @@ fn invalid_arguments_exit_2_with_a_clear_message() {
         let mut all = vec!["-o", out];
         all.extend_from_slice(args);
         let output = record(&all);
-        assert_eq!(
-            output.status.code(),
-            Some(2),
-            "{args:?}: {}",
-            stderr(&output)
-        );
+        assert_eq!(output.status.code(), Some(2), "{args:?}: {}", stderr(&output));
         assert!(
             stderr(&output).contains(needle),
             "{args:?}: message lacks '{needle}': {}",
@@ -58,11 +53,7 @@ fn unwritable_output_exits_1_and_leaves_nothing() {
         "-q",
     ]);
     assert_eq!(output.status.code(), Some(1), "{}", stderr(&output));
-    assert!(
-        stderr(&output).contains("no/such/dir"),
-        "{}",
-        stderr(&output)
-    );
+    assert!(stderr(&output).contains("no/such/dir"), "{}", stderr(&output));
     // A directory as the output path.
     let output = record(&[
         "-o",
@@ -72,12 +63,7 @@ fn unwritable_output_exits_1_and_leaves_nothing() {
         "-q",
     ]);
     assert_eq!(output.status.code(), Some(1), "{}", stderr(&output));
-    assert_eq!(
-        std::fs::read_dir(dir.path())
-            .map(|d| d.count())
-            .unwrap_or(99),
-        0
-    );
+    assert_eq!(std::fs::read_dir(dir.path()).map(|d| d.count()).unwrap_or(99), 0);
 }
 
 #[test]
@@ -95,11 +81,7 @@ fn failure_mid_run_leaves_no_file() {
         "-q",
     ]);
     assert_eq!(output.status.code(), Some(1), "{}", stderr(&output));
-    assert!(
-        stderr(&output).contains("cannot reach"),
-        "{}",
-        stderr(&output)
-    );
+    assert!(stderr(&output).contains("cannot reach"), "{}", stderr(&output));
     let left: Vec<_> = std::fs::read_dir(dir.path())
         .into_iter()
         .flatten()
@@ -127,10 +109,7 @@ fn ctrl_c_finishes_a_readable_log_of_the_completed_sets() {
         .stdout(Stdio::null())
         .spawn()
         .unwrap_or_else(|e| panic!("cannot start record: {e}"));
-    let stderr = child
-        .stderr
-        .take()
-        .unwrap_or_else(|| panic!("no stderr pipe"));
+    let stderr = child.stderr.take().unwrap_or_else(|| panic!("no stderr pipe"));
     let mut lines = BufReader::new(stderr).lines();
     let started = Instant::now();
     let mut seen = String::new();
@@ -144,10 +123,7 @@ fn ctrl_c_finishes_a_readable_log_of_the_completed_sets() {
         if line.contains("set 2/200 done") {
             break;
         }
-        assert!(
-            started.elapsed() < Duration::from_secs(120),
-            "no progress:\n{seen}"
-        );
+        assert!(started.elapsed() < Duration::from_secs(120), "no progress:\n{seen}");
     }
     let pid = child.id().to_string();
     let kill = Command::new("kill").args(["-INT", &pid]).status();

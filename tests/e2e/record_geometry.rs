@@ -18,11 +18,7 @@ struct Relative {
 }
 
 fn relative_poses(log: &Log, set: u32, use_true_pose: bool) -> Vec<Relative> {
-    let events: Vec<_> = log
-        .events()
-        .into_iter()
-        .filter(|e| e.set_index == set)
-        .collect();
+    let events: Vec<_> = log.events().into_iter().filter(|e| e.set_index == set).collect();
     let pose = |e: &record::log::CaptureEvent| {
         if use_true_pose {
             e.true_world_from_camera
@@ -42,11 +38,7 @@ fn relative_poses(log: &Log, set: u32, use_true_pose: bool) -> Vec<Relative> {
         .iter()
         .map(|e| {
             let relative = world_from_center.inverse() * pose(e);
-            let expected = Vector3::new(
-                f64::from(e.grid_offset[0]),
-                f64::from(e.grid_offset[1]),
-                0.0,
-            ) * e.baseline_m;
+            let expected = Vector3::new(f64::from(e.grid_offset[0]), f64::from(e.grid_offset[1]), 0.0) * e.baseline_m;
             let t = relative.translation.vector;
             Relative {
                 role: e.role.clone(),
@@ -77,8 +69,8 @@ fn five_view_sets_are_coplanar_at_the_baseline_with_parallel_axes() {
     let log = Log::read(&path);
     let arm = Ur10::default();
     let metadata = &log.metadata[record::log::METADATA_NAME];
-    let hand_eye: PoseJson = serde_json::from_str(&metadata["hand_eye_flange_from_camera"])
-        .unwrap_or_else(|e| panic!("{e}"));
+    let hand_eye: PoseJson =
+        serde_json::from_str(&metadata["hand_eye_flange_from_camera"]).unwrap_or_else(|e| panic!("{e}"));
     let hand_eye = hand_eye.to_isometry();
     let mut worst_in_plane = 0.0f64;
     for set in 0..3 {
@@ -106,10 +98,7 @@ fn five_view_sets_are_coplanar_at_the_baseline_with_parallel_axes() {
         }
     }
     // Repeatability noise is really there (the check above is not vacuous).
-    assert!(
-        worst_in_plane > 1e-6,
-        "no repeatability noise at all: {worst_in_plane}"
-    );
+    assert!(worst_in_plane > 1e-6, "no repeatability noise at all: {worst_in_plane}");
     for event in log.events() {
         // The /tf chain at the capture time composes to the pose in the capture event…
         let from_tf = log.world_from(CAMERA_FRAME, event.capture_time_nanos);
@@ -117,16 +106,12 @@ fn five_view_sets_are_coplanar_at_the_baseline_with_parallel_axes() {
         assert!((from_tf.translation.vector - from_event.translation.vector).norm() < 1e-9);
         assert!(from_tf.rotation.angle_to(&from_event.rotation) < 1e-9);
         // …and so do the logged joints through forward kinematics and the hand-eye transform.
-        let joints = event
-            .joint_positions_rad
-            .unwrap_or_else(|| panic!("no joints"));
+        let joints = event.joint_positions_rad.unwrap_or_else(|| panic!("no joints"));
         let from_fk = arm.forward_kinematics(&joints) * hand_eye;
         assert!((from_fk.translation.vector - from_event.translation.vector).norm() < 1e-9);
         // IK of that flange pose round-trips to the logged joints.
         let flange = arm.forward_kinematics(&joints);
-        let solved = arm
-            .closest_solution(&flange, &joints)
-            .unwrap_or_else(|e| panic!("{e}"));
+        let solved = arm.closest_solution(&flange, &joints).unwrap_or_else(|e| panic!("{e}"));
         let worst = solved
             .iter()
             .zip(&joints)
@@ -139,9 +124,7 @@ fn five_view_sets_are_coplanar_at_the_baseline_with_parallel_axes() {
             .as_ref()
             .map(PoseJson::to_isometry)
             .unwrap_or_else(|| panic!("no commanded pose"));
-        assert!(
-            (commanded.translation.vector - from_event.translation.vector).norm() <= 0.1e-3 + 1e-9
-        );
+        assert!((commanded.translation.vector - from_event.translation.vector).norm() <= 0.1e-3 + 1e-9);
     }
 }
 
@@ -169,11 +152,7 @@ fn injected_errors_land_on_the_named_view_only() {
     for r in relative_poses(&log, 0, false) {
         match r.role.as_str() {
             "left" => {
-                assert!(
-                    (r.rotation_deg - 0.5).abs() < 1e-6,
-                    "left roll {}",
-                    r.rotation_deg
-                );
+                assert!((r.rotation_deg - 0.5).abs() < 1e-6, "left roll {}", r.rotation_deg);
                 assert!(r.out_of_plane_m.abs() < 1e-9);
             }
             "top" => {
@@ -186,9 +165,7 @@ fn injected_errors_land_on_the_named_view_only() {
             }
             other => {
                 assert!(
-                    r.rotation_deg < 1e-6
-                        && r.out_of_plane_m.abs() < 1e-9
-                        && r.in_plane_error_m < 1e-9,
+                    r.rotation_deg < 1e-6 && r.out_of_plane_m.abs() < 1e-9 && r.in_plane_error_m < 1e-9,
                     "{other} is affected"
                 );
             }
@@ -216,8 +193,5 @@ fn injected_errors_land_on_the_named_view_only() {
     assert!(believed.iter().all(|r| r.in_plane_error_m < 1e-9));
     let worst = truth.iter().map(|r| r.in_plane_error_m).fold(0.0, f64::max);
     // 2° of mount rotation turns a 20 mm move by 2°: about 0.7 mm sideways.
-    assert!(
-        worst > 0.5e-3 && worst < 1.0e-3,
-        "true in-plane error {worst}"
-    );
+    assert!(worst > 0.5e-3 && worst < 1.0e-3, "true in-plane error {worst}");
 }

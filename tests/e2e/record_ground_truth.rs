@@ -95,9 +95,7 @@ fn warp_error(
             let mut inside = true;
             for channel in 0..3 {
                 match bilinear(side, sx + bias_x, sy + bias_y, channel) {
-                    Some(value) => {
-                        pixel_error += (value - f64::from(center.rgb[i * 3 + channel])).abs()
-                    }
+                    Some(value) => pixel_error += (value - f64::from(center.rgb[i * 3 + channel])).abs(),
                     None => inside = false,
                 }
             }
@@ -107,14 +105,7 @@ fn warp_error(
             }
         }
     }
-    (
-        if count > 0 {
-            total / count as f64
-        } else {
-            f64::INFINITY
-        },
-        count,
-    )
+    (if count > 0 { total / count as f64 } else { f64::INFINITY }, count)
 }
 
 #[test]
@@ -142,33 +133,16 @@ fn warping_side_views_with_ground_truth_reproduces_the_centre() {
             .unwrap_or_else(|| panic!("no centre"));
         let center = load(&log, "center", center_event.capture_time_nanos);
         let calibration: foxglove::messages::CameraCalibration = prost::Message::decode(
-            log.message(
-                &center_event.calibration_topic,
-                center_event.capture_time_nanos,
-            )
-            .data
-            .as_slice(),
+            log.message(&center_event.calibration_topic, center_event.capture_time_nanos)
+                .data
+                .as_slice(),
         )
         .unwrap_or_else(|e| panic!("{e}"));
         let focal_px = calibration.k[0];
         for event in events.iter().filter(|e| e.role != "center") {
             let side = load(&log, &event.role, event.capture_time_nanos);
-            let (error, count) = warp_error(
-                &center,
-                &side,
-                event.grid_offset,
-                focal_px,
-                event.baseline_m,
-                0.0,
-            );
-            let (shifted_error, _) = warp_error(
-                &center,
-                &side,
-                event.grid_offset,
-                focal_px,
-                event.baseline_m,
-                2.0,
-            );
+            let (error, count) = warp_error(&center, &side, event.grid_offset, focal_px, event.baseline_m, 0.0);
+            let (shifted_error, _) = warp_error(&center, &side, event.grid_offset, focal_px, event.baseline_m, 2.0);
             println!(
                 "{scene} {}: mean |Δ| {error:.2} levels over {count} pixels (with a 2 px disparity error: {shifted_error:.2})",
                 event.role

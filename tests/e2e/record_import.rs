@@ -10,9 +10,7 @@ fn write_png(path: &Path, width: u32, height: u32, color: png::ColorType, data: 
     encoder.set_color(color);
     encoder.set_depth(png::BitDepth::Eight);
     let mut writer = encoder.write_header().unwrap_or_else(|e| panic!("{e}"));
-    writer
-        .write_image_data(data)
-        .unwrap_or_else(|e| panic!("{e}"));
+    writer.write_image_data(data).unwrap_or_else(|e| panic!("{e}"));
 }
 
 #[test]
@@ -25,23 +23,11 @@ fn imported_set_round_trips_pixels_and_ground_truth() {
         let data: Vec<u8> = (0..w * h * 3)
             .map(|k| ((k as usize * 7 + i * 13) % 251) as u8)
             .collect();
-        write_png(
-            &scene.join(format!("{name}.png")),
-            w,
-            h,
-            png::ColorType::Rgb,
-            &data,
-        );
+        write_png(&scene.join(format!("{name}.png")), w, h, png::ColorType::Rgb, &data);
     }
     // Ground truth: disparity 5 px everywhere (value 60 / 12), unknown in the first row.
     let gt: Vec<u8> = (0..w * h).map(|k| if k < w { 0 } else { 60 }).collect();
-    write_png(
-        &scene.join("disp1.png"),
-        w,
-        h,
-        png::ColorType::Grayscale,
-        &gt,
-    );
+    write_png(&scene.join("disp1.png"), w, h, png::ColorType::Grayscale, &gt);
     let out = dir.path().join("import.mcap");
     let output = record(&[
         "import",
@@ -58,18 +44,9 @@ fn imported_set_round_trips_pixels_and_ground_truth() {
     assert_eq!(events[0].role, "center");
     assert_eq!(events[0].set_name, "plane");
     let center = log.raw_image("/camera/center/image", events[0].capture_time_nanos);
-    let expected: Vec<u8> = (0..w * h * 3)
-        .map(|k| ((k as usize * 7 + 13) % 251) as u8)
-        .collect();
-    assert_eq!(
-        center.data.to_vec(),
-        expected,
-        "centre pixels changed on import"
-    );
-    let depth = f32_pixels(&log.raw_image(
-        "/camera/center/ground_truth/depth",
-        events[0].capture_time_nanos,
-    ));
+    let expected: Vec<u8> = (0..w * h * 3).map(|k| ((k as usize * 7 + 13) % 251) as u8).collect();
+    assert_eq!(center.data.to_vec(), expected, "centre pixels changed on import");
+    let depth = f32_pixels(&log.raw_image("/camera/center/ground_truth/depth", events[0].capture_time_nanos));
     // z = f·b/d = 100 px · 0.04 m / 5 px = 0.8 m; 0 stays unknown.
     assert!(depth[..w as usize].iter().all(|d| *d == 0.0));
     assert!(depth[w as usize..].iter().all(|d| (d - 0.8).abs() < 1e-6));
@@ -87,21 +64,9 @@ fn import_errors_name_the_file() {
     let scene = dir.path().join("s");
     std::fs::create_dir_all(&scene).unwrap_or_else(|e| panic!("{e}"));
     for name in ["view0", "view1"] {
-        write_png(
-            &scene.join(format!("{name}.png")),
-            8,
-            8,
-            png::ColorType::Rgb,
-            &[9; 192],
-        );
+        write_png(&scene.join(format!("{name}.png")), 8, 8, png::ColorType::Rgb, &[9; 192]);
     }
-    write_png(
-        &scene.join("view2.png"),
-        9,
-        8,
-        png::ColorType::Rgb,
-        &[9; 216],
-    );
+    write_png(&scene.join("view2.png"), 9, 8, png::ColorType::Rgb, &[9; 216]);
     let out = dir.path().join("x.mcap");
     let output = record(&[
         "import",
@@ -112,10 +77,7 @@ fn import_errors_name_the_file() {
     ]);
     assert_eq!(output.status.code(), Some(1));
     let message = String::from_utf8_lossy(&output.stderr);
-    assert!(
-        message.contains("view2.png") && message.contains("9x8"),
-        "{message}"
-    );
+    assert!(message.contains("view2.png") && message.contains("9x8"), "{message}");
     assert!(!out.exists());
     let output = record(&[
         "import",
@@ -124,12 +86,7 @@ fn import_errors_name_the_file() {
         out.to_str().unwrap_or_default(),
     ]);
     assert_eq!(output.status.code(), Some(1));
-    let output = record(&[
-        "import",
-        scene.to_str().unwrap_or_default(),
-        "--views",
-        "view0,view1",
-    ]);
+    let output = record(&["import", scene.to_str().unwrap_or_default(), "--views", "view0,view1"]);
     assert_eq!(
         output.status.code(),
         Some(2),

@@ -19,8 +19,7 @@ fn python_check(path: &std::path::Path) -> serde_json::Value {
     let script = multiscopic_tests::workspace_root().join("tests/python/check_mcap.py");
     let output = run(Command::new(python_with_mcap()).arg(script).arg(path));
     assert_success(&output, "the Python mcap client");
-    serde_json::from_slice(&output.stdout)
-        .unwrap_or_else(|e| panic!("check_mcap.py printed no JSON: {e}"))
+    serde_json::from_slice(&output.stdout).unwrap_or_else(|e| panic!("check_mcap.py printed no JSON: {e}"))
 }
 
 #[test]
@@ -30,24 +29,13 @@ fn python_mcap_client_checks_crcs_and_decodes_every_message() {
         ("raw.mcap", vec!["--captures", "2"]),
         (
             "png.mcap",
-            vec![
-                "--image-format",
-                "png",
-                "--rig",
-                "grid3x3",
-                "--scene",
-                "workpiece",
-            ],
+            vec!["--image-format", "png", "--rig", "grid3x3", "--scene", "workpiece"],
         ),
     ] {
         let path = record_small(dir.path(), name, &extra);
         let report = python_check(&path);
         let log = Log::read(&path);
-        assert_eq!(
-            report["messages"].as_u64(),
-            Some(log.messages.len() as u64),
-            "{report}"
-        );
+        assert_eq!(report["messages"].as_u64(), Some(log.messages.len() as u64), "{report}");
         let schemas: Vec<&str> = report["schemas"]
             .as_array()
             .into_iter()
@@ -70,10 +58,7 @@ fn python_mcap_client_checks_crcs_and_decodes_every_message() {
         if name == "png.mcap" {
             assert!(schemas.contains(&"foxglove.CompressedImage"), "{schemas:?}");
         }
-        assert_eq!(
-            report["metadata"][0].as_str(),
-            Some(record::log::METADATA_NAME)
-        );
+        assert_eq!(report["metadata"][0].as_str(), Some(record::log::METADATA_NAME));
         assert_eq!(report["attachments"][0].as_str(), Some("scene.json"));
         assert!(report["chunks"].as_u64().unwrap_or(0) >= 1);
     }
@@ -117,11 +102,7 @@ fn same_arguments_and_seed_give_identical_payloads() {
             .find(|m| m.topic == "/camera/center/image")
             .map(|m| m.data.clone())
     };
-    assert_ne!(
-        image(&a),
-        image(&c),
-        "a different seed must give a different scene"
-    );
+    assert_ne!(image(&a), image(&c), "a different seed must give a different scene");
 }
 
 #[test]
@@ -135,8 +116,8 @@ fn metadata_holds_the_effective_configuration() {
     let metadata = &log.metadata[record::log::METADATA_NAME];
     assert_eq!(metadata["seed"], "42");
     assert_eq!(metadata["tool_version"], record::TOOL_VERSION);
-    let config: record::capture::SimulationConfig = serde_json::from_str(&metadata["config"])
-        .unwrap_or_else(|e| panic!("config is not a SimulationConfig: {e}"));
+    let config: record::capture::SimulationConfig =
+        serde_json::from_str(&metadata["config"]).unwrap_or_else(|e| panic!("config is not a SimulationConfig: {e}"));
     assert_eq!(config.baseline_mm, 25.0);
     assert_eq!((config.width, config.height), (96, 64));
     assert_eq!(metadata["completed_sets"], "1");
@@ -148,11 +129,7 @@ fn rerun_opens_the_log_directly_with_images_pinholes_and_transforms() {
     let dir = temp_dir();
     let path = record_small(dir.path(), "rerun.mcap", &["--rig", "three-view"]);
     let rrd = dir.path().join("rerun.rrd");
-    let output = run(rerun_cli()
-        .args(["mcap", "convert"])
-        .arg(&path)
-        .arg("-o")
-        .arg(&rrd));
+    let output = run(rerun_cli().args(["mcap", "convert"]).arg(&path).arg("-o").arg(&rrd));
     assert_success(&output, "rerun mcap convert");
     let output = run(rerun_cli().args(["rrd", "print"]).arg(&rrd));
     assert_success(&output, "rerun rrd print");

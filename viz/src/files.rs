@@ -113,7 +113,11 @@ pub fn read_pfm(path: &Path) -> Result<(usize, usize, Vec<f32>), FileError> {
             row.chunks_exact(4)
                 .map(|b| {
                     let b = [b[0], b[1], b[2], b[3]];
-                    if scale < 0.0 { f32::from_le_bytes(b) } else { f32::from_be_bytes(b) }
+                    if scale < 0.0 {
+                        f32::from_le_bytes(b)
+                    } else {
+                        f32::from_be_bytes(b)
+                    }
                 })
                 .collect()
         })
@@ -122,7 +126,14 @@ pub fn read_pfm(path: &Path) -> Result<(usize, usize, Vec<f32>), FileError> {
     Ok((width, height, rows.concat()))
 }
 
-fn write_png(path: &Path, width: usize, height: usize, color: png::ColorType, depth: png::BitDepth, data: &[u8]) -> Result<(), FileError> {
+fn write_png(
+    path: &Path,
+    width: usize,
+    height: usize,
+    color: png::ColorType,
+    depth: png::BitDepth,
+    data: &[u8],
+) -> Result<(), FileError> {
     let io = |source| FileError::Io {
         path: path.to_path_buf(),
         source,
@@ -145,10 +156,21 @@ pub fn write_depth_png_mm(path: &Path, width: usize, height: usize, depth_m: &[f
     check(path, depth_m.len(), width, height)?;
     let mut bytes = Vec::with_capacity(depth_m.len() * 2);
     for d in depth_m {
-        let mm = if d.is_finite() && *d > 0.0 { (d * 1000.0).round().min(65535.0) as u16 } else { 0 };
+        let mm = if d.is_finite() && *d > 0.0 {
+            (d * 1000.0).round().min(65535.0) as u16
+        } else {
+            0
+        };
         bytes.extend_from_slice(&mm.to_be_bytes());
     }
-    write_png(path, width, height, png::ColorType::Grayscale, png::BitDepth::Sixteen, &bytes)
+    write_png(
+        path,
+        width,
+        height,
+        png::ColorType::Grayscale,
+        png::BitDepth::Sixteen,
+        &bytes,
+    )
 }
 
 /// Writes 8-bit RGB.
@@ -162,21 +184,33 @@ pub fn colorize(values: &[f32], low: f32, high: f32) -> Vec<u8> {
     let span = (high - low).max(f32::EPSILON);
     values
         .iter()
-        .flat_map(|v| if v.is_finite() { turbo(f64::from((v - low) / span)) } else { [0, 0, 0] })
+        .flat_map(|v| {
+            if v.is_finite() {
+                turbo(f64::from((v - low) / span))
+            } else {
+                [0, 0, 0]
+            }
+        })
         .collect()
 }
 
 /// The finite range of values (`None` when nothing is finite).
 pub fn finite_range(values: &[f32]) -> Option<(f32, f32)> {
-    values
-        .iter()
-        .filter(|v| v.is_finite())
-        .fold(None, |acc, v| Some(acc.map_or((*v, *v), |(lo, hi): (f32, f32)| (lo.min(*v), hi.max(*v)))))
+    values.iter().filter(|v| v.is_finite()).fold(None, |acc, v| {
+        Some(acc.map_or((*v, *v), |(lo, hi): (f32, f32)| (lo.min(*v), hi.max(*v))))
+    })
 }
 
 /// Writes a colour-mapped PNG named `<stem>_<low>-<high>px.png` in `dir` (the range in the name
 /// is the legend) and returns its path.
-pub fn write_colormap_png(dir: &Path, stem: &str, width: usize, height: usize, values: &[f32], range: (f32, f32)) -> Result<PathBuf, FileError> {
+pub fn write_colormap_png(
+    dir: &Path,
+    stem: &str,
+    width: usize,
+    height: usize,
+    values: &[f32],
+    range: (f32, f32),
+) -> Result<PathBuf, FileError> {
     let path = dir.join(format!("{stem}_{:.1}-{:.1}px.png", range.0, range.1));
     let rgb = colorize(values, range.0, range.1);
     write_rgb_png(&path, width, height, &rgb)?;
@@ -200,7 +234,10 @@ mod tests {
         // Rows are stored bottom-up: the file's first float is the last row's first value.
         let bytes = std::fs::read(&path).unwrap_or_else(|e| panic!("{e}"));
         let header = b"Pf\n3 2\n-1\n".len();
-        assert_eq!(f32::from_le_bytes([bytes[header], bytes[header + 1], bytes[header + 2], bytes[header + 3]]), 4.0);
+        assert_eq!(
+            f32::from_le_bytes([bytes[header], bytes[header + 1], bytes[header + 2], bytes[header + 3]]),
+            4.0
+        );
         let _ = std::fs::remove_dir_all(dir);
     }
 }

@@ -28,16 +28,21 @@ pub struct BlockMatchingConfig {
     pub subpixel: bool,
     /// Fill pixels without an estimate from their row neighbours (dense output).
     pub fill_invalid: bool,
+    /// 3×3 median filter on the result.
+    pub median: bool,
 }
 
 impl Default for BlockMatchingConfig {
+    /// Chosen on `middlebury2006-third-dev` (`replay eval --config`): the paper's Birchfield–Tomasi
+    /// on colour, a 9×9 block and a 3×3 median give the lowest AvgErr for stereo and fusion alike.
     fn default() -> Self {
         Self {
             fusion: Fusion::Heuristic,
-            cost: PixelCost::AbsoluteDifference,
+            cost: PixelCost::BirchfieldTomasi,
             block_radius: 4,
             subpixel: true,
             fill_invalid: true,
+            median: true,
         }
     }
 }
@@ -74,16 +79,14 @@ impl Method for BlockMatching {
         let mut data = vec![f32::INFINITY; w * h];
         let bands = h.div_ceil(BAND_ROWS);
         let done = AtomicUsize::new(0);
-        data.par_chunks_mut(BAND_ROWS * w)
-            .enumerate()
-            .for_each(|(band, out)| {
-                let start = band * BAND_ROWS;
-                let rows = start..start + out.len() / w;
-                let mut costs = vec![0u16; rows.len() * w * nd];
-                prepared.fused_band(rows, &mut costs);
-                winner_take_all(&costs, nd, problem.min_disparity, self.config.subpixel, out);
-                progress((done.fetch_add(1, Ordering::Relaxed) + 1) as f32 / bands as f32);
-            });
+        data.par_chunks_mut(BAND_ROWS * w).enumerate().for_each(|(band, out)| {
+            let start = band * BAND_ROWS;
+            let rows = start..start + out.len() / w;
+            let mut costs = vec![0u16; rows.len() * w * nd];
+            prepared.fused_band(rows, &mut costs);
+            winner_take_all(&costs, nd, problem.min_disparity, self.config.subpixel, out);
+            progress((done.fetch_add(1, Ordering::Relaxed) + 1) as f32 / bands as f32);
+        });
         let mut disparity = DisparityImage {
             width: w,
             height: h,
@@ -91,6 +94,9 @@ impl Method for BlockMatching {
         };
         if self.config.fill_invalid {
             disparity.fill_invalid_from_row_neighbours();
+        }
+        if self.config.median {
+            disparity = crate::postprocess::median3x3(&disparity);
         }
         Ok(disparity)
     }
@@ -115,22 +121,22 @@ fn build(
 pub const ENTRIES: &[MethodEntry] = &[
     MethodEntry {
         name: "bm-stereo",
-        summary: "block matching (SAD), two-view stereo against the right view, winner-take-all",
+        summary: "block matching (Birchfield–Tomasi, 9×9), two-view stereo against the right view, winner-take-all",
         build: |o| build("bm-stereo", Fusion::Stereo, o),
     },
     MethodEntry {
         name: "bm-mean",
-        summary: "block matching (SAD), mean of the neighbours' costs (c_ave)",
+        summary: "block matching (Birchfield–Tomasi, 9×9), mean of the neighbours' costs (c_ave)",
         build: |o| build("bm-mean", Fusion::Mean, o),
     },
     MethodEntry {
         name: "bm-min",
-        summary: "block matching (SAD), minimum of the neighbours' costs (c_min)",
+        summary: "block matching (Birchfield–Tomasi, 9×9), minimum of the neighbours' costs (c_min)",
         build: |o| build("bm-min", Fusion::Min, o),
     },
     MethodEntry {
         name: "bm-heuristic",
-        summary: "block matching (SAD), the paper's heuristic fusion (c_heu)",
+        summary: "block matching (Birchfield–Tomasi, 9×9), the paper's heuristic fusion (c_heu)",
         build: |o| build("bm-heuristic", Fusion::Heuristic, o),
     },
 ];

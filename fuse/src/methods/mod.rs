@@ -25,6 +25,9 @@ pub trait Method: Send + Sync {
     fn run(&self, problem: &Problem, progress: Progress<'_>) -> Result<DisparityImage, FuseError>;
 }
 
+/// Builds a method from its default configuration with optional JSON overrides.
+pub type BuildMethod = fn(Option<&serde_json::Value>) -> Result<Box<dyn Method>, FuseError>;
+
 /// A registry entry.
 pub struct MethodEntry {
     /// Name used on the command line.
@@ -32,7 +35,7 @@ pub struct MethodEntry {
     /// One line for `--list-methods`.
     pub summary: &'static str,
     /// Builds the method from its default configuration, with optional JSON overrides.
-    pub build: fn(Option<&serde_json::Value>) -> Result<Box<dyn Method>, FuseError>,
+    pub build: BuildMethod,
 }
 
 /// Every method, in the order `--list-methods` shows them.
@@ -44,19 +47,12 @@ pub fn registry() -> Vec<&'static MethodEntry> {
 }
 
 /// Builds a method by name.
-pub fn build(
-    name: &str,
-    overrides: Option<&serde_json::Value>,
-) -> Result<Box<dyn Method>, FuseError> {
+pub fn build(name: &str, overrides: Option<&serde_json::Value>) -> Result<Box<dyn Method>, FuseError> {
     match registry().into_iter().find(|e| e.name == name) {
         Some(entry) => (entry.build)(overrides),
         None => Err(FuseError::UnknownMethod {
             name: name.to_owned(),
-            known: registry()
-                .iter()
-                .map(|e| e.name)
-                .collect::<Vec<_>>()
-                .join(", "),
+            known: registry().iter().map(|e| e.name).collect::<Vec<_>>().join(", "),
         }),
     }
 }
@@ -122,10 +118,7 @@ mod tests {
             let method = build(name, None).unwrap_or_else(|e| panic!("{name}: {e}"));
             assert_eq!(method.name(), name);
         }
-        assert!(matches!(
-            build("nope", None),
-            Err(FuseError::UnknownMethod { .. })
-        ));
+        assert!(matches!(build("nope", None), Err(FuseError::UnknownMethod { .. })));
         let overrides = serde_json::json!({"no_such_field": 1});
         assert!(build("bm-heuristic", Some(&overrides)).is_err());
     }

@@ -36,13 +36,15 @@ pub struct SgmConfig {
 }
 
 impl Default for SgmConfig {
+    /// Chosen on `middlebury2006-third-dev` (`replay eval --config`): census 7×7 summed over a 7×7
+    /// block, P1 = 300, P2 = 3000 (in those summed census units).
     fn default() -> Self {
         Self {
             fusion: Fusion::Heuristic,
             cost: PixelCost::Census { radius: 3 },
-            block_radius: 1,
-            p1: 40,
-            p2: 400,
+            block_radius: 3,
+            p1: 300,
+            p2: 3000,
             subpixel: true,
             median: true,
         }
@@ -74,18 +76,9 @@ impl Method for Sgm {
         let bands = h.div_ceil(BAND_ROWS);
         let done = AtomicUsize::new(0);
         // Cost volume: the first half of the work; aggregation the rest.
-        let volume = prepared.fused_volume(&|| {
-            progress(0.5 * (done.fetch_add(1, Ordering::Relaxed) + 1) as f32 / bands as f32)
-        });
-        let summed = aggregate(
-            &volume,
-            w,
-            h,
-            nd,
-            spec.max_cost(),
-            self.config.p1,
-            self.config.p2,
-        );
+        let volume =
+            prepared.fused_volume(&|| progress(0.5 * (done.fetch_add(1, Ordering::Relaxed) + 1) as f32 / bands as f32));
+        let summed = aggregate(&volume, w, h, nd, spec.max_cost(), self.config.p1, self.config.p2);
         drop(volume);
         progress(0.95);
         let mut data = vec![f32::INFINITY; w * h];
