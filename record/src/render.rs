@@ -133,6 +133,8 @@ struct PreparedMaterial {
     texture: PreparedTexture,
     material: Material,
     class: SurfaceClass,
+    /// Seed of this material's grain.
+    grain_seed: u64,
 }
 
 struct Hit {
@@ -310,10 +312,12 @@ impl PreparedScene {
         let materials = scene
             .materials
             .iter()
-            .map(|m| PreparedMaterial {
+            .enumerate()
+            .map(|(i, m)| PreparedMaterial {
                 texture: PreparedTexture::new(&m.texture),
                 material: m.clone(),
                 class: m.surface_class(),
+                grain_seed: hash4(0x6772, i as u64, 0, 0),
             })
             .collect();
         let objects = scene
@@ -401,6 +405,23 @@ impl PreparedScene {
         }
     }
 
+    /// Non-periodic value noise in [0, 1] at surface coordinates (m): hashed lattice, smooth
+    /// interpolation, so the grain never repeats within a search range.
+    fn grain_at(&self, (u, v): (f64, f64), seed: u64) -> f64 {
+        let (fu, fv) = (u / crate::scene::GRAIN_SCALE_M, v / crate::scene::GRAIN_SCALE_M);
+        let (iu, iv) = (fu.floor(), fv.floor());
+        let (tu, tv) = (smooth(fu - iu), smooth(fv - iv));
+        let (iu, iv) = (iu as i64 as u64, iv as i64 as u64);
+        let lattice = |a: u64, b: u64| crate::rng::unit_from_bits(hash4(seed, a, b, 0x6772));
+        let top = lerp(lattice(iu, iv), lattice(iu.wrapping_add(1), iv), tu);
+        let bottom = lerp(
+            lattice(iu, iv.wrapping_add(1)),
+            lattice(iu.wrapping_add(1), iv.wrapping_add(1)),
+            tu,
+        );
+        lerp(top, bottom, tv)
+    }
+
     fn closest_hit(&self, origin: &V3, dir: &V3, t_max: f64) -> Option<Hit> {
         let mut best: Option<Hit> = None;
         let mut limit = t_max;
@@ -433,7 +454,10 @@ impl PreparedScene {
         if normal.dot(dir) > 0.0 {
             normal = -normal;
         }
-        let albedo = prepared.texture.sample(hit.uv);
+        let mut albedo = prepared.texture.sample(hit.uv);
+        if material.grain > 0.0 {
+            albedo *= 1.0 + material.grain * (2.0 * self.grain_at(hit.uv, prepared.grain_seed) - 1.0);
+        }
         let lifted = point + normal * SURFACE_EPSILON_M * (1.0 + point.norm());
         let mut diffuse = self.ambient;
         let mut specular = V3::zeros();
@@ -756,6 +780,7 @@ mod tests {
                 shininess: 1.0,
                 mirror: 0.0,
                 mirror_tint: [1.0; 3],
+                grain: 0.0,
             }],
             objects: vec![SceneObject {
                 name: "wall".into(),

@@ -98,7 +98,16 @@ pub struct Material {
     pub mirror: f64,
     /// Colour of the mirrored light (metal tint).
     pub mirror_tint: Rgb,
+    /// Amplitude of the fine surface grain that modulates the albedo (0 = perfectly uniform;
+    /// 0.1 = ±10 %): the micro-texture of paper, wood or plastic at sub-millimetre scale.
+    #[serde(default)]
+    pub grain: f64,
 }
+
+/// Feature size of the surface grain (m).
+pub const GRAIN_SCALE_M: f64 = 0.0006;
+/// Grain of ordinary matte and glossy surfaces.
+const DEFAULT_GRAIN: f64 = 0.12;
 
 /// Specular weight above which a surface counts as glossy in the ground-truth mask.
 pub const GLOSSY_SPECULAR_THRESHOLD: f64 = 0.25;
@@ -141,6 +150,7 @@ impl Material {
             shininess: 16.0,
             mirror: 0.0,
             mirror_tint: [1.0; 3],
+            grain: DEFAULT_GRAIN,
         }
     }
 
@@ -162,6 +172,7 @@ impl Material {
             shininess: 120.0,
             mirror,
             mirror_tint: [0.92, 0.93, 0.95],
+            grain: DEFAULT_GRAIN / 2.0,
         }
     }
 }
@@ -401,7 +412,10 @@ fn toy_scene(seed: u64) -> Scene {
             angle_deg: 30.0,
         },
     ));
-    let plain = scene.add_material(Material::matte("textureless", Texture::Solid { rgb: [0.8, 0.8, 0.78] }));
+    let plain = scene.add_material(Material {
+        grain: 0.0,
+        ..Material::matte("textureless", Texture::Solid { rgb: [0.8, 0.8, 0.78] })
+    });
     let stone = scene.add_material(Material::matte(
         "stone",
         Texture::Noise {
@@ -660,10 +674,16 @@ fn random_texture(rng: &mut SplitMix64) -> Texture {
 
 fn random_material(rng: &mut SplitMix64, name: &str) -> Material {
     let texture = random_texture(rng);
-    match rng.below(10) {
+    let textureless = matches!(texture, Texture::Solid { .. }) && rng.below(2) == 0;
+    let material = match rng.below(10) {
         0..=5 => Material::matte(name, texture),
         6..=7 => Material::glossy(name, texture),
         _ => Material::metal(name, texture, rng.range(0.2, 0.85)),
+    };
+    if textureless {
+        Material { grain: 0.0, ..material }
+    } else {
+        material
     }
 }
 
