@@ -198,25 +198,58 @@ pub fn box_sum_row(input: &[u16], output: &mut [u16], width: usize, disparities:
 }
 
 /// Sets to [`INVALID_COST`] every `(x, d)` of row `y` whose correspondence lies outside the
-/// neighbour image.
+/// neighbour image. `baseline_ratio` scales the disparity of this neighbour (see
+/// [`resample_disparity_axis`]).
 pub fn mark_invalid(
     row: &mut [u16],
     offset: [i32; 2],
     y: usize,
     size: (usize, usize),
-    min_disparity: usize,
-    disparities: usize,
+    disparity_axis: (usize, usize),
+    baseline_ratio: f32,
 ) {
-    let (width, height) = (size.0 as isize, size.1 as isize);
-    let (ox, oy) = (offset[0] as isize, offset[1] as isize);
+    let (min_disparity, disparities) = disparity_axis;
+    let (width, height) = (size.0 as f32, size.1 as f32);
+    let (ox, oy) = (offset[0] as f32, offset[1] as f32);
     for (x, costs) in row.chunks_exact_mut(disparities).enumerate() {
         for (d, cost) in costs.iter_mut().enumerate() {
-            let disparity = (min_disparity + d) as isize;
-            let qx = x as isize - ox * disparity;
-            let qy = y as isize - oy * disparity;
-            if qx < 0 || qx >= width || qy < 0 || qy >= height {
+            let disparity = (min_disparity + d) as f32 * baseline_ratio;
+            let qx = (x as f32 - ox * disparity).round();
+            let qy = (y as f32 - oy * disparity).round();
+            if qx < 0.0 || qx >= width || qy < 0.0 || qy >= height {
                 *cost = INVALID_COST;
             }
+        }
+    }
+}
+
+/// Resamples a `[x][d]` cost row along the disparity axis for a neighbour whose real baseline
+/// is `ratio` × the nominal one: its cost at the common disparity `d` is its own cost at
+/// `d · ratio`, linearly interpolated. `scratch` holds one pixel's costs.
+pub fn resample_disparity_axis(
+    row: &mut [u16],
+    min_disparity: usize,
+    disparities: usize,
+    ratio: f32,
+    scratch: &mut Vec<u16>,
+) {
+    if (ratio - 1.0).abs() < 1e-6 {
+        return;
+    }
+    scratch.resize(disparities, 0);
+    for costs in row.chunks_exact_mut(disparities) {
+        scratch.copy_from_slice(costs);
+        for (d, cost) in costs.iter_mut().enumerate() {
+            let source = (min_disparity + d) as f32 * ratio - min_disparity as f32;
+            let lower = source.floor().clamp(0.0, (disparities - 1) as f32) as usize;
+            let upper = (lower + 1).min(disparities - 1);
+            let t = (source - lower as f32).clamp(0.0, 1.0);
+            let (a, b) = (f32::from(scratch[lower]), f32::from(scratch[upper]));
+            *cost = if scratch[lower] == INVALID_COST || scratch[upper] == INVALID_COST {
+                INVALID_COST
+            } else {
+                (a + (b - a) * t).round() as u16
+            };
         }
     }
 }
@@ -276,13 +309,23 @@ mod tests {
     }
 
     #[test]
+    fn resampling_moves_the_minimum_by_the_baseline_ratio() {
+        // A neighbour 10 % farther away sees disparity 11 where the nominal rig sees 10.
+        let nd = 16;
+        let mut row: Vec<u16> = (0..nd).map(|d| ((d as i32 - 11).abs() * 10) as u16).collect();
+        resample_disparity_axis(&mut row, 0, nd, 1.1, &mut Vec::new());
+        let best = (0..nd).min_by_key(|d| row[*d]).unwrap_or(0);
+        assert_eq!(best, 10, "{row:?}");
+    }
+
+    #[test]
     fn out_of_image_correspondences_are_invalid() {
         let mut row = vec![0u16; 5 * 4];
-        mark_invalid(&mut row, [1, 0], 0, (5, 5), 0, 4);
+        mark_invalid(&mut row, [1, 0], 0, (5, 5), (0, 4), 1.0);
         // x = 1: d ≥ 2 leaves the image on the left.
         assert_eq!(&row[4..8], &[0, 0, INVALID_COST, INVALID_COST]);
         let mut row = vec![0u16; 5 * 4];
-        mark_invalid(&mut row, [0, -1], 3, (5, 5), 0, 4);
+        mark_invalid(&mut row, [0, -1], 3, (5, 5), (0, 4), 1.0);
         // top neighbour: q_y = y + d; y = 3: d ≥ 2 leaves the bottom.
         assert_eq!(&row[0..4], &[0, 0, INVALID_COST, INVALID_COST]);
     }

@@ -54,7 +54,9 @@ pub enum FuseError {
         reference_height: usize,
     },
     /// A neighbour sits at the reference position.
-    #[error("neighbour '{role}' has a zero offset (zero baseline): no disparity to search")]
+    #[error(
+        "neighbour '{role}' has a zero offset or a non-positive baseline ratio (zero baseline): no disparity to search"
+    )]
     ZeroOffset {
         /// Role.
         role: String,

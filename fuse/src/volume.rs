@@ -10,6 +10,7 @@ use serde::{Deserialize, Serialize};
 use crate::FuseError;
 use crate::cost::{
     MAX_BLOCK_RADIUS, MAX_CENSUS_RADIUS, PixelCost, PreparedView, box_sum_row, mark_invalid, pixel_cost_row,
+    resample_disparity_axis,
 };
 use crate::fusion::{Fusion, fuse_rows};
 use crate::image::Image;
@@ -20,7 +21,7 @@ pub const BAND_ROWS: usize = 32;
 pub const STEREO_ROLE: &str = "right";
 
 /// A neighbour view of a multiscopic set.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct Neighbour {
     /// Role (`left`, `right`, `top`, …).
     pub role: String,
@@ -28,10 +29,13 @@ pub struct Neighbour {
     pub image: Image,
     /// Position in baselines along the reference camera's x (right) and y (down).
     pub offset: [i32; 2],
+    /// Real baseline along the offset ÷ nominal (1 for an ideal rig): its costs are resampled
+    /// along the disparity axis so that every neighbour agrees on one disparity.
+    pub baseline_ratio: f32,
 }
 
 /// What a method gets: the reference view, its neighbours and the disparity search range.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct Problem {
     /// The reference (centre) view (grey or RGB).
     pub reference: Image,
@@ -67,7 +71,7 @@ impl Problem {
                     reference_height: self.reference.height,
                 });
             }
-            if n.offset == [0, 0] {
+            if n.offset == [0, 0] || !(n.baseline_ratio.is_finite() && n.baseline_ratio > 0.0) {
                 return Err(FuseError::ZeroOffset { role: n.role.clone() });
             }
         }
@@ -134,7 +138,7 @@ impl CostSpec {
 /// A problem with its views prepared for one cost.
 pub struct PreparedProblem {
     reference: PreparedView,
-    neighbours: Vec<(PreparedView, [i32; 2])>,
+    neighbours: Vec<(PreparedView, [i32; 2], f32)>,
     width: usize,
     height: usize,
     min_disparity: usize,
@@ -151,7 +155,13 @@ impl PreparedProblem {
         let neighbours = problem
             .neighbours_for(fusion)
             .into_par_iter()
-            .map(|n| (PreparedView::new(n.image.clone(), spec.pixel), n.offset))
+            .map(|n| {
+                (
+                    PreparedView::new(n.image.clone(), spec.pixel),
+                    n.offset,
+                    n.baseline_ratio,
+                )
+            })
             .collect();
         Ok(Self {
             reference: PreparedView::new(problem.reference.clone(), spec.pixel),
@@ -193,7 +203,7 @@ impl PreparedProblem {
         let mut pixel_row = vec![0u16; row_len];
         // Horizontally aggregated rows of the extended band, per neighbour.
         let mut horizontal: Vec<Vec<u16>> = Vec::with_capacity(self.neighbours.len());
-        for (view, offset) in &self.neighbours {
+        for (view, offset, _) in &self.neighbours {
             let mut rows_h = vec![0u16; ext.len() * row_len];
             for (i, y) in ext.clone().enumerate() {
                 pixel_cost_row(
@@ -222,10 +232,19 @@ impl PreparedProblem {
             }
         }
         let mut finished: Vec<Vec<u16>> = vec![vec![0u16; row_len]; self.neighbours.len()];
+        let mut scratch = Vec::with_capacity(nd);
         for (i, y) in rows.clone().enumerate() {
-            for (k, (_, offset)) in self.neighbours.iter().enumerate() {
+            for (k, (_, offset, ratio)) in self.neighbours.iter().enumerate() {
                 finished[k].copy_from_slice(&vertical[k]);
-                mark_invalid(&mut finished[k], *offset, y, (w, self.height), self.min_disparity, nd);
+                resample_disparity_axis(&mut finished[k], self.min_disparity, nd, *ratio, &mut scratch);
+                mark_invalid(
+                    &mut finished[k],
+                    *offset,
+                    y,
+                    (w, self.height),
+                    (self.min_disparity, nd),
+                    *ratio,
+                );
                 if y + 1 == rows.end {
                     continue;
                 }

@@ -513,13 +513,13 @@ fn workpiece_scene(seed: u64) -> Scene {
     let brushed = scene.add_material(Material::metal(
         "brushed_steel_table",
         Texture::Noise {
-            a: [0.42, 0.43, 0.45],
-            b: [0.62, 0.63, 0.66],
-            scale_m: 0.01,
-            anisotropy: 12.0,
+            a: [0.3, 0.31, 0.33],
+            b: [0.7, 0.71, 0.74],
+            scale_m: 0.004,
+            anisotropy: 8.0,
             seed: rng.next_u64(),
         },
-        0.25,
+        0.12,
     ));
     table(&mut scene, brushed);
     scene.add_room();

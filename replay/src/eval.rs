@@ -4,7 +4,7 @@
 
 use std::time::Instant;
 
-use fuse::metrics::{Metrics, average, evaluate};
+use fuse::metrics::{Metrics, average};
 use serde::Serialize;
 
 use crate::ReplayError;
@@ -17,6 +17,10 @@ pub struct EvalRow {
     pub method: String,
     /// Metrics averaged over scenes.
     pub mean: Metrics,
+    /// Averaged over the scenes' pixels occluded in at least one neighbour of the full set.
+    pub occluded: Option<Metrics>,
+    /// Averaged over specular (glossy or mirror) pixels, where the sets have surface classes.
+    pub specular: Option<Metrics>,
     /// Per-scene metrics.
     pub scenes: Vec<(String, Metrics)>,
     /// The stereo method compared against.
@@ -36,32 +40,50 @@ pub fn baseline_of(method: &str) -> Option<String> {
     (baseline != method).then_some(baseline)
 }
 
-/// Runs `methods` (with optional configuration overrides for all) on every set with ground
-/// truth and tabulates the results.
+/// How methods are run during an evaluation.
+#[derive(Debug, Clone, Default)]
+pub struct EvalOptions {
+    /// Disparities searched (default: per set, see `ViewSet::default_num_disparities`).
+    pub num_disparities: Option<usize>,
+    /// Configuration overrides for every method.
+    pub overrides: Option<serde_json::Value>,
+    /// Only these neighbours (all when empty).
+    pub neighbours: Vec<String>,
+    /// Resample each neighbour's costs by its real baseline ratio (from the poses).
+    pub rectify: bool,
+}
+
+/// Runs `methods` on every set with ground truth and tabulates the results.
 pub fn evaluate_sets(
     sets: &[ViewSet],
     methods: &[String],
-    num_disparities: Option<usize>,
-    overrides: Option<&serde_json::Value>,
+    options: &EvalOptions,
     mut on_progress: impl FnMut(&str, &str),
 ) -> Result<Vec<EvalRow>, ReplayError> {
     let mut rows = Vec::new();
     for name in methods {
-        let method = fuse::methods::build(name, overrides).map_err(|source| ReplayError::Fuse { set: 0, source })?;
+        let method = fuse::methods::build(name, options.overrides.as_ref())
+            .map_err(|source| ReplayError::Fuse { set: 0, source })?;
         let mut scenes = Vec::new();
+        let mut occluded = Vec::new();
+        let mut specular = Vec::new();
         let started = Instant::now();
         for set in sets {
-            let Some(truth) = set.ground_truth_disparity() else {
+            if set.ground_truth_depth_m.is_none() {
                 continue;
-            };
+            }
             on_progress(name, &set.name);
-            let nd = num_disparities.unwrap_or_else(|| set.default_num_disparities());
-            let problem = set.problem(0, nd)?;
+            let nd = options.num_disparities.unwrap_or_else(|| set.default_num_disparities());
+            let problem = set
+                .with_neighbours(&options.neighbours)?
+                .problem(0, nd, options.rectify)?;
             let disparity = method
                 .run(&problem, &|_| {})
                 .map_err(|source| ReplayError::Fuse { set: set.index, source })?;
-            if let Some(metrics) = evaluate(&disparity.data, &truth, None, nd as f64) {
-                scenes.push((set.name.clone(), metrics));
+            if let Some(metrics) = set.region_metrics(&disparity.data, nd as f64) {
+                scenes.push((set.name.clone(), metrics.all));
+                occluded.extend(metrics.occluded);
+                specular.extend(metrics.specular);
             }
         }
         let seconds = started.elapsed().as_secs_f64();
@@ -70,6 +92,8 @@ pub fn evaluate_sets(
             rows.push(EvalRow {
                 method: name.clone(),
                 mean,
+                occluded: average(&occluded),
+                specular: average(&specular),
                 scenes,
                 baseline: None,
                 avg_err_change_percent: None,
@@ -95,15 +119,19 @@ fn change(value: Option<f64>) -> String {
     value.map_or_else(|| "–".to_owned(), |v| format!("{v:+.1} %"))
 }
 
+fn region(metrics: Option<Metrics>) -> String {
+    metrics.map_or_else(|| "–".to_owned(), |m| format!("{:.3}", m.avg_err))
+}
+
 /// The table as Markdown.
 pub fn markdown(rows: &[EvalRow]) -> String {
     let mut out = String::from(
-        "| method | scenes | RMS | AvgErr | Bad0.5 (%) | Bad1 (%) | Bad2 (%) | AvgErr vs stereo | RMS vs stereo | time (s) |\n",
+        "| method | scenes | RMS | AvgErr | Bad0.5 (%) | Bad1 (%) | Bad2 (%) | AvgErr vs stereo | RMS vs stereo | AvgErr occluded | AvgErr specular | time (s) |\n",
     );
-    out.push_str("|---|---|---|---|---|---|---|---|---|---|\n");
+    out.push_str("|---|---|---|---|---|---|---|---|---|---|---|---|\n");
     for r in rows {
         out.push_str(&format!(
-            "| {} | {} | {:.3} | {:.3} | {:.2} | {:.2} | {:.2} | {} | {} | {:.1} |\n",
+            "| {} | {} | {:.3} | {:.3} | {:.2} | {:.2} | {:.2} | {} | {} | {} | {} | {:.1} |\n",
             r.method,
             r.scenes.len(),
             r.mean.rms,
@@ -113,6 +141,8 @@ pub fn markdown(rows: &[EvalRow]) -> String {
             r.mean.bad_2,
             change(r.avg_err_change_percent),
             change(r.rms_change_percent),
+            region(r.occluded),
+            region(r.specular),
             r.seconds
         ));
     }

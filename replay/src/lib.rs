@@ -11,6 +11,7 @@ pub mod dataset;
 pub mod eval;
 pub mod log;
 pub mod outputs;
+pub mod regions;
 pub mod viewset;
 
 /// Errors of replay; each names the topic, set and field it is about.

@@ -68,6 +68,12 @@ struct RunArgs {
     /// Only these sets (indexes, comma-separated).
     #[arg(long, value_delimiter = ',')]
     sets: Vec<u32>,
+    /// Only these neighbours (roles, comma-separated), e.g. left,right for three views of a five-view set.
+    #[arg(long, value_delimiter = ',')]
+    neighbours: Vec<String>,
+    /// Correct what the logged poses allow: resample each neighbour's costs by its real baseline ratio.
+    #[arg(long)]
+    rectify: bool,
 }
 
 #[derive(Debug, Clone, Copy, ValueEnum)]
@@ -101,6 +107,12 @@ struct EvalArgs {
     /// Configuration overrides applied to every method, as a JSON object.
     #[arg(long, value_name = "JSON")]
     config: Option<String>,
+    /// Only these neighbours (roles, comma-separated), e.g. left,right for three views of a five-view set.
+    #[arg(long, value_delimiter = ',')]
+    neighbours: Vec<String>,
+    /// Correct what the logged poses allow: resample each neighbour's costs by its real baseline ratio.
+    #[arg(long)]
+    rectify: bool,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -200,7 +212,9 @@ fn run_method(args: &RunArgs, quiet: bool) -> Result<Outcome> {
     let mut summaries = Vec::new();
     for set in sets {
         let nd = args.num_disparities.unwrap_or_else(|| set.default_num_disparities());
-        let problem = set.problem(args.min_disparity, nd)?;
+        let problem = set
+            .with_neighbours(&args.neighbours)?
+            .problem(args.min_disparity, nd, args.rectify)?;
         let progress = bar(1000, quiet);
         progress.set_message(format!(
             "set {} {} ({} neighbours, {nd} disparities)",
@@ -214,10 +228,9 @@ fn run_method(args: &RunArgs, quiet: bool) -> Result<Outcome> {
             .with_context(|| format!("set {}: {}", set.index, method.name()))?;
         let seconds = method_started.elapsed().as_secs_f64();
         progress.finish_and_clear();
-        let metrics = set
-            .ground_truth_disparity()
-            .and_then(|truth| fuse::metrics::evaluate(&disparity.data, &truth, None, nd as f64));
-        let outputs = write_set_outputs(&args.out, set, method.name(), &disparity, metrics)?;
+        let regions = set.region_metrics(&disparity.data, nd as f64);
+        let metrics = regions.map(|r| r.all);
+        let outputs = write_set_outputs(&args.out, set, method.name(), &disparity, regions)?;
         match &metrics {
             Some(m) => info!(
                 "set {} ({}): {} in {seconds:.2} s — AvgErr {:.3} px, RMS {:.3}, Bad1 {:.2} % → {}",
@@ -303,16 +316,16 @@ fn run_eval(args: &EvalArgs) -> Result<Outcome> {
         anyhow::bail!("none of the {} view sets has ground truth", sets.len());
     }
     let progress = bar((args.methods.len() * with_truth) as u64, false);
-    let rows = evaluate_sets(
-        &sets,
-        &args.methods,
-        args.num_disparities,
-        overrides.as_ref(),
-        |method, scene| {
-            progress.set_message(format!("{method} on {scene}"));
-            progress.inc(1);
-        },
-    )?;
+    let options = replay::eval::EvalOptions {
+        num_disparities: args.num_disparities,
+        overrides,
+        neighbours: args.neighbours.clone(),
+        rectify: args.rectify,
+    };
+    let rows = evaluate_sets(&sets, &args.methods, &options, |method, scene| {
+        progress.set_message(format!("{method} on {scene}"));
+        progress.inc(1);
+    })?;
     progress.finish_and_clear();
     let table = markdown(&rows);
     match args.format {

@@ -4,8 +4,8 @@
 
 use std::path::{Path, PathBuf};
 
+use crate::regions::RegionMetrics;
 use fuse::DisparityImage;
-use fuse::metrics::Metrics;
 use serde::Serialize;
 
 use crate::viewset::ViewSet;
@@ -21,8 +21,8 @@ pub struct SetOutputs {
     pub dir: PathBuf,
     /// Files written.
     pub files: Vec<PathBuf>,
-    /// Metrics against ground truth, when present.
-    pub metrics: Option<Metrics>,
+    /// Metrics against ground truth, when present (overall, occluded, visible, specular).
+    pub metrics: Option<RegionMetrics>,
     /// Disparity range shown by the colour map (px).
     pub disparity_range_px: Option<(f32, f32)>,
 }
@@ -33,7 +33,7 @@ pub fn write_set_outputs(
     set: &ViewSet,
     method: &str,
     disparity: &DisparityImage,
-    metrics: Option<Metrics>,
+    metrics: Option<RegionMetrics>,
 ) -> Result<SetOutputs, viz::files::FileError> {
     let set_dir = dir.join(sanitize(&format!("{:03}-{}", set.index, set.name)));
     std::fs::create_dir_all(&set_dir).map_err(|source| viz::files::FileError::Io {

@@ -115,8 +115,79 @@ impl ViewSet {
         })
     }
 
-    /// The matching problem of this set (RGB images).
-    pub fn problem(&self, min_disparity: usize, num_disparities: usize) -> Result<fuse::Problem, ReplayError> {
+    /// The same set restricted to the neighbours with these roles (all when empty).
+    pub fn with_neighbours(&self, roles: &[String]) -> Result<Self, ReplayError> {
+        if roles.is_empty() {
+            return Ok(self.clone());
+        }
+        if let Some(missing) = roles.iter().find(|r| !self.neighbours.iter().any(|n| &n.role == *r)) {
+            return Err(ReplayError::MissingView {
+                set: self.index,
+                role: missing.clone(),
+            });
+        }
+        Ok(Self {
+            neighbours: self
+                .neighbours
+                .iter()
+                .filter(|n| roles.contains(&n.role))
+                .cloned()
+                .collect(),
+            ..self.clone()
+        })
+    }
+
+    /// Metrics of a disparity estimate against the ground truth, overall and in the regions
+    /// occluded in at least one of this set's neighbours and on specular surfaces.
+    pub fn region_metrics(&self, estimate: &[f32], missing_error_px: f64) -> Option<crate::regions::RegionMetrics> {
+        let truth = self.ground_truth_disparity()?;
+        let (w, h) = (self.width(), self.height());
+        let mut occluded = vec![false; w * h];
+        for n in &self.neighbours {
+            for (o, hidden) in occluded
+                .iter_mut()
+                .zip(crate::regions::occluded_in(&truth, w, h, n.offset))
+            {
+                *o |= hidden;
+            }
+        }
+        crate::regions::region_metrics(
+            estimate,
+            &truth,
+            &occluded,
+            self.surface_class.as_deref(),
+            missing_error_px,
+        )
+    }
+
+    /// Position of a neighbour's camera centre in the reference camera frame (m), from the
+    /// logged poses.
+    pub fn relative_translation(&self, neighbour: &View) -> nalgebra::Vector3<f64> {
+        (self.reference.world_from_camera.inverse() * neighbour.world_from_camera)
+            .translation
+            .vector
+    }
+
+    /// Real baseline of a neighbour along its nominal direction ÷ the nominal baseline
+    /// (`|offset| · baseline_m`), from the logged poses; 1 when the poses are ideal.
+    pub fn baseline_ratio(&self, neighbour: &View) -> f64 {
+        let direction = nalgebra::Vector3::new(f64::from(neighbour.offset[0]), f64::from(neighbour.offset[1]), 0.0);
+        let nominal = direction.norm() * self.baseline_m;
+        if nominal <= 0.0 {
+            return 1.0;
+        }
+        let along = self.relative_translation(neighbour).dot(&direction.normalize());
+        if along > 0.0 { along / nominal } else { 1.0 }
+    }
+
+    /// The matching problem of this set (RGB images). With `rectify`, each neighbour's costs are
+    /// resampled by its real baseline ratio (from the logged poses).
+    pub fn problem(
+        &self,
+        min_disparity: usize,
+        num_disparities: usize,
+        rectify: bool,
+    ) -> Result<fuse::Problem, ReplayError> {
         let gray = |view: &View| {
             fuse::Image::rgb(
                 view.camera.width as usize,
@@ -138,6 +209,7 @@ impl ViewSet {
                         role: n.role.clone(),
                         image: gray(n)?,
                         offset: n.offset,
+                        baseline_ratio: if rectify { self.baseline_ratio(n) as f32 } else { 1.0 },
                     })
                 })
                 .collect::<Result<_, ReplayError>>()?,
