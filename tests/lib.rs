@@ -65,6 +65,11 @@ pub fn record(args: &[&str]) -> Output {
     run(Command::new(binary("record")).args(args))
 }
 
+/// Runs `replay` with arguments.
+pub fn replay(args: &[&str]) -> Output {
+    run(Command::new(binary("replay")).args(args))
+}
+
 /// Asserts success and returns stderr for messages.
 pub fn assert_success(output: &Output, what: &str) {
     assert!(

@@ -61,27 +61,116 @@ pub fn read_capture_events(mcap_bytes: &[u8]) -> Result<Vec<CaptureEvent>, Repla
     Ok(events)
 }
 
+/// MCAP magic bytes at both ends of a file.
+const MCAP_MAGIC: &[u8] = b"\x89MCAP0\r\n";
+/// Opcode of a chunk record.
+const CHUNK_OPCODE: u8 = 0x06;
+/// Largest uncompressed chunk accepted (a corrupt size field must not become an allocation).
+const MAX_CHUNK_UNCOMPRESSED_BYTES: u64 = 4 << 30;
+
+/// The longest prefix of `bytes` made of whole, plausible records, and why the rest was cut
+/// (a record running past the end of the file, or a chunk claiming an impossible size). The
+/// `mcap` reader allocates a chunk's claimed size before checking it, so a corrupt size field
+/// would abort the process; this walk over the record framing prevents that.
+fn plausible_prefix(bytes: &[u8]) -> (&[u8], Option<String>) {
+    if bytes.len() < MCAP_MAGIC.len() || &bytes[..MCAP_MAGIC.len()] != MCAP_MAGIC {
+        return (bytes, None);
+    }
+    let mut at = MCAP_MAGIC.len();
+    while at + 9 <= bytes.len() {
+        let opcode = bytes[at];
+        let mut length = [0u8; 8];
+        length.copy_from_slice(&bytes[at + 1..at + 9]);
+        let length = u64::from_le_bytes(length);
+        let body = at + 9;
+        if length > (bytes.len() - body) as u64 {
+            return (
+                &bytes[..at],
+                Some(format!("record at byte {at} runs past the end of the file (cut off)")),
+            );
+        }
+        if opcode == CHUNK_OPCODE && length >= 24 {
+            let mut size = [0u8; 8];
+            size.copy_from_slice(&bytes[body + 16..body + 24]);
+            let uncompressed = u64::from_le_bytes(size);
+            if uncompressed > MAX_CHUNK_UNCOMPRESSED_BYTES || uncompressed > 4096 * length.max(1) {
+                return (
+                    &bytes[..at],
+                    Some(format!(
+                        "chunk at byte {at} claims {uncompressed} bytes uncompressed (corrupt)"
+                    )),
+                );
+            }
+        }
+        at = body + length as usize;
+        if opcode == 0x02 {
+            // Footer: the file ends here (plus the closing magic).
+            return (bytes, None);
+        }
+    }
+    (bytes, None)
+}
+
+/// Largest record accepted: a corrupt length must fail, not allocate.
+fn record_length_limit(file_len: usize) -> usize {
+    (file_len.saturating_mul(64)).clamp(256 << 20, 2 << 30)
+}
+
 /// Scans messages in file order, handing those whose topic `wanted` accepts to `on_message`.
-/// Returns the message count and, when the file ends early or is corrupt, the reason.
+/// Returns the message count and, when the file ends early or is corrupt, the reason. Uses the
+/// `mcap` crate's sans-I/O reader with a record-length limit and chunk CRC checks, so corrupt
+/// lengths and sizes end the scan instead of exhausting memory.
 fn scan(
     bytes: &[u8],
     wanted: impl Fn(&str) -> bool,
     mut on_message: impl FnMut(&str, u64, &[u8]) -> Result<(), ReplayError>,
 ) -> Result<(usize, Option<String>), ReplayError> {
-    let stream = mcap::MessageStream::new(bytes).map_err(|source| ReplayError::Mcap { source })?;
+    use mcap::sans_io::{LinearReadEvent, LinearReader, LinearReaderOptions};
+    if bytes.len() < MCAP_MAGIC.len() || &bytes[..MCAP_MAGIC.len()] != MCAP_MAGIC {
+        return Err(ReplayError::Mcap {
+            source: mcap::McapError::BadMagic,
+        });
+    }
+    let (bytes, cut) = plausible_prefix(bytes);
+    let mut reader = LinearReader::new_with_options(
+        LinearReaderOptions::default()
+            .with_record_length_limit(record_length_limit(bytes.len()))
+            .with_validate_chunk_crcs(true)
+            .with_prevalidate_chunk_crcs(true),
+    );
+    let mut remaining = bytes;
+    let mut topics: HashMap<u16, String> = HashMap::new();
     let mut count = 0;
-    for message in stream {
-        match message {
-            Ok(message) => {
-                count += 1;
-                if wanted(&message.channel.topic) {
-                    on_message(&message.channel.topic, message.log_time, &message.data)?;
-                }
+    while let Some(event) = reader.next_event() {
+        let event = match event {
+            Ok(event) => event,
+            Err(error) => return Ok((count, Some(cut.unwrap_or_else(|| error.to_string())))),
+        };
+        match event {
+            LinearReadEvent::ReadRequest(need) => {
+                let len = need.min(remaining.len());
+                reader.insert(len).copy_from_slice(&remaining[..len]);
+                reader.notify_read(len);
+                remaining = &remaining[len..];
             }
-            Err(error) => return Ok((count, Some(error.to_string()))),
+            LinearReadEvent::Record { data, opcode } => match mcap::parse_record(opcode, data) {
+                Ok(mcap::records::Record::Channel(channel)) => {
+                    topics.insert(channel.id, channel.topic.clone());
+                }
+                Ok(mcap::records::Record::Message { header, data }) => {
+                    count += 1;
+                    if let Some(topic) = topics.get(&header.channel_id)
+                        && wanted(topic)
+                    {
+                        on_message(topic, header.log_time, &data)?;
+                    }
+                }
+                Ok(_) => {}
+                Err(error) => return Ok((count, Some(cut.unwrap_or_else(|| error.to_string())))),
+            },
         }
     }
-    Ok((count, None))
+    Ok((count, cut))
 }
 
 /// Reads a log held in memory.

@@ -6,3 +6,5 @@ mod record_geometry;
 mod record_ground_truth;
 mod record_import;
 mod record_log;
+mod replay_eval;
+mod replay_input;

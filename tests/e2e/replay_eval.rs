@@ -1,0 +1,114 @@
+//! Depth quality: the paper's claims on real and simulated data, through the real binaries.
+
+use multiscopic_tests::{assert_success, record, replay, shared_data, temp_dir};
+
+fn eval_json(args: &[&str]) -> Vec<serde_json::Value> {
+    let mut all = vec!["eval", "--format", "json", "-q"];
+    all.extend_from_slice(args);
+    let output = replay(&all);
+    assert_success(&output, "replay eval");
+    serde_json::from_slice(&output.stdout).unwrap_or_else(|e| panic!("replay eval printed no JSON: {e}"))
+}
+
+fn metric(rows: &[serde_json::Value], method: &str, region: &str, field: &str) -> f64 {
+    rows.iter()
+        .find(|r| r["method"] == method)
+        .and_then(|r| r[region][field].as_f64())
+        .unwrap_or_else(|| panic!("no {region}.{field} for {method} in {rows:?}"))
+}
+
+#[test]
+fn middlebury_multiscopic_beats_stereo_and_opencv_sgbm() {
+    let data = shared_data().join("middlebury2006-third-dev");
+    assert!(
+        data.is_dir(),
+        "fixture missing: {} (the shared evaluation data must sit beside the checkout as ../shared/data)",
+        data.display()
+    );
+    let rows = eval_json(&[
+        data.to_str().unwrap_or_default(),
+        "--methods",
+        "bm-stereo,bm-heuristic,sgm-stereo,sgm-heuristic",
+    ]);
+    let avg = |m: &str| metric(&rows, m, "mean", "avg_err");
+    println!(
+        "AvgErr bm-stereo {:.3} bm-heuristic {:.3} sgm-stereo {:.3} sgm-heuristic {:.3}; sgm-heuristic Bad1 {:.2} %",
+        avg("bm-stereo"),
+        avg("bm-heuristic"),
+        avg("sgm-stereo"),
+        avg("sgm-heuristic"),
+        metric(&rows, "sgm-heuristic", "mean", "bad_1")
+    );
+    assert!(
+        avg("bm-heuristic") <= 0.8 * avg("bm-stereo"),
+        "bm-heuristic is not 20 % better than bm-stereo"
+    );
+    assert!(
+        avg("sgm-heuristic") <= 0.8 * avg("sgm-stereo"),
+        "sgm-heuristic is not 20 % better than sgm-stereo"
+    );
+    // OpenCV StereoSGBM on these seven scenes (../shared/data/README.md): AvgErr 0.456, Bad1 7.69 %.
+    assert!(
+        avg("sgm-heuristic") < 0.456,
+        "sgm-heuristic AvgErr {} does not beat OpenCV SGBM",
+        avg("sgm-heuristic")
+    );
+    assert!(metric(&rows, "sgm-heuristic", "mean", "bad_1") < 7.69);
+}
+
+#[test]
+fn five_views_beat_three_which_beat_stereo_most_in_occlusions() {
+    let dir = temp_dir();
+    let log = dir.path().join("five.mcap");
+    let output = record(&[
+        "-o",
+        log.to_str().unwrap_or_default(),
+        "--resolution",
+        "640x360",
+        "--captures",
+        "2",
+        "-q",
+    ]);
+    assert_success(&output, "record");
+    let log = log.to_str().unwrap_or_default();
+    let five = eval_json(&[
+        log,
+        "--rectify",
+        "--methods",
+        "bm-stereo,bm-heuristic,sgm-stereo,sgm-heuristic",
+    ]);
+    let three = eval_json(&[
+        log,
+        "--rectify",
+        "--neighbours",
+        "left,right",
+        "--methods",
+        "bm-heuristic,sgm-heuristic",
+    ]);
+    for family in ["bm", "sgm"] {
+        let method = format!("{family}-heuristic");
+        let stereo = format!("{family}-stereo");
+        let (s, t, f) = (
+            metric(&five, &stereo, "mean", "avg_err"),
+            metric(&three, &method, "mean", "avg_err"),
+            metric(&five, &method, "mean", "avg_err"),
+        );
+        println!("{family}: AvgErr stereo {s:.3}, three-view {t:.3}, five-view {f:.3}");
+        assert!(
+            f < t && t < s,
+            "{family}: five-view {f} < three-view {t} < stereo {s} does not hold"
+        );
+        let occluded_gain =
+            1.0 - metric(&five, &method, "occluded", "avg_err") / metric(&five, &stereo, "occluded", "avg_err");
+        let overall_gain = 1.0 - f / s;
+        println!(
+            "{family}: five-view vs stereo, AvgErr −{:.0} % overall, −{:.0} % in occlusions",
+            100.0 * overall_gain,
+            100.0 * occluded_gain
+        );
+        assert!(
+            occluded_gain > overall_gain,
+            "{family}: occlusions did not improve most"
+        );
+    }
+}

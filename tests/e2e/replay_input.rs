@@ -1,0 +1,240 @@
+//! Bad input to replay: clear errors naming the topic, set and field; exit codes; never a panic.
+
+use std::path::Path;
+
+use foxglove::messages::RawImage;
+use multiscopic_tests::{assert_success, record, replay, temp_dir};
+use record::camera::PinholeCamera;
+use record::log::{LogOptions, LogWriter};
+use record::rig::RigKind;
+use record::rng::SplitMix64;
+use record::{CapturedSet, CapturedView};
+
+fn view(role: &str, dx: i32, time: u64, size: (u32, u32)) -> CapturedView {
+    let camera = PinholeCamera::from_horizontal_fov(size.0, size.1, 60.0);
+    let pixels = (size.0 * size.1) as usize;
+    CapturedView {
+        role: role.into(),
+        grid_offset: [dx, 0],
+        camera,
+        capture_time_nanos: time,
+        rgb: (0..pixels * 3).map(|i| (i * 13 % 256) as u8).collect(),
+        depth_m: (dx == 0).then(|| vec![0.5; pixels]),
+        surface_class: None,
+        world_from_camera: nalgebra::Isometry3::translation(f64::from(dx) * 0.02, 0.0, 0.0),
+        world_from_camera_true: None,
+        commanded_world_from_camera: None,
+        joints: None,
+        exposure_gain: 1.0,
+    }
+}
+
+fn three_view_set() -> CapturedSet {
+    CapturedSet {
+        index: 0,
+        name: "crafted".into(),
+        rig: RigKind::ThreeView,
+        baseline_m: 0.02,
+        motion: Vec::new(),
+        views: vec![
+            view("center", 0, 10, (32, 24)),
+            view("left", -1, 20, (32, 24)),
+            view("right", 1, 30, (32, 24)),
+        ],
+    }
+}
+
+fn write_log(path: &Path, build: impl FnOnce(&mut LogWriter<std::io::BufWriter<std::fs::File>>)) {
+    let file = std::fs::File::create(path).unwrap_or_else(|e| panic!("{e}"));
+    let mut writer = LogOptions::new()
+        .create(std::io::BufWriter::new(file))
+        .unwrap_or_else(|e| panic!("{e}"));
+    build(&mut writer);
+    writer.finish().unwrap_or_else(|e| panic!("{e}"));
+}
+
+fn replay_err(log: &Path, out: &Path) -> (Option<i32>, String) {
+    let output = replay(&[
+        log.to_str().unwrap_or_default(),
+        "--method",
+        "bm-heuristic",
+        "--out",
+        out.to_str().unwrap_or_default(),
+        "-q",
+    ]);
+    let stderr = String::from_utf8_lossy(&output.stderr).into_owned();
+    assert!(!stderr.contains("panicked"), "replay panicked:\n{stderr}");
+    (output.status.code(), stderr)
+}
+
+#[test]
+fn crafted_bad_logs_give_errors_naming_topic_set_and_field() {
+    let dir = temp_dir();
+    let out = dir.path().join("out");
+    let cases: Vec<(&str, CapturedSet, &[&str])> = vec![
+        (
+            "nan_depth",
+            {
+                let mut set = three_view_set();
+                if let Some(depth) = set.views[0].depth_m.as_mut() {
+                    depth[5] = f32::NAN;
+                }
+                set
+            },
+            &["/camera/center/ground_truth/depth", "depth", "NaN", "set 0"],
+        ),
+        (
+            "inf_depth",
+            {
+                let mut set = three_view_set();
+                if let Some(depth) = set.views[0].depth_m.as_mut() {
+                    depth[0] = f32::INFINITY;
+                }
+                set
+            },
+            &["/camera/center/ground_truth/depth", "inf"],
+        ),
+        (
+            "zero_baseline",
+            CapturedSet {
+                baseline_m: 0.0,
+                ..three_view_set()
+            },
+            &["baseline_m", "set 0", "/capture/events"],
+        ),
+        (
+            "mismatched_size",
+            {
+                let mut set = three_view_set();
+                set.views[2] = view("right", 1, 30, (30, 24));
+                set
+            },
+            &["set 0", "right", "/camera/right/image", "30x24", "32x24"],
+        ),
+        (
+            "missing_view",
+            {
+                let mut set = three_view_set();
+                set.views.retain(|v| v.role != "center");
+                set
+            },
+            &["set 0", "center"],
+        ),
+    ];
+    for (name, set, needles) in cases {
+        let path = dir.path().join(format!("{name}.mcap"));
+        write_log(&path, |w| w.write_set(&set, None).unwrap_or_else(|e| panic!("{e}")));
+        let (code, stderr) = replay_err(&path, &out);
+        assert_eq!(code, Some(1), "{name}: {stderr}");
+        for needle in needles {
+            assert!(stderr.contains(needle), "{name}: message lacks '{needle}':\n{stderr}");
+        }
+    }
+    // An image encoding replay cannot read.
+    let path = dir.path().join("yuv.mcap");
+    write_log(&path, |w| {
+        let set = three_view_set();
+        w.write_set(&set, None).unwrap_or_else(|e| panic!("{e}"));
+        let image = RawImage {
+            timestamp: None,
+            frame_id: "camera".into(),
+            width: 32,
+            height: 24,
+            encoding: "yuv422".into(),
+            step: 64,
+            data: vec![0u8; 64 * 24].into(),
+        };
+        // A second image at the left view's time replaces the first on lookup.
+        w.write_message("/camera/left/image", 20, &image)
+            .unwrap_or_else(|e| panic!("{e}"));
+    });
+    let (code, stderr) = replay_err(&path, &out);
+    assert_eq!(code, Some(1), "{stderr}");
+    assert!(
+        stderr.contains("yuv422") && stderr.contains("/camera/left/image"),
+        "{stderr}"
+    );
+}
+
+#[test]
+fn garbage_and_cut_off_logs() {
+    let dir = temp_dir();
+    let out = dir.path().join("out");
+    let garbage = dir.path().join("garbage.mcap");
+    std::fs::write(&garbage, b"this is not an MCAP file at all").unwrap_or_else(|e| panic!("{e}"));
+    let (code, stderr) = replay_err(&garbage, &out);
+    assert_eq!(code, Some(1));
+    assert!(stderr.contains("not a readable MCAP log"), "{stderr}");
+    let missing = dir.path().join("missing.mcap");
+    let (code, stderr) = replay_err(&missing, &out);
+    assert_eq!(code, Some(1));
+    assert!(stderr.contains("missing.mcap"), "{stderr}");
+    // A recording cut off part-way: the complete sets are replayed, exit 3 says something was lost.
+    let full = dir.path().join("full.mcap");
+    let output = record(&[
+        "-o",
+        full.to_str().unwrap_or_default(),
+        "--resolution",
+        "640x360",
+        "--captures",
+        "3",
+        "--rig",
+        "three-view",
+        "-q",
+    ]);
+    assert_success(&output, "record");
+    let bytes = std::fs::read(&full).unwrap_or_else(|e| panic!("{e}"));
+    let cut = dir.path().join("cut.mcap");
+    std::fs::write(&cut, &bytes[..bytes.len() * 3 / 4]).unwrap_or_else(|e| panic!("{e}"));
+    let (code, stderr) = replay_err(&cut, &out);
+    assert_eq!(code, Some(3), "{stderr}");
+    let summary: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap_or_else(|e| panic!("{e}")))
+            .unwrap_or_else(|e| panic!("{e}"));
+    let recovered = summary["sets"].as_array().map_or(0, Vec::len);
+    assert!((1..3).contains(&recovered), "recovered {recovered} sets: {summary}");
+    assert!(summary["truncation"].is_string(), "{summary}");
+}
+
+#[test]
+fn random_bytes_and_truncations_never_panic_the_reader() {
+    let dir = temp_dir();
+    let path = dir.path().join("fuzz.mcap");
+    let output = record(&[
+        "-o",
+        path.to_str().unwrap_or_default(),
+        "--resolution",
+        "48x32",
+        "--captures",
+        "2",
+        "--samples-per-pixel",
+        "1",
+        "-q",
+    ]);
+    assert_success(&output, "record");
+    let bytes = std::fs::read(&path).unwrap_or_else(|e| panic!("{e}"));
+    let mut rng = SplitMix64::new(2024);
+    let mut outcomes = [0usize; 2];
+    for round in 0..400 {
+        let mut data = bytes.clone();
+        if round % 2 == 0 {
+            data.truncate(rng.range_usize(0, bytes.len()));
+        } else {
+            for _ in 0..rng.range_usize(1, 16) {
+                let at = rng.range_usize(0, data.len());
+                data[at] = rng.next_u64() as u8;
+            }
+        }
+        if round % 50 == 0 {
+            data = (0..rng.range_usize(0, 4096)).map(|_| rng.next_u64() as u8).collect();
+        }
+        let result = std::panic::catch_unwind(|| replay::log::read_log(&data).map(|c| c.sets.len()));
+        match result {
+            Ok(Ok(_)) => outcomes[0] += 1,
+            Ok(Err(_)) => outcomes[1] += 1,
+            Err(_) => panic!("read_log panicked on round {round} ({} bytes)", data.len()),
+        }
+    }
+    println!("fuzz: {} read, {} rejected with an error", outcomes[0], outcomes[1]);
+    assert!(outcomes[0] > 0 && outcomes[1] > 0);
+}
