@@ -212,14 +212,17 @@ pub fn mark_invalid(
     let (width, height) = (size.0 as f32, size.1 as f32);
     let (ox, oy) = (offset[0] as f32, offset[1] as f32);
     for (x, costs) in row.chunks_exact_mut(disparities).enumerate() {
-        for (d, cost) in costs.iter_mut().enumerate() {
+        // The correspondence moves monotonically with d: the valid disparities form one interval.
+        let valid = |d: usize| {
             let disparity = (min_disparity + d) as f32 * baseline_ratio;
             let qx = (x as f32 - ox * disparity).round();
             let qy = (y as f32 - oy * disparity).round();
-            if qx < 0.0 || qx >= width || qy < 0.0 || qy >= height {
-                *cost = INVALID_COST;
-            }
-        }
+            qx >= 0.0 && qx < width && qy >= 0.0 && qy < height
+        };
+        let first = (0..disparities).find(|d| valid(*d)).unwrap_or(disparities);
+        let last = (first..disparities).rev().find(|d| valid(*d)).map_or(first, |d| d + 1);
+        costs[..first].fill(INVALID_COST);
+        costs[last..].fill(INVALID_COST);
     }
 }
 
@@ -236,19 +239,25 @@ pub fn resample_disparity_axis(
     if (ratio - 1.0).abs() < 1e-6 {
         return;
     }
+    // (lower index, upper index, weight of upper in 1/256) per disparity: the same for every pixel.
+    let table: Vec<(usize, usize, u32)> = (0..disparities)
+        .map(|d| {
+            let source =
+                ((min_disparity + d) as f32 * ratio - min_disparity as f32).clamp(0.0, (disparities - 1) as f32);
+            let lower = source.floor() as usize;
+            let upper = (lower + 1).min(disparities - 1);
+            (lower, upper, ((source - lower as f32) * 256.0).round() as u32)
+        })
+        .collect();
     scratch.resize(disparities, 0);
     for costs in row.chunks_exact_mut(disparities) {
         scratch.copy_from_slice(costs);
-        for (d, cost) in costs.iter_mut().enumerate() {
-            let source = (min_disparity + d) as f32 * ratio - min_disparity as f32;
-            let lower = source.floor().clamp(0.0, (disparities - 1) as f32) as usize;
-            let upper = (lower + 1).min(disparities - 1);
-            let t = (source - lower as f32).clamp(0.0, 1.0);
-            let (a, b) = (f32::from(scratch[lower]), f32::from(scratch[upper]));
-            *cost = if scratch[lower] == INVALID_COST || scratch[upper] == INVALID_COST {
+        for (cost, &(lower, upper, w)) in costs.iter_mut().zip(&table) {
+            let (a, b) = (scratch[lower], scratch[upper]);
+            *cost = if a == INVALID_COST || b == INVALID_COST {
                 INVALID_COST
             } else {
-                (a + (b - a) * t).round() as u16
+                ((u32::from(a) * (256 - w) + u32::from(b) * w + 128) >> 8) as u16
             };
         }
     }

@@ -17,6 +17,7 @@ pub mod render;
 pub mod rig;
 pub mod rng;
 pub mod scene;
+pub mod session;
 pub mod ur10;
 
 use nalgebra::Isometry3;

@@ -20,6 +20,7 @@ use record::import::{ImportConfig, find_set_dirs, import_set};
 use record::log::{LogOptions, METADATA_NAME, OutputFile};
 use record::rig::RigKind;
 use record::scene::SceneKind;
+use record::session::record_simulation;
 use record::{ImageFormat, TOOL_VERSION};
 use tracing::{info, warn};
 
@@ -345,13 +346,6 @@ fn run_simulation(args: &SimulateArgs, quiet: bool) -> Result<Outcome> {
         }
         other => anyhow::Error::new(other),
     })?;
-    let (output, writer) = OutputFile::create(&args.output).context("cannot start the output log")?;
-    let mut log = LogOptions::new()
-        .image_format(config.image_format)
-        .zstd_level(args.zstd_level)
-        .create(writer)?;
-    let scene_json = serde_json::to_vec_pretty(sim.scene())?;
-    log.attach("scene.json", "application/json", sim.time_nanos(), &scene_json)?;
     let stop = interrupt_flag();
     let views_per_set = config.rig.capture_order().len() as u64;
     let bar = progress_bar(u64::from(config.captures) * views_per_set, quiet, "views");
@@ -365,53 +359,28 @@ fn run_simulation(args: &SimulateArgs, quiet: bool) -> Result<Outcome> {
         config.baseline_mm,
         args.output.display()
     );
-    let mut completed = 0u32;
-    for index in 0..config.captures {
-        let captured = sim
-            .capture_set(index, &stop, |view| {
-                bar.set_message(format!("set {index} {}", view.role));
-                bar.inc(1);
-            })
-            .with_context(|| format!("recording set {index}"))?;
-        let Some(set) = captured else { break };
-        let hand_eye = *sim.hand_eye_believed();
-        log.write_set(&set, Some(&hand_eye))
-            .with_context(|| format!("writing set {index}"))?;
-        completed += 1;
-        bar.suspend(|| info!("set {}/{} done ({} views)", completed, config.captures, set.views.len()));
-        if stop.load(Ordering::SeqCst) {
-            break;
-        }
-    }
+    let outcome = record_simulation(
+        &mut sim,
+        &args.output,
+        args.zstd_level,
+        &stop,
+        |set, view| {
+            bar.set_message(format!("set {set} {}", view.role));
+            bar.inc(1);
+        },
+        |set, views| bar.suspend(|| info!("set {}/{} done ({views} views)", set + 1, config.captures)),
+    )
+    .with_context(|| format!("recording {}", args.output.display()))?;
     bar.finish_and_clear();
-    let interrupted = completed < config.captures;
-    if interrupted && completed == 0 {
-        drop(log);
-        drop(output);
+    let Some(path) = &outcome.path else {
         eprintln!("interrupted before the first set was complete: no log written");
         return Ok(Outcome::Incomplete);
-    }
-    let mut metadata = BTreeMap::new();
-    metadata.insert("tool".to_owned(), "record".to_owned());
-    metadata.insert("tool_version".to_owned(), TOOL_VERSION.to_owned());
-    metadata.insert("source".to_owned(), "simulation".to_owned());
-    metadata.insert("seed".to_owned(), config.seed.to_string());
-    metadata.insert("config".to_owned(), serde_json::to_string(&config)?);
-    metadata.insert(
-        "hand_eye_flange_from_camera".to_owned(),
-        serde_json::to_string(&record::log::PoseJson::from(sim.hand_eye_believed()))?,
-    );
-    metadata.insert("requested_sets".to_owned(), config.captures.to_string());
-    metadata.insert("completed_sets".to_owned(), completed.to_string());
-    metadata.insert("interrupted".to_owned(), interrupted.to_string());
-    log.write_metadata(METADATA_NAME, metadata)?;
-    let writer = log.finish()?;
-    let path = output.commit(writer)?;
-    report(&path, completed, started);
-    if interrupted {
+    };
+    report(path, outcome.completed_sets, started);
+    if outcome.interrupted() {
         warn!(
-            "interrupted: the log holds {completed} of {} requested sets",
-            config.captures
+            "interrupted: the log holds {} of {} requested sets",
+            outcome.completed_sets, outcome.requested_sets
         );
         return Ok(Outcome::Incomplete);
     }
