@@ -2,11 +2,13 @@
 //! topics), rebuilds the aligned view sets, runs the fusion methods of `fuse` and evaluates them
 //! against ground truth.
 //!
+//! - [`check`]: alignment checks of each set against the ideal rig;
 //! - [`log`]: reading a log into [`viewset::ViewSet`]s (recovering what a cut-off log holds);
 //! - [`dataset`]: image-set folders (the Middlebury layout) as view sets, through `record import`;
 //! - [`eval`]: methods over many sets, the paper's table;
 //! - [`outputs`]: result files per set.
 
+pub mod check;
 pub mod dataset;
 pub mod eval;
 pub mod log;

@@ -44,9 +44,23 @@ struct Cli {
 enum Command {
     /// Evaluate methods over logs and dataset folders; prints the paper's table.
     Eval(EvalArgs),
+    /// Check the alignment of every view set of a log (exit 3 when a set fails).
+    Check(CheckArgs),
     /// The one-command demo: record a simulated five-view capture, replay it with the best
     /// method, write the results (and the log) into one folder.
     Demo(DemoArgs),
+}
+
+#[derive(Debug, Args)]
+struct CheckArgs {
+    /// The log to check.
+    log: PathBuf,
+    /// Print JSON instead of the table.
+    #[arg(long)]
+    json: bool,
+    /// Disparities searched by the image-based shift estimate (default: as for replay).
+    #[arg(long)]
+    num_disparities: Option<usize>,
 }
 
 #[derive(Debug, Args)]
@@ -173,6 +187,7 @@ fn main() -> ExitCode {
         match &cli.command {
             Some(Command::Eval(args)) => run_eval(args),
             Some(Command::Demo(args)) => run_demo(args, cli.quiet),
+            Some(Command::Check(args)) => run_check(args),
             None => run_method(&cli.run, cli.quiet),
         }
     };
@@ -235,6 +250,15 @@ fn run_method(args: &RunArgs, quiet: bool) -> Result<Outcome> {
     let mut summaries = Vec::new();
     for set in sets {
         let nd = args.num_disparities.unwrap_or_else(|| set.default_num_disparities());
+        let alignment = replay::check::check_set(set, nd);
+        if alignment.status != replay::check::Status::Ok {
+            warn!(
+                "set {} alignment {:?} (see `replay check`):\n{}",
+                set.index,
+                alignment.status,
+                replay::check::table(&alignment)
+            );
+        }
         let problem = set
             .with_neighbours(&args.neighbours)?
             .problem(args.min_disparity, nd, args.rectify)?;
@@ -273,7 +297,9 @@ fn run_method(args: &RunArgs, quiet: bool) -> Result<Outcome> {
                 outputs.dir.display()
             ),
         }
-        summaries.push(serde_json::json!({"outputs": outputs, "seconds": seconds, "num_disparities": nd}));
+        summaries.push(
+            serde_json::json!({"outputs": outputs, "seconds": seconds, "num_disparities": nd, "alignment": alignment}),
+        );
     }
     let summary = serde_json::json!({
         "tool": "replay",
@@ -293,6 +319,38 @@ fn run_method(args: &RunArgs, quiet: bool) -> Result<Outcome> {
         .with_context(|| format!("writing {}", summary_path.display()))?;
     info!("wrote {}", summary_path.display());
     if contents.truncation.is_some() || !contents.incomplete_sets.is_empty() {
+        return Ok(Outcome::Incomplete);
+    }
+    Ok(Outcome::Complete)
+}
+
+fn run_check(args: &CheckArgs) -> Result<Outcome> {
+    let contents = read_log_file(&args.log).with_context(|| format!("reading {}", args.log.display()))?;
+    let checks: Vec<replay::check::SetCheck> = contents
+        .sets
+        .iter()
+        .map(|set| {
+            replay::check::check_set(
+                set,
+                args.num_disparities.unwrap_or_else(|| set.default_num_disparities()),
+            )
+        })
+        .collect();
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&checks)?);
+    } else {
+        for check in &checks {
+            print!("{}", replay::check::table(check));
+        }
+    }
+    let failed = checks
+        .iter()
+        .filter(|c| c.status == replay::check::Status::Fail)
+        .count();
+    if failed > 0 || contents.truncation.is_some() || !contents.incomplete_sets.is_empty() {
+        if failed > 0 {
+            warn!("{failed} of {} set(s) failed the alignment check", checks.len());
+        }
         return Ok(Outcome::Incomplete);
     }
     Ok(Outcome::Complete)

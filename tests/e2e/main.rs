@@ -6,5 +6,6 @@ mod record_geometry;
 mod record_ground_truth;
 mod record_import;
 mod record_log;
+mod replay_check;
 mod replay_eval;
 mod replay_input;

@@ -1,0 +1,75 @@
+//! `replay check`: clean captures pass; an injected roll or out-of-plane offset is flagged on
+//! that view only; a hand-eye error, invisible in the poses, shows in the image-based shift.
+
+use multiscopic_tests::{assert_success, record, replay, temp_dir};
+
+fn check(extra: &[&str], name: &str) -> (Option<i32>, serde_json::Value) {
+    let dir = temp_dir();
+    let log = dir.path().join(name);
+    let mut args = vec!["-o", log.to_str().unwrap_or_default(), "--resolution", "640x360", "-q"];
+    args.extend_from_slice(extra);
+    assert_success(&record(&args), "record");
+    let output = replay(&["check", log.to_str().unwrap_or_default(), "--json", "-q"]);
+    let json = serde_json::from_slice(&output.stdout).unwrap_or_else(|e| panic!("replay check printed no JSON: {e}"));
+    (output.status.code(), json)
+}
+
+fn statuses(json: &serde_json::Value) -> Vec<(String, String)> {
+    json[0]["neighbours"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .map(|n| {
+            (
+                n["role"].as_str().unwrap_or_default().to_owned(),
+                n["status"].as_str().unwrap_or_default().to_owned(),
+            )
+        })
+        .collect()
+}
+
+#[test]
+fn clean_capture_passes() {
+    let (code, json) = check(&[], "clean.mcap");
+    assert_eq!(code, Some(0), "{json}");
+    assert!(statuses(&json).iter().all(|(_, s)| s == "ok"), "{json}");
+}
+
+#[test]
+fn injected_roll_and_out_of_plane_offset_are_flagged_on_their_view_only() {
+    let (code, json) = check(
+        &["--rotation-error", "left:z:0.5", "--offset-error", "top:z:1"],
+        "misaligned.mcap",
+    );
+    assert_eq!(code, Some(3), "{json}");
+    for (role, status) in statuses(&json) {
+        match role.as_str() {
+            "left" | "top" => assert_eq!(status, "fail", "{role}: {json}"),
+            _ => assert_eq!(status, "ok", "{role}: {json}"),
+        }
+    }
+    let left = &json[0]["neighbours"]
+        .as_array()
+        .and_then(|n| n.iter().find(|v| v["role"] == "left"))
+        .cloned()
+        .unwrap_or_default();
+    assert!(
+        (left["rotation_deg"]["value"].as_f64().unwrap_or_default() - 0.5).abs() < 0.01,
+        "{left}"
+    );
+}
+
+#[test]
+fn hand_eye_error_shows_in_the_images_only() {
+    let (_, json) = check(
+        &["--hand-eye-error-deg", "0,0,3", "--repeatability-mm", "0"],
+        "hand_eye.mcap",
+    );
+    for n in json[0]["neighbours"].as_array().into_iter().flatten() {
+        let epipolar = n["epipolar_error_px"]["value"].as_f64().unwrap_or(f64::NAN);
+        let shift = n["image_shift_px"]["value"].as_f64().unwrap_or(f64::NAN);
+        // 3° of mount rotation turn a 20 mm move by 1 mm sideways: f·1 mm / 0.55 m ≈ 1.5 px at 640 px.
+        assert!(epipolar < 0.05, "poses should look ideal: {n}");
+        assert!(shift.abs() > 0.9 && shift.abs() < 2.5, "image shift {shift}: {n}");
+    }
+}
