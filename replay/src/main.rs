@@ -259,6 +259,17 @@ fn run_method(args: &RunArgs, quiet: bool) -> Result<Outcome> {
                 replay::check::table(&alignment)
             );
         }
+        if args.rectify {
+            for (n, checked) in set.neighbours.iter().zip(&alignment.neighbours) {
+                info!(
+                    "rectify {}: de-rotated by {:.3}°, costs resampled by baseline ratio {:.4}; cannot correct {:.3} mm out of plane",
+                    n.role,
+                    checked.rotation_deg.value,
+                    set.baseline_ratio(n),
+                    checked.out_of_plane_mm.value
+                );
+            }
+        }
         let problem = set
             .with_neighbours(&args.neighbours)?
             .problem(args.min_disparity, nd, args.rectify)?;

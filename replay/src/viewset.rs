@@ -180,34 +180,69 @@ impl ViewSet {
         if along > 0.0 { along / nominal } else { 1.0 }
     }
 
-    /// The matching problem of this set (RGB images). With `rectify`, each neighbour's costs are
-    /// resampled by its real baseline ratio (from the logged poses).
+    /// A neighbour's image re-rendered as if taken with the reference camera's orientation (the
+    /// homography `K Rᵀ K⁻¹` of its relative rotation R, bilinear); translation errors cannot be
+    /// corrected this way.
+    pub fn derotated_rgb(&self, neighbour: &View) -> Vec<u8> {
+        let relative = self.reference.world_from_camera.inverse() * neighbour.world_from_camera;
+        if relative.rotation.angle() < 1e-9 {
+            return neighbour.rgb.clone();
+        }
+        let k = neighbour.camera.k_matrix();
+        let k_inv = k.try_inverse().unwrap_or_else(nalgebra::Matrix3::identity);
+        let h = k * relative.rotation.to_rotation_matrix().matrix().transpose() * k_inv;
+        let (w, ht) = (neighbour.camera.width as usize, neighbour.camera.height as usize);
+        let mut out = vec![0u8; w * ht * 3];
+        for y in 0..ht {
+            for x in 0..w {
+                let p = h * nalgebra::Vector3::new(x as f64, y as f64, 1.0);
+                let (u, v) = (p.x / p.z, p.y / p.z);
+                let (u, v) = (u.clamp(0.0, (w - 1) as f64), v.clamp(0.0, (ht - 1) as f64));
+                let (x0, y0) = (u.floor() as usize, v.floor() as usize);
+                let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(ht - 1));
+                let (tx, ty) = (u - x0 as f64, v - y0 as f64);
+                for c in 0..3 {
+                    let at = |xx: usize, yy: usize| f64::from(neighbour.rgb[(yy * w + xx) * 3 + c]);
+                    let top = at(x0, y0) * (1.0 - tx) + at(x1, y0) * tx;
+                    let bottom = at(x0, y1) * (1.0 - tx) + at(x1, y1) * tx;
+                    out[(y * w + x) * 3 + c] = (top * (1.0 - ty) + bottom * ty).round() as u8;
+                }
+            }
+        }
+        out
+    }
+
+    /// The matching problem of this set (RGB images). With `rectify`, what the logged poses allow
+    /// is corrected: each neighbour is de-rotated by a homography and its costs are resampled by
+    /// its real baseline ratio. Out-of-plane and perpendicular translation remain (see `check`).
     pub fn problem(
         &self,
         min_disparity: usize,
         num_disparities: usize,
         rectify: bool,
     ) -> Result<fuse::Problem, ReplayError> {
-        let gray = |view: &View| {
-            fuse::Image::rgb(
-                view.camera.width as usize,
-                view.camera.height as usize,
-                view.rgb.clone(),
-            )
-            .map_err(|source| ReplayError::Fuse {
-                set: self.index,
-                source,
+        let image = |view: &View| {
+            let rgb = if rectify && view.role != self.reference.role {
+                self.derotated_rgb(view)
+            } else {
+                view.rgb.clone()
+            };
+            fuse::Image::rgb(view.camera.width as usize, view.camera.height as usize, rgb).map_err(|source| {
+                ReplayError::Fuse {
+                    set: self.index,
+                    source,
+                }
             })
         };
         Ok(fuse::Problem {
-            reference: gray(&self.reference)?,
+            reference: image(&self.reference)?,
             neighbours: self
                 .neighbours
                 .iter()
                 .map(|n| {
                     Ok(fuse::Neighbour {
                         role: n.role.clone(),
-                        image: gray(n)?,
+                        image: image(n)?,
                         offset: n.offset,
                         baseline_ratio: if rectify { self.baseline_ratio(n) as f32 } else { 1.0 },
                     })

@@ -73,3 +73,38 @@ fn hand_eye_error_shows_in_the_images_only() {
         assert!(shift.abs() > 0.9 && shift.abs() < 2.5, "image shift {shift}: {n}");
     }
 }
+
+#[test]
+fn rectify_recovers_depth_quality_lost_to_a_rolled_view() {
+    let dir = temp_dir();
+    let log = dir.path().join("rolled.mcap");
+    let args = [
+        "-o",
+        log.to_str().unwrap_or_default(),
+        "--resolution",
+        "640x360",
+        "--rotation-error",
+        "left:z:1",
+        "-q",
+    ];
+    assert_success(&record(&args), "record");
+    let avg_err = |extra: &[&str]| {
+        let mut all = vec![
+            "eval",
+            log.to_str().unwrap_or_default(),
+            "--methods",
+            "sgm-heuristic",
+            "--format",
+            "json",
+            "-q",
+        ];
+        all.extend_from_slice(extra);
+        let output = replay(&all);
+        assert_success(&output, "replay eval");
+        let rows: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap_or_else(|e| panic!("{e}"));
+        rows[0]["mean"]["avg_err"].as_f64().unwrap_or(f64::NAN)
+    };
+    let (raw, rectified) = (avg_err(&[]), avg_err(&["--rectify"]));
+    println!("1° roll on the left view: AvgErr {raw:.3} raw, {rectified:.3} rectified");
+    assert!(rectified < raw, "rectify did not help: {rectified} ≥ {raw}");
+}
