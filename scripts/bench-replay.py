@@ -1,0 +1,102 @@
+#!/usr/bin/env python3
+"""Issue-3 benchmark: our methods against OpenCV on the same five-view 1920x1080 capture, in one run.
+
+Records the capture (release `record`) unless given, reads its five images with the Python `mcap`
+client, times OpenCV StereoBM on four pairs and StereoSGBM (MODE_HH) on one pair, then runs
+`replay --method bm-heuristic` and `--method sgm-heuristic` (128 disparities) and reports the
+method times (from replay's summary.json), the process wall times, peak RSS and the ratios.
+
+Usage: .venv/bin/python scripts/bench-replay.py [capture.mcap]
+  (pip install -r scripts/requirements-bench.txt into the venv first)
+"""
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+
+import cv2
+import numpy as np
+from mcap.reader import make_reader
+from mcap_protobuf.decoder import DecoderFactory
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+DISPARITIES = 128
+REPEATS = 3
+
+
+def images(path):
+    out = {}
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        topics = [f"/camera/{role}/image" for role in ("center", "left", "right", "top", "bottom")]
+        for _, channel, _, msg in reader.iter_decoded_messages(topics=topics):
+            if len(out) < 5:
+                role = channel.topic.split("/")[2]
+                rgb = np.frombuffer(msg.data, np.uint8).reshape(msg.height, msg.width, 3)
+                out[role] = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+    return out
+
+
+def pairs(views):
+    """Each neighbour as OpenCV's (left, right) pair with the reference as `left`: flips and
+    transposes turn every direction into the right-neighbour case."""
+    c = views["center"]
+    return [
+        (c, views["right"]),
+        (np.ascontiguousarray(c[:, ::-1]), np.ascontiguousarray(views["left"][:, ::-1])),
+        (np.ascontiguousarray(c.T), np.ascontiguousarray(views["bottom"].T)),
+        (np.ascontiguousarray(c[::-1, :].T), np.ascontiguousarray(views["top"][::-1, :].T)),
+    ]
+
+
+def best_of(fn):
+    times = []
+    for _ in range(REPEATS):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return min(times)
+
+
+def run_replay(log, method, out):
+    start = time.perf_counter()
+    before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    subprocess.run([os.path.join(ROOT, "target/release/replay"), log, "--method", method, "--num-disparities", str(DISPARITIES),
+                    "--out", out, "-q"], check=True)
+    wall = time.perf_counter() - start
+    peak_kb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    summary = json.load(open(os.path.join(out, "summary.json")))
+    return summary["sets"][0]["seconds"], wall, max(peak_kb, before) / 1024
+
+
+def main():
+    subprocess.run(["cargo", "build", "--release", "--quiet", "-p", "record", "-p", "replay"], cwd=ROOT, check=True)
+    work = tempfile.mkdtemp()
+    log = sys.argv[1] if len(sys.argv) > 1 else os.path.join(work, "capture.mcap")
+    if len(sys.argv) == 1:
+        subprocess.run([os.path.join(ROOT, "target/release/record"), "-o", log, "-q"], check=True)
+    views = images(log)
+    cv2.setNumThreads(os.cpu_count() or 1)
+    bm = cv2.StereoBM_create(numDisparities=DISPARITIES, blockSize=9)
+    sgbm = cv2.StereoSGBM_create(minDisparity=0, numDisparities=DISPARITIES, blockSize=5, P1=8 * 3 * 25, P2=32 * 3 * 25,
+                                 uniquenessRatio=5, speckleWindowSize=50, speckleRange=2, disp12MaxDiff=1,
+                                 mode=cv2.STEREO_SGBM_MODE_HH)
+    four = pairs(views)
+    opencv_bm = best_of(lambda: [bm.compute(l, r) for l, r in four])
+    opencv_sgbm = best_of(lambda: sgbm.compute(four[0][0], four[0][1]))
+    results = {"opencv": cv2.__version__, "threads": cv2.getNumThreads(), "opencv_bm_four_pairs_s": opencv_bm,
+               "opencv_sgbm_hh_one_pair_s": opencv_sgbm}
+    for method, peer, limit in [("bm-heuristic", opencv_bm, 1.5), ("sgm-heuristic", opencv_sgbm, 1.0)]:
+        seconds, wall, rss_mb = min((run_replay(log, method, os.path.join(work, method)) for _ in range(REPEATS)),
+                                    key=lambda r: r[0])
+        results[method] = {"method_s": seconds, "process_wall_s": wall, "peak_rss_mb_any_child": rss_mb,
+                           "ratio_to_opencv": seconds / peer, "limit_ratio": limit,
+                           "verdict": "ok" if seconds / peer <= limit else "SLOWER THAN THE LIMIT"}
+    print(json.dumps(results, indent=2))
+
+
+if __name__ == "__main__":
+    main()
