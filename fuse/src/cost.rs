@@ -104,6 +104,16 @@ impl PreparedView {
     pub fn image(&self) -> &Image {
         &self.image
     }
+
+    /// Birchfield–Tomasi bounds (smallest, largest half-pixel interpolant), per pixel and channel.
+    pub fn bt_bounds(&self) -> (&[u8], &[u8]) {
+        (&self.bt_min, &self.bt_max)
+    }
+
+    /// Census codes, per pixel.
+    pub fn census_codes(&self) -> &[u64] {
+        &self.census
+    }
 }
 
 /// Pixel costs of reference row `y` against a neighbour for disparities

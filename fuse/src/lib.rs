@@ -14,6 +14,7 @@
 pub mod cost;
 pub mod fusion;
 pub mod image;
+pub mod lines;
 pub mod methods;
 pub mod metrics;
 pub mod postprocess;

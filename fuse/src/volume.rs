@@ -14,6 +14,7 @@ use crate::cost::{
 };
 use crate::fusion::{Fusion, fuse_rows};
 use crate::image::Image;
+use crate::lines::{SearchLines, pixel_cost_row_lines};
 
 /// Rows per band of parallel work.
 pub const BAND_ROWS: usize = 32;
@@ -135,10 +136,29 @@ impl CostSpec {
     }
 }
 
+/// Buffers of one band worker, reused from band to band.
+#[derive(Debug, Default)]
+pub struct BandScratch {
+    pixel_row: Vec<u16>,
+    horizontal: Vec<Vec<u16>>,
+    vertical: Vec<Vec<u16>>,
+    finished: Vec<Vec<u16>>,
+    resample: Vec<u16>,
+}
+
+/// A neighbour prepared for one cost.
+struct PreparedNeighbour {
+    view: PreparedView,
+    offset: [i32; 2],
+    baseline_ratio: f32,
+    /// Samples in search-line order (axis neighbours); `None` uses the generic cost loop.
+    lines: Option<SearchLines>,
+}
+
 /// A problem with its views prepared for one cost.
 pub struct PreparedProblem {
     reference: PreparedView,
-    neighbours: Vec<(PreparedView, [i32; 2], f32)>,
+    neighbours: Vec<PreparedNeighbour>,
     width: usize,
     height: usize,
     min_disparity: usize,
@@ -156,11 +176,17 @@ impl PreparedProblem {
             .neighbours_for(fusion)
             .into_par_iter()
             .map(|n| {
-                (
-                    PreparedView::new(n.image.clone(), spec.pixel),
-                    n.offset,
-                    n.baseline_ratio,
-                )
+                let view = PreparedView::new(n.image.clone(), spec.pixel);
+                let max_disparity = problem.min_disparity + problem.num_disparities;
+                // A resampled neighbour reads up to ratio × the range.
+                let reach = (max_disparity as f32 * n.baseline_ratio.max(1.0)).ceil() as usize + 1;
+                let lines = SearchLines::new(&view, spec.pixel, n.offset, reach);
+                PreparedNeighbour {
+                    view,
+                    offset: n.offset,
+                    baseline_ratio: n.baseline_ratio,
+                    lines,
+                }
             })
             .collect();
         Ok(Self {
@@ -197,33 +223,58 @@ impl PreparedProblem {
 
     /// Fused, aggregated costs of `rows` into `out` (`rows.len() × width × disparities`).
     pub fn fused_band(&self, rows: Range<usize>, out: &mut [u16]) {
+        self.fused_band_with(rows, out, &mut BandScratch::default());
+    }
+
+    /// [`Self::fused_band`] reusing a worker's buffers (no fresh pages per band).
+    pub fn fused_band_with(&self, rows: Range<usize>, out: &mut [u16], buffers: &mut BandScratch) {
         let (w, nd, r) = (self.width, self.disparities, self.spec.block_radius);
         let row_len = w * nd;
         let ext = rows.start.saturating_sub(r)..(rows.end + r).min(self.height);
-        let mut pixel_row = vec![0u16; row_len];
+        let k_count = self.neighbours.len();
+        let BandScratch {
+            pixel_row,
+            horizontal,
+            vertical,
+            finished,
+            resample,
+        } = buffers;
+        pixel_row.resize(row_len, 0);
+        horizontal.resize_with(k_count, Vec::new);
+        vertical.resize_with(k_count, Vec::new);
+        finished.resize_with(k_count, Vec::new);
         // Horizontally aggregated rows of the extended band, per neighbour.
-        let mut horizontal: Vec<Vec<u16>> = Vec::with_capacity(self.neighbours.len());
-        for (view, offset, _) in &self.neighbours {
-            let mut rows_h = vec![0u16; ext.len() * row_len];
+        for (neighbour, rows_h) in self.neighbours.iter().zip(horizontal.iter_mut()) {
+            rows_h.resize(ext.len() * row_len, 0);
             for (i, y) in ext.clone().enumerate() {
-                pixel_cost_row(
-                    self.spec.pixel,
-                    &self.reference,
-                    view,
-                    *offset,
-                    y,
-                    self.min_disparity,
-                    nd,
-                    &mut pixel_row,
-                );
-                box_sum_row(&pixel_row, &mut rows_h[i * row_len..(i + 1) * row_len], w, nd, r);
+                match &neighbour.lines {
+                    Some(lines) => pixel_cost_row_lines(
+                        self.spec.pixel,
+                        &self.reference,
+                        lines,
+                        y,
+                        self.min_disparity,
+                        nd,
+                        pixel_row,
+                    ),
+                    None => pixel_cost_row(
+                        self.spec.pixel,
+                        &self.reference,
+                        &neighbour.view,
+                        neighbour.offset,
+                        y,
+                        self.min_disparity,
+                        nd,
+                        pixel_row,
+                    ),
+                }
+                box_sum_row(pixel_row, &mut rows_h[i * row_len..(i + 1) * row_len], w, nd, r);
             }
-            horizontal.push(rows_h);
         }
         let clamp_row = |y: isize| (y.clamp(0, self.height as isize - 1) as usize) - ext.start;
-        let mut vertical: Vec<Vec<u16>> = vec![vec![0u16; row_len]; self.neighbours.len()];
-        for (k, rows_h) in horizontal.iter().enumerate() {
-            let acc = &mut vertical[k];
+        for (rows_h, acc) in horizontal.iter().zip(vertical.iter_mut()) {
+            acc.clear();
+            acc.resize(row_len, 0);
             for y in rows.start as isize - r as isize..=rows.start as isize + r as isize {
                 let source = &rows_h[clamp_row(y) * row_len..(clamp_row(y) + 1) * row_len];
                 for (a, v) in acc.iter_mut().zip(source) {
@@ -231,19 +282,21 @@ impl PreparedProblem {
                 }
             }
         }
-        let mut finished: Vec<Vec<u16>> = vec![vec![0u16; row_len]; self.neighbours.len()];
-        let mut scratch = Vec::with_capacity(nd);
+        for f in finished.iter_mut() {
+            f.resize(row_len, 0);
+        }
         for (i, y) in rows.clone().enumerate() {
-            for (k, (_, offset, ratio)) in self.neighbours.iter().enumerate() {
-                finished[k].copy_from_slice(&vertical[k]);
-                resample_disparity_axis(&mut finished[k], self.min_disparity, nd, *ratio, &mut scratch);
+            for (k, neighbour) in self.neighbours.iter().enumerate() {
+                let finished_k = &mut finished[k];
+                finished_k.copy_from_slice(&vertical[k]);
+                resample_disparity_axis(finished_k, self.min_disparity, nd, neighbour.baseline_ratio, resample);
                 mark_invalid(
-                    &mut finished[k],
-                    *offset,
+                    finished_k,
+                    neighbour.offset,
                     y,
                     (w, self.height),
                     (self.min_disparity, nd),
-                    *ratio,
+                    neighbour.baseline_ratio,
                 );
                 if y + 1 == rows.end {
                     continue;
@@ -252,10 +305,8 @@ impl PreparedProblem {
                 let rows_h = &horizontal[k];
                 let incoming = clamp_row(y as isize + r as isize + 1);
                 let outgoing = clamp_row(y as isize - r as isize);
-                let (inc, out_row) = (
-                    &rows_h[incoming * row_len..(incoming + 1) * row_len],
-                    &rows_h[outgoing * row_len..(outgoing + 1) * row_len],
-                );
+                let inc = &rows_h[incoming * row_len..(incoming + 1) * row_len];
+                let out_row = &rows_h[outgoing * row_len..(outgoing + 1) * row_len];
                 for ((a, v), o) in vertical[k].iter_mut().zip(inc).zip(out_row) {
                     *a = a.wrapping_add(*v).wrapping_sub(*o);
                 }
@@ -269,15 +320,15 @@ impl PreparedProblem {
     pub fn fused_volume(&self, on_band: &(dyn Fn() + Sync)) -> Vec<u16> {
         let row_len = self.width * self.disparities;
         let mut volume = vec![0u16; self.height * row_len];
-        volume
-            .par_chunks_mut(BAND_ROWS * row_len)
-            .enumerate()
-            .for_each(|(band, chunk)| {
+        volume.par_chunks_mut(BAND_ROWS * row_len).enumerate().for_each_init(
+            BandScratch::default,
+            |buffers, (band, chunk)| {
                 let start = band * BAND_ROWS;
                 let rows = start..start + chunk.len() / row_len;
-                self.fused_band(rows, chunk);
+                self.fused_band_with(rows, chunk, buffers);
                 on_band();
-            });
+            },
+        );
         volume
     }
 }

@@ -1,0 +1,208 @@
+//! Search lines: a neighbour's samples rearranged so that, for every reference pixel, the samples
+//! along its search line `q = p − offset·s` (s = 0, 1, 2, …) are contiguous in memory. The cost
+//! loops over the disparities then read straight runs that the compiler vectorises, instead of
+//! computing and clamping a 2-D index per (pixel, disparity).
+//!
+//! Built for the four axis neighbours (left, right, top, bottom); diagonal neighbours use the
+//! generic [`crate::cost::pixel_cost_row`].
+
+use crate::cost::{PixelCost, PreparedView};
+
+/// Multiplier turning a sum of three channel costs into their mean: `(s · 21846) >> 16 ≈ s / 3`.
+const MEAN_OF_THREE: u32 = 21_846;
+
+/// A neighbour's samples in search-line order, with the border replicated past the image.
+#[derive(Debug, Clone)]
+pub struct SearchLines {
+    offset: [i32; 2],
+    line_len: usize,
+    width: usize,
+    height: usize,
+    /// Per channel: values (absolute difference) or interleaved (min, max) pairs' planes
+    /// (Birchfield–Tomasi: `[min₀, max₀, min₁, max₁, …]`).
+    planes: Vec<Vec<u8>>,
+    census: Vec<u64>,
+}
+
+impl SearchLines {
+    /// Lays out `view`'s samples for `offset`, long enough for disparities below `max_disparity`.
+    /// `None` for diagonal offsets.
+    pub fn new(view: &PreparedView, cost: PixelCost, offset: [i32; 2], max_disparity: usize) -> Option<Self> {
+        if !matches!(offset, [1, 0] | [-1, 0] | [0, 1] | [0, -1]) {
+            return None;
+        }
+        let image = view.image();
+        let (w, h, channels) = (image.width, image.height, image.channels);
+        let line_len = if offset[1] == 0 { w } else { h } + max_disparity + 1;
+        let lines = if offset[1] == 0 { h } else { w };
+        // (x, y) of sample `j` on line `k`, clamped into the image.
+        let position = |k: usize, j: usize| -> (usize, usize) {
+            match offset {
+                [-1, 0] => (j.min(w - 1), k),
+                [1, 0] => ((w - 1).saturating_sub(j), k),
+                [0, -1] => (k, j.min(h - 1)),
+                _ => (k, (h - 1).saturating_sub(j)),
+            }
+        };
+        let gather = |value: &dyn Fn(usize) -> u8| -> Vec<u8> {
+            let mut plane = Vec::with_capacity(lines * line_len);
+            for k in 0..lines {
+                for j in 0..line_len {
+                    let (x, y) = position(k, j);
+                    plane.push(value(y * w + x));
+                }
+            }
+            plane
+        };
+        let mut planes = Vec::new();
+        let mut census = Vec::new();
+        match cost {
+            PixelCost::AbsoluteDifference => {
+                for c in 0..channels {
+                    planes.push(gather(&|p| image.data[p * channels + c]));
+                }
+            }
+            PixelCost::BirchfieldTomasi => {
+                let (lo, hi) = view.bt_bounds();
+                for c in 0..channels {
+                    planes.push(gather(&|p| lo[p * channels + c]));
+                    planes.push(gather(&|p| hi[p * channels + c]));
+                }
+            }
+            PixelCost::Census { .. } => {
+                let codes = view.census_codes();
+                census.reserve(lines * line_len);
+                for k in 0..lines {
+                    for j in 0..line_len {
+                        let (x, y) = position(k, j);
+                        census.push(codes[y * w + x]);
+                    }
+                }
+            }
+        }
+        Some(Self {
+            offset,
+            line_len,
+            width: w,
+            height: h,
+            planes,
+            census,
+        })
+    }
+
+    /// Index of the sample at s = 0 on the search line of reference pixel `(x, y)`.
+    #[inline]
+    fn base(&self, x: usize, y: usize) -> usize {
+        match self.offset {
+            [-1, 0] => y * self.line_len + x,
+            [1, 0] => y * self.line_len + (self.width - 1 - x),
+            [0, -1] => x * self.line_len + y,
+            _ => x * self.line_len + (self.height - 1 - y),
+        }
+    }
+}
+
+/// Pixel costs of reference row `y` for disparities `min_disparity ..` into `out` (`[x][d]`),
+/// reading the neighbour through its search lines. Same values as [`crate::cost::pixel_cost_row`].
+pub fn pixel_cost_row_lines(
+    cost: PixelCost,
+    reference: &PreparedView,
+    lines: &SearchLines,
+    y: usize,
+    min_disparity: usize,
+    disparities: usize,
+    out: &mut [u16],
+) {
+    let image = reference.image();
+    let (width, channels) = (image.width, image.channels);
+    for (x, costs) in out.chunks_exact_mut(disparities).enumerate() {
+        let start = lines.base(x, y) + min_disparity;
+        let range = start..start + disparities;
+        let p = (y * width + x) * channels;
+        match (cost, channels) {
+            (PixelCost::AbsoluteDifference, 1) => {
+                let c = image.data[p];
+                for (o, v) in costs.iter_mut().zip(&lines.planes[0][range]) {
+                    *o = u16::from(c.abs_diff(*v));
+                }
+            }
+            (PixelCost::AbsoluteDifference, _) => {
+                let (c0, c1, c2) = (image.data[p], image.data[p + 1], image.data[p + 2]);
+                let (a, b, c) = (
+                    &lines.planes[0][range.clone()],
+                    &lines.planes[1][range.clone()],
+                    &lines.planes[2][range],
+                );
+                for (((o, v0), v1), v2) in costs.iter_mut().zip(a).zip(b).zip(c) {
+                    let sum = u16::from(c0.abs_diff(*v0)) + u16::from(c1.abs_diff(*v1)) + u16::from(c2.abs_diff(*v2));
+                    *o = ((u32::from(sum) * MEAN_OF_THREE) >> 16) as u16;
+                }
+            }
+            (PixelCost::BirchfieldTomasi, 1) => {
+                let c = image.data[p];
+                let (lo, hi) = (&lines.planes[0][range.clone()], &lines.planes[1][range]);
+                for ((o, l), h) in costs.iter_mut().zip(lo).zip(hi) {
+                    *o = u16::from(c.saturating_sub(*h).max(l.saturating_sub(c)));
+                }
+            }
+            (PixelCost::BirchfieldTomasi, _) => {
+                let planes = &lines.planes;
+                let (c0, c1, c2) = (image.data[p], image.data[p + 1], image.data[p + 2]);
+                let n = costs.len();
+                let (l0, h0) = (&planes[0][range.clone()][..n], &planes[1][range.clone()][..n]);
+                let (l1, h1) = (&planes[2][range.clone()][..n], &planes[3][range.clone()][..n]);
+                let (l2, h2) = (&planes[4][range.clone()][..n], &planes[5][range][..n]);
+                for (d, o) in costs.iter_mut().enumerate() {
+                    let bt = |c: u8, l: u8, h: u8| u16::from(c.saturating_sub(h).max(l.saturating_sub(c)));
+                    let sum = bt(c0, l0[d], h0[d]) + bt(c1, l1[d], h1[d]) + bt(c2, l2[d], h2[d]);
+                    *o = ((u32::from(sum) * MEAN_OF_THREE) >> 16) as u16;
+                }
+            }
+            (PixelCost::Census { .. }, _) => {
+                let code = reference.census_codes()[y * width + x];
+                for (o, v) in costs.iter_mut().zip(&lines.census[range]) {
+                    *o = (code ^ v).count_ones() as u16;
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::cost::pixel_cost_row;
+    use crate::image::Image;
+
+    #[test]
+    fn search_lines_give_the_generic_costs_for_every_axis_and_cost() {
+        let (w, h) = (23, 17);
+        let rgb: Vec<u8> = (0..w * h * 3).map(|i| ((i * 37 + i / 7) % 251) as u8).collect();
+        let other: Vec<u8> = (0..w * h * 3).map(|i| ((i * 53 + 11) % 241) as u8).collect();
+        for cost in [
+            PixelCost::AbsoluteDifference,
+            PixelCost::BirchfieldTomasi,
+            PixelCost::Census { radius: 2 },
+        ] {
+            for channels in [1, 3] {
+                let make = |data: &[u8]| {
+                    let image = Image::rgb(w, h, data.to_vec()).unwrap_or_else(|e| panic!("{e}"));
+                    PreparedView::new(if channels == 1 { image.to_gray() } else { image }, cost)
+                };
+                let (reference, neighbour) = (make(&rgb), make(&other));
+                for offset in [[1, 0], [-1, 0], [0, 1], [0, -1]] {
+                    let (min_d, nd) = (2, 9);
+                    let lines =
+                        SearchLines::new(&neighbour, cost, offset, min_d + nd).unwrap_or_else(|| panic!("no lines"));
+                    for y in 0..h {
+                        let mut generic = vec![0u16; w * nd];
+                        let mut fast = vec![0u16; w * nd];
+                        pixel_cost_row(cost, &reference, &neighbour, offset, y, min_d, nd, &mut generic);
+                        pixel_cost_row_lines(cost, &reference, &lines, y, min_d, nd, &mut fast);
+                        assert_eq!(generic, fast, "{cost:?} {channels} channels {offset:?} row {y}");
+                    }
+                }
+            }
+        }
+    }
+}
