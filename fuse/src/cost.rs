@@ -73,23 +73,7 @@ impl PreparedView {
                 }
             }
             PixelCost::Census { radius } => {
-                let gray = image.to_gray();
-                let r = radius.clamp(1, MAX_CENSUS_RADIUS) as isize;
-                census.reserve(gray.data.len());
-                for y in 0..h {
-                    for x in 0..w {
-                        let c = gray.clamped(x, y, 0);
-                        let mut code = 0u64;
-                        for dy in -r..=r {
-                            for dx in -r..=r {
-                                if dx != 0 || dy != 0 {
-                                    code = (code << 1) | u64::from(gray.clamped(x + dx, y + dy, 0) < c);
-                                }
-                            }
-                        }
-                        census.push(code);
-                    }
-                }
+                census = census_transform(&image.to_gray(), radius.clamp(1, MAX_CENSUS_RADIUS));
             }
         }
         Self {
@@ -114,6 +98,38 @@ impl PreparedView {
     pub fn census_codes(&self) -> &[u64] {
         &self.census
     }
+}
+
+/// Census codes of a grey image over a `(2r+1)²` window, border replicated: bit set where the
+/// neighbour is darker than the centre, row-major over the window without the centre. Works on a
+/// padded copy so that the inner loops index without clamping.
+pub fn census_transform(gray: &Image, radius: usize) -> Vec<u64> {
+    let (w, h, r) = (gray.width, gray.height, radius);
+    let padded_w = w + 2 * r;
+    let mut padded = Vec::with_capacity(padded_w * (h + 2 * r));
+    for py in 0..h + 2 * r {
+        let y = py as isize - r as isize;
+        for px in 0..padded_w {
+            padded.push(gray.clamped(px as isize - r as isize, y, 0));
+        }
+    }
+    let mut codes = vec![0u64; w * h];
+    for y in 0..h {
+        let row = &mut codes[y * w..(y + 1) * w];
+        for dy in 0..=2 * r {
+            for dx in 0..=2 * r {
+                if dx == r && dy == r {
+                    continue;
+                }
+                let source = &padded[(y + dy) * padded_w + dx..][..w];
+                let centre = &padded[(y + r) * padded_w + r..][..w];
+                for ((code, s), c) in row.iter_mut().zip(source).zip(centre) {
+                    *code = (*code << 1) | u64::from(s < c);
+                }
+            }
+        }
+    }
+    codes
 }
 
 /// Pixel costs of reference row `y` against a neighbour for disparities
@@ -307,6 +323,28 @@ mod tests {
                     row[x * 8 + 1] > 0 || matches!(cost, PixelCost::Census { .. }),
                     "{cost:?}"
                 );
+            }
+        }
+    }
+
+    #[test]
+    fn census_transform_matches_the_definition() {
+        let (w, h) = (9, 7);
+        let image =
+            Image::gray(w, h, (0..w * h).map(|i| ((i * 71) % 253) as u8).collect()).unwrap_or_else(|e| panic!("{e}"));
+        let codes = census_transform(&image, 2);
+        for y in 0..h as isize {
+            for x in 0..w as isize {
+                let c = image.clamped(x, y, 0);
+                let mut code = 0u64;
+                for dy in -2..=2 {
+                    for dx in -2..=2 {
+                        if dx != 0 || dy != 0 {
+                            code = (code << 1) | u64::from(image.clamped(x + dx, y + dy, 0) < c);
+                        }
+                    }
+                }
+                assert_eq!(codes[(y as usize) * w + x as usize], code);
             }
         }
     }

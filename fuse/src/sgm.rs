@@ -3,10 +3,6 @@
 
 use crate::cost::INVALID_COST;
 
-/// Directions of the eight paths, as `(dx, dy)` of the previous pixel on the path: the first
-/// four are swept top-down, the last four bottom-up.
-const FORWARD: [(isize, isize); 4] = [(-1, 0), (-1, -1), (0, -1), (1, -1)];
-
 /// Scales costs so that the sum of eight paths fits `u16`: returns the right shift to apply.
 pub fn cost_shift(max_cost: u32, p2: u32) -> u32 {
     let mut shift = 0;
@@ -16,29 +12,33 @@ pub fn cost_shift(max_cost: u32, p2: u32) -> u32 {
     shift
 }
 
+/// Path cost at a pixel with no predecessor on the path: the (scaled, capped) data cost.
 #[inline]
-fn path_step(cost: &[u16], previous: Option<&[u16]>, out: &mut [u16], p1: u16, p2: u16, shift: u32, cap: u16) {
-    match previous {
-        None => {
-            for (o, c) in out.iter_mut().zip(cost) {
-                *o = (*c >> shift).min(cap);
-            }
-        }
-        Some(prev) => {
-            let min_prev = prev.iter().copied().min().unwrap_or(0);
-            let jump = min_prev.saturating_add(p2);
-            let n = cost.len();
-            for d in 0..n {
-                let mut best = prev[d].min(jump);
-                if d > 0 {
-                    best = best.min(prev[d - 1].saturating_add(p1));
-                }
-                if d + 1 < n {
-                    best = best.min(prev[d + 1].saturating_add(p1));
-                }
-                out[d] = ((cost[d] >> shift).min(cap) + best) - min_prev;
-            }
-        }
+fn path_start(cost: &[u16], out: &mut [u16], shift: u32, cap: u16) {
+    for (o, c) in out.iter_mut().zip(cost) {
+        *o = (*c >> shift).min(cap);
+    }
+}
+
+/// `L(p, d) = C(p, d) + min(L(p−r, d), L(p−r, d±1) + P1, min L(p−r) + P2) − min L(p−r)`,
+/// written as whole-slice passes so that the compiler vectorises them.
+#[inline]
+fn path_step(cost: &[u16], previous: &[u16], out: &mut [u16], p1: u16, p2: u16, shift: u32, cap: u16) {
+    let n = out.len();
+    let (cost, previous) = (&cost[..n], &previous[..n]);
+    let min_prev = previous.iter().copied().min().unwrap_or(0);
+    let jump = min_prev.saturating_add(p2);
+    for (o, p) in out.iter_mut().zip(previous) {
+        *o = (*p).min(jump);
+    }
+    for (o, p) in out[1..].iter_mut().zip(&previous[..n - 1]) {
+        *o = (*o).min(p.saturating_add(p1));
+    }
+    for (o, p) in out[..n - 1].iter_mut().zip(&previous[1..]) {
+        *o = (*o).min(p.saturating_add(p1));
+    }
+    for (o, c) in out.iter_mut().zip(cost) {
+        *o = (*c >> shift).min(cap) + *o - min_prev;
     }
 }
 
@@ -55,47 +55,48 @@ pub fn aggregate(
 ) -> Vec<u16> {
     let shift = cost_shift(max_cost, u32::from(p2));
     let cap = ((max_cost >> shift).min(u32::from(INVALID_COST) - 1)) as u16;
-    let row_len = width * disparities;
+    let nd = disparities;
+    let row_len = width * nd;
     let mut sum = vec![0u16; volume.len()];
-    let mut scratch = vec![0u16; disparities];
     for forward in [true, false] {
-        // Path costs of the previous and current row, per direction.
-        let mut previous: Vec<Vec<u16>> = vec![vec![0u16; row_len]; 4];
-        let mut current: Vec<Vec<u16>> = vec![vec![0u16; row_len]; 4];
-        let ys: Vec<usize> = if forward {
-            (0..height).collect()
-        } else {
-            (0..height).rev().collect()
-        };
-        for (row_index, &y) in ys.iter().enumerate() {
-            let xs: Vec<usize> = if forward {
-                (0..width).collect()
-            } else {
-                (0..width).rev().collect()
-            };
-            for (col_index, &x) in xs.iter().enumerate() {
-                let cell = (y * width + x) * disparities;
-                let cost = &volume[cell..cell + disparities];
-                for (k, (dx, dy)) in FORWARD.iter().enumerate() {
-                    let (dx, dy) = if forward { (*dx, *dy) } else { (-dx, -dy) };
+        // Path costs of the previous and current row for the three paths that come from the
+        // previous row (diagonal, vertical, other diagonal); the horizontal path keeps one pixel.
+        let mut previous: Vec<Vec<u16>> = vec![vec![0u16; row_len]; 3];
+        let mut current: Vec<Vec<u16>> = vec![vec![0u16; row_len]; 3];
+        let mut horizontal = vec![0u16; nd];
+        let mut scratch = vec![0u16; nd];
+        let mut total = vec![0u16; nd];
+        for row_index in 0..height {
+            let y = if forward { row_index } else { height - 1 - row_index };
+            for col_index in 0..width {
+                let x = if forward { col_index } else { width - 1 - col_index };
+                let cell = (y * width + x) * nd;
+                let cost = &volume[cell..cell + nd];
+                // Horizontal path: the previous pixel of this row.
+                if col_index == 0 {
+                    path_start(cost, &mut horizontal, shift, cap);
+                } else {
+                    scratch.copy_from_slice(&horizontal);
+                    path_step(cost, &scratch, &mut horizontal, p1, p2, shift, cap);
+                }
+                total.copy_from_slice(&horizontal);
+                // Paths from the previous row: x − step, x, x + step (step = ±1 with the sweep).
+                for (k, dx) in [-1isize, 0, 1].into_iter().enumerate() {
+                    let dx = if forward { dx } else { -dx };
                     let px = x as isize + dx;
-                    let source: Option<&[u16]> = if dy == 0 {
-                        // Same row: the path's previous pixel was processed just before.
-                        (col_index > 0).then(|| {
-                            let p = px as usize * disparities;
-                            &current[k][p..p + disparities]
-                        })
-                    } else if row_index > 0 && px >= 0 && (px as usize) < width {
-                        let p = px as usize * disparities;
-                        Some(&previous[k][p..p + disparities])
+                    let out = &mut current[k][x * nd..(x + 1) * nd];
+                    if row_index > 0 && px >= 0 && (px as usize) < width {
+                        let p = px as usize * nd;
+                        path_step(cost, &previous[k][p..p + nd], out, p1, p2, shift, cap);
                     } else {
-                        None
-                    };
-                    path_step(cost, source, &mut scratch, p1, p2, shift, cap);
-                    current[k][x * disparities..(x + 1) * disparities].copy_from_slice(&scratch);
-                    for (s, v) in sum[cell..cell + disparities].iter_mut().zip(&scratch) {
-                        *s = s.saturating_add(*v);
+                        path_start(cost, out, shift, cap);
                     }
+                    for (t, v) in total.iter_mut().zip(out.iter()) {
+                        *t = t.saturating_add(*v);
+                    }
+                }
+                for (s, t) in sum[cell..cell + nd].iter_mut().zip(&total) {
+                    *s = s.saturating_add(*t);
                 }
             }
             std::mem::swap(&mut previous, &mut current);
