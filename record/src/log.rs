@@ -427,6 +427,23 @@ impl<W: Write + Seek> LogWriter<W> {
         self.write_raw(channel_id, CAPTURE_EVENTS_TOPIC, log_time, &data)
     }
 
+    /// Writes a JSON message (schema: `{"type": "object"}` under `schema_name`).
+    pub fn write_json(
+        &mut self,
+        topic: &str,
+        schema_name: &str,
+        log_time: u64,
+        value: &serde_json::Value,
+    ) -> Result<(), LogError> {
+        let schema = serde_json::json!({"title": schema_name, "type": "object"}).to_string();
+        let channel_id = self.channel(topic, schema_name, "jsonschema", schema.as_bytes(), "json")?;
+        let data = serde_json::to_vec(value).map_err(|e| LogError::Encode {
+            topic: topic.to_owned(),
+            reason: e.to_string(),
+        })?;
+        self.write_raw(channel_id, topic, log_time, &data)
+    }
+
     /// Writes a metadata record.
     pub fn write_metadata(&mut self, name: &str, metadata: BTreeMap<String, String>) -> Result<(), LogError> {
         self.writer

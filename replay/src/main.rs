@@ -110,6 +110,9 @@ struct RunArgs {
     /// Correct what the logged poses allow: resample each neighbour's costs by its real baseline ratio.
     #[arg(long)]
     rectify: bool,
+    /// Also write the results as a new MCAP log (with the input's metadata), readable by Foxglove.
+    #[arg(long, value_name = "FILE")]
+    out_mcap: Option<PathBuf>,
 }
 
 #[derive(Debug, Clone, Copy, ValueEnum)]
@@ -247,6 +250,22 @@ fn run_method(args: &RunArgs, quiet: bool) -> Result<Outcome> {
         anyhow::bail!("{} holds no complete view set to replay", log.display());
     }
     std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
+    let mut result_log = match &args.out_mcap {
+        Some(path) => {
+            let mut run = std::collections::BTreeMap::new();
+            run.insert("tool".to_owned(), "replay".to_owned());
+            run.insert("tool_version".to_owned(), env!("CARGO_PKG_VERSION").to_owned());
+            run.insert("input".to_owned(), log.display().to_string());
+            run.insert("method".to_owned(), method.name().to_owned());
+            run.insert("config".to_owned(), method.config_json().to_string());
+            run.insert("rectify".to_owned(), args.rectify.to_string());
+            Some(
+                replay::outputs::ResultLog::create(path, &contents.metadata, run)
+                    .with_context(|| format!("starting {}", path.display()))?,
+            )
+        }
+        None => None,
+    };
     let mut summaries = Vec::new();
     for set in sets {
         let nd = args.num_disparities.unwrap_or_else(|| set.default_num_disparities());
@@ -308,9 +327,12 @@ fn run_method(args: &RunArgs, quiet: bool) -> Result<Outcome> {
                 outputs.dir.display()
             ),
         }
-        summaries.push(
-            serde_json::json!({"outputs": outputs, "seconds": seconds, "num_disparities": nd, "alignment": alignment}),
-        );
+        let set_summary =
+            serde_json::json!({"outputs": outputs, "seconds": seconds, "num_disparities": nd, "alignment": alignment});
+        if let Some(result_log) = result_log.as_mut() {
+            result_log.write_set(set, method.name(), &disparity, &set_summary)?;
+        }
+        summaries.push(set_summary);
     }
     let summary = serde_json::json!({
         "tool": "replay",
@@ -325,6 +347,10 @@ fn run_method(args: &RunArgs, quiet: bool) -> Result<Outcome> {
         "log_metadata": contents.metadata,
         "seconds": started.elapsed().as_secs_f64(),
     });
+    if let Some(result_log) = result_log {
+        let path = result_log.finish()?;
+        info!("wrote {}", path.display());
+    }
     let summary_path = args.out.join("summary.json");
     std::fs::write(&summary_path, serde_json::to_string_pretty(&summary)?)
         .with_context(|| format!("writing {}", summary_path.display()))?;
@@ -412,6 +438,7 @@ fn run_demo(args: &DemoArgs, quiet: bool) -> Result<Outcome> {
             sets: Vec::new(),
             neighbours: Vec::new(),
             rectify: true,
+            out_mcap: None,
         },
         quiet,
     )

@@ -104,3 +104,126 @@ fn sanitize(name: &str) -> String {
         })
         .collect()
 }
+
+/// Topic of a method's disparity result for a set (`foxglove.RawImage`, `32FC1`, pixels,
+/// +inf = no estimate).
+pub fn result_disparity_topic(method: &str) -> String {
+    format!("/results/{method}/disparity")
+}
+
+/// Topic of a method's depth result (`foxglove.RawImage`, `32FC1`, metres, 0 = unknown).
+pub fn result_depth_topic(method: &str) -> String {
+    format!("/results/{method}/depth")
+}
+
+/// Topic of a method's colour-mapped disparity (`foxglove.RawImage`, `rgb8`).
+pub fn result_color_topic(method: &str) -> String {
+    format!("/results/{method}/disparity_color")
+}
+
+/// Topic of the reference calibration beside the results (so viewers can back-project depth).
+pub const RESULT_CALIBRATION_TOPIC: &str = "/results/calibration";
+/// Topic of per-set result summaries (JSON: set, method, metrics, timing).
+pub const RESULT_SUMMARY_TOPIC: &str = "/results/summary";
+
+/// Writes results as a new log: the inputs' metadata records, then per set (at the reference
+/// image's log time) the disparity, depth, colour map, calibration and a JSON summary.
+pub struct ResultLog {
+    writer: record::log::LogWriter<std::io::BufWriter<std::fs::File>>,
+    file: record::log::OutputFile,
+}
+
+fn raw_f32(time: u64, width: usize, height: usize, data: &[f32]) -> foxglove::messages::RawImage {
+    let mut bytes = Vec::with_capacity(data.len() * 4);
+    for v in data {
+        bytes.extend_from_slice(&v.to_le_bytes());
+    }
+    foxglove::messages::RawImage {
+        timestamp: Some(foxglove::messages::Timestamp::new(
+            (time / 1_000_000_000) as u32,
+            (time % 1_000_000_000) as u32,
+        )),
+        frame_id: record::log::CAMERA_FRAME.into(),
+        width: width as u32,
+        height: height as u32,
+        encoding: "32FC1".into(),
+        step: (width * 4) as u32,
+        data: bytes.into(),
+    }
+}
+
+impl ResultLog {
+    /// Starts the log, copying the input's metadata records.
+    pub fn create(
+        path: &Path,
+        input_metadata: &std::collections::BTreeMap<String, std::collections::BTreeMap<String, String>>,
+        run: std::collections::BTreeMap<String, String>,
+    ) -> Result<Self, record::log::LogError> {
+        let (file, writer) = record::log::OutputFile::create(path)?;
+        let mut writer = record::log::LogOptions::new().create(writer)?;
+        for (name, records) in input_metadata {
+            writer.write_metadata(name, records.clone())?;
+        }
+        writer.write_metadata("multiscopic.replay", run)?;
+        Ok(Self { writer, file })
+    }
+
+    /// Writes one set's results.
+    pub fn write_set(
+        &mut self,
+        set: &ViewSet,
+        method: &str,
+        disparity: &DisparityImage,
+        summary: &serde_json::Value,
+    ) -> Result<(), record::log::LogError> {
+        let time = set.reference.capture_time_nanos;
+        let (w, h) = (disparity.width, disparity.height);
+        let fb = set.reference.camera.fx * set.baseline_m;
+        let depth: Vec<f32> = disparity
+            .data
+            .iter()
+            .map(|d| fuse::depth_from_disparity(fb, 1.0, f64::from(*d)).map_or(0.0, |z| z as f32))
+            .collect();
+        self.writer.write_message(
+            &result_disparity_topic(method),
+            time,
+            &raw_f32(time, w, h, &disparity.data),
+        )?;
+        self.writer
+            .write_message(&result_depth_topic(method), time, &raw_f32(time, w, h, &depth))?;
+        if let Some((lo, hi)) = viz::files::finite_range(&disparity.data) {
+            let mut color = raw_f32(time, w, h, &[]);
+            color.encoding = "rgb8".into();
+            color.step = (w * 3) as u32;
+            color.data = viz::files::colorize(&disparity.data, lo, hi).into();
+            self.writer.write_message(&result_color_topic(method), time, &color)?;
+        }
+        let c = &set.reference.camera;
+        self.writer.write_message(
+            RESULT_CALIBRATION_TOPIC,
+            time,
+            &foxglove::messages::CameraCalibration {
+                timestamp: Some(foxglove::messages::Timestamp::new(
+                    (time / 1_000_000_000) as u32,
+                    (time % 1_000_000_000) as u32,
+                )),
+                frame_id: record::log::CAMERA_FRAME.into(),
+                width: c.width,
+                height: c.height,
+                distortion_model: "plumb_bob".into(),
+                d: vec![0.0; 5],
+                k: c.k_row_major().to_vec(),
+                r: vec![1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+                p: vec![c.fx, 0.0, c.cx, 0.0, 0.0, c.fy, c.cy, 0.0, 0.0, 0.0, 1.0, 0.0],
+            },
+        )?;
+        self.writer
+            .write_json(RESULT_SUMMARY_TOPIC, "multiscopic.SetResult", time, summary)
+    }
+
+    /// Finishes and renames the log into place.
+    pub fn finish(self) -> Result<PathBuf, record::log::LogError> {
+        let writer = self.writer.finish()?;
+        self.file.commit(writer)
+    }
+}

@@ -112,3 +112,82 @@ fn five_views_beat_three_which_beat_stereo_most_in_occlusions() {
         );
     }
 }
+
+#[test]
+fn replay_writes_result_files_and_a_result_log_other_tools_read() {
+    let dir = temp_dir();
+    let log = dir.path().join("capture.mcap");
+    assert_success(
+        &record(&[
+            "-o",
+            log.to_str().unwrap_or_default(),
+            "--resolution",
+            "320x180",
+            "--rig",
+            "three-view",
+            "-q",
+        ]),
+        "record",
+    );
+    let out = dir.path().join("results");
+    let result_log = dir.path().join("results.mcap");
+    let output = replay(&[
+        log.to_str().unwrap_or_default(),
+        "--method",
+        "bm-heuristic",
+        "--out",
+        out.to_str().unwrap_or_default(),
+        "--out-mcap",
+        result_log.to_str().unwrap_or_default(),
+        "-q",
+    ]);
+    assert_success(&output, "replay");
+    let set_dir = out.join("000-toy-0");
+    let (w, h, disparity) =
+        viz::files::read_pfm(&set_dir.join("bm-heuristic_disparity.pfm")).unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!((w, h), (320, 180));
+    assert!(
+        disparity.iter().all(|d| d.is_finite() && *d >= 0.0 && *d < 32.0),
+        "disparities out of the search range"
+    );
+    let metrics: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(set_dir.join("bm-heuristic_metrics.json")).unwrap_or_default())
+            .unwrap_or_else(|e| panic!("metrics.json: {e}"));
+    assert!(
+        metrics["metrics"]["all"]["avg_err"].as_f64().is_some_and(|e| e < 2.0),
+        "{metrics}"
+    );
+    let pngs = std::fs::read_dir(&set_dir)
+        .into_iter()
+        .flatten()
+        .flatten()
+        .filter(|e| e.file_name().to_string_lossy().ends_with(".png"))
+        .count();
+    assert_eq!(pngs, 2, "depth PNG and colour-mapped disparity PNG");
+    let script = multiscopic_tests::workspace_root().join("tests/python/check_mcap.py");
+    let check = multiscopic_tests::run(
+        std::process::Command::new(multiscopic_tests::python_with_mcap())
+            .arg(script)
+            .arg(&result_log),
+    );
+    assert_success(&check, "Python mcap on the result log");
+    let report: serde_json::Value = serde_json::from_slice(&check.stdout).unwrap_or_else(|e| panic!("{e}"));
+    for topic in [
+        "/results/bm-heuristic/disparity",
+        "/results/bm-heuristic/depth",
+        "/results/calibration",
+        "/results/summary",
+    ] {
+        assert_eq!(report["topics"][topic].as_u64(), Some(1), "{topic}: {report}");
+    }
+    let metadata: Vec<&str> = report["metadata"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .filter_map(|m| m.as_str())
+        .collect();
+    assert!(
+        metadata.contains(&"multiscopic.recording") && metadata.contains(&"multiscopic.replay"),
+        "{metadata:?}"
+    );
+}
