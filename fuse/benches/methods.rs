@@ -1,0 +1,57 @@
+//! Criterion benchmarks of the methods on a synthetic five-view problem (a textured slanted
+//! plane, 640×360, 64 disparities), read as ratios within one run: fused methods against their
+//! stereo baseline, SGM against block matching. The absolute figures against OpenCV come from
+//! `scripts/bench-replay.py`.
+
+#![allow(missing_docs)]
+
+use std::hint::black_box;
+
+use criterion::{Criterion, criterion_group, criterion_main};
+use fuse::{Image, Neighbour, Problem};
+
+/// A pseudo-random texture on a slanted plane, seen from the centre and four neighbours.
+fn problem(width: usize, height: usize, disparities: usize) -> Problem {
+    let texture = |u: f64, v: f64| -> [u8; 3] {
+        let h = ((u * 12.9898 + v * 78.233).sin() * 43758.5453).fract().abs();
+        let g = (128.0 + 100.0 * (u * 0.37).sin() * (v * 0.23).cos() + 27.0 * h) as u8;
+        [g, g.wrapping_add(40), g.wrapping_sub(30)]
+    };
+    let disparity = |x: usize| 8.0 + 40.0 * x as f64 / width as f64;
+    let render = |ox: f64, oy: f64| {
+        let mut rgb = Vec::with_capacity(width * height * 3);
+        for y in 0..height {
+            for x in 0..width {
+                let d = disparity(x);
+                rgb.extend_from_slice(&texture(x as f64 + ox * d, y as f64 + oy * d));
+            }
+        }
+        Image::rgb(width, height, rgb).unwrap_or_else(|e| panic!("{e}"))
+    };
+    let neighbour = |role: &str, offset: [i32; 2]| Neighbour {
+        role: role.into(),
+        image: render(f64::from(offset[0]), f64::from(offset[1])),
+        offset,
+        baseline_ratio: 1.0,
+    };
+    Problem {
+        reference: render(0.0, 0.0),
+        neighbours: vec![neighbour("left", [-1, 0]), neighbour("right", [1, 0]), neighbour("top", [0, -1]), neighbour("bottom", [0, 1])],
+        min_disparity: 0,
+        num_disparities: disparities,
+    }
+}
+
+fn methods(c: &mut Criterion) {
+    let problem = problem(640, 360, 64);
+    let mut group = c.benchmark_group("methods_640x360x64");
+    group.sample_size(10);
+    for name in ["bm-stereo", "bm-heuristic", "sgm-stereo", "sgm-heuristic"] {
+        let method = fuse::methods::build(name, None).unwrap_or_else(|e| panic!("{e}"));
+        group.bench_function(name, |b| b.iter(|| black_box(method.run(&problem, &|_| {}))));
+    }
+    group.finish();
+}
+
+criterion_group!(benches, methods);
+criterion_main!(benches);
