@@ -36,7 +36,12 @@ fn problem(width: usize, height: usize, disparities: usize) -> Problem {
     };
     Problem {
         reference: render(0.0, 0.0),
-        neighbours: vec![neighbour("left", [-1, 0]), neighbour("right", [1, 0]), neighbour("top", [0, -1]), neighbour("bottom", [0, 1])],
+        neighbours: vec![
+            neighbour("left", [-1, 0]),
+            neighbour("right", [1, 0]),
+            neighbour("top", [0, -1]),
+            neighbour("bottom", [0, 1]),
+        ],
         min_disparity: 0,
         num_disparities: disparities,
     }

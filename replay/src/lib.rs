@@ -11,6 +11,7 @@
 pub mod check;
 pub mod dataset;
 pub mod eval;
+pub mod foreign;
 pub mod log;
 pub mod outputs;
 pub mod regions;

@@ -33,11 +33,31 @@ pub struct LogContents {
 
 /// Reads a log file.
 pub fn read_log_file(path: &Path) -> Result<LogContents, ReplayError> {
+    read_log_file_in(path, None, None)
+}
+
+/// Reads the sets of a log file whose images lie between `start_secs` and `end_secs` after the
+/// log's first message (from its statistics; the Unix epoch when the log has no summary).
+pub fn read_log_file_in(
+    path: &Path,
+    start_secs: Option<f64>,
+    end_secs: Option<f64>,
+) -> Result<LogContents, ReplayError> {
     let bytes = std::fs::read(path).map_err(|source| ReplayError::Io {
         path: path.to_path_buf(),
         source,
     })?;
-    read_log(&bytes)
+    let origin = mcap::Summary::read(&bytes)
+        .ok()
+        .flatten()
+        .and_then(|s| s.stats.map(|stats| stats.message_start_time))
+        .unwrap_or(0);
+    let at = |secs: f64| origin.saturating_add((secs.max(0.0) * 1e9) as u64);
+    let range = TimeRange {
+        start_nanos: start_secs.map_or(0, at),
+        end_nanos: end_secs.map_or(u64::MAX, at),
+    };
+    read_log_in(&bytes, &range)
 }
 
 /// Capture events of a log (linear scan), recovering what a cut-off log holds.
@@ -45,8 +65,8 @@ pub fn read_capture_events(mcap_bytes: &[u8]) -> Result<Vec<CaptureEvent>, Repla
     let mut events = Vec::new();
     scan(
         mcap_bytes,
-        |topic| topic == CAPTURE_EVENTS_TOPIC,
-        |topic, log_time, data| {
+        |topic, _| topic == CAPTURE_EVENTS_TOPIC,
+        |topic, _, log_time, data| {
             if topic == CAPTURE_EVENTS_TOPIC {
                 let event = serde_json::from_slice(data).map_err(|source| ReplayError::BadEvent {
                     topic: CAPTURE_EVENTS_TOPIC,
@@ -122,8 +142,8 @@ fn record_length_limit(file_len: usize) -> usize {
 /// lengths and sizes end the scan instead of exhausting memory.
 fn scan(
     bytes: &[u8],
-    wanted: impl Fn(&str) -> bool,
-    mut on_message: impl FnMut(&str, u64, &[u8]) -> Result<(), ReplayError>,
+    wanted: impl Fn(&str, &str) -> bool,
+    mut on_message: impl FnMut(&str, &str, u64, &[u8]) -> Result<(), ReplayError>,
 ) -> Result<(usize, Option<String>), ReplayError> {
     use mcap::sans_io::{LinearReadEvent, LinearReader, LinearReaderOptions};
     if bytes.len() < MCAP_MAGIC.len() || &bytes[..MCAP_MAGIC.len()] != MCAP_MAGIC {
@@ -139,7 +159,8 @@ fn scan(
             .with_prevalidate_chunk_crcs(true),
     );
     let mut remaining = bytes;
-    let mut topics: HashMap<u16, String> = HashMap::new();
+    let mut topics: HashMap<u16, (String, u16)> = HashMap::new();
+    let mut schemas: HashMap<u16, String> = HashMap::new();
     let mut count = 0;
     while let Some(event) = reader.next_event() {
         let event = match event {
@@ -154,15 +175,19 @@ fn scan(
                 remaining = &remaining[len..];
             }
             LinearReadEvent::Record { data, opcode } => match mcap::parse_record(opcode, data) {
+                Ok(mcap::records::Record::Schema { header, .. }) => {
+                    schemas.insert(header.id, header.name.clone());
+                }
                 Ok(mcap::records::Record::Channel(channel)) => {
-                    topics.insert(channel.id, channel.topic.clone());
+                    topics.insert(channel.id, (channel.topic.clone(), channel.schema_id));
                 }
                 Ok(mcap::records::Record::Message { header, data }) => {
                     count += 1;
-                    if let Some(topic) = topics.get(&header.channel_id)
-                        && wanted(topic)
-                    {
-                        on_message(topic, header.log_time, &data)?;
+                    if let Some((topic, schema_id)) = topics.get(&header.channel_id) {
+                        let schema = schemas.get(schema_id).map_or("", String::as_str);
+                        if wanted(topic, schema) {
+                            on_message(topic, schema, header.log_time, &data)?;
+                        }
                     }
                 }
                 Ok(_) => {}
@@ -175,20 +200,57 @@ fn scan(
 
 /// Reads a log held in memory.
 pub fn read_log(bytes: &[u8]) -> Result<LogContents, ReplayError> {
+    read_log_in(bytes, &TimeRange::default())
+}
+
+/// A log-time window (ns since the Unix epoch); messages outside it are not kept.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct TimeRange {
+    /// First log time kept.
+    pub start_nanos: u64,
+    /// Last log time kept.
+    pub end_nanos: u64,
+}
+
+impl Default for TimeRange {
+    fn default() -> Self {
+        Self {
+            start_nanos: 0,
+            end_nanos: u64::MAX,
+        }
+    }
+}
+
+impl TimeRange {
+    fn contains(&self, time: u64) -> bool {
+        (self.start_nanos..=self.end_nanos).contains(&time)
+    }
+}
+
+/// Reads the view sets of a log whose images fall within `range`. Logs without capture events
+/// (foreign logs with images, calibrations and `/tf`) get their sets inferred from the poses.
+pub fn read_log_in(bytes: &[u8], range: &TimeRange) -> Result<LogContents, ReplayError> {
     let mut events: Vec<CaptureEvent> = Vec::new();
     let mut payloads: HashMap<(String, u64), Vec<u8>> = HashMap::new();
+    let mut foreign = crate::foreign::ForeignMessages::default();
     let (messages, truncation) = scan(
         bytes,
-        |topic| topic == CAPTURE_EVENTS_TOPIC || topic.starts_with("/camera/"),
-        |topic, log_time, data| {
+        |topic, schema| {
+            topic == CAPTURE_EVENTS_TOPIC || topic.starts_with("/camera/") || crate::foreign::is_foreign_input(schema)
+        },
+        |topic, schema, log_time, data| {
             if topic == CAPTURE_EVENTS_TOPIC {
-                events.push(serde_json::from_slice(data).map_err(|source| ReplayError::BadEvent {
-                    topic: CAPTURE_EVENTS_TOPIC,
-                    log_time,
-                    source,
-                })?);
-            } else {
-                payloads.insert((topic.to_owned(), log_time), data.to_vec());
+                if range.contains(log_time) {
+                    events.push(serde_json::from_slice(data).map_err(|source| ReplayError::BadEvent {
+                        topic: CAPTURE_EVENTS_TOPIC,
+                        log_time,
+                        source,
+                    })?);
+                }
+            } else if range.contains(log_time) || schema == crate::foreign::TRANSFORMS_SCHEMA {
+                if foreign.add(topic, schema, log_time, data) {
+                    payloads.insert((topic.to_owned(), log_time), data.to_vec());
+                }
             }
             Ok(())
         },
@@ -198,6 +260,16 @@ pub fn read_log(bytes: &[u8]) -> Result<LogContents, ReplayError> {
     {
         return Err(ReplayError::Mcap {
             source: mcap::McapError::Io(std::io::Error::new(std::io::ErrorKind::InvalidData, reason.clone())),
+        });
+    }
+    if events.is_empty() && foreign.has_images() {
+        let sets = foreign.infer_sets(&payloads)?;
+        return Ok(LogContents {
+            sets,
+            incomplete_sets: Vec::new(),
+            messages,
+            truncation,
+            metadata: read_metadata(bytes),
         });
     }
     let mut by_set: BTreeMap<u32, Vec<CaptureEvent>> = BTreeMap::new();
@@ -265,7 +337,7 @@ fn payload<'a>(
         })
 }
 
-fn decode_rgb(set: u32, topic: &str, data: &[u8]) -> Result<(u32, u32, Vec<u8>), ReplayError> {
+pub(crate) fn decode_rgb(set: u32, topic: &str, data: &[u8]) -> Result<(u32, u32, Vec<u8>), ReplayError> {
     // A CompressedImage has `format` (field 3) and no `width`; try RawImage first by its fields.
     if let Ok(raw) = <RawImage as prost::Message>::decode(data)
         && raw.width > 0

@@ -104,6 +104,12 @@ struct RunArgs {
     /// Only these sets (indexes, comma-separated).
     #[arg(long, value_delimiter = ',')]
     sets: Vec<u32>,
+    /// Only images logged at least this many seconds after the log's first message.
+    #[arg(long, value_name = "SECS")]
+    start: Option<f64>,
+    /// Only images logged at most this many seconds after the log's first message.
+    #[arg(long, value_name = "SECS")]
+    end: Option<f64>,
     /// Only these neighbours (roles, comma-separated), e.g. left,right for three views of a five-view set.
     #[arg(long, value_delimiter = ',')]
     neighbours: Vec<String>,
@@ -229,7 +235,8 @@ fn run_method(args: &RunArgs, quiet: bool) -> Result<Outcome> {
     };
     let method = fuse::methods::build(&args.method, overrides.as_ref()).map_err(|e| UsageError(e.to_string()))?;
     let started = Instant::now();
-    let contents = read_log_file(log).with_context(|| format!("reading {}", log.display()))?;
+    let contents = replay::log::read_log_file_in(log, args.start, args.end)
+        .with_context(|| format!("reading {}", log.display()))?;
     if let Some(reason) = &contents.truncation {
         warn!(
             "{} is cut off or corrupt after {} messages ({reason}); recovered {} complete set(s)",
@@ -436,6 +443,8 @@ fn run_demo(args: &DemoArgs, quiet: bool) -> Result<Outcome> {
             num_disparities: None,
             min_disparity: 0,
             sets: Vec::new(),
+            start: None,
+            end: None,
             neighbours: Vec::new(),
             rectify: true,
             out_mcap: None,

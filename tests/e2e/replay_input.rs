@@ -238,3 +238,142 @@ fn random_bytes_and_truncations_never_panic_the_reader() {
     println!("fuzz: {} read, {} rejected with an error", outcomes[0], outcomes[1]);
     assert!(outcomes[0] > 0 && outcomes[1] > 0);
 }
+
+/// A copy of a log without its capture events: what another recorder would write.
+fn strip_capture_events(from: &Path, to: &Path) {
+    let bytes = std::fs::read(from).unwrap_or_else(|e| panic!("{e}"));
+    let file = std::io::BufWriter::new(std::fs::File::create(to).unwrap_or_else(|e| panic!("{e}")));
+    let mut writer = mcap::WriteOptions::new().create(file).unwrap_or_else(|e| panic!("{e}"));
+    let mut channels = std::collections::HashMap::new();
+    for message in mcap::MessageStream::new(&bytes).unwrap_or_else(|e| panic!("{e}")) {
+        let message = message.unwrap_or_else(|e| panic!("{e}"));
+        if message.channel.topic == record::log::CAPTURE_EVENTS_TOPIC {
+            continue;
+        }
+        let id = *channels.entry(message.channel.topic.clone()).or_insert_with(|| {
+            let schema = message.channel.schema.as_ref().unwrap_or_else(|| panic!("no schema"));
+            let schema_id = writer
+                .add_schema(&schema.name, &schema.encoding, &schema.data)
+                .unwrap_or_else(|e| panic!("{e}"));
+            writer
+                .add_channel(
+                    schema_id,
+                    &message.channel.topic,
+                    &message.channel.message_encoding,
+                    &std::collections::BTreeMap::new(),
+                )
+                .unwrap_or_else(|e| panic!("{e}"))
+        });
+        let header = mcap::records::MessageHeader {
+            channel_id: id,
+            sequence: message.sequence,
+            log_time: message.log_time,
+            publish_time: message.publish_time,
+        };
+        writer
+            .write_to_known_channel(&header, &message.data)
+            .unwrap_or_else(|e| panic!("{e}"));
+    }
+    writer.finish().unwrap_or_else(|e| panic!("{e}"));
+}
+
+#[test]
+fn foreign_logs_without_capture_events_get_their_sets_from_the_poses() {
+    let dir = temp_dir();
+    let ours = dir.path().join("ours.mcap");
+    let args = [
+        "-o",
+        ours.to_str().unwrap_or_default(),
+        "--resolution",
+        "160x90",
+        "--samples-per-pixel",
+        "1",
+        "--captures",
+        "3",
+        "-q",
+    ];
+    assert_success(&record(&args), "record");
+    let foreign = dir.path().join("foreign.mcap");
+    strip_capture_events(&ours, &foreign);
+    let contents = replay::log::read_log_file(&foreign).unwrap_or_else(|e| panic!("{e}"));
+    let original = replay::log::read_log_file(&ours).unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(contents.sets.len(), 3, "sets inferred from the poses");
+    for (inferred, logged) in contents.sets.iter().zip(&original.sets) {
+        assert_eq!(
+            inferred.reference.rgb, logged.reference.rgb,
+            "set {}: wrong reference view",
+            inferred.index
+        );
+        let mut roles: Vec<(String, [i32; 2])> =
+            inferred.neighbours.iter().map(|n| (n.role.clone(), n.offset)).collect();
+        let mut expected: Vec<(String, [i32; 2])> =
+            logged.neighbours.iter().map(|n| (n.role.clone(), n.offset)).collect();
+        roles.sort();
+        expected.sort();
+        assert_eq!(roles, expected, "set {}", inferred.index);
+        assert!(
+            (inferred.baseline_m - 0.02).abs() < 0.0005,
+            "baseline {}",
+            inferred.baseline_m
+        );
+    }
+    let out = dir.path().join("out");
+    let output = replay(&[
+        foreign.to_str().unwrap_or_default(),
+        "--method",
+        "bm-heuristic",
+        "--out",
+        out.to_str().unwrap_or_default(),
+        "-q",
+    ]);
+    assert_success(&output, "replay of a foreign log");
+}
+
+#[test]
+fn time_range_selects_sets() {
+    let dir = temp_dir();
+    let log = dir.path().join("three.mcap");
+    let args = [
+        "-o",
+        log.to_str().unwrap_or_default(),
+        "--resolution",
+        "96x64",
+        "--samples-per-pixel",
+        "1",
+        "--captures",
+        "3",
+        "-q",
+    ];
+    assert_success(&record(&args), "record");
+    let all = replay::log::read_log_file(&log).unwrap_or_else(|e| panic!("{e}"));
+    let start = all.sets[0].reference.capture_time_nanos;
+    let first_of = |i: usize| {
+        all.sets[i].reference.capture_time_nanos.min(
+            all.sets[i]
+                .neighbours
+                .iter()
+                .map(|n| n.capture_time_nanos)
+                .min()
+                .unwrap_or(u64::MAX),
+        )
+    };
+    let last_of = |i: usize| {
+        all.sets[i]
+            .neighbours
+            .iter()
+            .map(|n| n.capture_time_nanos)
+            .max()
+            .unwrap_or(0)
+    };
+    // The log starts with the arm's first motion sample, before the first image.
+    let origin = mcap::Summary::read(&std::fs::read(&log).unwrap_or_default())
+        .ok()
+        .flatten()
+        .and_then(|s| s.stats.map(|s| s.message_start_time))
+        .unwrap_or(start);
+    let secs = |t: u64| (t - origin) as f64 / 1e9;
+    let window = replay::log::read_log_file_in(&log, Some(secs(first_of(1)) - 0.001), Some(secs(last_of(1)) + 0.001))
+        .unwrap_or_else(|e| panic!("{e}"));
+    let indexes: Vec<u32> = window.sets.iter().map(|s| s.index).collect();
+    assert_eq!(indexes, vec![1], "only the middle set lies in the window");
+}
