@@ -247,10 +247,10 @@ pub fn read_log_in(bytes: &[u8], range: &TimeRange) -> Result<LogContents, Repla
                         source,
                     })?);
                 }
-            } else if range.contains(log_time) || schema == crate::foreign::TRANSFORMS_SCHEMA {
-                if foreign.add(topic, schema, log_time, data) {
-                    payloads.insert((topic.to_owned(), log_time), data.to_vec());
-                }
+            } else if (range.contains(log_time) || schema == crate::foreign::TRANSFORMS_SCHEMA)
+                && foreign.add(topic, schema, log_time, data)
+            {
+                payloads.insert((topic.to_owned(), log_time), data.to_vec());
             }
             Ok(())
         },
@@ -263,10 +263,15 @@ pub fn read_log_in(bytes: &[u8], range: &TimeRange) -> Result<LogContents, Repla
         });
     }
     if events.is_empty() && foreign.has_images() {
-        let sets = foreign.infer_sets(&payloads)?;
+        // A cut-off log may have lost what the inference needs: report, do not fail.
+        let (sets, incomplete_sets) = match (foreign.infer_sets(&payloads), &truncation) {
+            (Ok(sets), _) => (sets, Vec::new()),
+            (Err(error), Some(_)) => (Vec::new(), vec![(0, error.to_string())]),
+            (Err(error), None) => return Err(error),
+        };
         return Ok(LogContents {
             sets,
-            incomplete_sets: Vec::new(),
+            incomplete_sets,
             messages,
             truncation,
             metadata: read_metadata(bytes),
