@@ -158,7 +158,7 @@ impl Default for SimulationConfig {
 #[derive(Debug, thiserror::Error)]
 pub enum SimulationError {
     /// The arm cannot reach a planned camera pose.
-    #[error("set {set} view '{role}': the arm cannot reach the planned camera pose: {source}")]
+    #[error("set {set} view '{role}': the arm cannot reach the planned camera pose")]
     Kinematics {
         /// Set index.
         set: u32,

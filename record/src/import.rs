@@ -83,7 +83,7 @@ pub enum ImportError {
         given: usize,
     },
     /// A file is missing or unreadable.
-    #[error("cannot read '{path}': {source}")]
+    #[error("cannot read '{path}'")]
     Read {
         /// File.
         path: PathBuf,

@@ -181,7 +181,7 @@ pub fn capture_event_json_schema() -> serde_json::Value {
 #[derive(Debug, thiserror::Error)]
 pub enum LogError {
     /// The MCAP writer failed.
-    #[error("MCAP write to topic '{topic}' failed: {source}")]
+    #[error("MCAP write to topic '{topic}' failed")]
     Mcap {
         /// Topic (or record kind) being written.
         topic: String,
@@ -198,7 +198,7 @@ pub enum LogError {
         reason: String,
     },
     /// Creating, writing or renaming the output file failed.
-    #[error("{action} '{path}': {source}")]
+    #[error("{action} '{path}'")]
     Io {
         /// What was being done.
         action: &'static str,

@@ -20,7 +20,7 @@ pub enum SessionError {
     #[error(transparent)]
     Log(#[from] LogError),
     /// Serialising the configuration or scene failed.
-    #[error("cannot serialise {what}: {source}")]
+    #[error("cannot serialise {what}")]
     Json {
         /// What.
         what: &'static str,

@@ -21,14 +21,14 @@ pub mod viewset;
 #[derive(Debug, thiserror::Error)]
 pub enum ReplayError {
     /// The bytes are not a readable MCAP log.
-    #[error("not a readable MCAP log: {source}")]
+    #[error("not a readable MCAP log")]
     Mcap {
         /// Cause.
         #[source]
         source: mcap::McapError,
     },
     /// A file could not be read.
-    #[error("cannot read '{path}': {source}")]
+    #[error("cannot read '{path}'")]
     Io {
         /// File.
         path: std::path::PathBuf,
@@ -37,7 +37,7 @@ pub enum ReplayError {
         source: std::io::Error,
     },
     /// A capture event does not parse.
-    #[error("capture event at log time {log_time} on {topic} is malformed: {source}")]
+    #[error("capture event at log time {log_time} on {topic} is malformed")]
     BadEvent {
         /// Topic.
         topic: &'static str,
@@ -124,7 +124,7 @@ pub enum ReplayError {
         reference_height: u32,
     },
     /// The algorithms rejected the set.
-    #[error("set {set}: {source}")]
+    #[error("set {set}")]
     Fuse {
         /// Set.
         set: u32,

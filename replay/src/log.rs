@@ -31,7 +31,7 @@ pub struct LogContents {
     pub metadata: BTreeMap<String, BTreeMap<String, String>>,
 }
 
-/// Reads a log file.
+/// Reads a log file (memory-mapped).
 pub fn read_log_file(path: &Path) -> Result<LogContents, ReplayError> {
     read_log_file_in(path, None, None)
 }
@@ -43,10 +43,12 @@ pub fn read_log_file_in(
     start_secs: Option<f64>,
     end_secs: Option<f64>,
 ) -> Result<LogContents, ReplayError> {
-    let bytes = std::fs::read(path).map_err(|source| ReplayError::Io {
+    let io = |source| ReplayError::Io {
         path: path.to_path_buf(),
         source,
-    })?;
+    };
+    let file = std::fs::File::open(path).map_err(io)?;
+    let bytes = map_read_only(&file).map_err(io)?;
     let origin = mcap::Summary::read(&bytes)
         .ok()
         .flatten()
@@ -58,6 +60,15 @@ pub fn read_log_file_in(
         end_nanos: end_secs.map_or(u64::MAX, at),
     };
     read_log_in(&bytes, &range)
+}
+
+/// Maps a log file read-only.
+#[allow(unsafe_code)]
+fn map_read_only(file: &std::fs::File) -> std::io::Result<memmap2::Mmap> {
+    // SAFETY: the mapping is read-only and lives only while the log is read; a log truncated or
+    // rewritten by another process meanwhile is outside what replay supports (as with every
+    // mmap-based MCAP reader), and the reader bounds-checks every record it parses.
+    unsafe { memmap2::Mmap::map(file) }
 }
 
 /// Capture events of a log (linear scan), recovering what a cut-off log holds.

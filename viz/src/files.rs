@@ -11,7 +11,7 @@ use crate::turbo;
 #[derive(Debug, thiserror::Error)]
 pub enum FileError {
     /// The file could not be written.
-    #[error("cannot write '{path}': {source}")]
+    #[error("cannot write '{path}'")]
     Io {
         /// File.
         path: PathBuf,
