@@ -11,6 +11,7 @@
 
 pub mod camera;
 pub mod capture;
+pub mod cli;
 pub mod import;
 pub mod log;
 pub mod render;

@@ -12,10 +12,10 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, Parser, Subcommand};
-use indicatif::{ProgressBar, ProgressStyle};
 use record::capture::{
     CameraAxis, ErrorInjection, Simulation, SimulationConfig, SimulationError, ViewExposure, ViewPoseError,
 };
+use record::cli::{Outcome, UsageError, exit_code, init_logging, parse_args, progress_bar};
 use record::import::{ImportConfig, find_set_dirs, import_set};
 use record::log::{LogOptions, METADATA_NAME, OutputFile};
 use record::rig::RigKind;
@@ -23,10 +23,6 @@ use record::scene::SceneKind;
 use record::session::record_simulation;
 use record::{ImageFormat, TOOL_VERSION};
 use tracing::{info, warn};
-
-const EXIT_ERROR: u8 = 1;
-const EXIT_USAGE: u8 = 2;
-const EXIT_INCOMPLETE: u8 = 3;
 
 /// Record multiscopic captures (a simulated UR10 moving a camera in its image plane) as MCAP logs
 /// with Foxglove schemas and ground truth, or import real image sets into the same format.
@@ -236,47 +232,17 @@ struct ImportArgs {
     sets: Vec<String>,
 }
 
-/// An error that is the user's input, not the program's: exit 2.
-#[derive(Debug, thiserror::Error)]
-#[error("{0}")]
-struct UsageError(String);
-
-enum Outcome {
-    Complete,
-    Incomplete,
-}
-
 fn main() -> ExitCode {
-    let cli = match Cli::try_parse() {
+    let cli: Cli = match parse_args() {
         Ok(cli) => cli,
-        Err(error) => {
-            let code = error.exit_code();
-            let _ = error.print();
-            return ExitCode::from(code.clamp(0, 255) as u8);
-        }
+        Err(code) => return code,
     };
-    let level = if cli.quiet { "error" } else { "info" };
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env()
-                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(level)),
-        )
-        .with_writer(std::io::stderr)
-        .with_target(false)
-        .init();
+    init_logging(cli.quiet);
     let result = match cli.command {
         Some(Command::Import(args)) => run_import(&args),
         None => run_simulation(&cli.simulate, cli.quiet),
     };
-    match result {
-        Ok(Outcome::Complete) => ExitCode::SUCCESS,
-        Ok(Outcome::Incomplete) => ExitCode::from(EXIT_INCOMPLETE),
-        Err(error) => {
-            let usage = error.chain().any(|cause| cause.is::<UsageError>());
-            eprintln!("error: {error:#}");
-            ExitCode::from(if usage { EXIT_USAGE } else { EXIT_ERROR })
-        }
-    }
+    exit_code(result)
 }
 
 fn simulation_config(args: &SimulateArgs) -> SimulationConfig {
@@ -303,19 +269,6 @@ fn simulation_config(args: &SimulateArgs) -> SimulationConfig {
         },
         ..SimulationConfig::default()
     }
-}
-
-fn progress_bar(total: u64, quiet: bool, unit: &str) -> ProgressBar {
-    if quiet {
-        return ProgressBar::hidden();
-    }
-    let bar = ProgressBar::new(total);
-    let template =
-        format!("{{spinner}} [{{elapsed_precise}}] {{bar:32}} {{pos}}/{{len}} {unit} ({{eta}} left) {{msg}}");
-    if let Ok(style) = ProgressStyle::with_template(&template) {
-        bar.set_style(style);
-    }
-    bar
 }
 
 fn interrupt_flag() -> Arc<AtomicBool> {

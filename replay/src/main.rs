@@ -9,16 +9,12 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use clap::{Args, Parser, Subcommand, ValueEnum};
-use indicatif::{ProgressBar, ProgressStyle};
+use record::cli::{Outcome, UsageError, exit_code, init_logging, parse_args, progress_bar};
 use replay::eval::{csv, evaluate_sets, markdown};
 use replay::log::read_log_file;
 use replay::outputs::write_set_outputs;
 use replay::viewset::ViewSet;
 use tracing::{info, warn};
-
-const EXIT_ERROR: u8 = 1;
-const EXIT_USAGE: u8 = 2;
-const EXIT_INCOMPLETE: u8 = 3;
 
 /// Run multiscopic depth methods on the view sets of an MCAP log (from `record`), write the
 /// results and evaluate them against ground truth.
@@ -160,33 +156,12 @@ struct EvalArgs {
     rectify: bool,
 }
 
-#[derive(Debug, thiserror::Error)]
-#[error("{0}")]
-struct UsageError(String);
-
-enum Outcome {
-    Complete,
-    Incomplete,
-}
-
 fn main() -> ExitCode {
-    let cli = match Cli::try_parse() {
+    let cli: Cli = match parse_args() {
         Ok(cli) => cli,
-        Err(error) => {
-            let code = error.exit_code();
-            let _ = error.print();
-            return ExitCode::from(code.clamp(0, 255) as u8);
-        }
+        Err(code) => return code,
     };
-    let level = if cli.quiet { "error" } else { "info" };
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env()
-                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(level)),
-        )
-        .with_writer(std::io::stderr)
-        .with_target(false)
-        .init();
+    init_logging(cli.quiet);
     let result = if cli.list_methods {
         for entry in fuse::methods::registry() {
             println!("{:<16} {}", entry.name, entry.summary);
@@ -200,26 +175,7 @@ fn main() -> ExitCode {
             None => run_method(&cli.run, cli.quiet),
         }
     };
-    match result {
-        Ok(Outcome::Complete) => ExitCode::SUCCESS,
-        Ok(Outcome::Incomplete) => ExitCode::from(EXIT_INCOMPLETE),
-        Err(error) => {
-            let usage = error.chain().any(|c| c.is::<UsageError>());
-            eprintln!("error: {error:#}");
-            ExitCode::from(if usage { EXIT_USAGE } else { EXIT_ERROR })
-        }
-    }
-}
-
-fn bar(total: u64, quiet: bool) -> ProgressBar {
-    if quiet {
-        return ProgressBar::hidden();
-    }
-    let bar = ProgressBar::new(total);
-    if let Ok(style) = ProgressStyle::with_template("{spinner} [{elapsed_precise}] {bar:32} {percent:>3}% {msg}") {
-        bar.set_style(style);
-    }
-    bar
+    exit_code(result)
 }
 
 fn run_method(args: &RunArgs, quiet: bool) -> Result<Outcome> {
@@ -299,7 +255,7 @@ fn run_method(args: &RunArgs, quiet: bool) -> Result<Outcome> {
         let problem = set
             .with_neighbours(&args.neighbours)?
             .problem(args.min_disparity, nd, args.rectify)?;
-        let progress = bar(1000, quiet);
+        let progress = progress_bar(100, quiet, "%");
         progress.set_message(format!(
             "set {} {} ({} neighbours, {nd} disparities)",
             set.index,
@@ -308,7 +264,7 @@ fn run_method(args: &RunArgs, quiet: bool) -> Result<Outcome> {
         ));
         let method_started = Instant::now();
         let disparity = method
-            .run(&problem, &|fraction| progress.set_position((fraction * 1000.0) as u64))
+            .run(&problem, &|fraction| progress.set_position((fraction * 100.0) as u64))
             .with_context(|| format!("set {}: {}", set.index, method.name()))?;
         let seconds = method_started.elapsed().as_secs_f64();
         progress.finish_and_clear();
@@ -411,7 +367,7 @@ fn run_demo(args: &DemoArgs, quiet: bool) -> Result<Outcome> {
     let log = args.out.join("capture.mcap");
     let mut sim = record::capture::Simulation::new(config.clone())?;
     let views = config.rig.capture_order().len() as u64 * u64::from(config.captures);
-    let progress = bar(views, quiet);
+    let progress = progress_bar(views, quiet, "views");
     info!(
         "recording a simulated {} capture of the {} scene → {}",
         config.rig.name(),
@@ -493,7 +449,7 @@ fn run_eval(args: &EvalArgs) -> Result<Outcome> {
     if with_truth == 0 {
         anyhow::bail!("none of the {} view sets has ground truth", sets.len());
     }
-    let progress = bar((args.methods.len() * with_truth) as u64, false);
+    let progress = progress_bar((args.methods.len() * with_truth) as u64, false, "runs");
     let options = replay::eval::EvalOptions {
         num_disparities: args.num_disparities,
         overrides,

@@ -1,0 +1,78 @@
+//! What the `record` and `replay` binaries share: exit codes, usage errors, logging set-up,
+//! progress bars, and the mapping from a run's outcome to the process exit code.
+
+use std::process::ExitCode;
+
+use indicatif::{ProgressBar, ProgressStyle};
+
+/// Exit code of an error.
+pub const EXIT_ERROR: u8 = 1;
+/// Exit code of invalid usage (as clap uses).
+pub const EXIT_USAGE: u8 = 2;
+/// Exit code of a run that finished but lost or flagged something.
+pub const EXIT_INCOMPLETE: u8 = 3;
+
+/// An error that is the user's input, not the program's: exit 2.
+#[derive(Debug, thiserror::Error)]
+#[error("{0}")]
+pub struct UsageError(pub String);
+
+/// How a run ended.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Outcome {
+    /// Everything done.
+    Complete,
+    /// Finished, but something was wrong or lost (exit 3).
+    Incomplete,
+}
+
+/// Parses the command line; on a usage error or `--help`, prints clap's message and returns the
+/// exit code to leave with.
+pub fn parse_args<P: clap::Parser>() -> Result<P, ExitCode> {
+    P::try_parse().map_err(|error| {
+        let code = error.exit_code();
+        let _ = error.print();
+        ExitCode::from(code.clamp(0, 255) as u8)
+    })
+}
+
+/// Logs to stderr at `info` (or `error` when quiet), overridable with `RUST_LOG`.
+pub fn init_logging(quiet: bool) {
+    let level = if quiet { "error" } else { "info" };
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(level)),
+        )
+        .with_writer(std::io::stderr)
+        .with_target(false)
+        .init();
+}
+
+/// The exit code of a run; errors are printed with their causes.
+pub fn exit_code(result: anyhow::Result<Outcome>) -> ExitCode {
+    match result {
+        Ok(Outcome::Complete) => ExitCode::SUCCESS,
+        Ok(Outcome::Incomplete) => ExitCode::from(EXIT_INCOMPLETE),
+        Err(error) => {
+            let usage = error.chain().any(|cause| cause.is::<UsageError>());
+            eprintln!("error: {error:#}");
+            ExitCode::from(if usage { EXIT_USAGE } else { EXIT_ERROR })
+        }
+    }
+}
+
+/// A progress bar on stderr counting `unit`s (hidden when quiet; indicatif hides it off a
+/// terminal).
+pub fn progress_bar(total: u64, quiet: bool, unit: &str) -> ProgressBar {
+    if quiet {
+        return ProgressBar::hidden();
+    }
+    let bar = ProgressBar::new(total);
+    let template =
+        format!("{{spinner}} [{{elapsed_precise}}] {{bar:32}} {{pos}}/{{len}} {unit} ({{eta}} left) {{msg}}");
+    if let Ok(style) = ProgressStyle::with_template(&template) {
+        bar.set_style(style);
+    }
+    bar
+}
