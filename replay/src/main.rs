@@ -109,7 +109,7 @@ struct RunArgs {
     /// Only these neighbours (roles, comma-separated), e.g. left,right for three views of a five-view set.
     #[arg(long, value_delimiter = ',')]
     neighbours: Vec<String>,
-    /// Correct what the logged poses allow: resample each neighbour's costs by its real baseline ratio.
+    /// Correct what the logged poses allow: de-rotate each neighbour (homography), resample its costs by its real baseline ratio.
     #[arg(long)]
     rectify: bool,
     /// Also write the results as a new MCAP log (with the input's metadata), readable by Foxglove.
@@ -151,7 +151,7 @@ struct EvalArgs {
     /// Only these neighbours (roles, comma-separated), e.g. left,right for three views of a five-view set.
     #[arg(long, value_delimiter = ',')]
     neighbours: Vec<String>,
-    /// Correct what the logged poses allow: resample each neighbour's costs by its real baseline ratio.
+    /// Correct what the logged poses allow: de-rotate each neighbour (homography), resample its costs by its real baseline ratio.
     #[arg(long)]
     rectify: bool,
 }
