@@ -209,6 +209,107 @@ fn scan(
     Ok((count, cut))
 }
 
+/// Reads the messages of `wanted` channels with log times in `range` through the summary's chunk
+/// and message indexes: only the chunks that hold such messages are decompressed. `None` when the
+/// log has no usable summary (then the caller scans linearly).
+fn scan_indexed(
+    bytes: &[u8],
+    range: &TimeRange,
+    wanted: impl Fn(&str, &str) -> bool,
+    mut on_message: impl FnMut(&str, &str, u64, &[u8]) -> Result<(), ReplayError>,
+) -> Option<Result<usize, ReplayError>> {
+    use mcap::sans_io::{IndexedReadEvent, IndexedReader, IndexedReaderOptions};
+    let summary = mcap::Summary::read(bytes).ok().flatten()?;
+    if summary.chunk_indexes.is_empty() {
+        return None;
+    }
+    let channels: HashMap<u16, (String, String)> = summary
+        .channels
+        .iter()
+        .map(|(id, c)| {
+            (
+                *id,
+                (
+                    c.topic.clone(),
+                    c.schema.as_ref().map_or_else(String::new, |s| s.name.clone()),
+                ),
+            )
+        })
+        .filter(|(_, (topic, schema))| wanted(topic, schema))
+        .collect();
+    let topics: Vec<String> = channels.values().map(|(topic, _)| topic.clone()).collect();
+    let options = IndexedReaderOptions::new()
+        .include_topics(topics)
+        .starting_at(range.start_nanos)
+        .ending_before(range.end_nanos.saturating_add(1))
+        .with_record_length_limit(record_length_limit(bytes.len()));
+    let mut reader = IndexedReader::new_with_options(&summary, options).ok()?;
+    let mut count = 0;
+    // The indexed reader trusts the summary; a chunk that contradicts it makes it panic, so a
+    // corrupt file falls back to the linear scan, which reports what it finds.
+    let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| -> Result<usize, ReplayError> {
+        while let Some(event) = reader.next_event() {
+            match event.map_err(|source| ReplayError::Mcap { source })? {
+                IndexedReadEvent::ReadChunkRequest { offset, length } => {
+                    let start = usize::try_from(offset).unwrap_or(usize::MAX);
+                    let chunk = bytes
+                        .get(start..start.saturating_add(length))
+                        .ok_or(ReplayError::Mcap {
+                            source: mcap::McapError::UnexpectedEof,
+                        })?;
+                    reader
+                        .insert_chunk_record_data(offset, chunk)
+                        .map_err(|source| ReplayError::Mcap { source })?;
+                }
+                IndexedReadEvent::Message { header, data } => {
+                    count += 1;
+                    if let Some((topic, schema)) = channels.get(&header.channel_id) {
+                        on_message(topic, schema, header.log_time, data)?;
+                    }
+                }
+            }
+        }
+        Ok(count)
+    }));
+    result.ok()
+}
+
+/// What a scan keeps: capture events, payloads of the topics a set may need, and what
+/// foreign-log inference needs.
+#[derive(Default)]
+struct Collected {
+    events: Vec<CaptureEvent>,
+    payloads: HashMap<(String, u64), Vec<u8>>,
+    foreign: crate::foreign::ForeignMessages,
+}
+
+impl Collected {
+    fn keep(
+        &mut self,
+        range: &TimeRange,
+        topic: &str,
+        schema: &str,
+        log_time: u64,
+        data: &[u8],
+    ) -> Result<(), ReplayError> {
+        if topic == CAPTURE_EVENTS_TOPIC {
+            if range.contains(log_time) {
+                self.events
+                    .push(serde_json::from_slice(data).map_err(|source| ReplayError::BadEvent {
+                        topic: CAPTURE_EVENTS_TOPIC,
+                        log_time,
+                        source,
+                    })?);
+            }
+        } else if (range.contains(log_time) || schema == crate::foreign::TRANSFORMS_SCHEMA)
+            && self.foreign.add(topic, schema, log_time, data)
+        {
+            self.payloads.insert((topic.to_owned(), log_time), data.to_vec());
+        }
+        Ok(())
+    }
+}
+
 /// Reads a log held in memory.
 pub fn read_log(bytes: &[u8]) -> Result<LogContents, ReplayError> {
     read_log_in(bytes, &TimeRange::default())
@@ -241,31 +342,46 @@ impl TimeRange {
 /// Reads the view sets of a log whose images fall within `range`. Logs without capture events
 /// (foreign logs with images, calibrations and `/tf`) get their sets inferred from the poses.
 pub fn read_log_in(bytes: &[u8], range: &TimeRange) -> Result<LogContents, ReplayError> {
-    let mut events: Vec<CaptureEvent> = Vec::new();
-    let mut payloads: HashMap<(String, u64), Vec<u8>> = HashMap::new();
-    let mut foreign = crate::foreign::ForeignMessages::default();
-    let (messages, truncation) = scan(
-        bytes,
-        |topic, schema| {
-            topic == CAPTURE_EVENTS_TOPIC || topic.starts_with("/camera/") || crate::foreign::is_foreign_input(schema)
-        },
-        |topic, schema, log_time, data| {
-            if topic == CAPTURE_EVENTS_TOPIC {
-                if range.contains(log_time) {
-                    events.push(serde_json::from_slice(data).map_err(|source| ReplayError::BadEvent {
-                        topic: CAPTURE_EVENTS_TOPIC,
-                        log_time,
-                        source,
-                    })?);
-                }
-            } else if (range.contains(log_time) || schema == crate::foreign::TRANSFORMS_SCHEMA)
-                && foreign.add(topic, schema, log_time, data)
-            {
-                payloads.insert((topic.to_owned(), log_time), data.to_vec());
-            }
-            Ok(())
-        },
-    )?;
+    let wanted = |topic: &str, schema: &str| {
+        topic == CAPTURE_EVENTS_TOPIC || topic.starts_with("/camera/") || crate::foreign::is_foreign_input(schema)
+    };
+    let mut collected = Collected::default();
+    let indexed = if *range == TimeRange::default() {
+        None
+    } else {
+        // Images, events and calibrations in the window; transforms whenever they were logged.
+        let mut keep = |t: &str, s: &str, time: u64, data: &[u8]| collected.keep(range, t, s, time, data);
+        scan_indexed(
+            bytes,
+            range,
+            |t, s| wanted(t, s) && s != crate::foreign::TRANSFORMS_SCHEMA,
+            &mut keep,
+        )
+        .and_then(|first| {
+            scan_indexed(
+                bytes,
+                &TimeRange::default(),
+                |_, s| s == crate::foreign::TRANSFORMS_SCHEMA,
+                &mut keep,
+            )
+            .map(|second| first.and_then(|a| second.map(|b| a + b)))
+        })
+    };
+    let (messages, truncation) = match indexed {
+        Some(result) => (result?, None),
+        None => {
+            // No usable summary (or it contradicted the file): start over with a linear scan.
+            collected = Collected::default();
+            scan(bytes, wanted, |t, s, time, data| {
+                collected.keep(range, t, s, time, data)
+            })?
+        }
+    };
+    let Collected {
+        events,
+        payloads,
+        foreign,
+    } = collected;
     if messages == 0
         && let Some(reason) = &truncation
     {

@@ -57,6 +57,12 @@ struct CheckArgs {
     /// Disparities searched by the image-based shift estimate (default: as for replay).
     #[arg(long)]
     num_disparities: Option<usize>,
+    /// Only images logged at least this many seconds after the log's first message.
+    #[arg(long, value_name = "SECS")]
+    start: Option<f64>,
+    /// Only images logged at most this many seconds after the log's first message.
+    #[arg(long, value_name = "SECS")]
+    end: Option<f64>,
 }
 
 #[derive(Debug, Args)]
@@ -325,7 +331,8 @@ fn run_method(args: &RunArgs, quiet: bool) -> Result<Outcome> {
 }
 
 fn run_check(args: &CheckArgs) -> Result<Outcome> {
-    let contents = read_log_file(&args.log).with_context(|| format!("reading {}", args.log.display()))?;
+    let contents = replay::log::read_log_file_in(&args.log, args.start, args.end)
+        .with_context(|| format!("reading {}", args.log.display()))?;
     let checks: Vec<replay::check::SetCheck> = contents
         .sets
         .iter()
