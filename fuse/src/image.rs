@@ -90,11 +90,6 @@ pub struct DisparityImage {
 }
 
 impl DisparityImage {
-    /// Number of pixels without an estimate.
-    pub fn invalid_count(&self) -> usize {
-        self.data.iter().filter(|d| !d.is_finite()).count()
-    }
-
     /// Fills every invalid pixel with the smaller of the nearest valid disparities to its left
     /// and right on the same row (the background side of an occlusion), as Middlebury's
     /// evaluations of OpenCV and KZ2 do. Rows without any valid pixel stay invalid.

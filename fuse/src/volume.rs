@@ -216,11 +216,6 @@ impl PreparedProblem {
         self.disparities
     }
 
-    /// The reference image.
-    pub fn reference(&self) -> &Image {
-        self.reference.image()
-    }
-
     /// Fused, aggregated costs of `rows` into `out` (`rows.len() × width × disparities`).
     pub fn fused_band(&self, rows: Range<usize>, out: &mut [u16]) {
         self.fused_band_with(rows, out, &mut BandScratch::default());

@@ -767,11 +767,6 @@ impl OutputFile {
         ))
     }
 
-    /// The temporary path being written.
-    pub fn temp_path(&self) -> &Path {
-        &self.temp_path
-    }
-
     /// Flushes, syncs and renames the file to its final name.
     pub fn commit(mut self, writer: BufWriter<File>) -> Result<PathBuf, LogError> {
         let io = |action| {

@@ -12,7 +12,7 @@ use rayon::prelude::*;
 
 use crate::camera::PinholeCamera;
 use crate::rng::{gaussian_from_bits, hash4, mix64};
-use crate::scene::{Material, Rgb, Scene, Shape, SurfaceClass, Texture};
+use crate::scene::{Material, Scene, Shape, SurfaceClass, Texture};
 
 type V3 = Vector3<f64>;
 
@@ -752,11 +752,6 @@ fn planar_uv(local: &V3, normal: &V3) -> (f64, f64) {
     } else {
         (local.y, local.z)
     }
-}
-
-/// Linear colour to a display value (used by tests and the importer's previews).
-pub fn display_value(linear: Rgb) -> [u8; 3] {
-    linear.map(|c| (255.0 * c.clamp(0.0, 1.0).powf(1.0 / 2.2)).round() as u8)
 }
 
 #[cfg(test)]

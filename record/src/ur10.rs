@@ -335,14 +335,6 @@ fn nearest_equivalent(angle: f64, reference: f64, lower: f64, upper: f64) -> Opt
         .min_by(|a, b| (a - reference).abs().total_cmp(&(b - reference).abs()))
 }
 
-/// A rotation about an axis given in degrees, as a unit quaternion (helper for configs and tests).
-pub fn rotation_deg(axis: Vector3<f64>, angle_deg: f64) -> UnitQuaternion<f64> {
-    match nalgebra::Unit::try_new(axis, 1e-12) {
-        Some(unit) => UnitQuaternion::from_axis_angle(&unit, angle_deg.to_radians()),
-        None => UnitQuaternion::identity(),
-    }
-}
-
 /// `Rotation3` from the columns of a right-handed orthonormal frame.
 pub fn rotation_from_axes(x: Vector3<f64>, y: Vector3<f64>, z: Vector3<f64>) -> UnitQuaternion<f64> {
     UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(nalgebra::Matrix3::from_columns(&[
