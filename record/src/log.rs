@@ -310,7 +310,8 @@ pub struct LogWriter<W: Write + Seek> {
     arm: Ur10,
 }
 
-fn timestamp(nanos: u64) -> Timestamp {
+/// A `foxglove` timestamp from nanoseconds since the Unix epoch.
+pub fn timestamp(nanos: u64) -> Timestamp {
     Timestamp::new((nanos / 1_000_000_000) as u32, (nanos % 1_000_000_000) as u32)
 }
 
@@ -593,23 +594,8 @@ impl<W: Write + Seek> LogWriter<W> {
                 )?
             }
         }
-        let c = &view.camera;
         let calibration = calibration_topic(&view.role);
-        self.write_message(
-            &calibration,
-            t,
-            &CameraCalibration {
-                timestamp: Some(timestamp(t)),
-                frame_id: CAMERA_FRAME.into(),
-                width,
-                height,
-                distortion_model: "plumb_bob".into(),
-                d: vec![0.0; 5],
-                k: c.k_row_major().to_vec(),
-                r: vec![1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
-                p: vec![c.fx, 0.0, c.cx, 0.0, 0.0, c.fy, c.cy, 0.0, 0.0, 0.0, 1.0, 0.0],
-            },
-        )?;
+        self.write_message(&calibration, t, &calibration_message(&view.camera, t))?;
         let depth = match &view.depth_m {
             Some(depth_m) => {
                 Self::check_len(set, view, "depth_m", depth_m.len(), 1)?;
@@ -696,6 +682,23 @@ impl<W: Write + Seek> LogWriter<W> {
     pub fn finish(mut self) -> Result<W, LogError> {
         self.writer.finish().map_err(Self::mcap_error("summary"))?;
         Ok(self.writer.into_inner())
+    }
+}
+
+/// The `foxglove.CameraCalibration` of an ideal pinhole camera in [`CAMERA_FRAME`]: K, R = I,
+/// P = [K | 0], `plumb_bob` with zero distortion.
+pub fn calibration_message(camera: &crate::camera::PinholeCamera, nanos: u64) -> CameraCalibration {
+    let c = camera;
+    CameraCalibration {
+        timestamp: Some(timestamp(nanos)),
+        frame_id: CAMERA_FRAME.into(),
+        width: c.width,
+        height: c.height,
+        distortion_model: "plumb_bob".into(),
+        d: vec![0.0; 5],
+        k: c.k_row_major().to_vec(),
+        r: vec![1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+        p: vec![c.fx, 0.0, c.cx, 0.0, 0.0, c.fy, c.cy, 0.0, 0.0, 0.0, 1.0, 0.0],
     }
 }
 

@@ -139,10 +139,7 @@ fn raw_f32(time: u64, width: usize, height: usize, data: &[f32]) -> foxglove::me
         bytes.extend_from_slice(&v.to_le_bytes());
     }
     foxglove::messages::RawImage {
-        timestamp: Some(foxglove::messages::Timestamp::new(
-            (time / 1_000_000_000) as u32,
-            (time % 1_000_000_000) as u32,
-        )),
+        timestamp: Some(record::log::timestamp(time)),
         frame_id: record::log::CAMERA_FRAME.into(),
         width: width as u32,
         height: height as u32,
@@ -198,24 +195,10 @@ impl ResultLog {
             color.data = viz::files::colorize(&disparity.data, lo, hi).into();
             self.writer.write_message(&result_color_topic(method), time, &color)?;
         }
-        let c = &set.reference.camera;
         self.writer.write_message(
             RESULT_CALIBRATION_TOPIC,
             time,
-            &foxglove::messages::CameraCalibration {
-                timestamp: Some(foxglove::messages::Timestamp::new(
-                    (time / 1_000_000_000) as u32,
-                    (time % 1_000_000_000) as u32,
-                )),
-                frame_id: record::log::CAMERA_FRAME.into(),
-                width: c.width,
-                height: c.height,
-                distortion_model: "plumb_bob".into(),
-                d: vec![0.0; 5],
-                k: c.k_row_major().to_vec(),
-                r: vec![1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
-                p: vec![c.fx, 0.0, c.cx, 0.0, 0.0, c.fy, c.cy, 0.0, 0.0, 0.0, 1.0, 0.0],
-            },
+            &record::log::calibration_message(&set.reference.camera, time),
         )?;
         self.writer
             .write_json(RESULT_SUMMARY_TOPIC, "multiscopic.SetResult", time, summary)
