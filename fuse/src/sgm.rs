@@ -95,8 +95,15 @@ pub fn aggregate(
                         *t = t.saturating_add(*v);
                     }
                 }
-                for (s, t) in sum[cell..cell + nd].iter_mut().zip(&total) {
-                    *s = s.saturating_add(*t);
+                let cell_sum = &mut sum[cell..cell + nd];
+                if forward {
+                    // First touch writes: a fresh page is faulted in once, not read as the shared
+                    // zero page and then copied on write.
+                    cell_sum.copy_from_slice(&total);
+                } else {
+                    for (s, t) in cell_sum.iter_mut().zip(&total) {
+                        *s = s.saturating_add(*t);
+                    }
                 }
             }
             std::mem::swap(&mut previous, &mut current);
