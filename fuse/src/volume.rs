@@ -136,6 +136,15 @@ impl CostSpec {
     }
 }
 
+/// Bands handed to each worker at once, so that rayon creates each worker's buffers once per
+/// worker rather than once per split (its `for_each_init` may call `init` per split).
+pub fn bands_per_worker(height: usize) -> usize {
+    height
+        .div_ceil(BAND_ROWS)
+        .div_ceil(rayon::current_num_threads().max(1) * 2)
+        .max(1)
+}
+
 /// Buffers of one band worker, reused from band to band.
 #[derive(Debug, Default)]
 pub struct BandScratch {
@@ -315,15 +324,16 @@ impl PreparedProblem {
     pub fn fused_volume(&self, on_band: &(dyn Fn() + Sync)) -> Vec<u16> {
         let row_len = self.width * self.disparities;
         let mut volume = vec![0u16; self.height * row_len];
-        volume.par_chunks_mut(BAND_ROWS * row_len).enumerate().for_each_init(
-            BandScratch::default,
-            |buffers, (band, chunk)| {
+        volume
+            .par_chunks_mut(BAND_ROWS * row_len)
+            .enumerate()
+            .with_min_len(bands_per_worker(self.height))
+            .for_each_init(BandScratch::default, |buffers, (band, chunk)| {
                 let start = band * BAND_ROWS;
                 let rows = start..start + chunk.len() / row_len;
                 self.fused_band_with(rows, chunk, buffers);
                 on_band();
-            },
-        );
+            });
         volume
     }
 }

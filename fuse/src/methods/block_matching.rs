@@ -11,7 +11,7 @@ use crate::FuseError;
 use crate::cost::PixelCost;
 use crate::fusion::Fusion;
 use crate::image::DisparityImage;
-use crate::volume::{BAND_ROWS, BandScratch, CostSpec, PreparedProblem, Problem};
+use crate::volume::{BAND_ROWS, BandScratch, CostSpec, PreparedProblem, Problem, bands_per_worker};
 use crate::wta::winner_take_all;
 
 /// Configuration of block matching.
@@ -79,17 +79,20 @@ impl Method for BlockMatching {
         let mut data = vec![f32::INFINITY; w * h];
         let bands = h.div_ceil(BAND_ROWS);
         let done = AtomicUsize::new(0);
-        data.par_chunks_mut(BAND_ROWS * w).enumerate().for_each_init(
-            || (BandScratch::default(), Vec::new()),
-            |(buffers, costs), (band, out)| {
-                let start = band * BAND_ROWS;
-                let rows = start..start + out.len() / w;
-                costs.resize(rows.len() * w * nd, 0);
-                prepared.fused_band_with(rows, costs, buffers);
-                winner_take_all(costs, nd, problem.min_disparity, self.config.subpixel, out);
-                progress((done.fetch_add(1, Ordering::Relaxed) + 1) as f32 / bands as f32);
-            },
-        );
+        data.par_chunks_mut(BAND_ROWS * w)
+            .enumerate()
+            .with_min_len(bands_per_worker(h))
+            .for_each_init(
+                || (BandScratch::default(), Vec::new()),
+                |(buffers, costs), (band, out)| {
+                    let start = band * BAND_ROWS;
+                    let rows = start..start + out.len() / w;
+                    costs.resize(rows.len() * w * nd, 0);
+                    prepared.fused_band_with(rows, costs, buffers);
+                    winner_take_all(costs, nd, problem.min_disparity, self.config.subpixel, out);
+                    progress((done.fetch_add(1, Ordering::Relaxed) + 1) as f32 / bands as f32);
+                },
+            );
         let mut disparity = DisparityImage {
             width: w,
             height: h,
