@@ -65,6 +65,15 @@ pub fn record(args: &[&str]) -> Output {
     run(Command::new(binary("record")).args(args))
 }
 
+/// Records `dir/name` with `args` (quietly), asserts success and returns the log's path.
+pub fn record_log(dir: &Path, name: &str, args: &[&str]) -> PathBuf {
+    let path = dir.join(name);
+    let mut all = vec!["-o", path.to_str().unwrap_or_default(), "-q"];
+    all.extend_from_slice(args);
+    assert_success(&record(&all), "record");
+    path
+}
+
 /// Runs `replay` with arguments.
 pub fn replay(args: &[&str]) -> Output {
     run(Command::new(binary("replay")).args(args))

@@ -1,7 +1,7 @@
 //! Ground truth agrees with the images: warping each side view into the centre view with the
 //! ground-truth disparity f·b/z reproduces the centre image on visible, non-specular pixels.
 
-use multiscopic_tests::{Log, assert_success, f32_pixels, record, temp_dir};
+use multiscopic_tests::{Log, f32_pixels, record_log, temp_dir};
 use record::scene::SurfaceClass;
 
 /// Relative depth difference below which a centre pixel counts as visible in the side view.
@@ -112,19 +112,11 @@ fn warp_error(
 fn warping_side_views_with_ground_truth_reproduces_the_centre() {
     let dir = temp_dir();
     for scene in ["toy", "workpiece"] {
-        let path = dir.path().join(format!("{scene}.mcap"));
-        let output = record(&[
-            "-o",
-            path.to_str().unwrap_or_default(),
-            "--scene",
-            scene,
-            "--resolution",
-            "320x180",
-            "--repeatability-mm",
-            "0",
-            "-q",
-        ]);
-        assert_success(&output, "record");
+        let path = record_log(
+            dir.path(),
+            &format!("{scene}.mcap"),
+            &["--scene", scene, "--resolution", "320x180", "--repeatability-mm", "0"],
+        );
         let log = Log::read(&path);
         let events = log.events();
         let center_event = events

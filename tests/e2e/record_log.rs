@@ -2,17 +2,13 @@
 
 use std::process::Command;
 
-use multiscopic_tests::{Log, assert_success, python_with_mcap, record, rerun_cli, run, temp_dir};
+use multiscopic_tests::{Log, assert_success, python_with_mcap, record_log, rerun_cli, run, temp_dir};
 
-const SMALL: &[&str] = &["--resolution", "96x64", "--samples-per-pixel", "1", "-q"];
+const SMALL: &[&str] = &["--resolution", "96x64", "--samples-per-pixel", "1"];
 
 fn record_small(dir: &std::path::Path, name: &str, extra: &[&str]) -> std::path::PathBuf {
-    let path = dir.join(name);
-    let mut args = vec!["-o", path.to_str().unwrap_or_default()];
-    args.extend_from_slice(SMALL);
-    args.extend_from_slice(extra);
-    assert_success(&record(&args), "record");
-    path
+    let args: Vec<&str> = SMALL.iter().chain(extra).copied().collect();
+    record_log(dir, name, &args)
 }
 
 fn python_check(path: &std::path::Path) -> serde_json::Value {

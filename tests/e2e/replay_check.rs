@@ -1,14 +1,12 @@
 //! `replay check`: clean captures pass; an injected roll or out-of-plane offset is flagged on
 //! that view only; a hand-eye error, invisible in the poses, shows in the image-based shift.
 
-use multiscopic_tests::{assert_success, record, replay, temp_dir};
+use multiscopic_tests::{assert_success, record_log, replay, temp_dir};
 
 fn check(extra: &[&str], name: &str) -> (Option<i32>, serde_json::Value) {
     let dir = temp_dir();
-    let log = dir.path().join(name);
-    let mut args = vec!["-o", log.to_str().unwrap_or_default(), "--resolution", "640x360", "-q"];
-    args.extend_from_slice(extra);
-    assert_success(&record(&args), "record");
+    let args: Vec<&str> = ["--resolution", "640x360"].iter().chain(extra).copied().collect();
+    let log = record_log(dir.path(), name, &args);
     let output = replay(&["check", log.to_str().unwrap_or_default(), "--json", "-q"]);
     let json = serde_json::from_slice(&output.stdout).unwrap_or_else(|e| panic!("replay check printed no JSON: {e}"));
     (output.status.code(), json)
@@ -77,17 +75,11 @@ fn hand_eye_error_shows_in_the_images_only() {
 #[test]
 fn rectify_recovers_depth_quality_lost_to_a_rolled_view() {
     let dir = temp_dir();
-    let log = dir.path().join("rolled.mcap");
-    let args = [
-        "-o",
-        log.to_str().unwrap_or_default(),
-        "--resolution",
-        "640x360",
-        "--rotation-error",
-        "left:z:1",
-        "-q",
-    ];
-    assert_success(&record(&args), "record");
+    let log = record_log(
+        dir.path(),
+        "rolled.mcap",
+        &["--resolution", "640x360", "--rotation-error", "left:z:1"],
+    );
     let avg_err = |extra: &[&str]| {
         let mut all = vec![
             "eval",

@@ -1,6 +1,6 @@
 //! Depth quality: the paper's claims on real and simulated data, through the real binaries.
 
-use multiscopic_tests::{assert_success, record, replay, shared_data, temp_dir};
+use multiscopic_tests::{assert_success, record_log, replay, shared_data, temp_dir};
 
 fn eval_json(args: &[&str]) -> Vec<serde_json::Value> {
     let mut all = vec!["eval", "--format", "json", "-q"];
@@ -59,17 +59,7 @@ fn middlebury_multiscopic_beats_stereo_and_opencv_sgbm() {
 #[test]
 fn five_views_beat_three_which_beat_stereo_most_in_occlusions() {
     let dir = temp_dir();
-    let log = dir.path().join("five.mcap");
-    let output = record(&[
-        "-o",
-        log.to_str().unwrap_or_default(),
-        "--resolution",
-        "640x360",
-        "--captures",
-        "2",
-        "-q",
-    ]);
-    assert_success(&output, "record");
+    let log = record_log(dir.path(), "five.mcap", &["--resolution", "640x360", "--captures", "2"]);
     let log = log.to_str().unwrap_or_default();
     let five = eval_json(&[
         log,
@@ -116,18 +106,10 @@ fn five_views_beat_three_which_beat_stereo_most_in_occlusions() {
 #[test]
 fn replay_writes_result_files_and_a_result_log_other_tools_read() {
     let dir = temp_dir();
-    let log = dir.path().join("capture.mcap");
-    assert_success(
-        &record(&[
-            "-o",
-            log.to_str().unwrap_or_default(),
-            "--resolution",
-            "320x180",
-            "--rig",
-            "three-view",
-            "-q",
-        ]),
-        "record",
+    let log = record_log(
+        dir.path(),
+        "capture.mcap",
+        &["--resolution", "320x180", "--rig", "three-view"],
     );
     let out = dir.path().join("results");
     let result_log = dir.path().join("results.mcap");

@@ -3,7 +3,7 @@
 use std::path::Path;
 
 use foxglove::messages::RawImage;
-use multiscopic_tests::{assert_success, record, replay, temp_dir};
+use multiscopic_tests::{assert_success, record_log, replay, temp_dir};
 use record::camera::PinholeCamera;
 use record::log::{LogOptions, LogWriter};
 use record::rig::RigKind;
@@ -170,19 +170,11 @@ fn garbage_and_cut_off_logs() {
     assert_eq!(code, Some(1));
     assert!(stderr.contains("missing.mcap"), "{stderr}");
     // A recording cut off part-way: the complete sets are replayed, exit 3 says something was lost.
-    let full = dir.path().join("full.mcap");
-    let output = record(&[
-        "-o",
-        full.to_str().unwrap_or_default(),
-        "--resolution",
-        "640x360",
-        "--captures",
-        "3",
-        "--rig",
-        "three-view",
-        "-q",
-    ]);
-    assert_success(&output, "record");
+    let full = record_log(
+        dir.path(),
+        "full.mcap",
+        &["--resolution", "640x360", "--captures", "3", "--rig", "three-view"],
+    );
     let bytes = std::fs::read(&full).unwrap_or_else(|e| panic!("{e}"));
     let cut = dir.path().join("cut.mcap");
     std::fs::write(&cut, &bytes[..bytes.len() * 3 / 4]).unwrap_or_else(|e| panic!("{e}"));
@@ -199,19 +191,11 @@ fn garbage_and_cut_off_logs() {
 #[test]
 fn random_bytes_and_truncations_never_panic_the_reader() {
     let dir = temp_dir();
-    let path = dir.path().join("fuzz.mcap");
-    let output = record(&[
-        "-o",
-        path.to_str().unwrap_or_default(),
-        "--resolution",
-        "48x32",
-        "--captures",
-        "2",
-        "--samples-per-pixel",
-        "1",
-        "-q",
-    ]);
-    assert_success(&output, "record");
+    let path = record_log(
+        dir.path(),
+        "fuzz.mcap",
+        &["--resolution", "48x32", "--captures", "2", "--samples-per-pixel", "1"],
+    );
     let bytes = std::fs::read(&path).unwrap_or_else(|e| panic!("{e}"));
     let mut rng = SplitMix64::new(2024);
     let mut outcomes = [0usize; 2];
@@ -280,19 +264,11 @@ fn strip_capture_events(from: &Path, to: &Path) {
 #[test]
 fn foreign_logs_without_capture_events_get_their_sets_from_the_poses() {
     let dir = temp_dir();
-    let ours = dir.path().join("ours.mcap");
-    let args = [
-        "-o",
-        ours.to_str().unwrap_or_default(),
-        "--resolution",
-        "160x90",
-        "--samples-per-pixel",
-        "1",
-        "--captures",
-        "3",
-        "-q",
-    ];
-    assert_success(&record(&args), "record");
+    let ours = record_log(
+        dir.path(),
+        "ours.mcap",
+        &["--resolution", "160x90", "--samples-per-pixel", "1", "--captures", "3"],
+    );
     let foreign = dir.path().join("foreign.mcap");
     strip_capture_events(&ours, &foreign);
     let contents = replay::log::read_log_file(&foreign).unwrap_or_else(|e| panic!("{e}"));
@@ -332,19 +308,11 @@ fn foreign_logs_without_capture_events_get_their_sets_from_the_poses() {
 #[test]
 fn time_range_selects_sets() {
     let dir = temp_dir();
-    let log = dir.path().join("three.mcap");
-    let args = [
-        "-o",
-        log.to_str().unwrap_or_default(),
-        "--resolution",
-        "96x64",
-        "--samples-per-pixel",
-        "1",
-        "--captures",
-        "3",
-        "-q",
-    ];
-    assert_success(&record(&args), "record");
+    let log = record_log(
+        dir.path(),
+        "three.mcap",
+        &["--resolution", "96x64", "--samples-per-pixel", "1", "--captures", "3"],
+    );
     let all = replay::log::read_log_file(&log).unwrap_or_else(|e| panic!("{e}"));
     let start = all.sets[0].reference.capture_time_nanos;
     let first_of = |i: usize| {
