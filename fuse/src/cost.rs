@@ -5,6 +5,8 @@
 //! along the reference camera's x and y (right `[1, 0]`, left `[-1, 0]`, top `[0, -1]`, …).
 //! One code path therefore serves horizontal, vertical and diagonal neighbours.
 
+use std::ops::Range;
+
 use serde::{Deserialize, Serialize};
 
 use crate::image::Image;
@@ -132,26 +134,31 @@ pub fn census_transform(gray: &Image, radius: usize) -> Vec<u64> {
     codes
 }
 
-/// Pixel costs of reference row `y` against a neighbour for disparities
+/// Pixel costs of reference row `y`, columns `xs`, against a neighbour for disparities
 /// `min_disparity .. min_disparity + disparities`, written as `[x][d]` into `out`
-/// (`width × disparities`). Correspondences outside the neighbour are clamped to its border
-/// here; [`mark_invalid`] flags them after aggregation.
+/// (`xs.len() × disparities`, one byte each: every pixel cost fits 0..=255). Columns outside the
+/// image repeat the border column (the block aggregation replicates borders); correspondences
+/// outside the neighbour are clamped to its border here and flagged by [`mark_invalid`] after
+/// aggregation. The generic path for any offset (diagonal neighbours); axis neighbours use
+/// [`crate::lines::pixel_cost_tile_lines`], which gives the same values faster.
 #[allow(clippy::too_many_arguments)]
-pub fn pixel_cost_row(
+pub fn pixel_cost_tile(
     cost: PixelCost,
     reference: &PreparedView,
     neighbour: &PreparedView,
     offset: [i32; 2],
     y: usize,
+    xs: Range<isize>,
     min_disparity: usize,
     disparities: usize,
-    out: &mut [u16],
+    out: &mut [u8],
 ) {
     let width = reference.image.width;
     let height = neighbour.image.height as isize;
     let channels = reference.image.channels;
     let (ox, oy) = (offset[0] as isize, offset[1] as isize);
-    for (x, costs) in out.chunks_exact_mut(disparities).enumerate() {
+    for (costs, x) in out.chunks_exact_mut(disparities).zip(xs) {
+        let x = x.clamp(0, width as isize - 1) as usize;
         let base_qx = x as isize - ox * min_disparity as isize;
         let base_qy = y as isize - oy * min_disparity as isize;
         let pixel = |d: usize| {
@@ -164,7 +171,7 @@ pub fn pixel_cost_row(
         match (cost, channels) {
             (PixelCost::AbsoluteDifference, 1) => {
                 for (d, out) in costs.iter_mut().enumerate() {
-                    *out = u16::from(c[0].abs_diff(neighbour.image.data[pixel(d)]));
+                    *out = c[0].abs_diff(neighbour.image.data[pixel(d)]);
                 }
             }
             (PixelCost::AbsoluteDifference, _) => {
@@ -172,7 +179,7 @@ pub fn pixel_cost_row(
                     let q = pixel(d) * channels;
                     let n = &neighbour.image.data[q..q + channels];
                     let sum: u16 = c.iter().zip(n).map(|(a, b)| u16::from(a.abs_diff(*b))).sum();
-                    *out = sum / channels as u16;
+                    *out = mean_of_channels(sum, channels);
                 }
             }
             (PixelCost::BirchfieldTomasi, _) => {
@@ -184,52 +191,40 @@ pub fn pixel_cost_row(
                         let below = neighbour.bt_min[q + k].saturating_sub(*value);
                         sum += u16::from(above.max(below));
                     }
-                    *out = sum / channels as u16;
+                    *out = mean_of_channels(sum, channels);
                 }
             }
             (PixelCost::Census { .. }, _) => {
                 let code = reference.census[y * width + x];
                 for (d, out) in costs.iter_mut().enumerate() {
-                    *out = (code ^ neighbour.census[pixel(d)]).count_ones() as u16;
+                    *out = (code ^ neighbour.census[pixel(d)]).count_ones() as u8;
                 }
             }
         }
     }
 }
 
-/// Horizontal box sum of radius `r` over a `[x][d]` row (borders replicate the edge column).
-pub fn box_sum_row(input: &[u16], output: &mut [u16], width: usize, disparities: usize, r: usize) {
-    if r == 0 {
-        output.copy_from_slice(input);
-        return;
-    }
-    let column = |x: isize| {
-        let x = x.clamp(0, width as isize - 1) as usize;
-        &input[x * disparities..(x + 1) * disparities]
-    };
-    let mut acc = vec![0u16; disparities];
-    for x in -(r as isize)..=(r as isize) {
-        for (a, v) in acc.iter_mut().zip(column(x)) {
-            *a = a.wrapping_add(*v);
-        }
-    }
-    for x in 0..width {
-        output[x * disparities..(x + 1) * disparities].copy_from_slice(&acc);
-        let incoming = column(x as isize + r as isize + 1);
-        let outgoing = column(x as isize - r as isize);
-        for ((a, i), o) in acc.iter_mut().zip(incoming).zip(outgoing) {
-            *a = a.wrapping_add(*i).wrapping_sub(*o);
-        }
+/// Multiplier turning a sum of three channel costs into their mean: `(s · 21846) >> 16 = ⌊s / 3⌋`
+/// for every s ≤ 765 (one `pmulhuw` in the vectorised loops).
+pub(crate) const MEAN_OF_THREE: u32 = 21_846;
+
+/// Mean of `channels` (1 or 3) channel costs summing to `sum`, rounded down.
+#[inline]
+pub(crate) fn mean_of_channels(sum: u16, channels: usize) -> u8 {
+    if channels == 3 {
+        ((u32::from(sum) * MEAN_OF_THREE) >> 16) as u8
+    } else {
+        sum.min(255) as u8
     }
 }
 
-/// Sets to [`INVALID_COST`] every `(x, d)` of row `y` whose correspondence lies outside the
-/// neighbour image. `baseline_ratio` scales the disparity of this neighbour (see
-/// [`resample_disparity_axis`]).
+/// Sets to [`INVALID_COST`] every `(x, d)` of the `[x][d]` costs of reference pixels
+/// `(x_start.., y)` whose correspondence lies outside the neighbour image. `baseline_ratio`
+/// scales the disparity of this neighbour (see [`DisparityResampler`]).
 pub fn mark_invalid(
-    row: &mut [u16],
+    costs: &mut [u16],
     offset: [i32; 2],
-    y: usize,
+    (x_start, y): (usize, usize),
     size: (usize, usize),
     disparity_axis: (usize, usize),
     baseline_ratio: f32,
@@ -237,7 +232,7 @@ pub fn mark_invalid(
     let (min_disparity, disparities) = disparity_axis;
     let (width, height) = (size.0 as f32, size.1 as f32);
     let (ox, oy) = (offset[0] as f32, offset[1] as f32);
-    for (x, costs) in row.chunks_exact_mut(disparities).enumerate() {
+    for (x, costs) in (x_start..).zip(costs.chunks_exact_mut(disparities)) {
         // The correspondence moves monotonically with d: the valid disparities form one interval.
         let valid = |d: usize| {
             let disparity = (min_disparity + d) as f32 * baseline_ratio;
@@ -245,6 +240,9 @@ pub fn mark_invalid(
             let qy = (y as f32 - oy * disparity).round();
             qx >= 0.0 && qx < width && qy >= 0.0 && qy < height
         };
+        if valid(0) && valid(disparities - 1) {
+            continue;
+        }
         let first = (0..disparities).find(|d| valid(*d)).unwrap_or(disparities);
         let last = (first..disparities).rev().find(|d| valid(*d)).map_or(first, |d| d + 1);
         costs[..first].fill(INVALID_COST);
@@ -252,39 +250,47 @@ pub fn mark_invalid(
     }
 }
 
-/// Resamples a `[x][d]` cost row along the disparity axis for a neighbour whose real baseline
-/// is `ratio` × the nominal one: its cost at the common disparity `d` is its own cost at
-/// `d · ratio`, linearly interpolated. `scratch` holds one pixel's costs.
-pub fn resample_disparity_axis(
-    row: &mut [u16],
-    min_disparity: usize,
-    disparities: usize,
-    ratio: f32,
-    scratch: &mut Vec<u16>,
-) {
-    if (ratio - 1.0).abs() < 1e-6 {
-        return;
+/// Resamples `[x][d]` costs along the disparity axis for a neighbour whose real baseline is
+/// `ratio` × the nominal one: its cost at the common disparity `d` is its own cost at `d · ratio`,
+/// linearly interpolated. The interpolation table is the same for every pixel and built once.
+#[derive(Debug, Clone)]
+pub struct DisparityResampler {
+    /// Per common disparity: lower source index, upper source index, weight of the upper in 1/256.
+    table: Vec<(usize, usize, u32)>,
+}
+
+impl DisparityResampler {
+    /// `None` when `ratio` is 1 (nothing to resample).
+    pub fn new(min_disparity: usize, disparities: usize, ratio: f32) -> Option<Self> {
+        if (ratio - 1.0).abs() < 1e-6 || disparities == 0 {
+            return None;
+        }
+        let table = (0..disparities)
+            .map(|d| {
+                let source = ((min_disparity + d) as f32 * ratio - min_disparity as f32)
+                    .clamp(0.0, (disparities - 1) as f32);
+                let lower = source.floor() as usize;
+                let upper = (lower + 1).min(disparities - 1);
+                (lower, upper, ((source - lower as f32) * 256.0).round() as u32)
+            })
+            .collect();
+        Some(Self { table })
     }
-    // (lower index, upper index, weight of upper in 1/256) per disparity: the same for every pixel.
-    let table: Vec<(usize, usize, u32)> = (0..disparities)
-        .map(|d| {
-            let source =
-                ((min_disparity + d) as f32 * ratio - min_disparity as f32).clamp(0.0, (disparities - 1) as f32);
-            let lower = source.floor() as usize;
-            let upper = (lower + 1).min(disparities - 1);
-            (lower, upper, ((source - lower as f32) * 256.0).round() as u32)
-        })
-        .collect();
-    scratch.resize(disparities, 0);
-    for costs in row.chunks_exact_mut(disparities) {
-        scratch.copy_from_slice(costs);
-        for (cost, &(lower, upper, w)) in costs.iter_mut().zip(&table) {
-            let (a, b) = (scratch[lower], scratch[upper]);
-            *cost = if a == INVALID_COST || b == INVALID_COST {
-                INVALID_COST
-            } else {
-                ((u32::from(a) * (256 - w) + u32::from(b) * w + 128) >> 8) as u16
-            };
+
+    /// Resamples every pixel of `costs` (`[x][d]`) in place; `scratch` holds one pixel's costs.
+    pub fn apply(&self, costs: &mut [u16], scratch: &mut Vec<u16>) {
+        let disparities = self.table.len();
+        scratch.resize(disparities, 0);
+        for costs in costs.chunks_exact_mut(disparities) {
+            scratch.copy_from_slice(costs);
+            for (cost, &(lower, upper, w)) in costs.iter_mut().zip(&self.table) {
+                let (a, b) = (scratch[lower], scratch[upper]);
+                *cost = if a == INVALID_COST || b == INVALID_COST {
+                    INVALID_COST
+                } else {
+                    ((u32::from(a) * (256 - w) + u32::from(b) * w + 128) >> 8) as u16
+                };
+            }
         }
     }
 }
@@ -315,8 +321,8 @@ mod tests {
         ] {
             let a = PreparedView::new(reference.clone(), cost);
             let b = PreparedView::new(shifted.clone(), cost);
-            let mut row = vec![0u16; 20 * 8];
-            pixel_cost_row(cost, &a, &b, [1, 0], 2, 0, 8, &mut row);
+            let mut row = vec![0u8; 20 * 8];
+            pixel_cost_tile(cost, &a, &b, [1, 0], 2, 0..20, 0, 8, &mut row);
             for x in 5..15 {
                 assert_eq!(row[x * 8 + 3], 0, "{cost:?} x {x}");
                 assert!(
@@ -350,27 +356,13 @@ mod tests {
     }
 
     #[test]
-    fn box_sum_matches_brute_force() {
-        let (width, disparities, r) = (9, 3, 2);
-        let input: Vec<u16> = (0..width * disparities).map(|i| (i * 7 % 13) as u16).collect();
-        let mut output = vec![0; input.len()];
-        box_sum_row(&input, &mut output, width, disparities, r);
-        for x in 0..width {
-            for d in 0..disparities {
-                let expected: u16 = (x as isize - r as isize..=x as isize + r as isize)
-                    .map(|xx| input[xx.clamp(0, width as isize - 1) as usize * disparities + d])
-                    .sum();
-                assert_eq!(output[x * disparities + d], expected);
-            }
-        }
-    }
-
-    #[test]
     fn resampling_moves_the_minimum_by_the_baseline_ratio() {
         // A neighbour 10 % farther away sees disparity 11 where the nominal rig sees 10.
         let nd = 16;
         let mut row: Vec<u16> = (0..nd).map(|d| ((d as i32 - 11).abs() * 10) as u16).collect();
-        resample_disparity_axis(&mut row, 0, nd, 1.1, &mut Vec::new());
+        let resampler = DisparityResampler::new(0, nd, 1.1).unwrap_or_else(|| panic!("ratio 1.1 resamples"));
+        resampler.apply(&mut row, &mut Vec::new());
+        assert!(DisparityResampler::new(0, nd, 1.0).is_none());
         let best = (0..nd).min_by_key(|d| row[*d]).unwrap_or(0);
         assert_eq!(best, 10, "{row:?}");
     }
@@ -378,12 +370,16 @@ mod tests {
     #[test]
     fn out_of_image_correspondences_are_invalid() {
         let mut row = vec![0u16; 5 * 4];
-        mark_invalid(&mut row, [1, 0], 0, (5, 5), (0, 4), 1.0);
+        mark_invalid(&mut row, [1, 0], (0, 0), (5, 5), (0, 4), 1.0);
         // x = 1: d ≥ 2 leaves the image on the left.
         assert_eq!(&row[4..8], &[0, 0, INVALID_COST, INVALID_COST]);
         let mut row = vec![0u16; 5 * 4];
-        mark_invalid(&mut row, [0, -1], 3, (5, 5), (0, 4), 1.0);
+        mark_invalid(&mut row, [0, -1], (0, 3), (5, 5), (0, 4), 1.0);
         // top neighbour: q_y = y + d; y = 3: d ≥ 2 leaves the bottom.
         assert_eq!(&row[0..4], &[0, 0, INVALID_COST, INVALID_COST]);
+        // The same pixel seen through a tile that starts at x = 1.
+        let mut tile = vec![0u16; 2 * 4];
+        mark_invalid(&mut tile, [1, 0], (1, 0), (5, 5), (0, 4), 1.0);
+        assert_eq!(&tile[0..4], &[0, 0, INVALID_COST, INVALID_COST]);
     }
 }

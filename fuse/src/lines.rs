@@ -6,10 +6,9 @@
 //! Built for the four axis neighbours (left, right, top, bottom); diagonal neighbours use the
 //! generic [`crate::cost::pixel_cost_row`].
 
-use crate::cost::{PixelCost, PreparedView};
+use std::ops::Range;
 
-/// Multiplier turning a sum of three channel costs into their mean: `(s · 21846) >> 16 ≈ s / 3`.
-const MEAN_OF_THREE: u32 = 21_846;
+use crate::cost::{MEAN_OF_THREE, PixelCost, PreparedView};
 
 /// A neighbour's samples in search-line order, with the border replicated past the image.
 #[derive(Debug, Clone)]
@@ -102,20 +101,24 @@ impl SearchLines {
     }
 }
 
-/// Pixel costs of reference row `y` for disparities `min_disparity ..` into `out` (`[x][d]`),
-/// reading the neighbour through its search lines. Same values as [`crate::cost::pixel_cost_row`].
-pub fn pixel_cost_row_lines(
+/// Pixel costs of reference row `y`, columns `xs` (outside the image: the border column), for
+/// disparities `min_disparity ..` into `out` (`[x][d]`, one byte each), reading the neighbour
+/// through its search lines. Same values as [`crate::cost::pixel_cost_tile`].
+#[allow(clippy::too_many_arguments)]
+pub fn pixel_cost_tile_lines(
     cost: PixelCost,
     reference: &PreparedView,
     lines: &SearchLines,
     y: usize,
+    xs: Range<isize>,
     min_disparity: usize,
     disparities: usize,
-    out: &mut [u16],
+    out: &mut [u8],
 ) {
     let image = reference.image();
     let (width, channels) = (image.width, image.channels);
-    for (x, costs) in out.chunks_exact_mut(disparities).enumerate() {
+    for (costs, x) in out.chunks_exact_mut(disparities).zip(xs) {
+        let x = x.clamp(0, width as isize - 1) as usize;
         let start = lines.base(x, y) + min_disparity;
         let range = start..start + disparities;
         let p = (y * width + x) * channels;
@@ -123,7 +126,7 @@ pub fn pixel_cost_row_lines(
             (PixelCost::AbsoluteDifference, 1) => {
                 let c = image.data[p];
                 for (o, v) in costs.iter_mut().zip(&lines.planes[0][range]) {
-                    *o = u16::from(c.abs_diff(*v));
+                    *o = c.abs_diff(*v);
                 }
             }
             (PixelCost::AbsoluteDifference, _) => {
@@ -135,14 +138,14 @@ pub fn pixel_cost_row_lines(
                 );
                 for (((o, v0), v1), v2) in costs.iter_mut().zip(a).zip(b).zip(c) {
                     let sum = u16::from(c0.abs_diff(*v0)) + u16::from(c1.abs_diff(*v1)) + u16::from(c2.abs_diff(*v2));
-                    *o = ((u32::from(sum) * MEAN_OF_THREE) >> 16) as u16;
+                    *o = ((u32::from(sum) * MEAN_OF_THREE) >> 16) as u8;
                 }
             }
             (PixelCost::BirchfieldTomasi, 1) => {
                 let c = image.data[p];
                 let (lo, hi) = (&lines.planes[0][range.clone()], &lines.planes[1][range]);
                 for ((o, l), h) in costs.iter_mut().zip(lo).zip(hi) {
-                    *o = u16::from(c.saturating_sub(*h).max(l.saturating_sub(c)));
+                    *o = c.saturating_sub(*h).max(l.saturating_sub(c));
                 }
             }
             (PixelCost::BirchfieldTomasi, _) => {
@@ -153,15 +156,15 @@ pub fn pixel_cost_row_lines(
                 let (l1, h1) = (&planes[2][range.clone()][..n], &planes[3][range.clone()][..n]);
                 let (l2, h2) = (&planes[4][range.clone()][..n], &planes[5][range][..n]);
                 for (d, o) in costs.iter_mut().enumerate() {
-                    let bt = |c: u8, l: u8, h: u8| u16::from(c.saturating_sub(h).max(l.saturating_sub(c)));
-                    let sum = bt(c0, l0[d], h0[d]) + bt(c1, l1[d], h1[d]) + bt(c2, l2[d], h2[d]);
-                    *o = ((u32::from(sum) * MEAN_OF_THREE) >> 16) as u16;
+                    let bt = |c: u8, l: u8, h: u8| c.saturating_sub(h).max(l.saturating_sub(c));
+                    let sum = u16::from(bt(c0, l0[d], h0[d])) + u16::from(bt(c1, l1[d], h1[d])) + u16::from(bt(c2, l2[d], h2[d]));
+                    *o = ((u32::from(sum) * MEAN_OF_THREE) >> 16) as u8;
                 }
             }
             (PixelCost::Census { .. }, _) => {
                 let code = reference.census_codes()[y * width + x];
                 for (o, v) in costs.iter_mut().zip(&lines.census[range]) {
-                    *o = (code ^ v).count_ones() as u16;
+                    *o = (code ^ v).count_ones() as u8;
                 }
             }
         }
@@ -171,7 +174,7 @@ pub fn pixel_cost_row_lines(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::cost::pixel_cost_row;
+    use crate::cost::pixel_cost_tile;
     use crate::image::Image;
 
     #[test]
@@ -194,11 +197,13 @@ mod tests {
                     let (min_d, nd) = (2, 9);
                     let lines =
                         SearchLines::new(&neighbour, cost, offset, min_d + nd).unwrap_or_else(|| panic!("no lines"));
+                    // A tile reaching past both image borders.
+                    let xs = -3..w as isize + 2;
                     for y in 0..h {
-                        let mut generic = vec![0u16; w * nd];
-                        let mut fast = vec![0u16; w * nd];
-                        pixel_cost_row(cost, &reference, &neighbour, offset, y, min_d, nd, &mut generic);
-                        pixel_cost_row_lines(cost, &reference, &lines, y, min_d, nd, &mut fast);
+                        let mut generic = vec![0u8; xs.len() * nd];
+                        let mut fast = vec![0u8; xs.len() * nd];
+                        pixel_cost_tile(cost, &reference, &neighbour, offset, y, xs.clone(), min_d, nd, &mut generic);
+                        pixel_cost_tile_lines(cost, &reference, &lines, y, xs.clone(), min_d, nd, &mut fast);
                         assert_eq!(generic, fast, "{cost:?} {channels} channels {offset:?} row {y}");
                     }
                 }

@@ -1,6 +1,7 @@
-//! The fused cost volume, computed in bands of rows (in parallel), never holding one full volume
-//! per neighbour: per band, each neighbour's costs are aggregated over the block and fused
-//! straight into the caller's buffer (`[y][x][d]`, `u16`).
+//! The fused cost volume, computed in bands of rows (in parallel) and, within a band, in tiles of
+//! columns, never holding one full volume per neighbour: per tile row, each neighbour's costs are
+//! aggregated over the block and fused, and the fused row is handed to the caller (`[x][d]`,
+//! `u16`), who keeps it (SGM) or picks the winners straight away (block matching).
 
 use std::ops::Range;
 
@@ -9,15 +10,12 @@ use serde::{Deserialize, Serialize};
 
 use crate::FuseError;
 use crate::cost::{
-    MAX_BLOCK_RADIUS, MAX_CENSUS_RADIUS, PixelCost, PreparedView, box_sum_row, mark_invalid, pixel_cost_row,
-    resample_disparity_axis,
+    DisparityResampler, MAX_BLOCK_RADIUS, MAX_CENSUS_RADIUS, PixelCost, PreparedView, mark_invalid, pixel_cost_tile,
 };
 use crate::fusion::{Fusion, fuse_rows};
 use crate::image::Image;
-use crate::lines::{SearchLines, pixel_cost_row_lines};
+use crate::lines::{SearchLines, pixel_cost_tile_lines};
 
-/// Rows per band of parallel work.
-pub const BAND_ROWS: usize = 32;
 /// The role a stereo method matches against when the set has it.
 pub const STEREO_ROLE: &str = "right";
 
@@ -136,22 +134,48 @@ impl CostSpec {
     }
 }
 
-/// Bands handed to each worker at once, so that rayon creates each worker's buffers once per
-/// worker rather than once per split (its `for_each_init` may call `init` per split).
-pub fn bands_per_worker(height: usize) -> usize {
-    height
-        .div_ceil(BAND_ROWS)
-        .div_ceil(rayon::current_num_threads().max(1) * 2)
-        .max(1)
+/// Cost cells (columns × disparities) per tile row: with the block's rows of pixel costs, the
+/// column sums and the aggregated row of up to four neighbours, a tile's working set stays in a
+/// 1 MiB L2 cache (about 0.5 MiB at radius 4).
+const TILE_CELLS: usize = 8192;
+
+/// Columns per tile for `disparities`.
+fn tile_columns(disparities: usize) -> usize {
+    (TILE_CELLS / disparities.max(1)).clamp(16, 1024)
 }
 
-/// Buffers of one band worker, reused from band to band.
+/// Rows per band of parallel work for an image `height` rows high: a few bands per worker
+/// (progress steps, load balance), tall enough that the 2ρ rows each band re-reads stay cheap.
+pub fn band_rows(height: usize) -> usize {
+    height
+        .div_ceil(rayon::current_num_threads().max(1) * BANDS_PER_WORKER)
+        .max(MIN_BAND_ROWS)
+}
+
+/// Bands per worker thread (see [`band_rows`]).
+const BANDS_PER_WORKER: usize = 4;
+/// Fewest rows per band.
+const MIN_BAND_ROWS: usize = 32;
+
+/// Buffers of one band worker, reused from tile to tile and band to band.
 #[derive(Debug, Default)]
 pub struct BandScratch {
-    pixel_row: Vec<u16>,
-    horizontal: Vec<Vec<u16>>,
-    vertical: Vec<Vec<u16>>,
-    finished: Vec<Vec<u16>>,
+    neighbours: Vec<NeighbourScratch>,
+    fused: Vec<u16>,
+}
+
+/// One neighbour's tile buffers.
+#[derive(Debug, Default)]
+struct NeighbourScratch {
+    /// Pixel costs of the last `2ρ+1` rows (`[x][d]`, tile plus ρ columns each side).
+    rows: Vec<Vec<u8>>,
+    /// Pixel costs of the incoming row.
+    incoming: Vec<u8>,
+    /// Vertical sums over the block's rows, per column and disparity.
+    column_sums: Vec<u16>,
+    /// Block sums of the tile's columns.
+    aggregated: Vec<u16>,
+    /// One pixel's costs while resampling.
     resample: Vec<u16>,
 }
 
@@ -162,6 +186,8 @@ struct PreparedNeighbour {
     baseline_ratio: f32,
     /// Samples in search-line order (axis neighbours); `None` uses the generic cost loop.
     lines: Option<SearchLines>,
+    /// Resampling along the disparity axis (baseline ratio ≠ 1).
+    resampler: Option<DisparityResampler>,
 }
 
 /// A problem with its views prepared for one cost.
@@ -195,6 +221,7 @@ impl PreparedProblem {
                     offset: n.offset,
                     baseline_ratio: n.baseline_ratio,
                     lines,
+                    resampler: DisparityResampler::new(problem.min_disparity, problem.num_disparities, n.baseline_ratio),
                 }
             })
             .collect();
@@ -225,115 +252,315 @@ impl PreparedProblem {
         self.disparities
     }
 
+    /// Pixel costs of one neighbour for reference row `y` (clamped into the image), columns `xs`.
+    fn pixel_costs(&self, neighbour: &PreparedNeighbour, y: isize, xs: Range<isize>, out: &mut [u8]) {
+        let y = y.clamp(0, self.height as isize - 1) as usize;
+        match &neighbour.lines {
+            Some(lines) => pixel_cost_tile_lines(
+                self.spec.pixel,
+                &self.reference,
+                lines,
+                y,
+                xs,
+                self.min_disparity,
+                self.disparities,
+                out,
+            ),
+            None => pixel_cost_tile(
+                self.spec.pixel,
+                &self.reference,
+                &neighbour.view,
+                neighbour.offset,
+                y,
+                xs,
+                self.min_disparity,
+                self.disparities,
+                out,
+            ),
+        }
+    }
+
+    /// Fused, block-aggregated costs of `rows`, handed to `sink(y, x_start, costs)` one tile row
+    /// at a time (`costs` is `[x][d]` for columns `x_start ..`, disparity fastest).
+    ///
+    /// Works in tiles of columns so that everything between the pixel costs and the fused row
+    /// stays in cache: per neighbour, the pixel costs of the block's last `2ρ+1` rows (bytes), their
+    /// column sums (updated by the incoming and outgoing row), and the horizontal sums of those.
+    pub fn fused_band_with(
+        &self,
+        rows: Range<usize>,
+        buffers: &mut BandScratch,
+        sink: &mut dyn FnMut(usize, usize, &[u16]),
+    ) {
+        if rows.is_empty() {
+            return;
+        }
+        let (w, nd, r) = (self.width, self.disparities, self.spec.block_radius);
+        let window = 2 * r + 1;
+        let tile = tile_columns(nd);
+        let BandScratch { neighbours, fused } = buffers;
+        neighbours.resize_with(self.neighbours.len(), NeighbourScratch::default);
+        for scratch in neighbours.iter_mut() {
+            scratch.rows.resize_with(window, Vec::new);
+        }
+        // Virtual row `v` (may lie outside the image) lives in ring slot `(v − first) mod window`.
+        let first = rows.start as isize - r as isize;
+        let slot = |v: isize| (v - first) as usize % window;
+        for x_start in (0..w).step_by(tile) {
+            let columns = tile.min(w - x_start);
+            let xs = x_start as isize - r as isize..(x_start + columns + r) as isize;
+            let ext_cells = xs.len() * nd;
+            let cells = columns * nd;
+            for (scratch, neighbour) in neighbours.iter_mut().zip(&self.neighbours) {
+                scratch.column_sums.clear();
+                scratch.column_sums.resize(ext_cells, 0);
+                scratch.incoming.resize(ext_cells, 0);
+                scratch.aggregated.resize(cells, 0);
+                // The block's first 2ρ rows.
+                for v in first..first + 2 * r as isize {
+                    let row = &mut scratch.rows[slot(v)];
+                    row.resize(ext_cells, 0);
+                    self.pixel_costs(neighbour, v, xs.clone(), row);
+                    for (sum, cost) in scratch.column_sums.iter_mut().zip(row.iter()) {
+                        *sum += u16::from(*cost);
+                    }
+                }
+            }
+            for y in rows.clone() {
+                let incoming_row = y as isize + r as isize;
+                let outgoing_present = y > rows.start;
+                for (scratch, neighbour) in neighbours.iter_mut().zip(&self.neighbours) {
+                    let NeighbourScratch {
+                        rows: ring,
+                        incoming,
+                        column_sums,
+                        aggregated,
+                        resample,
+                    } = scratch;
+                    // (The buffer swapped in from the ring may be sized for another tile.)
+                    incoming.resize(ext_cells, 0);
+                    self.pixel_costs(neighbour, incoming_row, xs.clone(), incoming);
+                    let outgoing = &mut ring[slot(incoming_row)];
+                    if outgoing_present {
+                        for ((sum, new), old) in column_sums.iter_mut().zip(incoming.iter()).zip(outgoing.iter()) {
+                            *sum = sum.wrapping_add(u16::from(*new)).wrapping_sub(u16::from(*old));
+                        }
+                    } else {
+                        for (sum, new) in column_sums.iter_mut().zip(incoming.iter()) {
+                            *sum = sum.wrapping_add(u16::from(*new));
+                        }
+                    }
+                    std::mem::swap(outgoing, incoming);
+                    horizontal_block_sums(column_sums, aggregated, nd, r);
+                    if let Some(resampler) = &neighbour.resampler {
+                        resampler.apply(aggregated, resample);
+                    }
+                    mark_invalid(
+                        aggregated,
+                        neighbour.offset,
+                        (x_start, y),
+                        (w, self.height),
+                        (self.min_disparity, nd),
+                        neighbour.baseline_ratio,
+                    );
+                }
+                fused.resize(cells, 0);
+                let sources: Vec<&[u16]> = neighbours.iter().map(|n| n.aggregated.as_slice()).collect();
+                fuse_rows(self.fusion, &sources, fused);
+                sink(y, x_start, fused);
+            }
+        }
+    }
+
     /// Fused, aggregated costs of `rows` into `out` (`rows.len() × width × disparities`).
     pub fn fused_band(&self, rows: Range<usize>, out: &mut [u16]) {
-        self.fused_band_with(rows, out, &mut BandScratch::default());
+        self.fused_band_into(rows, out, &mut BandScratch::default());
     }
 
-    /// [`Self::fused_band`] reusing a worker's buffers (no fresh pages per band).
-    pub fn fused_band_with(&self, rows: Range<usize>, out: &mut [u16], buffers: &mut BandScratch) {
-        let (w, nd, r) = (self.width, self.disparities, self.spec.block_radius);
-        let row_len = w * nd;
-        let ext = rows.start.saturating_sub(r)..(rows.end + r).min(self.height);
-        let k_count = self.neighbours.len();
-        let BandScratch {
-            pixel_row,
-            horizontal,
-            vertical,
-            finished,
-            resample,
-        } = buffers;
-        pixel_row.resize(row_len, 0);
-        horizontal.resize_with(k_count, Vec::new);
-        vertical.resize_with(k_count, Vec::new);
-        finished.resize_with(k_count, Vec::new);
-        // Horizontally aggregated rows of the extended band, per neighbour.
-        for (neighbour, rows_h) in self.neighbours.iter().zip(horizontal.iter_mut()) {
-            rows_h.resize(ext.len() * row_len, 0);
-            for (i, y) in ext.clone().enumerate() {
-                match &neighbour.lines {
-                    Some(lines) => pixel_cost_row_lines(
-                        self.spec.pixel,
-                        &self.reference,
-                        lines,
-                        y,
-                        self.min_disparity,
-                        nd,
-                        pixel_row,
-                    ),
-                    None => pixel_cost_row(
-                        self.spec.pixel,
-                        &self.reference,
-                        &neighbour.view,
-                        neighbour.offset,
-                        y,
-                        self.min_disparity,
-                        nd,
-                        pixel_row,
-                    ),
-                }
-                box_sum_row(pixel_row, &mut rows_h[i * row_len..(i + 1) * row_len], w, nd, r);
-            }
-        }
-        let clamp_row = |y: isize| (y.clamp(0, self.height as isize - 1) as usize) - ext.start;
-        for (rows_h, acc) in horizontal.iter().zip(vertical.iter_mut()) {
-            acc.clear();
-            acc.resize(row_len, 0);
-            for y in rows.start as isize - r as isize..=rows.start as isize + r as isize {
-                let source = &rows_h[clamp_row(y) * row_len..(clamp_row(y) + 1) * row_len];
-                for (a, v) in acc.iter_mut().zip(source) {
-                    *a = a.wrapping_add(*v);
-                }
-            }
-        }
-        for f in finished.iter_mut() {
-            f.resize(row_len, 0);
-        }
-        for (i, y) in rows.clone().enumerate() {
-            for (k, neighbour) in self.neighbours.iter().enumerate() {
-                let finished_k = &mut finished[k];
-                finished_k.copy_from_slice(&vertical[k]);
-                resample_disparity_axis(finished_k, self.min_disparity, nd, neighbour.baseline_ratio, resample);
-                mark_invalid(
-                    finished_k,
-                    neighbour.offset,
-                    y,
-                    (w, self.height),
-                    (self.min_disparity, nd),
-                    neighbour.baseline_ratio,
-                );
-                if y + 1 == rows.end {
-                    continue;
-                }
-                // Slide the vertical window down by one row.
-                let rows_h = &horizontal[k];
-                let incoming = clamp_row(y as isize + r as isize + 1);
-                let outgoing = clamp_row(y as isize - r as isize);
-                let inc = &rows_h[incoming * row_len..(incoming + 1) * row_len];
-                let out_row = &rows_h[outgoing * row_len..(outgoing + 1) * row_len];
-                for ((a, v), o) in vertical[k].iter_mut().zip(inc).zip(out_row) {
-                    *a = a.wrapping_add(*v).wrapping_sub(*o);
-                }
-            }
-            let refs: Vec<&[u16]> = finished.iter().map(Vec::as_slice).collect();
-            fuse_rows(self.fusion, &refs, &mut out[i * row_len..(i + 1) * row_len]);
-        }
+    /// [`Self::fused_band`] reusing a worker's buffers.
+    pub fn fused_band_into(&self, rows: Range<usize>, out: &mut [u16], buffers: &mut BandScratch) {
+        let row_len = self.width * self.disparities;
+        let (first, nd) = (rows.start, self.disparities);
+        self.fused_band_with(rows, buffers, &mut |y, x_start, costs| {
+            let at = (y - first) * row_len + x_start * nd;
+            out[at..at + costs.len()].copy_from_slice(costs);
+        });
     }
 
-    /// The whole fused volume `[y][x][d]` (for global optimisers), computed band-parallel.
+    /// The whole fused volume `[y][x][d]` (for global optimisers), computed band-parallel;
+    /// `on_band` is called after each band.
     pub fn fused_volume(&self, on_band: &(dyn Fn() + Sync)) -> Vec<u16> {
         let row_len = self.width * self.disparities;
+        let band = band_rows(self.height);
         let mut volume = vec![0u16; self.height * row_len];
         volume
-            .par_chunks_mut(BAND_ROWS * row_len)
+            .par_chunks_mut(band * row_len)
             .enumerate()
-            .with_min_len(bands_per_worker(self.height))
-            .for_each_init(BandScratch::default, |buffers, (band, chunk)| {
-                let start = band * BAND_ROWS;
+            .for_each_init(BandScratch::default, |buffers, (index, chunk)| {
+                let start = index * band;
                 let rows = start..start + chunk.len() / row_len;
-                self.fused_band_with(rows, chunk, buffers);
+                self.fused_band_into(rows, chunk, buffers);
                 on_band();
             });
         volume
+    }
+}
+
+/// Sums `2r+1` neighbouring columns of `column_sums` (`[x][d]`, `r` extra columns on each side)
+/// into `out` (`[x][d]` for the inner columns).
+fn horizontal_block_sums(column_sums: &[u16], out: &mut [u16], disparities: usize, r: usize) {
+    let nd = disparities;
+    let columns = out.len() / nd;
+    let (first, rest) = out.split_at_mut(nd.min(out.len()));
+    first.fill(0);
+    for column in column_sums.chunks_exact(nd).take(2 * r + 1) {
+        for (a, v) in first.iter_mut().zip(column) {
+            *a = a.wrapping_add(*v);
+        }
+    }
+    let mut previous: &[u16] = first;
+    for (i, current) in rest.chunks_exact_mut(nd).enumerate().take(columns.saturating_sub(1)) {
+        // Column i + 1: add column i + 1 + 2r of the extended tile, drop column i.
+        let incoming = &column_sums[(i + 1 + 2 * r) * nd..(i + 2 + 2 * r) * nd];
+        let outgoing = &column_sums[i * nd..(i + 1) * nd];
+        for (((c, p), inc), out) in current.iter_mut().zip(previous).zip(incoming).zip(outgoing) {
+            *c = p.wrapping_add(*inc).wrapping_sub(*out);
+        }
+        previous = current;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::cost::INVALID_COST;
+    use crate::fusion::fuse_values;
+
+    fn view(width: usize, height: usize, seed: usize) -> Image {
+        let data = (0..width * height * 3)
+            .map(|i| (((i / 3) % width) * 7 + ((i / 3) / width) * 13 + (i % 3) * 29 + seed * 31 + (i * i) % 17) as u8)
+            .collect();
+        Image::rgb(width, height, data).unwrap_or_else(|e| panic!("{e}"))
+    }
+
+    /// The fused costs by the definition: the block sum of clamped pixel costs, resampled,
+    /// invalid outside the neighbour, fused.
+    fn brute_force(problem: &Problem, spec: CostSpec, fusion: Fusion) -> Vec<u16> {
+        let (w, h) = (problem.reference.width, problem.reference.height);
+        let (min_d, nd, r) = (problem.min_disparity, problem.num_disparities, spec.block_radius as isize);
+        let reference = PreparedView::new(problem.reference.clone(), spec.pixel);
+        let per_neighbour: Vec<Vec<u16>> = problem
+            .neighbours_for(fusion)
+            .into_iter()
+            .map(|n| {
+                let view = PreparedView::new(n.image.clone(), spec.pixel);
+                let reach = ((min_d + nd) as f32 * n.baseline_ratio.max(1.0)).ceil() as usize + 1;
+                let mut pixel = vec![0u8; w * h * reach];
+                for y in 0..h {
+                    let row = &mut pixel[y * w * reach..(y + 1) * w * reach];
+                    pixel_cost_tile(spec.pixel, &reference, &view, n.offset, y, 0..w as isize, 0, reach, row);
+                }
+                let at = |x: isize, y: isize, d: usize| {
+                    let (x, y) = (x.clamp(0, w as isize - 1) as usize, y.clamp(0, h as isize - 1) as usize);
+                    u16::from(pixel[(y * w + x) * reach + d])
+                };
+                let mut out = vec![0u16; w * h * nd];
+                for y in 0..h {
+                    for x in 0..w {
+                        let cell = &mut out[(y * w + x) * nd..(y * w + x + 1) * nd];
+                        for (d, c) in cell.iter_mut().enumerate() {
+                            let mut sum = 0u16;
+                            for dy in -r..=r {
+                                for dx in -r..=r {
+                                    sum += at(x as isize + dx, y as isize + dy, min_d + d);
+                                }
+                            }
+                            *c = sum;
+                        }
+                        if let Some(resampler) = DisparityResampler::new(min_d, nd, n.baseline_ratio) {
+                            resampler.apply(cell, &mut Vec::new());
+                        }
+                        mark_invalid(cell, n.offset, (x, y), (w, h), (min_d, nd), n.baseline_ratio);
+                    }
+                }
+                out
+            })
+            .collect();
+        (0..w * h * nd)
+            .map(|i| {
+                let values: Vec<u16> = per_neighbour.iter().map(|v| v[i]).collect();
+                fuse_values(fusion, &values)
+            })
+            .collect()
+    }
+
+    #[test]
+    fn tiled_bands_give_the_defined_fused_costs() {
+        // 256 disparities make 32-column tiles: 70 columns are two full tiles and a partial one.
+        let (w, h, nd) = (70, 19, 256);
+        let neighbour = |role: &str, offset: [i32; 2], seed: usize, ratio: f32| Neighbour {
+            role: role.into(),
+            image: view(w, h, seed),
+            offset,
+            baseline_ratio: ratio,
+        };
+        let problem = Problem {
+            reference: view(w, h, 0),
+            neighbours: vec![
+                neighbour("left", [-1, 0], 1, 1.0),
+                neighbour("right", [1, 0], 2, 1.07),
+                neighbour("top", [0, -1], 3, 1.0),
+                neighbour("top-right", [1, -1], 4, 0.95),
+            ],
+            min_disparity: 1,
+            num_disparities: nd,
+        };
+        assert_eq!(tile_columns(nd), 32);
+        for (spec, fusion) in [
+            (
+                CostSpec {
+                    pixel: PixelCost::BirchfieldTomasi,
+                    block_radius: 2,
+                },
+                Fusion::Heuristic,
+            ),
+            (
+                CostSpec {
+                    pixel: PixelCost::Census { radius: 1 },
+                    block_radius: 1,
+                },
+                Fusion::Mean,
+            ),
+            (
+                CostSpec {
+                    pixel: PixelCost::AbsoluteDifference,
+                    block_radius: 0,
+                },
+                Fusion::Stereo,
+            ),
+        ] {
+            let expected = brute_force(&problem, spec, fusion);
+            assert!(expected.contains(&INVALID_COST) && expected.iter().any(|c| *c != INVALID_COST));
+            let prepared = PreparedProblem::new(&problem, spec, fusion).unwrap_or_else(|e| panic!("{e}"));
+            // Bands of uneven heights, one scratch reused across them.
+            let row_len = w * nd;
+            let mut got = vec![0u16; w * h * nd];
+            let mut scratch = BandScratch::default();
+            for rows in [0..5, 5..6, 6..19] {
+                let (a, b) = (rows.start * row_len, rows.end * row_len);
+                prepared.fused_band_into(rows, &mut got[a..b], &mut scratch);
+            }
+            if let Some(i) = (0..got.len()).find(|i| got[*i] != expected[*i]) {
+                let (pixel, d) = (i / nd, i % nd);
+                panic!(
+                    "{spec:?} {fusion:?}: x {} y {} d {d}: got {} expected {}",
+                    pixel % w,
+                    pixel / w,
+                    got[i],
+                    expected[i]
+                );
+            }
+            assert!(prepared.fused_volume(&|| {}) == expected, "{spec:?} {fusion:?} volume");
+        }
     }
 }

@@ -11,7 +11,7 @@ use crate::FuseError;
 use crate::cost::PixelCost;
 use crate::fusion::Fusion;
 use crate::image::DisparityImage;
-use crate::volume::{BAND_ROWS, BandScratch, CostSpec, PreparedProblem, Problem, bands_per_worker};
+use crate::volume::{BandScratch, CostSpec, PreparedProblem, Problem, band_rows};
 use crate::wta::winner_take_all;
 
 /// Configuration of block matching.
@@ -77,22 +77,28 @@ impl Method for BlockMatching {
         let prepared = PreparedProblem::new(problem, spec, self.config.fusion)?;
         let (w, h, nd) = (prepared.width(), prepared.height(), prepared.disparities());
         let mut data = vec![f32::INFINITY; w * h];
-        let bands = h.div_ceil(BAND_ROWS);
+        let band = band_rows(h);
+        let bands = h.div_ceil(band);
         let done = AtomicUsize::new(0);
-        data.par_chunks_mut(BAND_ROWS * w)
+        data.par_chunks_mut(band * w)
             .enumerate()
-            .with_min_len(bands_per_worker(h))
-            .for_each_init(
-                || (BandScratch::default(), Vec::new()),
-                |(buffers, costs), (band, out)| {
-                    let start = band * BAND_ROWS;
-                    let rows = start..start + out.len() / w;
-                    costs.resize(rows.len() * w * nd, 0);
-                    prepared.fused_band_with(rows, costs, buffers);
-                    winner_take_all(costs, nd, problem.min_disparity, self.config.subpixel, out);
-                    progress((done.fetch_add(1, Ordering::Relaxed) + 1) as f32 / bands as f32);
-                },
-            );
+            .for_each_init(BandScratch::default, |buffers, (index, out)| {
+                let start = index * band;
+                let rows = start..start + out.len() / w;
+                // Winners are picked tile row by tile row: no band of costs is ever held.
+                prepared.fused_band_with(rows, buffers, &mut |y, x_start, costs| {
+                    let at = (y - start) * w + x_start;
+                    let pixels = costs.len() / nd;
+                    winner_take_all(
+                        costs,
+                        nd,
+                        problem.min_disparity,
+                        self.config.subpixel,
+                        &mut out[at..at + pixels],
+                    );
+                });
+                progress((done.fetch_add(1, Ordering::Relaxed) + 1) as f32 / bands as f32);
+            });
         let mut disparity = DisparityImage {
             width: w,
             height: h,

@@ -12,7 +12,7 @@ use crate::fusion::Fusion;
 use crate::image::DisparityImage;
 use crate::postprocess::median3x3;
 use crate::sgm::aggregate;
-use crate::volume::{BAND_ROWS, CostSpec, PreparedProblem, Problem};
+use crate::volume::{CostSpec, PreparedProblem, Problem, band_rows};
 use crate::wta::winner_take_all;
 
 /// Configuration of SGM.
@@ -73,7 +73,7 @@ impl Method for Sgm {
         };
         let prepared = PreparedProblem::new(problem, spec, self.config.fusion)?;
         let (w, h, nd) = (prepared.width(), prepared.height(), prepared.disparities());
-        let bands = h.div_ceil(BAND_ROWS);
+        let bands = h.div_ceil(band_rows(h));
         let done = AtomicUsize::new(0);
         // Cost volume: the first half of the work; aggregation the rest.
         let volume =
