@@ -51,29 +51,9 @@ impl PreparedView {
     /// Prepares `image` for `cost`.
     pub fn new(image: Image, cost: PixelCost) -> Self {
         let (mut bt_min, mut bt_max, mut census) = (Vec::new(), Vec::new(), Vec::new());
-        let (w, h) = (image.width as isize, image.height as isize);
         match cost {
             PixelCost::AbsoluteDifference => {}
-            PixelCost::BirchfieldTomasi => {
-                bt_min.reserve(image.data.len());
-                bt_max.reserve(image.data.len());
-                for y in 0..h {
-                    for x in 0..w {
-                        for channel in 0..image.channels {
-                            let c = u16::from(image.clamped(x, y, channel));
-                            let mut lo = c;
-                            let mut hi = c;
-                            for (dx, dy) in [(-1, 0), (1, 0), (0, -1), (0, 1)] {
-                                let half = (c + u16::from(image.clamped(x + dx, y + dy, channel))) / 2;
-                                lo = lo.min(half);
-                                hi = hi.max(half);
-                            }
-                            bt_min.push(lo as u8);
-                            bt_max.push(hi as u8);
-                        }
-                    }
-                }
-            }
+            PixelCost::BirchfieldTomasi => (bt_min, bt_max) = birchfield_tomasi_bounds(&image),
             PixelCost::Census { radius } => {
                 census = census_transform(&image.to_gray(), radius.clamp(1, MAX_CENSUS_RADIUS));
             }
@@ -100,6 +80,49 @@ impl PreparedView {
     pub fn census_codes(&self) -> &[u64] {
         &self.census
     }
+}
+
+/// Birchfield–Tomasi bounds of every pixel and channel: the smallest and largest of the pixel
+/// and its half-pixel interpolants towards its 4-neighbours (left, right, up, down; borders
+/// replicated), `(c + n) / 2` rounded down.
+fn birchfield_tomasi_bounds(image: &Image) -> (Vec<u8>, Vec<u8>) {
+    let (w, h, channels) = (image.width, image.height, image.channels);
+    let stride = w * channels;
+    let mut bt_min = vec![0u8; image.data.len()];
+    let mut bt_max = vec![0u8; image.data.len()];
+    let half = |c: u8, n: u8| ((u16::from(c) + u16::from(n)) / 2) as u8;
+    for y in 0..h {
+        let row = &image.data[y * stride..(y + 1) * stride];
+        let up = &image.data[y.saturating_sub(1) * stride..][..stride];
+        let down = &image.data[(y + 1).min(h - 1) * stride..][..stride];
+        let (lo, hi) = (&mut bt_min[y * stride..(y + 1) * stride], &mut bt_max[y * stride..(y + 1) * stride]);
+        // Interior columns: straight slices that the compiler vectorises.
+        if w > 2 {
+            let inner = channels..stride - channels;
+            let (centre, left, right) = (&row[inner.clone()], &row[..stride - 2 * channels], &row[2 * channels..]);
+            let (up, down) = (&up[inner.clone()], &down[inner.clone()]);
+            let (lo, hi) = (&mut lo[inner.clone()], &mut hi[inner]);
+            for i in 0..centre.len() {
+                let c = centre[i];
+                let (a, b, u, d) = (half(c, left[i]), half(c, right[i]), half(c, up[i]), half(c, down[i]));
+                lo[i] = c.min(a).min(b).min(u).min(d);
+                hi[i] = c.max(a).max(b).max(u).max(d);
+            }
+        }
+        // Border columns (or every column of a narrow image).
+        for x in (0..w).filter(|x| *x == 0 || *x + 1 >= w) {
+            for channel in 0..channels {
+                let i = x * channels + channel;
+                let c = row[i];
+                let left = row[x.saturating_sub(1) * channels + channel];
+                let right = row[(x + 1).min(w - 1) * channels + channel];
+                let (a, b, u, d) = (half(c, left), half(c, right), half(c, up[i]), half(c, down[i]));
+                lo[i] = c.min(a).min(b).min(u).min(d);
+                hi[i] = c.max(a).max(b).max(u).max(d);
+            }
+        }
+    }
+    (bt_min, bt_max)
 }
 
 /// Census codes of a grey image over a `(2r+1)²` window, border replicated: bit set where the
@@ -232,19 +255,30 @@ pub fn mark_invalid(
     let (min_disparity, disparities) = disparity_axis;
     let (width, height) = (size.0 as f32, size.1 as f32);
     let (ox, oy) = (offset[0] as f32, offset[1] as f32);
+    let valid = |x: usize, d: usize| {
+        let disparity = (min_disparity + d) as f32 * baseline_ratio;
+        let qx = (x as f32 - ox * disparity).round();
+        let qy = (y as f32 - oy * disparity).round();
+        qx >= 0.0 && qx < width && qy >= 0.0 && qy < height
+    };
+    let pixels = costs.len() / disparities.max(1);
+    if pixels == 0 {
+        return;
+    }
+    // The correspondence is a rounded affine function of (x, d), so the valid (x, d) form a convex
+    // set: when the four corners of the row's (x, d) rectangle are valid, every cost is.
+    let x_end = x_start + pixels - 1;
+    let last_d = disparities - 1;
+    if valid(x_start, 0) && valid(x_start, last_d) && valid(x_end, 0) && valid(x_end, last_d) {
+        return;
+    }
     for (x, costs) in (x_start..).zip(costs.chunks_exact_mut(disparities)) {
         // The correspondence moves monotonically with d: the valid disparities form one interval.
-        let valid = |d: usize| {
-            let disparity = (min_disparity + d) as f32 * baseline_ratio;
-            let qx = (x as f32 - ox * disparity).round();
-            let qy = (y as f32 - oy * disparity).round();
-            qx >= 0.0 && qx < width && qy >= 0.0 && qy < height
-        };
-        if valid(0) && valid(disparities - 1) {
+        if valid(x, 0) && valid(x, last_d) {
             continue;
         }
-        let first = (0..disparities).find(|d| valid(*d)).unwrap_or(disparities);
-        let last = (first..disparities).rev().find(|d| valid(*d)).map_or(first, |d| d + 1);
+        let first = (0..disparities).find(|d| valid(x, *d)).unwrap_or(disparities);
+        let last = (first..disparities).rev().find(|d| valid(x, *d)).map_or(first, |d| d + 1);
         costs[..first].fill(INVALID_COST);
         costs[last..].fill(INVALID_COST);
     }
@@ -329,6 +363,27 @@ mod tests {
                     row[x * 8 + 1] > 0 || matches!(cost, PixelCost::Census { .. }),
                     "{cost:?}"
                 );
+            }
+        }
+    }
+
+    #[test]
+    fn birchfield_tomasi_bounds_match_the_definition() {
+        for (w, h, channels) in [(9, 7, 3), (2, 3, 1), (1, 4, 3)] {
+            let data = (0..w * h * channels).map(|i| ((i * 97 + i / 5) % 256) as u8).collect();
+            let image = Image::new(w, h, channels, data).unwrap_or_else(|e| panic!("{e}"));
+            let (lo, hi) = birchfield_tomasi_bounds(&image);
+            for y in 0..h as isize {
+                for x in 0..w as isize {
+                    for channel in 0..channels {
+                        let c = u16::from(image.clamped(x, y, channel));
+                        let halves = [(-1, 0), (1, 0), (0, -1), (0, 1)]
+                            .map(|(dx, dy)| (c + u16::from(image.clamped(x + dx, y + dy, channel))) / 2);
+                        let i = image.clamped_index(x, y) + channel;
+                        assert_eq!(u16::from(lo[i]), halves.iter().fold(c, |a, v| a.min(*v)));
+                        assert_eq!(u16::from(hi[i]), halves.iter().fold(c, |a, v| a.max(*v)));
+                    }
+                }
             }
         }
     }

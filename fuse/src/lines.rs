@@ -43,40 +43,35 @@ impl SearchLines {
                 _ => (k, (h - 1).saturating_sub(j)),
             }
         };
-        let gather = |value: &dyn Fn(usize) -> u8| -> Vec<u8> {
-            let mut plane = Vec::with_capacity(lines * line_len);
-            for k in 0..lines {
-                for j in 0..line_len {
-                    let (x, y) = position(k, j);
-                    plane.push(value(y * w + x));
-                }
+        // Source pixel of every sample, once for all planes.
+        let mut sources = Vec::with_capacity(lines * line_len);
+        for k in 0..lines {
+            for j in 0..line_len {
+                let (x, y) = position(k, j);
+                sources.push((y * w + x) as u32);
             }
-            plane
+        }
+        let gather = |values: &[u8], channel: usize| -> Vec<u8> {
+            sources.iter().map(|p| values[*p as usize * channels + channel]).collect()
         };
         let mut planes = Vec::new();
         let mut census = Vec::new();
         match cost {
             PixelCost::AbsoluteDifference => {
                 for c in 0..channels {
-                    planes.push(gather(&|p| image.data[p * channels + c]));
+                    planes.push(gather(&image.data, c));
                 }
             }
             PixelCost::BirchfieldTomasi => {
                 let (lo, hi) = view.bt_bounds();
                 for c in 0..channels {
-                    planes.push(gather(&|p| lo[p * channels + c]));
-                    planes.push(gather(&|p| hi[p * channels + c]));
+                    planes.push(gather(lo, c));
+                    planes.push(gather(hi, c));
                 }
             }
             PixelCost::Census { .. } => {
                 let codes = view.census_codes();
-                census.reserve(lines * line_len);
-                for k in 0..lines {
-                    for j in 0..line_len {
-                        let (x, y) = position(k, j);
-                        census.push(codes[y * w + x]);
-                    }
-                }
+                census = sources.iter().map(|p| codes[*p as usize]).collect();
             }
         }
         Some(Self {

@@ -8,10 +8,9 @@ use crate::cost::INVALID_COST;
 /// best cost is [`INVALID_COST`] get `f32::INFINITY`.
 pub fn winner_take_all(costs: &[u16], disparities: usize, min_disparity: usize, subpixel: bool, out: &mut [f32]) {
     for (pixel, c) in out.iter_mut().zip(costs.chunks_exact(disparities)) {
-        let (best, best_cost) = c.iter().enumerate().fold(
-            (0usize, u16::MAX),
-            |(bd, bc), (d, v)| if *v < bc { (d, *v) } else { (bd, bc) },
-        );
+        // The smallest cost (a vectorised min), then its first disparity.
+        let best_cost = c.iter().copied().min().unwrap_or(INVALID_COST);
+        let best = c.iter().position(|v| *v == best_cost).unwrap_or(0);
         if best_cost == INVALID_COST {
             *pixel = f32::INFINITY;
             continue;
