@@ -1,6 +1,8 @@
 //! Semi-global matching (Hirschmüller, PAMI 2008) over a fused cost volume: eight paths,
 //! penalties P1 for ±1 disparity steps and P2 for larger jumps, summed into one `u16` volume.
 
+use rayon::prelude::*;
+
 use crate::cost::INVALID_COST;
 
 /// Scales costs so that the sum of eight paths fits `u16`: returns the right shift to apply.
@@ -12,38 +14,73 @@ pub fn cost_shift(max_cost: u32, p2: u32) -> u32 {
     shift
 }
 
-/// Path cost at a pixel with no predecessor on the path: the (scaled, capped) data cost.
-#[inline]
-fn path_start(cost: &[u16], out: &mut [u16], shift: u32, cap: u16) {
-    for (o, c) in out.iter_mut().zip(cost) {
-        *o = (*c >> shift).min(cap);
-    }
+/// Path costs of one pixel are stored with a sentinel on each side of the disparity axis
+/// (`[MAX, L(d=0), …, L(d=n−1), MAX]`), so that `L(d±1)` needs no edge case.
+const PAD: usize = 1;
+/// The sentinel: `MAX + P1` saturates to `MAX`, which never wins a minimum.
+const SENTINEL: u16 = u16::MAX;
+
+/// Penalties and cost scaling shared by every path.
+#[derive(Debug, Clone, Copy)]
+struct Penalties {
+    p1: u16,
+    p2: u16,
+    shift: u32,
+    cap: u16,
 }
 
-/// `L(p, d) = C(p, d) + min(L(p−r, d), L(p−r, d±1) + P1, min L(p−r) + P2) − min L(p−r)`,
-/// written as whole-slice passes so that the compiler vectorises them.
-#[inline]
-fn path_step(cost: &[u16], previous: &[u16], out: &mut [u16], p1: u16, p2: u16, shift: u32, cap: u16) {
-    let n = out.len();
-    let (cost, previous) = (&cost[..n], &previous[..n]);
-    let min_prev = previous.iter().copied().min().unwrap_or(0);
-    let jump = min_prev.saturating_add(p2);
-    for (o, p) in out.iter_mut().zip(previous) {
-        *o = (*p).min(jump);
+impl Penalties {
+    /// The data cost as the paths see it: scaled and capped (invalid costs become the cap).
+    #[inline]
+    fn data(&self, cost: u16) -> u16 {
+        (cost >> self.shift).min(self.cap)
     }
-    for (o, p) in out[1..].iter_mut().zip(&previous[..n - 1]) {
-        *o = (*o).min(p.saturating_add(p1));
+
+    /// Path cost at a pixel with no predecessor on the path: the data cost. `out` is padded.
+    /// Returns the smallest value.
+    #[inline]
+    fn start(&self, cost: &[u16], out: &mut [u16]) -> u16 {
+        let n = cost.len();
+        out[0] = SENTINEL;
+        out[n + 1] = SENTINEL;
+        let mut smallest = u16::MAX;
+        for (o, c) in out[PAD..PAD + n].iter_mut().zip(cost) {
+            *o = self.data(*c);
+            smallest = smallest.min(*o);
+        }
+        smallest
     }
-    for (o, p) in out[..n - 1].iter_mut().zip(&previous[1..]) {
-        *o = (*o).min(p.saturating_add(p1));
-    }
-    for (o, c) in out.iter_mut().zip(cost) {
-        *o = (*c >> shift).min(cap) + *o - min_prev;
+
+    /// `L(p, d) = C(p, d) + min(L(p−r, d), L(p−r, d±1) + P1, min L(p−r) + P2) − min L(p−r)`
+    /// in one vectorised pass; `previous` and `out` are padded, `previous_min` is `min L(p−r)`.
+    /// Returns `min L(p)`.
+    #[inline]
+    fn step(&self, cost: &[u16], previous: &[u16], previous_min: u16, out: &mut [u16]) -> u16 {
+        let n = cost.len();
+        let (below, centre, above) = (&previous[..n], &previous[1..n + 1], &previous[2..n + 2]);
+        out[0] = SENTINEL;
+        out[n + 1] = SENTINEL;
+        let jump = previous_min.saturating_add(self.p2);
+        let mut smallest = u16::MAX;
+        for d in 0..n {
+            let best = centre[d]
+                .min(below[d].saturating_add(self.p1))
+                .min(above[d].saturating_add(self.p1))
+                .min(jump);
+            let value = self.data(cost[d]) + best - previous_min;
+            out[PAD + d] = value;
+            smallest = smallest.min(value);
+        }
+        smallest
     }
 }
 
 /// Aggregates `volume` (`[y][x][d]`) along eight paths and returns the summed costs.
 /// `max_cost` bounds the valid costs (invalid ones count as `max_cost`).
+///
+/// Three passes, each parallel: the two horizontal paths (rows in parallel); the three paths
+/// from the row above, row by row from the top with each row split across the workers (a pixel
+/// depends only on the row before); the three paths from the row below, from the bottom.
 pub fn aggregate(
     volume: &[u16],
     width: usize,
@@ -54,68 +91,244 @@ pub fn aggregate(
     p2: u16,
 ) -> Vec<u16> {
     let shift = cost_shift(max_cost, u32::from(p2));
-    let cap = ((max_cost >> shift).min(u32::from(INVALID_COST) - 1)) as u16;
+    let penalties = Penalties {
+        p1,
+        p2,
+        shift,
+        cap: ((max_cost >> shift).min(u32::from(INVALID_COST) - 1)) as u16,
+    };
     let nd = disparities;
     let row_len = width * nd;
     let mut sum = vec![0u16; volume.len()];
-    for forward in [true, false] {
-        // Path costs of the previous and current row for the three paths that come from the
-        // previous row (diagonal, vertical, other diagonal); the horizontal path keeps one pixel.
-        let mut previous: Vec<Vec<u16>> = vec![vec![0u16; row_len]; 3];
-        let mut current: Vec<Vec<u16>> = vec![vec![0u16; row_len]; 3];
-        let mut horizontal = vec![0u16; nd];
-        let mut scratch = vec![0u16; nd];
-        let mut total = vec![0u16; nd];
+    if row_len == 0 {
+        return sum;
+    }
+    sum.par_chunks_mut(row_len)
+        .zip(volume.par_chunks(row_len))
+        .for_each_init(
+            || (vec![0u16; nd + 2], vec![0u16; nd + 2]),
+            |(previous, current), (sum_row, cost_row)| {
+                horizontal_paths(&penalties, cost_row, sum_row, nd, previous, current);
+            },
+        );
+    // Columns per worker in the row-by-row passes: a split only pays above a few hundred pixels.
+    let chunk_columns = width.div_ceil(rayon::current_num_threads().max(1)).max(MIN_CHUNK_COLUMNS);
+    let stride = nd + 2;
+    for downward in [true, false] {
+        let mut previous: [Vec<u16>; 3] = std::array::from_fn(|_| vec![0u16; width * stride]);
+        let mut current: [Vec<u16>; 3] = std::array::from_fn(|_| vec![0u16; width * stride]);
+        let mut previous_min = [vec![0u16; width], vec![0u16; width], vec![0u16; width]];
+        let mut current_min = previous_min.clone();
         for row_index in 0..height {
-            let y = if forward { row_index } else { height - 1 - row_index };
-            for col_index in 0..width {
-                let x = if forward { col_index } else { width - 1 - col_index };
-                let cell = (y * width + x) * nd;
-                let cost = &volume[cell..cell + nd];
-                // Horizontal path: the previous pixel of this row.
-                if col_index == 0 {
-                    path_start(cost, &mut horizontal, shift, cap);
-                } else {
-                    scratch.copy_from_slice(&horizontal);
-                    path_step(cost, &scratch, &mut horizontal, p1, p2, shift, cap);
-                }
-                total.copy_from_slice(&horizontal);
-                // Paths from the previous row: x − step, x, x + step (step = ±1 with the sweep).
-                for (k, dx) in [-1isize, 0, 1].into_iter().enumerate() {
-                    let dx = if forward { dx } else { -dx };
-                    let px = x as isize + dx;
-                    let out = &mut current[k][x * nd..(x + 1) * nd];
-                    if row_index > 0 && px >= 0 && (px as usize) < width {
-                        let p = px as usize * nd;
-                        path_step(cost, &previous[k][p..p + nd], out, p1, p2, shift, cap);
-                    } else {
-                        path_start(cost, out, shift, cap);
+            let y = if downward { row_index } else { height - 1 - row_index };
+            let cost_row = &volume[y * row_len..(y + 1) * row_len];
+            let sum_row = &mut sum[y * row_len..(y + 1) * row_len];
+            let [c0, c1, c2] = &mut current;
+            let [m0, m1, m2] = &mut current_min;
+            let chunks: Vec<_> = sum_row
+                .chunks_mut(chunk_columns * nd)
+                .zip(c0.chunks_mut(chunk_columns * stride))
+                .zip(c1.chunks_mut(chunk_columns * stride))
+                .zip(c2.chunks_mut(chunk_columns * stride))
+                .zip(m0.chunks_mut(chunk_columns))
+                .zip(m1.chunks_mut(chunk_columns))
+                .zip(m2.chunks_mut(chunk_columns))
+                .enumerate()
+                .map(|(i, ((((((s, a), b), c), ma), mb), mc))| (i * chunk_columns, s, [a, b, c], [ma, mb, mc]))
+                .collect();
+            let (previous_ref, previous_min_ref) = (&previous, &previous_min);
+            chunks.into_par_iter().for_each(|(x_start, sum_chunk, out, out_min)| {
+                for (i, sum_cell) in sum_chunk.chunks_exact_mut(nd).enumerate() {
+                    let x = x_start + i;
+                    let cost = &cost_row[x * nd..(x + 1) * nd];
+                    // Predecessors (x − 1, x, x + 1) on the row before in this sweep's direction.
+                    for (k, dx) in [-1isize, 0, 1].into_iter().enumerate() {
+                        let px = x as isize + dx;
+                        let cell = &mut out[k][i * stride..(i + 1) * stride];
+                        out_min[k][i] = if row_index > 0 && px >= 0 && (px as usize) < width {
+                            let p = px as usize;
+                            let before = &previous_ref[k][p * stride..(p + 1) * stride];
+                            penalties.step(cost, before, previous_min_ref[k][p], cell)
+                        } else {
+                            penalties.start(cost, cell)
+                        };
                     }
-                    for (t, v) in total.iter_mut().zip(out.iter()) {
-                        *t = t.saturating_add(*v);
+                    let [a, b, c] = [&out[0], &out[1], &out[2]].map(|o| &o[i * stride + PAD..i * stride + PAD + nd]);
+                    for (((s, a), b), c) in sum_cell.iter_mut().zip(a).zip(b).zip(c) {
+                        *s = s.saturating_add(*a + *b + *c);
                     }
                 }
-                let cell_sum = &mut sum[cell..cell + nd];
-                if forward {
-                    // First touch writes: a fresh page is faulted in once, not read as the shared
-                    // zero page and then copied on write.
-                    cell_sum.copy_from_slice(&total);
-                } else {
-                    for (s, t) in cell_sum.iter_mut().zip(&total) {
-                        *s = s.saturating_add(*t);
-                    }
-                }
-            }
+            });
             std::mem::swap(&mut previous, &mut current);
+            std::mem::swap(&mut previous_min, &mut current_min);
         }
     }
     sum
+}
+
+/// Fewest columns per worker in the row-by-row passes.
+const MIN_CHUNK_COLUMNS: usize = 256;
+
+/// The left-to-right and right-to-left paths of one row: written (first touch) into `sum_row`.
+fn horizontal_paths(
+    penalties: &Penalties,
+    cost_row: &[u16],
+    sum_row: &mut [u16],
+    nd: usize,
+    previous: &mut Vec<u16>,
+    current: &mut Vec<u16>,
+) {
+    let width = cost_row.len() / nd;
+    for leftward in [false, true] {
+        let mut previous_min = 0;
+        for i in 0..width {
+            let x = if leftward { width - 1 - i } else { i };
+            let cost = &cost_row[x * nd..(x + 1) * nd];
+            previous_min = if i == 0 {
+                penalties.start(cost, current)
+            } else {
+                penalties.step(cost, previous, previous_min, current)
+            };
+            let sum_cell = &mut sum_row[x * nd..(x + 1) * nd];
+            let path = &current[PAD..PAD + nd];
+            if leftward {
+                for (s, v) in sum_cell.iter_mut().zip(path) {
+                    *s = s.saturating_add(*v);
+                }
+            } else {
+                // First touch writes: a fresh page is faulted in once, not read as the shared
+                // zero page and then copied on write.
+                sum_cell.copy_from_slice(path);
+            }
+            std::mem::swap(previous, current);
+        }
+    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::wta::winner_take_all;
+
+    /// Path cost at a pixel with no predecessor on the path: the (scaled, capped) data cost.
+    #[inline]
+    fn path_start(cost: &[u16], out: &mut [u16], shift: u32, cap: u16) {
+        for (o, c) in out.iter_mut().zip(cost) {
+            *o = (*c >> shift).min(cap);
+        }
+    }
+
+    /// `L(p, d) = C(p, d) + min(L(p−r, d), L(p−r, d±1) + P1, min L(p−r) + P2) − min L(p−r)`,
+    /// written as whole-slice passes so that the compiler vectorises them.
+    #[inline]
+    fn path_step(cost: &[u16], previous: &[u16], out: &mut [u16], p1: u16, p2: u16, shift: u32, cap: u16) {
+        let n = out.len();
+        let (cost, previous) = (&cost[..n], &previous[..n]);
+        let min_prev = previous.iter().copied().min().unwrap_or(0);
+        let jump = min_prev.saturating_add(p2);
+        for (o, p) in out.iter_mut().zip(previous) {
+            *o = (*p).min(jump);
+        }
+        for (o, p) in out[1..].iter_mut().zip(&previous[..n - 1]) {
+            *o = (*o).min(p.saturating_add(p1));
+        }
+        for (o, p) in out[..n - 1].iter_mut().zip(&previous[1..]) {
+            *o = (*o).min(p.saturating_add(p1));
+        }
+        for (o, c) in out.iter_mut().zip(cost) {
+            *o = (*c >> shift).min(cap) + *o - min_prev;
+        }
+    }
+
+    /// The previous sequential implementation, kept as the definition the parallel one must match.
+    /// Aggregates `volume` (`[y][x][d]`) along eight paths and returns the summed costs.
+    /// `max_cost` bounds the valid costs (invalid ones count as `max_cost`).
+    fn aggregate_reference(
+        volume: &[u16],
+        width: usize,
+        height: usize,
+        disparities: usize,
+        max_cost: u32,
+        p1: u16,
+        p2: u16,
+    ) -> Vec<u16> {
+        let shift = cost_shift(max_cost, u32::from(p2));
+        let cap = ((max_cost >> shift).min(u32::from(INVALID_COST) - 1)) as u16;
+        let nd = disparities;
+        let row_len = width * nd;
+        let mut sum = vec![0u16; volume.len()];
+        for forward in [true, false] {
+            // Path costs of the previous and current row for the three paths that come from the
+            // previous row (diagonal, vertical, other diagonal); the horizontal path keeps one pixel.
+            let mut previous: Vec<Vec<u16>> = vec![vec![0u16; row_len]; 3];
+            let mut current: Vec<Vec<u16>> = vec![vec![0u16; row_len]; 3];
+            let mut horizontal = vec![0u16; nd];
+            let mut scratch = vec![0u16; nd];
+            let mut total = vec![0u16; nd];
+            for row_index in 0..height {
+                let y = if forward { row_index } else { height - 1 - row_index };
+                for col_index in 0..width {
+                    let x = if forward { col_index } else { width - 1 - col_index };
+                    let cell = (y * width + x) * nd;
+                    let cost = &volume[cell..cell + nd];
+                    // Horizontal path: the previous pixel of this row.
+                    if col_index == 0 {
+                        path_start(cost, &mut horizontal, shift, cap);
+                    } else {
+                        scratch.copy_from_slice(&horizontal);
+                        path_step(cost, &scratch, &mut horizontal, p1, p2, shift, cap);
+                    }
+                    total.copy_from_slice(&horizontal);
+                    // Paths from the previous row: x − step, x, x + step (step = ±1 with the sweep).
+                    for (k, dx) in [-1isize, 0, 1].into_iter().enumerate() {
+                        let dx = if forward { dx } else { -dx };
+                        let px = x as isize + dx;
+                        let out = &mut current[k][x * nd..(x + 1) * nd];
+                        if row_index > 0 && px >= 0 && (px as usize) < width {
+                            let p = px as usize * nd;
+                            path_step(cost, &previous[k][p..p + nd], out, p1, p2, shift, cap);
+                        } else {
+                            path_start(cost, out, shift, cap);
+                        }
+                        for (t, v) in total.iter_mut().zip(out.iter()) {
+                            *t = t.saturating_add(*v);
+                        }
+                    }
+                    let cell_sum = &mut sum[cell..cell + nd];
+                    if forward {
+                        // First touch writes: a fresh page is faulted in once, not read as the shared
+                        // zero page and then copied on write.
+                        cell_sum.copy_from_slice(&total);
+                    } else {
+                        for (s, t) in cell_sum.iter_mut().zip(&total) {
+                            *s = s.saturating_add(*t);
+                        }
+                    }
+                }
+                std::mem::swap(&mut previous, &mut current);
+            }
+        }
+        sum
+    }
+
+    #[test]
+    fn parallel_passes_match_the_sequential_definition() {
+        let mut state = 3u32;
+        for (w, h, nd) in [(7, 5, 6), (300, 9, 12), (1, 4, 3), (513, 3, 2)] {
+            let volume: Vec<u16> = (0..w * h * nd)
+                .map(|_| {
+                    state = state.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+                    let v = (state >> 16) as u16 % 1200;
+                    if v > 1150 { INVALID_COST } else { v }
+                })
+                .collect();
+            let max_cost = 1100;
+            assert!(
+                aggregate(&volume, w, h, nd, max_cost, 40, 400) == aggregate_reference(&volume, w, h, nd, max_cost, 40, 400),
+                "{w}x{h}x{nd}"
+            );
+        }
+    }
 
     #[test]
     fn smoothing_fills_an_ambiguous_pixel_from_its_neighbours() {
