@@ -7,6 +7,7 @@
 
 use std::ops::Range;
 
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::image::Image;
@@ -139,8 +140,7 @@ pub fn census_transform(gray: &Image, radius: usize) -> Vec<u64> {
         }
     }
     let mut codes = vec![0u64; w * h];
-    for y in 0..h {
-        let row = &mut codes[y * w..(y + 1) * w];
+    codes.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
         for dy in 0..=2 * r {
             for dx in 0..=2 * r {
                 if dx == r && dy == r {
@@ -153,7 +153,7 @@ pub fn census_transform(gray: &Image, radius: usize) -> Vec<u64> {
                 }
             }
         }
-    }
+    });
     codes
 }
 
@@ -281,6 +281,57 @@ pub fn mark_invalid(
         let last = (first..disparities).rev().find(|d| valid(x, *d)).map_or(first, |d| d + 1);
         costs[..first].fill(INVALID_COST);
         costs[last..].fill(INVALID_COST);
+    }
+}
+
+/// The disparities whose correspondence stays inside the neighbour image, tabulated once per
+/// neighbour: the horizontal condition depends only on the column, the vertical one only on the
+/// row, and each allows one interval of disparities. Gives the same marks as [`mark_invalid`].
+#[derive(Debug, Clone)]
+pub struct ValidDisparities {
+    /// `[first, end)` allowed by the column, per reference column.
+    by_column: Vec<(usize, usize)>,
+    /// `[first, end)` allowed by the row, per reference row.
+    by_row: Vec<(usize, usize)>,
+    disparities: usize,
+}
+
+impl ValidDisparities {
+    /// Tabulates the valid disparities of a neighbour at `offset` (see [`mark_invalid`]).
+    pub fn new(offset: [i32; 2], size: (usize, usize), disparity_axis: (usize, usize), baseline_ratio: f32) -> Self {
+        let (min_disparity, disparities) = disparity_axis;
+        let interval = |position: usize, step: i32, limit: usize| {
+            let inside = |d: usize| {
+                let disparity = (min_disparity + d) as f32 * baseline_ratio;
+                let q = (position as f32 - step as f32 * disparity).round();
+                q >= 0.0 && q < limit as f32
+            };
+            let first = (0..disparities).find(|d| inside(*d)).unwrap_or(disparities);
+            let end = (first..disparities).rev().find(|d| inside(*d)).map_or(first, |d| d + 1);
+            (first, end)
+        };
+        Self {
+            by_column: (0..size.0).map(|x| interval(x, offset[0], size.0)).collect(),
+            by_row: (0..size.1).map(|y| interval(y, offset[1], size.1)).collect(),
+            disparities,
+        }
+    }
+
+    /// Sets to [`INVALID_COST`] the costs (`[x][d]`, columns `x_start ..` of row `y`) whose
+    /// correspondence leaves the neighbour image.
+    pub fn mark(&self, costs: &mut [u16], (x_start, y): (usize, usize)) {
+        let nd = self.disparities;
+        let (row_first, row_end) = self.by_row[y];
+        let columns = &self.by_column[x_start..];
+        for (costs, &(column_first, column_end)) in costs.chunks_exact_mut(nd).zip(columns) {
+            let first = row_first.max(column_first).min(nd);
+            let end = row_end.min(column_end).max(first);
+            if first == 0 && end == nd {
+                continue;
+            }
+            costs[..first].fill(INVALID_COST);
+            costs[end..].fill(INVALID_COST);
+        }
     }
 }
 
@@ -436,5 +487,24 @@ mod tests {
         let mut tile = vec![0u16; 2 * 4];
         mark_invalid(&mut tile, [1, 0], (1, 0), (5, 5), (0, 4), 1.0);
         assert_eq!(&tile[0..4], &[0, 0, INVALID_COST, INVALID_COST]);
+    }
+
+    #[test]
+    fn tabulated_valid_disparities_match_the_definition() {
+        let (w, h, nd) = (13, 9, 11);
+        for offset in [[1, 0], [-1, 0], [0, 1], [0, -1], [1, -1], [-1, 1], [2, 0]] {
+            for (min_d, ratio) in [(0, 1.0), (2, 1.13), (1, 0.9)] {
+                let table = ValidDisparities::new(offset, (w, h), (min_d, nd), ratio);
+                for y in 0..h {
+                    let mut expected = vec![7u16; w * nd];
+                    mark_invalid(&mut expected, offset, (0, y), (w, h), (min_d, nd), ratio);
+                    for x_start in [0, 4] {
+                        let mut got = vec![7u16; (w - x_start) * nd];
+                        table.mark(&mut got, (x_start, y));
+                        assert_eq!(got, expected[x_start * nd..], "{offset:?} {min_d} {ratio} y {y} from {x_start}");
+                    }
+                }
+            }
+        }
     }
 }

@@ -10,7 +10,8 @@ use serde::{Deserialize, Serialize};
 
 use crate::FuseError;
 use crate::cost::{
-    DisparityResampler, MAX_BLOCK_RADIUS, MAX_CENSUS_RADIUS, PixelCost, PreparedView, mark_invalid, pixel_cost_tile,
+    DisparityResampler, MAX_BLOCK_RADIUS, MAX_CENSUS_RADIUS, PixelCost, PreparedView, ValidDisparities,
+    pixel_cost_tile,
 };
 use crate::fusion::{Fusion, fuse_rows};
 use crate::image::Image;
@@ -183,11 +184,12 @@ struct NeighbourScratch {
 struct PreparedNeighbour {
     view: PreparedView,
     offset: [i32; 2],
-    baseline_ratio: f32,
     /// Samples in search-line order (axis neighbours); `None` uses the generic cost loop.
     lines: Option<SearchLines>,
     /// Resampling along the disparity axis (baseline ratio ≠ 1).
     resampler: Option<DisparityResampler>,
+    /// Disparities whose correspondence stays inside the image.
+    valid: ValidDisparities,
 }
 
 /// A problem with its views prepared for one cost.
@@ -207,7 +209,24 @@ impl PreparedProblem {
     pub fn new(problem: &Problem, spec: CostSpec, fusion: Fusion) -> Result<Self, FuseError> {
         problem.validate()?;
         spec.validate()?;
-        let neighbours = problem
+        let (reference, neighbours) = rayon::join(
+            || PreparedView::new(problem.reference.clone(), spec.pixel),
+            || Self::prepare_neighbours(problem, spec, fusion),
+        );
+        Ok(Self {
+            reference,
+            neighbours,
+            width: problem.reference.width,
+            height: problem.reference.height,
+            min_disparity: problem.min_disparity,
+            disparities: problem.num_disparities,
+            spec,
+            fusion,
+        })
+    }
+
+    fn prepare_neighbours(problem: &Problem, spec: CostSpec, fusion: Fusion) -> Vec<PreparedNeighbour> {
+        problem
             .neighbours_for(fusion)
             .into_par_iter()
             .map(|n| {
@@ -219,22 +238,17 @@ impl PreparedProblem {
                 PreparedNeighbour {
                     view,
                     offset: n.offset,
-                    baseline_ratio: n.baseline_ratio,
                     lines,
                     resampler: DisparityResampler::new(problem.min_disparity, problem.num_disparities, n.baseline_ratio),
+                    valid: ValidDisparities::new(
+                        n.offset,
+                        (problem.reference.width, problem.reference.height),
+                        (problem.min_disparity, problem.num_disparities),
+                        n.baseline_ratio,
+                    ),
                 }
             })
-            .collect();
-        Ok(Self {
-            reference: PreparedView::new(problem.reference.clone(), spec.pixel),
-            neighbours,
-            width: problem.reference.width,
-            height: problem.reference.height,
-            min_disparity: problem.min_disparity,
-            disparities: problem.num_disparities,
-            spec,
-            fusion,
-        })
+            .collect()
     }
 
     /// Image width.
@@ -355,14 +369,7 @@ impl PreparedProblem {
                     if let Some(resampler) = &neighbour.resampler {
                         resampler.apply(aggregated, resample);
                     }
-                    mark_invalid(
-                        aggregated,
-                        neighbour.offset,
-                        (x_start, y),
-                        (w, self.height),
-                        (self.min_disparity, nd),
-                        neighbour.baseline_ratio,
-                    );
+                    neighbour.valid.mark(aggregated, (x_start, y));
                 }
                 fused.resize(cells, 0);
                 let sources: Vec<&[u16]> = neighbours.iter().map(|n| n.aggregated.as_slice()).collect();
@@ -433,7 +440,7 @@ fn horizontal_block_sums(column_sums: &[u16], out: &mut [u16], disparities: usiz
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::cost::INVALID_COST;
+    use crate::cost::{INVALID_COST, mark_invalid};
     use crate::fusion::fuse_values;
 
     fn view(width: usize, height: usize, seed: usize) -> Image {
