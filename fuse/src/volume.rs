@@ -16,6 +16,7 @@ use crate::cost::{
 use crate::fusion::{Fusion, fuse_rows};
 use crate::image::Image;
 use crate::lines::{SearchLines, pixel_cost_tile_lines};
+use crate::sgm::quantise;
 
 /// The role a stereo method matches against when the set has it.
 pub const STEREO_ROLE: &str = "right";
@@ -394,19 +395,25 @@ impl PreparedProblem {
         });
     }
 
-    /// The whole fused volume `[y][x][d]` (for global optimisers), computed band-parallel;
-    /// `on_band` is called after each band.
-    pub fn fused_volume(&self, on_band: &(dyn Fn() + Sync)) -> Vec<u16> {
+    /// The whole fused volume `[y][x][d]` for global optimisers, quantised to bytes by `shift`
+    /// ([`crate::sgm::quantise`]) and computed band-parallel; `on_band` is called after each band.
+    pub fn fused_volume(&self, shift: u32, on_band: &(dyn Fn() + Sync)) -> Vec<u8> {
         let row_len = self.width * self.disparities;
         let band = band_rows(self.height);
-        let mut volume = vec![0u16; self.height * row_len];
+        let nd = self.disparities;
+        let mut volume = vec![0u8; self.height * row_len];
         volume
             .par_chunks_mut(band * row_len)
             .enumerate()
             .for_each_init(BandScratch::default, |buffers, (index, chunk)| {
                 let start = index * band;
                 let rows = start..start + chunk.len() / row_len;
-                self.fused_band_into(rows, chunk, buffers);
+                self.fused_band_with(rows, buffers, &mut |y, x_start, costs| {
+                    let at = (y - start) * row_len + x_start * nd;
+                    for (q, c) in chunk[at..at + costs.len()].iter_mut().zip(costs) {
+                        *q = quantise(*c, shift);
+                    }
+                });
                 on_band();
             });
         volume
@@ -567,7 +574,8 @@ mod tests {
                     expected[i]
                 );
             }
-            assert!(prepared.fused_volume(&|| {}) == expected, "{spec:?} {fusion:?} volume");
+            let quantised: Vec<u8> = expected.iter().map(|c| quantise(*c, 2)).collect();
+            assert!(prepared.fused_volume(2, &|| {}) == quantised, "{spec:?} {fusion:?} volume");
         }
     }
 }

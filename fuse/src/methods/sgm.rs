@@ -2,7 +2,6 @@
 
 use std::sync::atomic::{AtomicUsize, Ordering};
 
-use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::{Method, MethodEntry, Progress, apply_overrides};
@@ -11,9 +10,8 @@ use crate::cost::PixelCost;
 use crate::fusion::Fusion;
 use crate::image::DisparityImage;
 use crate::postprocess::median3x3;
-use crate::sgm::aggregate;
+use crate::sgm::{quantisation_shift, quantise_penalty, select};
 use crate::volume::{CostSpec, PreparedProblem, Problem, band_rows};
-use crate::wta::winner_take_all;
 
 /// Configuration of SGM.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -76,17 +74,15 @@ impl Method for Sgm {
         let bands = h.div_ceil(band_rows(h));
         let done = AtomicUsize::new(0);
         // Cost volume: the first half of the work; aggregation the rest.
-        let volume =
-            prepared.fused_volume(&|| progress(0.5 * (done.fetch_add(1, Ordering::Relaxed) + 1) as f32 / bands as f32));
-        let summed = aggregate(&volume, w, h, nd, spec.max_cost(), self.config.p1, self.config.p2);
+        let shift = quantisation_shift(spec.max_cost());
+        let volume = prepared.fused_volume(shift, &|| {
+            progress(0.5 * (done.fetch_add(1, Ordering::Relaxed) + 1) as f32 / bands as f32);
+        });
+        let (p1, p2) = (quantise_penalty(self.config.p1, shift), quantise_penalty(self.config.p2, shift));
+        let max_cost = spec.max_cost() >> shift;
+        let data = select(&volume, w, h, nd, max_cost, (p1, p2), problem.min_disparity, self.config.subpixel);
         drop(volume);
         progress(0.95);
-        let mut data = vec![f32::INFINITY; w * h];
-        data.par_chunks_mut(w)
-            .zip(summed.par_chunks(w * nd))
-            .for_each(|(out, costs)| {
-                winner_take_all(costs, nd, problem.min_disparity, self.config.subpixel, out);
-            });
         let mut disparity = DisparityImage {
             width: w,
             height: h,
