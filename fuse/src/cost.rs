@@ -227,18 +227,19 @@ pub fn pixel_cost_tile(
     }
 }
 
-/// Multiplier turning a sum of three channel costs into their mean: `(s · 21846) >> 16 = ⌊s / 3⌋`
-/// for every s ≤ 765 (one `pmulhuw` in the vectorised loops).
-pub(crate) const MEAN_OF_THREE: u32 = 21_846;
+/// `⌊s / 3⌋` for a sum of three channel costs (s ≤ 765) in 16-bit arithmetic only, so that the
+/// cost loops vectorise on 16-bit lanes: with s = 256·h + l, `⌊s/3⌋ = 85·h + ⌊(h + l)/3⌋` (as
+/// 256 = 3·85 + 1), and `⌊t/3⌋ = (171·t) >> 9` is exact for t ≤ 257.
+#[inline]
+pub(crate) fn mean_of_three(sum: u16) -> u8 {
+    let (high, low) = (sum >> 8, sum & 0xFF);
+    (85 * high + ((171 * (high + low)) >> 9)) as u8
+}
 
 /// Mean of `channels` (1 or 3) channel costs summing to `sum`, rounded down.
 #[inline]
 pub(crate) fn mean_of_channels(sum: u16, channels: usize) -> u8 {
-    if channels == 3 {
-        ((u32::from(sum) * MEAN_OF_THREE) >> 16) as u8
-    } else {
-        sum.min(255) as u8
-    }
+    if channels == 3 { mean_of_three(sum) } else { sum.min(255) as u8 }
 }
 
 /// Sets to [`INVALID_COST`] every `(x, d)` of the `[x][d]` costs of reference pixels
@@ -415,6 +416,13 @@ mod tests {
                     "{cost:?}"
                 );
             }
+        }
+    }
+
+    #[test]
+    fn mean_of_three_is_exact() {
+        for sum in 0..=765u16 {
+            assert_eq!(u16::from(mean_of_three(sum)), sum / 3, "{sum}");
         }
     }
 

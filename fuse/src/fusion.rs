@@ -65,8 +65,11 @@ pub fn fuse_values(fusion: Fusion, values: &[u16]) -> u16 {
     }
 }
 
-/// The heuristic rule on the three smallest of up to four costs, sorted by a branch-free network
-/// (the compiler turns the loop over pixels into SIMD min/max).
+/// The heuristic rule on the three smallest of up to four costs, sorted by a branch-free network,
+/// in `u16` arithmetic so that the loop over pixels vectorises on 16 lanes: `c₃ > 3·c₂` with a
+/// product that cannot wrap (`c₂ ≤ 21845`; a larger `c₂` has `3·c₂` above every cost), the two-average as the
+/// rounding-up mean `(a | b) − ((a ^ b) >> 1)`, the three-average `⌊(s + 1) / 3⌋` by a multiply-high that is exact
+/// for s < 2¹⁶. Callers guarantee `3 · max_cost < 2¹⁶` ([`HEURISTIC_U16_MAX_COST`]).
 #[inline]
 fn heuristic4(a: u16, b: u16, c: u16, d: u16) -> u16 {
     let (s1, s2) = (a.min(b), a.max(b));
@@ -75,19 +78,27 @@ fn heuristic4(a: u16, b: u16, c: u16, d: u16) -> u16 {
     let t1 = s1.max(s3);
     let t2 = s2.min(s4);
     let (c2, c3) = (t1.min(t2), t1.max(t2));
-    let (w1, w2, w3) = (u32::from(c1), u32::from(c2), u32::from(c3));
-    let two = (w1 + w2).div_ceil(2);
-    let three = (w1 + w2 + w3 + 1) / 3;
-    let fused = if w3 > 3 * w2 { two } else { three };
-    if c2 == INVALID_COST || c3 == INVALID_COST {
-        c1
-    } else {
-        fused as u16
-    }
+    let two = (c1 | c2) - ((c1 ^ c2) >> 1);
+    let sum = c1.wrapping_add(c2).wrapping_add(c3).wrapping_add(1);
+    let three = (((u32::from(sum) * 43_691) >> 16) as u16) >> 1;
+    let fused = if c2 <= u16::MAX / 3 && c3 > c2.wrapping_mul(3) { two } else { three };
+    if c2 == INVALID_COST || c3 == INVALID_COST { c1 } else { fused }
 }
 
-/// Fuses rows of costs (`rows[k]` = neighbour k, all the same length) into `out`.
-pub fn fuse_rows(fusion: Fusion, rows: &[&[u16]], out: &mut [u16]) {
+/// Largest valid cost for which [`heuristic4`]'s `u16` arithmetic is exact (three valid costs
+/// and the rounding one sum below 2¹⁶).
+pub const HEURISTIC_U16_MAX_COST: u16 = 21_844;
+
+/// [`fuse_values`] for the heuristic on up to four costs, in `u32` (any cost).
+#[inline]
+fn heuristic4_wide(a: u16, b: u16, c: u16, d: u16) -> u16 {
+    fuse_values(Fusion::Heuristic, &[a, b, c, d])
+}
+
+/// Fuses rows of costs (`rows[k]` = neighbour k, all the same length, valid costs at most
+/// `max_cost`) into `out`.
+pub fn fuse_rows(fusion: Fusion, rows: &[&[u16]], out: &mut [u16], max_cost: u32) {
+    let narrow = max_cost <= u32::from(HEURISTIC_U16_MAX_COST);
     match (fusion, rows) {
         (_, [only]) | (Fusion::Stereo, [only, ..]) => out.copy_from_slice(only),
         (Fusion::Min | Fusion::Heuristic, [a, b]) => {
@@ -103,18 +114,23 @@ pub fn fuse_rows(fusion: Fusion, rows: &[&[u16]], out: &mut [u16]) {
                 }
             }
         }
-        (Fusion::Heuristic, [a, b, c]) => {
+        (Fusion::Heuristic, [a, b, c]) if narrow => {
             let n = out.len();
             let (a, b, c) = (&a[..n], &b[..n], &c[..n]);
             for i in 0..n {
                 out[i] = heuristic4(a[i], b[i], c[i], INVALID_COST);
             }
         }
-        (Fusion::Heuristic, [a, b, c, d]) => {
+        (Fusion::Heuristic, [a, b, c, d]) if narrow => {
             let n = out.len();
             let (a, b, c, d) = (&a[..n], &b[..n], &c[..n], &d[..n]);
             for i in 0..n {
                 out[i] = heuristic4(a[i], b[i], c[i], d[i]);
+            }
+        }
+        (Fusion::Heuristic, [a, b, c]) => {
+            for (i, o) in out.iter_mut().enumerate() {
+                *o = heuristic4_wide(a[i], b[i], c[i], INVALID_COST);
             }
         }
         (Fusion::Mean, _) => {
@@ -164,12 +180,16 @@ mod tests {
     #[test]
     fn the_sorting_network_agrees_with_the_rule() {
         let mut state = 7u32;
+        let mut round = 0u32;
         let mut next = || {
             state = state.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
-            let v = (state >> 16) as u16 % 300;
-            if v > 280 { X } else { v }
+            round += 1;
+            // Small costs, and costs up to the largest the u16 arithmetic allows.
+            let limit = if round % 2 == 0 { 300 } else { HEURISTIC_U16_MAX_COST + 1 };
+            let v = (state >> 8) as u16 % (limit + limit / 10);
+            if v > limit - 1 { X } else { v }
         };
-        for _ in 0..20_000 {
+        for _ in 0..200_000 {
             let values = [next(), next(), next(), next()];
             assert_eq!(
                 heuristic4(values[0], values[1], values[2], values[3]),
@@ -191,11 +211,17 @@ mod tests {
         let a = [1u16, X, 9];
         let b = [5u16, 3, X];
         let mut out = [0u16; 3];
-        fuse_rows(Fusion::Min, &[&a, &b], &mut out);
+        fuse_rows(Fusion::Min, &[&a, &b], &mut out, 100);
         assert_eq!(out, [1, 3, 9]);
-        fuse_rows(Fusion::Heuristic, &[&a, &b], &mut out);
+        fuse_rows(Fusion::Heuristic, &[&a, &b], &mut out, 100);
         assert_eq!(out, [1, 3, 9]);
-        fuse_rows(Fusion::Mean, &[&a, &b], &mut out);
+        fuse_rows(Fusion::Mean, &[&a, &b], &mut out, 100);
         assert_eq!(out, [3, 3, 9]);
+        // Costs too large for the u16 heuristic take the wide path.
+        let big = [[60_000u16, 10], [50_000, 11], [40_000, 12], [X, 13]];
+        let rows: Vec<&[u16]> = (0..4).map(|k| &big[k][..]).collect();
+        let mut fused = [0u16; 2];
+        fuse_rows(Fusion::Heuristic, &rows, &mut fused, 60_000);
+        assert_eq!(fused, [50_000, 11]);
     }
 }

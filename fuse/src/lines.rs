@@ -8,7 +8,7 @@
 
 use std::ops::Range;
 
-use crate::cost::{MAX_CENSUS_RADIUS, MEAN_OF_THREE, PixelCost, PreparedView};
+use crate::cost::{MAX_CENSUS_RADIUS, PixelCost, PreparedView, mean_of_three};
 
 /// A neighbour's samples in search-line order, with the border replicated past the image.
 #[derive(Debug, Clone)]
@@ -35,40 +35,19 @@ impl SearchLines {
         let image = view.image();
         let (w, h, channels) = (image.width, image.height, image.channels);
         let line_len = if offset[1] == 0 { w } else { h } + max_disparity + 1;
-        let lines = if offset[1] == 0 { h } else { w };
-        // (x, y) of sample `j` on line `k`, clamped into the image.
-        let position = |k: usize, j: usize| -> (usize, usize) {
-            match offset {
-                [-1, 0] => (j.min(w - 1), k),
-                [1, 0] => ((w - 1).saturating_sub(j), k),
-                [0, -1] => (k, j.min(h - 1)),
-                _ => (k, (h - 1).saturating_sub(j)),
-            }
-        };
-        // Source pixel of every sample, once for all planes.
-        let mut sources = Vec::with_capacity(lines * line_len);
-        for k in 0..lines {
-            for j in 0..line_len {
-                let (x, y) = position(k, j);
-                sources.push((y * w + x) as u32);
-            }
-        }
-        let gather = |values: &[u8], channel: usize| -> Vec<u8> {
-            sources.iter().map(|p| values[*p as usize * channels + channel]).collect()
-        };
         let mut planes = Vec::new();
         let mut census = Vec::new();
         match cost {
             PixelCost::AbsoluteDifference => {
                 for c in 0..channels {
-                    planes.push(gather(&image.data, c));
+                    planes.push(gather_lines(offset, (w, h), line_len, |p| image.data[p * channels + c]));
                 }
             }
             PixelCost::BirchfieldTomasi => {
                 let (lo, hi) = view.bt_bounds();
                 for c in 0..channels {
-                    planes.push(gather(lo, c));
-                    planes.push(gather(hi, c));
+                    planes.push(gather_lines(offset, (w, h), line_len, |p| lo[p * channels + c]));
+                    planes.push(gather_lines(offset, (w, h), line_len, |p| hi[p * channels + c]));
                 }
             }
             PixelCost::Census { radius } => {
@@ -76,7 +55,7 @@ impl SearchLines {
                 let side = 2 * radius.clamp(1, MAX_CENSUS_RADIUS) + 1;
                 let bytes = (side * side - 1).div_ceil(8);
                 census = (0..bytes)
-                    .map(|b| sources.iter().map(|p| (codes[*p as usize] >> (8 * b)) as u8).collect())
+                    .map(|b| gather_lines(offset, (w, h), line_len, |p| (codes[p] >> (8 * b)) as u8))
                     .collect();
             }
         }
@@ -100,6 +79,28 @@ impl SearchLines {
             _ => x * self.line_len + (self.height - 1 - y),
         }
     }
+}
+
+/// One plane in search-line order: line `k` is image row `k` (horizontal offsets) or column `k`
+/// (vertical), read away from the neighbour's side and continued past the border with the border
+/// value; `value(p)` gives the sample of pixel index `p`. Lines are filled as runs (the rows
+/// forwards or backwards, the columns with a stride) rather than per-sample index arithmetic.
+fn gather_lines(offset: [i32; 2], (w, h): (usize, usize), line_len: usize, value: impl Fn(usize) -> u8) -> Vec<u8> {
+    let horizontal = offset[1] == 0;
+    let (lines, run) = if horizontal { (h, w) } else { (w, h) };
+    let mut plane = Vec::with_capacity(lines * line_len);
+    for k in 0..lines {
+        let start = plane.len();
+        match offset {
+            [-1, 0] => plane.extend((0..w).map(|x| value(k * w + x))),
+            [1, 0] => plane.extend((0..w).rev().map(|x| value(k * w + x))),
+            [0, -1] => plane.extend((0..h).map(|y| value(y * w + k))),
+            _ => plane.extend((0..h).rev().map(|y| value(y * w + k))),
+        }
+        let border = plane[start + run - 1];
+        plane.resize(start + line_len, border);
+    }
+    plane
 }
 
 /// Pixel costs of reference row `y`, columns `xs` (outside the image: the border column), for
@@ -139,7 +140,7 @@ pub fn pixel_cost_tile_lines(
                 );
                 for (((o, v0), v1), v2) in costs.iter_mut().zip(a).zip(b).zip(c) {
                     let sum = u16::from(c0.abs_diff(*v0)) + u16::from(c1.abs_diff(*v1)) + u16::from(c2.abs_diff(*v2));
-                    *o = ((u32::from(sum) * MEAN_OF_THREE) >> 16) as u8;
+                    *o = mean_of_three(sum);
                 }
             }
             (PixelCost::BirchfieldTomasi, 1) => {
@@ -159,7 +160,7 @@ pub fn pixel_cost_tile_lines(
                 for (d, o) in costs.iter_mut().enumerate() {
                     let bt = |c: u8, l: u8, h: u8| c.saturating_sub(h).max(l.saturating_sub(c));
                     let sum = u16::from(bt(c0, l0[d], h0[d])) + u16::from(bt(c1, l1[d], h1[d])) + u16::from(bt(c2, l2[d], h2[d]));
-                    *o = ((u32::from(sum) * MEAN_OF_THREE) >> 16) as u8;
+                    *o = mean_of_three(sum);
                 }
             }
             (PixelCost::Census { .. }, _) => {

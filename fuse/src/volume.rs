@@ -374,7 +374,7 @@ impl PreparedProblem {
                 }
                 fused.resize(cells, 0);
                 let sources: Vec<&[u16]> = neighbours.iter().map(|n| n.aggregated.as_slice()).collect();
-                fuse_rows(self.fusion, &sources, fused);
+                fuse_rows(self.fusion, &sources, fused, self.spec.max_cost());
                 sink(y, x_start, fused);
             }
         }

@@ -8,9 +8,15 @@ use crate::cost::INVALID_COST;
 /// best cost is [`INVALID_COST`] get `f32::INFINITY`.
 pub fn winner_take_all(costs: &[u16], disparities: usize, min_disparity: usize, subpixel: bool, out: &mut [f32]) {
     for (pixel, c) in out.iter_mut().zip(costs.chunks_exact(disparities)) {
-        // The smallest cost (a vectorised min), then its first disparity.
-        let best_cost = c.iter().copied().min().unwrap_or(INVALID_COST);
-        let best = c.iter().position(|v| *v == best_cost).unwrap_or(0);
+        // Cost and disparity packed into one u32 (cost high): one vectorised min finds the
+        // smallest cost at its first disparity.
+        let packed = c
+            .iter()
+            .zip(0u32..)
+            .map(|(v, d)| (u32::from(*v) << 16) | d)
+            .min()
+            .unwrap_or(u32::from(INVALID_COST) << 16);
+        let (best, best_cost) = ((packed & 0xFFFF) as usize, (packed >> 16) as u16);
         if best_cost == INVALID_COST {
             *pixel = f32::INFINITY;
             continue;
