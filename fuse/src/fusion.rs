@@ -185,7 +185,7 @@ mod tests {
             state = state.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
             round += 1;
             // Small costs, and costs up to the largest the u16 arithmetic allows.
-            let limit = if round % 2 == 0 { 300 } else { HEURISTIC_U16_MAX_COST + 1 };
+            let limit = if round.is_multiple_of(2) { 300 } else { HEURISTIC_U16_MAX_COST + 1 };
             let v = (state >> 8) as u16 % (limit + limit / 10);
             if v > limit - 1 { X } else { v }
         };
