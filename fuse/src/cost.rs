@@ -44,8 +44,9 @@ pub struct PreparedView {
     bt_min: Vec<u8>,
     /// Birchfield–Tomasi: largest half-pixel interpolant around each pixel, per channel.
     bt_max: Vec<u8>,
-    /// Census codes (of the luma).
-    census: Vec<u64>,
+    /// Census codes (of the luma) sliced into bytes: plane `b`, pixel `p` holds bits
+    /// `8b .. 8b + 8` of the code of `p` (see [`census_planes`]).
+    census: Vec<Vec<u8>>,
 }
 
 impl PreparedView {
@@ -56,7 +57,7 @@ impl PreparedView {
             PixelCost::AbsoluteDifference => {}
             PixelCost::BirchfieldTomasi => (bt_min, bt_max) = birchfield_tomasi_bounds(&image),
             PixelCost::Census { radius } => {
-                census = census_transform(&image.to_gray(), radius.clamp(1, MAX_CENSUS_RADIUS));
+                census = census_planes(&image.to_gray(), radius.clamp(1, MAX_CENSUS_RADIUS));
             }
         }
         Self {
@@ -77,8 +78,8 @@ impl PreparedView {
         (&self.bt_min, &self.bt_max)
     }
 
-    /// Census codes, per pixel.
-    pub fn census_codes(&self) -> &[u64] {
+    /// Census codes as byte planes (plane `b`: bits `8b .. 8b + 8` of every pixel's code).
+    pub fn census_planes(&self) -> &[Vec<u8>] {
         &self.census
     }
 }
@@ -126,11 +127,9 @@ fn birchfield_tomasi_bounds(image: &Image) -> (Vec<u8>, Vec<u8>) {
     (bt_min, bt_max)
 }
 
-/// Census codes of a grey image over a `(2r+1)²` window, border replicated: bit set where the
-/// neighbour is darker than the centre, row-major over the window without the centre. Works on a
-/// padded copy so that the inner loops index without clamping.
-pub fn census_transform(gray: &Image, radius: usize) -> Vec<u64> {
-    let (w, h, r) = (gray.width, gray.height, radius);
+/// A grey image with `r` replicated border pixels on every side, and its row length.
+fn padded_gray(gray: &Image, r: usize) -> (Vec<u8>, usize) {
+    let (w, h) = (gray.width, gray.height);
     let padded_w = w + 2 * r;
     let mut padded = Vec::with_capacity(padded_w * (h + 2 * r));
     for py in 0..h + 2 * r {
@@ -139,6 +138,47 @@ pub fn census_transform(gray: &Image, radius: usize) -> Vec<u64> {
             padded.push(gray.clamped(px as isize - r as isize, y, 0));
         }
     }
+    (padded, padded_w)
+}
+
+/// Census codes of a grey image as byte planes: plane `b` holds bits `8b .. 8b + 8` of
+/// [`census_transform`]'s codes. Each byte is built from eight comparisons on 32 byte lanes,
+/// eight times less work than shifting whole 64-bit codes.
+pub fn census_planes(gray: &Image, radius: usize) -> Vec<Vec<u8>> {
+    let (w, h, r) = (gray.width, gray.height, radius);
+    let (padded, padded_w) = padded_gray(gray, r);
+    let side = 2 * r + 1;
+    let bits = side * side - 1;
+    // Window offsets in code order: position i sits at bit `bits − 1 − i`.
+    let offsets: Vec<(usize, usize)> = (0..side * side)
+        .map(|i| (i % side, i / side))
+        .filter(|&(dx, dy)| (dx, dy) != (r, r))
+        .collect();
+    (0..bits.div_ceil(8))
+        .map(|b| {
+            let mut plane = vec![0u8; w * h];
+            plane.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+                let centre = &padded[(y + r) * padded_w + r..][..w];
+                for j in 0..8 {
+                    let Some(i) = (bits - 1).checked_sub(8 * b + j) else { break };
+                    let (dx, dy) = offsets[i];
+                    let source = &padded[(y + dy) * padded_w + dx..][..w];
+                    for ((value, s), c) in row.iter_mut().zip(source).zip(centre) {
+                        *value |= u8::from(s < c) << j;
+                    }
+                }
+            });
+            plane
+        })
+        .collect()
+}
+
+/// Census codes of a grey image over a `(2r+1)²` window, border replicated: bit set where the
+/// neighbour is darker than the centre, row-major over the window without the centre. Works on a
+/// padded copy so that the inner loops index without clamping.
+pub fn census_transform(gray: &Image, radius: usize) -> Vec<u64> {
+    let (w, h, r) = (gray.width, gray.height, radius);
+    let (padded, padded_w) = padded_gray(gray, r);
     let mut codes = vec![0u64; w * h];
     codes.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
         for dy in 0..=2 * r {
@@ -218,9 +258,15 @@ pub fn pixel_cost_tile(
                 }
             }
             (PixelCost::Census { .. }, _) => {
-                let code = reference.census[y * width + x];
+                let p = y * width + x;
                 for (d, out) in costs.iter_mut().enumerate() {
-                    *out = (code ^ neighbour.census[pixel(d)]).count_ones() as u8;
+                    let q = pixel(d);
+                    *out = reference
+                        .census
+                        .iter()
+                        .zip(&neighbour.census)
+                        .map(|(a, b)| (a[p] ^ b[q]).count_ones() as u8)
+                        .sum();
                 }
             }
         }
@@ -453,6 +499,12 @@ mod tests {
         let image =
             Image::gray(w, h, (0..w * h).map(|i| ((i * 71) % 253) as u8).collect()).unwrap_or_else(|e| panic!("{e}"));
         let codes = census_transform(&image, 2);
+        let planes = census_planes(&image, 2);
+        assert_eq!(planes.len(), 3);
+        for (p, code) in codes.iter().enumerate() {
+            let from_planes = planes.iter().enumerate().fold(0u64, |a, (b, plane)| a | (u64::from(plane[p]) << (8 * b)));
+            assert_eq!(from_planes, *code);
+        }
         for y in 0..h as isize {
             for x in 0..w as isize {
                 let c = image.clamped(x, y, 0);

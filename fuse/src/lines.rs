@@ -8,7 +8,7 @@
 
 use std::ops::Range;
 
-use crate::cost::{MAX_CENSUS_RADIUS, PixelCost, PreparedView, mean_of_three};
+use crate::cost::{PixelCost, PreparedView, mean_of_three};
 
 /// A neighbour's samples in search-line order, with the border replicated past the image.
 #[derive(Debug, Clone)]
@@ -50,12 +50,11 @@ impl SearchLines {
                     planes.push(gather_lines(offset, (w, h), line_len, |p| hi[p * channels + c]));
                 }
             }
-            PixelCost::Census { radius } => {
-                let codes = view.census_codes();
-                let side = 2 * radius.clamp(1, MAX_CENSUS_RADIUS) + 1;
-                let bytes = (side * side - 1).div_ceil(8);
-                census = (0..bytes)
-                    .map(|b| gather_lines(offset, (w, h), line_len, |p| (codes[p] >> (8 * b)) as u8))
+            PixelCost::Census { .. } => {
+                census = view
+                    .census_planes()
+                    .iter()
+                    .map(|plane| gather_lines(offset, (w, h), line_len, |p| plane[p]))
                     .collect();
             }
         }
@@ -164,9 +163,9 @@ pub fn pixel_cost_tile_lines(
                 }
             }
             (PixelCost::Census { .. }, _) => {
-                let code = reference.census_codes()[y * width + x].to_le_bytes();
                 costs.fill(0);
-                for (plane, c) in lines.census.iter().zip(code) {
+                let codes = reference.census_planes().iter().map(|plane| plane[y * width + x]);
+                for (plane, c) in lines.census.iter().zip(codes) {
                     for (o, v) in costs.iter_mut().zip(&plane[range.clone()]) {
                         *o += (c ^ v).count_ones() as u8;
                     }

@@ -5,6 +5,8 @@
 //! instead of 530 MB, half the memory traffic and page faults of the three passes, for a change in
 //! the Middlebury AvgErr of about 0.002 px.
 
+use std::sync::atomic::{AtomicU16, AtomicUsize, Ordering};
+
 use rayon::prelude::*;
 
 use crate::cost::INVALID_COST;
@@ -38,6 +40,18 @@ pub fn quantise(cost: u16, shift: u32) -> u8 {
         INVALID_QUANTISED
     } else {
         (cost >> shift).min(u16::from(INVALID_QUANTISED - 1)) as u8
+    }
+}
+
+/// [`quantise`] over a slice, branch-free so that it vectorises.
+pub fn quantise_into(costs: &[u16], out: &mut [u8], shift: u32) {
+    let shift = shift.min(15);
+    let top = u16::from(INVALID_QUANTISED - 1);
+    for (q, c) in out.iter_mut().zip(costs) {
+        let value = (*c >> shift).min(top) as u8;
+        let invalid = u8::from(*c == INVALID_COST);
+        // 0xFF where invalid, else the value.
+        *q = value | invalid.wrapping_neg();
     }
 }
 
@@ -171,9 +185,9 @@ impl Penalties {
 }
 
 /// The three passes, each parallel: the two horizontal paths (rows in parallel) write the sums;
-/// the three paths from the row above are added row by row from the top, each row split across
-/// the workers (a pixel depends only on the row before); the three paths from the row below are
-/// added from the bottom, or, with a `selection`, summed per pixel and its winner picked.
+/// the three paths from the row above are added row by row from the top, and the three from the
+/// row below from the bottom, or, with a `selection`, summed per pixel and its winner picked
+/// ([`vertical_pass`]).
 fn passes(
     volume: &[u8],
     width: usize,
@@ -195,86 +209,261 @@ fn passes(
                 horizontal_paths(penalties, cost_row, sum_row, nd, previous, current);
             },
         );
-    // Columns per worker in the row-by-row passes: a split only pays above a few hundred pixels.
-    let chunk_columns = width.div_ceil(rayon::current_num_threads().max(1)).max(MIN_CHUNK_COLUMNS);
-    let chunk_count = width.div_ceil(chunk_columns);
-    let stride = nd + 2;
-    for downward in [true, false] {
-        let mut previous: [Vec<u16>; 3] = std::array::from_fn(|_| vec![0u16; width * stride]);
-        let mut current: [Vec<u16>; 3] = std::array::from_fn(|_| vec![0u16; width * stride]);
-        let mut previous_min = [vec![0u16; width], vec![0u16; width], vec![0u16; width]];
-        let mut current_min = previous_min.clone();
-        let selecting = !downward && selection.is_some();
-        let pick = selection.as_ref().map(|s| (s.min_disparity, s.subpixel));
-        for row_index in 0..height {
-            let y = if downward { row_index } else { height - 1 - row_index };
-            let cost_row = &volume[y * row_len..(y + 1) * row_len];
-            let sum_row = &mut sum[y * row_len..(y + 1) * row_len];
-            let mut winners: Vec<Option<&mut [f32]>> = match (&mut selection, selecting) {
-                (Some(selection), true) => selection.out[y * width..(y + 1) * width]
-                    .chunks_mut(chunk_columns)
-                    .map(Some)
-                    .collect(),
-                _ => (0..chunk_count).map(|_| None).collect(),
+    let geometry = Geometry { width, height, nd };
+    vertical_pass(volume, &mut sum, geometry, penalties, true, None);
+    vertical_pass(volume, &mut sum, geometry, penalties, false, selection.as_mut());
+    sum
+}
+
+/// Image size and disparities of a pass.
+#[derive(Debug, Clone, Copy)]
+struct Geometry {
+    width: usize,
+    height: usize,
+    nd: usize,
+}
+
+/// The three paths that reach a pixel from the row before (`downward`: the row above; else the
+/// row below), added into `sum`, or, with a `selection`, summed with it per pixel and the
+/// winner picked.
+///
+/// A pixel depends only on the row before, so each worker thread owns a block of columns for
+/// the whole pass and the workers meet at a spinning barrier after every row. The only values
+/// that cross blocks are the diagonal paths at the block edges, handed over through a small
+/// exchange (double-buffered by row parity, so a worker never overwrites what its neighbour has
+/// yet to read). Workers never sleep between rows: a pool's wake-ups cost more than a row.
+fn vertical_pass(
+    volume: &[u8],
+    sum: &mut [u16],
+    geometry: Geometry,
+    penalties: &Penalties,
+    downward: bool,
+    selection: Option<&mut Selection<'_>>,
+) {
+    let Geometry { width, height, nd } = geometry;
+    let workers = rayon::current_num_threads().clamp(1, width.div_ceil(MIN_CHUNK_COLUMNS).max(1));
+    let block = width.div_ceil(workers);
+    // Each worker's column block of every row (rows in image order).
+    let mut sum_blocks: Vec<Vec<&mut [u16]>> = (0..workers).map(|_| Vec::with_capacity(height)).collect();
+    for row in sum.chunks_mut(width * nd) {
+        let mut rest = row;
+        for blocks in &mut sum_blocks {
+            let (left, right) = rest.split_at_mut((block * nd).min(rest.len()));
+            blocks.push(left);
+            rest = right;
+        }
+    }
+    let pick = selection.as_ref().map(|s| (s.min_disparity, s.subpixel));
+    let mut winner_blocks: Vec<Vec<&mut [f32]>> = (0..workers).map(|_| Vec::new()).collect();
+    if let Some(selection) = selection {
+        for row in selection.out.chunks_mut(width) {
+            let mut rest = row;
+            for blocks in &mut winner_blocks {
+                let (left, right) = rest.split_at_mut(block.min(rest.len()));
+                blocks.push(left);
+                rest = right;
+            }
+        }
+    }
+    let exchange = Exchange::new(workers, nd);
+    let barrier = SpinBarrier::new(workers);
+    std::thread::scope(|scope| {
+        for (worker, (sums, winners)) in sum_blocks.into_iter().zip(winner_blocks).enumerate() {
+            let columns = worker * block..((worker + 1) * block).min(width);
+            let job = BlockJob {
+                volume,
+                geometry,
+                penalties,
+                downward,
+                pick,
+                columns,
+                worker,
+                exchange: &exchange,
+                barrier: &barrier,
             };
-            let [c0, c1, c2] = &mut current;
-            let [m0, m1, m2] = &mut current_min;
-            let chunks: Vec<_> = sum_row
-                .chunks_mut(chunk_columns * nd)
-                .zip(c0.chunks_mut(chunk_columns * stride))
-                .zip(c1.chunks_mut(chunk_columns * stride))
-                .zip(c2.chunks_mut(chunk_columns * stride))
-                .zip(m0.chunks_mut(chunk_columns))
-                .zip(m1.chunks_mut(chunk_columns))
-                .zip(m2.chunks_mut(chunk_columns))
-                .zip(winners.iter_mut())
-                .enumerate()
-                .map(|(i, (((((((s, a), b), c), ma), mb), mc), w))| {
-                    (i * chunk_columns, s, [a, b, c], [ma, mb, mc], w.take())
-                })
-                .collect();
-            let (previous_ref, previous_min_ref) = (&previous, &previous_min);
-            chunks
-                .into_par_iter()
-                .for_each(|(x_start, sum_chunk, out, out_min, mut winners)| {
-                    let mut total = vec![0u16; nd];
-                    for (i, sum_cell) in sum_chunk.chunks_exact_mut(nd).enumerate() {
-                        let x = x_start + i;
-                        let cost = &cost_row[x * nd..(x + 1) * nd];
-                        // Predecessors (x − 1, x, x + 1) on the row before in this sweep's direction.
-                        for (k, dx) in [-1isize, 0, 1].into_iter().enumerate() {
-                            let px = x as isize + dx;
-                            let cell = &mut out[k][i * stride..(i + 1) * stride];
-                            out_min[k][i] = if row_index > 0 && px >= 0 && (px as usize) < width {
-                                let p = px as usize;
-                                let before = &previous_ref[k][p * stride..(p + 1) * stride];
-                                penalties.step(cost, before, previous_min_ref[k][p], cell)
-                            } else {
-                                penalties.start(cost, cell)
-                            };
+            scope.spawn(move || job.run(sums, winners));
+        }
+    });
+}
+
+/// One worker's share of a vertical pass.
+struct BlockJob<'a> {
+    volume: &'a [u8],
+    geometry: Geometry,
+    penalties: &'a Penalties,
+    downward: bool,
+    pick: Option<(usize, bool)>,
+    columns: std::ops::Range<usize>,
+    worker: usize,
+    exchange: &'a Exchange,
+    barrier: &'a SpinBarrier,
+}
+
+impl BlockJob<'_> {
+    fn run(self, mut sums: Vec<&mut [u16]>, mut winners: Vec<&mut [f32]>) {
+        let Geometry { width, height, nd } = self.geometry;
+        let stride = nd + 2;
+        let count = self.columns.len();
+        let x0 = self.columns.start;
+        let mut previous: [Vec<u16>; 3] = std::array::from_fn(|_| vec![0u16; count * stride]);
+        let mut current: [Vec<u16>; 3] = std::array::from_fn(|_| vec![0u16; count * stride]);
+        let mut previous_min = [vec![0u16; count], vec![0u16; count], vec![0u16; count]];
+        let mut current_min = previous_min.clone();
+        // The previous row's diagonal paths just outside the block: path 0 of x0 − 1 (from the
+        // left neighbour) and path 2 of the block's end (from the right neighbour), with their minima.
+        let mut left_ghost = vec![0u16; stride];
+        let mut right_ghost = vec![0u16; stride];
+        let (mut left_ghost_min, mut right_ghost_min) = (0u16, 0u16);
+        let mut total = vec![0u16; nd];
+        for row_index in 0..height {
+            let y = if self.downward { row_index } else { height - 1 - row_index };
+            if row_index > 0 {
+                self.barrier.wait();
+                let parity = (row_index - 1) % 2;
+                if self.worker > 0 {
+                    left_ghost_min = self.exchange.read(self.worker - 1, Side::Right, parity, &mut left_ghost);
+                }
+                if x0 + count < width {
+                    right_ghost_min = self.exchange.read(self.worker + 1, Side::Left, parity, &mut right_ghost);
+                }
+            }
+            let cost_row = &self.volume[y * width * nd..(y + 1) * width * nd];
+            let sum_row = &mut *sums[y];
+            for i in 0..count {
+                let x = x0 + i;
+                let cost = &cost_row[x * nd..(x + 1) * nd];
+                for (k, dx) in [-1isize, 0, 1].into_iter().enumerate() {
+                    let px = x as isize + dx;
+                    let cell = &mut current[k][i * stride..(i + 1) * stride];
+                    current_min[k][i] = if row_index == 0 || px < 0 || px as usize >= width {
+                        self.penalties.start(cost, cell)
+                    } else if (px as usize) < x0 {
+                        self.penalties.step(cost, &left_ghost, left_ghost_min, cell)
+                    } else if px as usize >= x0 + count {
+                        self.penalties.step(cost, &right_ghost, right_ghost_min, cell)
+                    } else {
+                        let p = px as usize - x0;
+                        let before = &previous[k][p * stride..(p + 1) * stride];
+                        self.penalties.step(cost, before, previous_min[k][p], cell)
+                    };
+                }
+                let [a, b, c] = [&current[0], &current[1], &current[2]].map(|o| &o[i * stride + PAD..i * stride + PAD + nd]);
+                let sum_cell = &mut sum_row[i * nd..(i + 1) * nd];
+                match self.pick {
+                    Some((min_disparity, subpixel)) => {
+                        for ((((t, s), a), b), c) in total.iter_mut().zip(&*sum_cell).zip(a).zip(b).zip(c) {
+                            *t = s.saturating_add(*a + *b + *c);
                         }
-                        let [a, b, c] =
-                            [&out[0], &out[1], &out[2]].map(|o| &o[i * stride + PAD..i * stride + PAD + nd]);
-                        match (&mut winners, pick) {
-                            (Some(winners), Some((min_disparity, subpixel))) => {
-                                for ((((t, s), a), b), c) in total.iter_mut().zip(&*sum_cell).zip(a).zip(b).zip(c) {
-                                    *t = s.saturating_add(*a + *b + *c);
-                                }
-                                winner_take_all(&total, nd, min_disparity, subpixel, &mut winners[i..i + 1]);
-                            }
-                            _ => {
-                                for (((s, a), b), c) in sum_cell.iter_mut().zip(a).zip(b).zip(c) {
-                                    *s = s.saturating_add(*a + *b + *c);
-                                }
-                            }
+                        winner_take_all(&total, nd, min_disparity, subpixel, &mut winners[y][i..i + 1]);
+                    }
+                    None => {
+                        for (((s, a), b), c) in sum_cell.iter_mut().zip(a).zip(b).zip(c) {
+                            *s = s.saturating_add(*a + *b + *c);
                         }
                     }
-                });
+                }
+            }
+            if count > 0 {
+                let parity = row_index % 2;
+                let last = count - 1;
+                self.exchange.write(self.worker, Side::Left, parity, &current[2][..stride], current_min[2][0]);
+                self.exchange.write(
+                    self.worker,
+                    Side::Right,
+                    parity,
+                    &current[0][last * stride..(last + 1) * stride],
+                    current_min[0][last],
+                );
+            }
             std::mem::swap(&mut previous, &mut current);
             std::mem::swap(&mut previous_min, &mut current_min);
         }
     }
-    sum
+}
+
+/// Which edge of a worker's block.
+#[derive(Debug, Clone, Copy)]
+enum Side {
+    Left,
+    Right,
+}
+
+/// Edge path values handed between neighbouring workers: per worker, side and row parity, one
+/// padded path vector followed by its minimum. Plain relaxed atomics: the barrier orders them.
+struct Exchange {
+    slots: Vec<AtomicU16>,
+    slot_len: usize,
+}
+
+impl Exchange {
+    fn new(workers: usize, nd: usize) -> Self {
+        let slot_len = nd + 3;
+        Self {
+            slots: (0..workers * 4 * slot_len).map(|_| AtomicU16::new(0)).collect(),
+            slot_len,
+        }
+    }
+
+    fn slot(&self, worker: usize, side: Side, parity: usize) -> &[AtomicU16] {
+        let index = (worker * 2 + side as usize) * 2 + parity;
+        &self.slots[index * self.slot_len..(index + 1) * self.slot_len]
+    }
+
+    fn write(&self, worker: usize, side: Side, parity: usize, path: &[u16], minimum: u16) {
+        let slot = self.slot(worker, side, parity);
+        for (cell, value) in slot.iter().zip(path.iter().chain(std::iter::once(&minimum))) {
+            cell.store(*value, Ordering::Relaxed);
+        }
+    }
+
+    /// Copies the padded path into `path` and returns its minimum.
+    fn read(&self, worker: usize, side: Side, parity: usize, path: &mut [u16]) -> u16 {
+        let slot = self.slot(worker, side, parity);
+        for (value, cell) in path.iter_mut().zip(slot) {
+            *value = cell.load(Ordering::Relaxed);
+        }
+        slot[self.slot_len - 1].load(Ordering::Relaxed)
+    }
+}
+
+/// Spins before yielding in [`SpinBarrier::wait`]: a row takes tens of microseconds.
+const SPINS_BEFORE_YIELD: u32 = 1 << 14;
+
+/// A reusable barrier whose waiters spin (then yield) instead of sleeping.
+struct SpinBarrier {
+    threads: usize,
+    arrived: AtomicUsize,
+    generation: AtomicUsize,
+}
+
+impl SpinBarrier {
+    fn new(threads: usize) -> Self {
+        Self {
+            threads,
+            arrived: AtomicUsize::new(0),
+            generation: AtomicUsize::new(0),
+        }
+    }
+
+    /// Returns once every thread has called `wait` for this generation; what each wrote before
+    /// its call is visible to all after it.
+    fn wait(&self) {
+        let generation = self.generation.load(Ordering::Acquire);
+        if self.arrived.fetch_add(1, Ordering::AcqRel) + 1 == self.threads {
+            self.arrived.store(0, Ordering::Relaxed);
+            self.generation.fetch_add(1, Ordering::AcqRel);
+            return;
+        }
+        let mut spins = 0u32;
+        while self.generation.load(Ordering::Acquire) == generation {
+            if spins < SPINS_BEFORE_YIELD {
+                spins += 1;
+                std::hint::spin_loop();
+            } else {
+                std::thread::yield_now();
+            }
+        }
+    }
 }
 
 /// Fewest columns per worker in the row-by-row passes.
@@ -425,7 +614,7 @@ mod tests {
     #[test]
     fn parallel_passes_match_the_sequential_definition() {
         let mut state = 3u32;
-        for (w, h, nd) in [(7, 5, 6), (300, 9, 12), (1, 4, 3), (513, 3, 2)] {
+        for (w, h, nd) in [(7, 5, 6), (300, 9, 12), (1, 4, 3), (513, 3, 2), (800, 6, 5)] {
             let volume: Vec<u8> = (0..w * h * nd)
                 .map(|_| {
                     state = state.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
@@ -435,14 +624,23 @@ mod tests {
                 .collect();
             let max_cost = 1100 >> 3;
             let reference = aggregate_reference(&volume, w, h, nd, max_cost, 40, 400);
-            assert!(aggregate(&volume, w, h, nd, max_cost, 40, 400) == reference, "{w}x{h}x{nd}");
             let mut expected = vec![0.0f32; w * h];
             winner_take_all(&reference, nd, 3, true, &mut expected);
-            let selected = select(&volume, w, h, nd, max_cost, (40, 400), 3, true);
-            assert!(
-                selected.iter().zip(&expected).all(|(a, b)| a == b || (a.is_infinite() && b.is_infinite())),
-                "{w}x{h}x{nd} selection"
-            );
+            // One, two and three column blocks (with edge exchanges between them).
+            for threads in [1, 2, 3] {
+                let pool = rayon::ThreadPoolBuilder::new()
+                    .num_threads(threads)
+                    .build()
+                    .unwrap_or_else(|e| panic!("{e}"));
+                pool.install(|| {
+                    assert!(aggregate(&volume, w, h, nd, max_cost, 40, 400) == reference, "{w}x{h}x{nd} {threads}");
+                    let selected = select(&volume, w, h, nd, max_cost, (40, 400), 3, true);
+                    assert!(
+                        selected.iter().zip(&expected).all(|(a, b)| a == b || (a.is_infinite() && b.is_infinite())),
+                        "{w}x{h}x{nd} selection, {threads} threads"
+                    );
+                });
+            }
         }
     }
 
@@ -476,6 +674,10 @@ mod tests {
         assert_eq!(quantise(2352, 4), 147);
         assert_eq!(quantise(INVALID_COST, 4), INVALID_QUANTISED);
         assert_eq!(quantise(60_000, 4), 254);
+        let costs = [0, 17, 2352, INVALID_COST, 60_000];
+        let mut out = [0u8; 5];
+        quantise_into(&costs, &mut out, 4);
+        assert_eq!(out.to_vec(), costs.iter().map(|c| quantise(*c, 4)).collect::<Vec<_>>());
         assert_eq!(quantise_penalty(300, 4), 19);
         assert_eq!(quantise_penalty(300, 0), 300);
     }

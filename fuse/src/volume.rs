@@ -16,7 +16,7 @@ use crate::cost::{
 use crate::fusion::{Fusion, fuse_rows};
 use crate::image::Image;
 use crate::lines::{SearchLines, pixel_cost_tile_lines};
-use crate::sgm::quantise;
+use crate::sgm::quantise_into;
 
 /// The role a stereo method matches against when the set has it.
 pub const STEREO_ROLE: &str = "right";
@@ -410,9 +410,7 @@ impl PreparedProblem {
                 let rows = start..start + chunk.len() / row_len;
                 self.fused_band_with(rows, buffers, &mut |y, x_start, costs| {
                     let at = (y - start) * row_len + x_start * nd;
-                    for (q, c) in chunk[at..at + costs.len()].iter_mut().zip(costs) {
-                        *q = quantise(*c, shift);
-                    }
+                    quantise_into(costs, &mut chunk[at..at + costs.len()], shift);
                 });
                 on_band();
             });
@@ -574,7 +572,7 @@ mod tests {
                     expected[i]
                 );
             }
-            let quantised: Vec<u8> = expected.iter().map(|c| quantise(*c, 2)).collect();
+            let quantised: Vec<u8> = expected.iter().map(|c| crate::sgm::quantise(*c, 2)).collect();
             assert!(prepared.fused_volume(2, &|| {}) == quantised, "{spec:?} {fusion:?} volume");
         }
     }
