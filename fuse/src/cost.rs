@@ -389,6 +389,18 @@ impl ValidDisparities {
 pub struct DisparityResampler {
     /// Per common disparity: lower source index, upper source index, weight of the upper in 1/256.
     table: Vec<(usize, usize, u32)>,
+    /// Runs of disparities whose source indices both advance by one per disparity, so that
+    /// each run is one vectorised loop over contiguous slices.
+    runs: Vec<ResampleRun>,
+}
+
+/// Disparities `start .. end` read sources `lower .. lower + len` and `upper .. upper + len`.
+#[derive(Debug, Clone, Copy)]
+struct ResampleRun {
+    start: usize,
+    end: usize,
+    lower: usize,
+    upper: usize,
 }
 
 impl DisparityResampler {
@@ -397,7 +409,7 @@ impl DisparityResampler {
         if (ratio - 1.0).abs() < 1e-6 || disparities == 0 {
             return None;
         }
-        let table = (0..disparities)
+        let table: Vec<(usize, usize, u32)> = (0..disparities)
             .map(|d| {
                 let source = ((min_disparity + d) as f32 * ratio - min_disparity as f32)
                     .clamp(0.0, (disparities - 1) as f32);
@@ -406,7 +418,21 @@ impl DisparityResampler {
                 (lower, upper, ((source - lower as f32) * 256.0).round() as u32)
             })
             .collect();
-        Some(Self { table })
+        let mut runs: Vec<ResampleRun> = Vec::new();
+        for (d, &(lower, upper, _)) in table.iter().enumerate() {
+            match runs.last_mut() {
+                Some(run) if run.lower + (d - run.start) == lower && run.upper + (d - run.start) == upper => {
+                    run.end = d + 1;
+                }
+                _ => runs.push(ResampleRun {
+                    start: d,
+                    end: d + 1,
+                    lower,
+                    upper,
+                }),
+            }
+        }
+        Some(Self { table, runs })
     }
 
     /// Resamples every pixel of `costs` (`[x][d]`) in place; `scratch` holds one pixel's costs.
@@ -415,13 +441,17 @@ impl DisparityResampler {
         scratch.resize(disparities, 0);
         for costs in costs.chunks_exact_mut(disparities) {
             scratch.copy_from_slice(costs);
-            for (cost, &(lower, upper, w)) in costs.iter_mut().zip(&self.table) {
-                let (a, b) = (scratch[lower], scratch[upper]);
-                *cost = if a == INVALID_COST || b == INVALID_COST {
-                    INVALID_COST
-                } else {
-                    ((u32::from(a) * (256 - w) + u32::from(b) * w + 128) >> 8) as u16
-                };
+            for run in &self.runs {
+                let len = run.end - run.start;
+                let lower = &scratch[run.lower..run.lower + len];
+                let upper = &scratch[run.upper..run.upper + len];
+                let weights = &self.table[run.start..run.end];
+                let out = &mut costs[run.start..run.end];
+                for i in 0..len {
+                    let (a, b, w) = (lower[i], upper[i], weights[i].2);
+                    let mixed = ((u32::from(a) * (256 - w) + u32::from(b) * w + 128) >> 8) as u16;
+                    out[i] = if a == INVALID_COST || b == INVALID_COST { INVALID_COST } else { mixed };
+                }
             }
         }
     }
@@ -529,6 +559,24 @@ mod tests {
         let resampler = DisparityResampler::new(0, nd, 1.1).unwrap_or_else(|| panic!("ratio 1.1 resamples"));
         resampler.apply(&mut row, &mut Vec::new());
         assert!(DisparityResampler::new(0, nd, 1.0).is_none());
+        // The vectorised runs give the table's definition, for ratios above and below 1.
+        for ratio in [1.0012f32, 1.3, 0.97, 0.5] {
+            let resampler = DisparityResampler::new(3, 40, ratio).unwrap_or_else(|| panic!("ratio {ratio}"));
+            let costs: Vec<u16> = (0..40 * 3).map(|i| if i % 17 == 5 { INVALID_COST } else { (i * 37 % 500) as u16 }).collect();
+            let mut fast = costs.clone();
+            resampler.apply(&mut fast, &mut Vec::new());
+            for (pixel, (got, original)) in fast.chunks(40).zip(costs.chunks(40)).enumerate() {
+                for (d, &(lower, upper, w)) in resampler.table.iter().enumerate() {
+                    let (a, b) = (original[lower], original[upper]);
+                    let expected = if a == INVALID_COST || b == INVALID_COST {
+                        INVALID_COST
+                    } else {
+                        ((u32::from(a) * (256 - w) + u32::from(b) * w + 128) >> 8) as u16
+                    };
+                    assert_eq!(got[d], expected, "ratio {ratio} pixel {pixel} d {d}");
+                }
+            }
+        }
         let best = (0..nd).min_by_key(|d| row[*d]).unwrap_or(0);
         assert_eq!(best, 10, "{row:?}");
     }
