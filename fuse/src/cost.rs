@@ -435,12 +435,12 @@ impl DisparityResampler {
         Some(Self { table, runs })
     }
 
-    /// Resamples every pixel of `costs` (`[x][d]`) in place; `scratch` holds one pixel's costs.
+    /// Resamples every pixel of `costs` (`[x][d]`) in place; `scratch` holds a copy of them.
     pub fn apply(&self, costs: &mut [u16], scratch: &mut Vec<u16>) {
         let disparities = self.table.len();
-        scratch.resize(disparities, 0);
-        for costs in costs.chunks_exact_mut(disparities) {
-            scratch.copy_from_slice(costs);
+        scratch.clear();
+        scratch.extend_from_slice(costs);
+        for (costs, scratch) in costs.chunks_exact_mut(disparities).zip(scratch.chunks_exact(disparities)) {
             for run in &self.runs {
                 let len = run.end - run.start;
                 let lower = &scratch[run.lower..run.lower + len];

@@ -21,8 +21,9 @@ use record::log::{LogOptions, METADATA_NAME, OutputFile};
 use record::rig::RigKind;
 use record::scene::SceneKind;
 use record::session::record_simulation;
+use viz::stream::{CameraView, Layout, Viewer, ViewerSink};
 use record::{ImageFormat, TOOL_VERSION};
-use tracing::{info, warn};
+use tracing::{error, info, warn};
 
 /// Record multiscopic captures (a simulated UR10 moving a camera in its image plane) as MCAP logs
 /// with Foxglove schemas and ground truth, or import real image sets into the same format.
@@ -137,6 +138,10 @@ fn parse_triple(text: &str) -> Result<[f64; 3], String> {
 
 #[derive(Debug, Args)]
 struct SimulateArgs {
+    /// Watch the capture in the Rerun viewer: `spawn` (start a viewer), `save FILE.rrd`, or
+    /// `connect [URL]` (default rerun+http://127.0.0.1:9876/proxy).
+    #[arg(long, num_args = 1..=2, value_names = ["MODE", "ARG"])]
+    rerun: Vec<String>,
     /// View layout: five-view (centre, left, right, top, bottom), three-view, stereo, grid3x3.
     #[arg(long, value_enum, default_value = "five-view")]
     rig: RigKind,
@@ -312,6 +317,25 @@ fn run_simulation(args: &SimulateArgs, quiet: bool) -> Result<Outcome> {
         config.baseline_mm,
         args.output.display()
     );
+    let mut viewer_lost = false;
+    let viewer = if args.rerun.is_empty() {
+        None
+    } else {
+        let sink = ViewerSink::parse(&args.rerun).map_err(|e| UsageError(e.to_string()))?;
+        let layout = Layout {
+            roles: config.rig.capture_order().iter().map(|s| s.role.to_owned()).collect(),
+            ..Layout::default()
+        };
+        match Viewer::create("multiscopic_record", &sink, &layout) {
+            Ok(viewer) => Some(LiveCapture::new(viewer, sim.arm().clone())),
+            Err(e) => {
+                error!("{e}\n  (the recording goes on; the log is still written)");
+                viewer_lost = true;
+                None
+            }
+        }
+    };
+    let viewer_error = std::cell::Cell::new(None::<viz::stream::VizError>);
     let outcome = record_simulation(
         &mut sim,
         &args.output,
@@ -320,10 +344,31 @@ fn run_simulation(args: &SimulateArgs, quiet: bool) -> Result<Outcome> {
         |set, view| {
             bar.set_message(format!("set {set} {}", view.role));
             bar.inc(1);
+            if let Some(live) = &viewer
+                && let Err(e) = live.view(view)
+            {
+                viewer_error.set(Some(e));
+            }
         },
-        |set, views| bar.suspend(|| info!("set {}/{} done ({views} views)", set + 1, config.captures)),
+        |set| {
+            bar.suspend(|| info!("set {}/{} done ({} views)", set.index + 1, config.captures, set.views.len()));
+            if let Some(live) = &viewer
+                && let Err(e) = live.motion(set)
+            {
+                viewer_error.set(Some(e));
+            }
+        },
     )
     .with_context(|| format!("recording {}", args.output.display()))?;
+    if let Some(live) = viewer
+        && let Err(e) = live.viewer.finish()
+    {
+        viewer_error.set(Some(e));
+    }
+    if let Some(e) = viewer_error.take() {
+        error!("Rerun: {e}");
+        viewer_lost = true;
+    }
     bar.finish_and_clear();
     let Some(path) = &outcome.path else {
         eprintln!("interrupted before the first set was complete: no log written");
@@ -337,7 +382,60 @@ fn run_simulation(args: &SimulateArgs, quiet: bool) -> Result<Outcome> {
         );
         return Ok(Outcome::Incomplete);
     }
+    if viewer_lost {
+        return Ok(Outcome::Incomplete);
+    }
     Ok(Outcome::Complete)
+}
+
+/// `record --rerun`: the arm and cameras as the capture goes.
+struct LiveCapture {
+    viewer: Viewer,
+    arm: record::ur10::Ur10,
+}
+
+/// Size of the work table drawn under the scene (m) and its centre.
+const TABLE_CENTRE_M: [f32; 2] = [0.8, 0.0];
+const TABLE_SIZE_M: [f32; 2] = [1.6, 1.2];
+
+impl LiveCapture {
+    fn new(viewer: Viewer, arm: record::ur10::Ur10) -> Self {
+        Self { viewer, arm }
+    }
+
+    fn arm_at(&self, joints: &record::ur10::Joints) -> Result<(), viz::stream::VizError> {
+        let mut links = vec![nalgebra::Isometry3::identity()];
+        links.extend(self.arm.link_poses(joints));
+        self.viewer.log_arm(&links)
+    }
+
+    /// One view as soon as it is rendered: the arm where it took it, the camera and its image.
+    fn view(&self, view: &record::CapturedView) -> Result<(), viz::stream::VizError> {
+        self.viewer.log_table(TABLE_CENTRE_M, TABLE_SIZE_M)?;
+        self.viewer.set_capture_time(view.capture_time_nanos);
+        if let Some(joints) = &view.joints {
+            self.arm_at(joints)?;
+        }
+        self.viewer.log_camera(&CameraView {
+            role: &view.role,
+            world_from_camera: &view.world_from_camera,
+            intrinsics: [view.camera.fx, view.camera.fy, view.camera.cx, view.camera.cy],
+            width: view.camera.width,
+            height: view.camera.height,
+            rgb: &view.rgb,
+            depth_m: view.depth_m.as_deref(),
+            time_nanos: view.capture_time_nanos,
+        })
+    }
+
+    /// The arm's motion between the views of a finished set, on the capture timeline.
+    fn motion(&self, set: &record::CapturedSet) -> Result<(), viz::stream::VizError> {
+        for sample in &set.motion {
+            self.viewer.set_capture_time(sample.time_nanos);
+            self.arm_at(&sample.joints)?;
+        }
+        Ok(())
+    }
 }
 
 fn report(path: &Path, sets: u32, started: Instant) {

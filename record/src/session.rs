@@ -8,7 +8,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 
 use crate::capture::{Simulation, SimulationError};
 use crate::log::{LogError, LogOptions, METADATA_NAME, OutputFile, PoseJson};
-use crate::{CapturedView, TOOL_VERSION};
+use crate::{CapturedSet, CapturedView, TOOL_VERSION};
 
 /// Errors of a recording.
 #[derive(Debug, thiserror::Error)]
@@ -54,14 +54,15 @@ fn json<T: serde::Serialize>(what: &'static str, value: &T) -> Result<String, Se
 
 /// Records every set of `sim` into `output` (written under a temporary name, renamed when
 /// finished). When `stop` is raised, the log is finished with the sets completed so far.
-/// `on_view(set, view)` follows every view; `on_set(set, views)` every completed set.
+/// `on_view(set, view)` follows every view; `on_set(set)` every completed set (with the arm's
+/// motion samples).
 pub fn record_simulation(
     sim: &mut Simulation,
     output: &Path,
     zstd_level: u32,
     stop: &AtomicBool,
     mut on_view: impl FnMut(u32, &CapturedView),
-    mut on_set: impl FnMut(u32, usize),
+    mut on_set: impl FnMut(&CapturedSet),
 ) -> Result<RecordingOutcome, SessionError> {
     let config = sim.config().clone();
     let (file, writer) = OutputFile::create(output)?;
@@ -80,7 +81,7 @@ pub fn record_simulation(
         let hand_eye = *sim.hand_eye_believed();
         log.write_set(&set, Some(&hand_eye))?;
         completed += 1;
-        on_set(index, set.views.len());
+        on_set(&set);
         if stop.load(Ordering::SeqCst) {
             break;
         }

@@ -203,6 +203,7 @@ impl ForeignMessages {
                     world_from_camera: pose,
                     true_world_from_camera: None,
                     capture_time_nanos: time,
+                    joints: None,
                 },
             ));
         }

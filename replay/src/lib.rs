@@ -15,6 +15,7 @@ pub mod foreign;
 pub mod log;
 pub mod outputs;
 pub mod regions;
+pub mod viewer;
 pub mod viewset;
 
 /// Errors of replay; each names the topic, set and field it is about.

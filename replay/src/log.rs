@@ -670,6 +670,7 @@ fn assemble_set(
             world_from_camera: event.world_from_camera.to_isometry(),
             true_world_from_camera: event.true_world_from_camera.as_ref().map(PoseJson::to_isometry),
             capture_time_nanos: event.capture_time_nanos,
+            joints: event.joint_positions_rad,
         });
     }
     let reference_position = views.iter().position(|v| v.role == REFERENCE_ROLE).unwrap_or(0);

@@ -14,7 +14,8 @@ use replay::eval::{csv, evaluate_sets, markdown};
 use replay::log::read_log_file;
 use replay::outputs::write_set_outputs;
 use replay::viewset::ViewSet;
-use tracing::{info, warn};
+use tracing::{error, info, warn};
+use viz::stream::{Viewer, ViewerSink, VizError};
 
 /// Run multiscopic depth methods on the view sets of an MCAP log (from `record`), write the
 /// results and evaluate them against ground truth.
@@ -70,9 +71,13 @@ struct DemoArgs {
     /// Output folder (the log goes to OUT/capture.mcap, results beside it).
     #[arg(long, default_value = "demo")]
     out: PathBuf,
-    /// Method.
-    #[arg(long, default_value = "sgm-heuristic")]
+    /// Methods (comma-separated, or `all`); the results of each are written and shown.
+    #[arg(long, default_value = "all")]
     method: String,
+    /// Where the Rerun recording goes: `save FILE.rrd` (default: OUT/demo.rrd), `spawn`, or
+    /// `connect [URL]`.
+    #[arg(long, num_args = 1..=2, value_names = ["MODE", "ARG"])]
+    rerun: Vec<String>,
     /// Scene.
     #[arg(long, value_enum, default_value = "toy")]
     scene: record::scene::SceneKind,
@@ -88,7 +93,7 @@ struct DemoArgs {
 struct RunArgs {
     /// The log to replay.
     log: Option<PathBuf>,
-    /// Method (see --list-methods).
+    /// Method (see --list-methods); several comma-separated, or `all`.
     #[arg(long, default_value = "sgm-heuristic")]
     method: String,
     /// Method configuration overrides as a JSON object, e.g. '{"block_radius": 3}'.
@@ -121,6 +126,10 @@ struct RunArgs {
     /// Also write the results as a new MCAP log (with the input's metadata), readable by Foxglove.
     #[arg(long, value_name = "FILE")]
     out_mcap: Option<PathBuf>,
+    /// Show the run in the Rerun viewer: `spawn` (start a viewer), `save FILE.rrd`, or
+    /// `connect [URL]` (default rerun+http://127.0.0.1:9876/proxy).
+    #[arg(long, num_args = 1..=2, value_names = ["MODE", "ARG"])]
+    rerun: Vec<String>,
 }
 
 #[derive(Debug, Clone, Copy, ValueEnum)]
@@ -184,6 +193,37 @@ fn main() -> ExitCode {
     exit_code(result)
 }
 
+/// The methods named by `--method`: one name, a comma-separated list, or `all`.
+fn methods_named(names: &str, overrides: Option<&serde_json::Value>) -> Result<Vec<Box<dyn fuse::methods::Method>>> {
+    let names: Vec<&str> = if names == "all" {
+        fuse::methods::registry().iter().map(|e| e.name).collect()
+    } else {
+        names.split(',').map(str::trim).filter(|n| !n.is_empty()).collect()
+    };
+    if names.is_empty() {
+        return Err(UsageError("--method is empty (see --list-methods)".into()).into());
+    }
+    names
+        .into_iter()
+        .map(|name| fuse::methods::build(name, overrides).map_err(|e| UsageError(e.to_string()).into()))
+        .collect()
+}
+
+/// Opens the Rerun recording when `--rerun` was given. A viewer that cannot be started or a file
+/// that cannot be written is reported and the run goes on without it (its other outputs are
+/// still written; the exit code is then 3).
+fn open_viewer(words: &[String], set: Option<&ViewSet>, methods: &[&str]) -> Result<Option<Viewer>, Option<VizError>> {
+    if words.is_empty() {
+        return Ok(None);
+    }
+    let sink = ViewerSink::parse(words).map_err(Some)?;
+    let layout = match set {
+        Some(set) => replay::viewer::layout(set, methods),
+        None => viz::stream::Layout::default(),
+    };
+    Viewer::create("multiscopic_replay", &sink, &layout).map(Some).map_err(Some)
+}
+
 fn run_method(args: &RunArgs, quiet: bool) -> Result<Outcome> {
     let Some(log) = &args.log else {
         return Err(UsageError("no log given: replay LOG --method NAME (or --list-methods)".into()).into());
@@ -195,7 +235,10 @@ fn run_method(args: &RunArgs, quiet: bool) -> Result<Outcome> {
         ),
         None => None,
     };
-    let method = fuse::methods::build(&args.method, overrides.as_ref()).map_err(|e| UsageError(e.to_string()))?;
+    let methods = methods_named(&args.method, overrides.as_ref())?;
+    if !args.rerun.is_empty() {
+        ViewerSink::parse(&args.rerun).map_err(|e| UsageError(e.to_string()))?;
+    }
     let started = Instant::now();
     let contents = replay::log::read_log_file_in(log, args.start, args.end)
         .with_context(|| format!("reading {}", log.display()))?;
@@ -219,14 +262,29 @@ fn run_method(args: &RunArgs, quiet: bool) -> Result<Outcome> {
         anyhow::bail!("{} holds no complete view set to replay", log.display());
     }
     std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
+    let method_names: Vec<&str> = methods.iter().map(|m| m.name()).collect();
+    let mut viewer_lost = false;
+    let viewer = match open_viewer(&args.rerun, sets.first().copied(), &method_names) {
+        Ok(viewer) => viewer,
+        Err(error) => {
+            if let Some(error) = error {
+                error!("{error}\n  (the run goes on; its files are still written)");
+            }
+            viewer_lost = true;
+            None
+        }
+    };
     let mut result_log = match &args.out_mcap {
         Some(path) => {
             let mut run = std::collections::BTreeMap::new();
             run.insert("tool".to_owned(), "replay".to_owned());
             run.insert("tool_version".to_owned(), env!("CARGO_PKG_VERSION").to_owned());
             run.insert("input".to_owned(), log.display().to_string());
-            run.insert("method".to_owned(), method.name().to_owned());
-            run.insert("config".to_owned(), method.config_json().to_string());
+            run.insert("method".to_owned(), method_names.join(","));
+            run.insert(
+                "config".to_owned(),
+                serde_json::Value::Array(methods.iter().map(|m| m.config_json()).collect()).to_string(),
+            );
             run.insert("rectify".to_owned(), args.rectify.to_string());
             Some(
                 replay::outputs::ResultLog::create(path, &contents.metadata, run)
@@ -235,7 +293,12 @@ fn run_method(args: &RunArgs, quiet: bool) -> Result<Outcome> {
         }
         None => None,
     };
+    let mut viewer_error = |error: VizError| {
+        error!("Rerun: {error}; the run goes on without the viewer");
+        viewer_lost = true;
+    };
     let mut summaries = Vec::new();
+    let mut viewer_seconds = 0.0;
     for set in sets {
         let nd = args.num_disparities.unwrap_or_else(|| set.default_num_disparities());
         let alignment = replay::check::check_set(set, nd);
@@ -258,62 +321,100 @@ fn run_method(args: &RunArgs, quiet: bool) -> Result<Outcome> {
                 );
             }
         }
-        let problem = set
-            .with_neighbours(&args.neighbours)?
-            .problem(args.min_disparity, nd, args.rectify)?;
-        let progress = progress_bar(100, quiet, "%");
-        progress.set_message(format!(
-            "set {} {} ({} neighbours, {nd} disparities)",
-            set.index,
-            method.name(),
-            problem.neighbours.len()
-        ));
-        let method_started = Instant::now();
-        let disparity = method
-            .run(&problem, &|fraction| progress.set_position((fraction * 100.0) as u64))
-            .with_context(|| format!("set {}: {}", set.index, method.name()))?;
-        let seconds = method_started.elapsed().as_secs_f64();
-        progress.finish_and_clear();
-        let regions = set.region_metrics(&disparity.data, nd as f64);
-        let metrics = regions.map(|r| r.all);
-        let outputs = write_set_outputs(&args.out, set, method.name(), &disparity, regions)?;
-        match &metrics {
-            Some(m) => info!(
-                "set {} ({}): {} in {seconds:.2} s — AvgErr {:.3} px, RMS {:.3}, Bad1 {:.2} % → {}",
-                set.index,
-                set.name,
-                method.name(),
-                m.avg_err,
-                m.rms,
-                m.bad_1,
-                outputs.dir.display()
-            ),
-            None => info!(
-                "set {} ({}): {} in {seconds:.2} s → {}",
-                set.index,
-                set.name,
-                method.name(),
-                outputs.dir.display()
-            ),
+        let selected = set.with_neighbours(&args.neighbours)?;
+        let problem = selected.problem(args.min_disparity, nd, args.rectify)?;
+        if let Some(viewer) = &viewer {
+            let viewer_started = Instant::now();
+            if let Err(e) = replay::viewer::log_capture(viewer, &selected)
+                .and_then(|()| replay::viewer::log_costs(viewer, &selected, &problem))
+            {
+                viewer_error(e);
+            }
+            viewer_seconds += viewer_started.elapsed().as_secs_f64();
         }
-        let set_summary =
-            serde_json::json!({"outputs": outputs, "seconds": seconds, "num_disparities": nd, "alignment": alignment});
-        if let Some(result_log) = result_log.as_mut() {
-            result_log.write_set(set, method.name(), &disparity, &set_summary)?;
+        for method in &methods {
+            let progress = progress_bar(100, quiet, "%");
+            progress.set_message(format!(
+                "set {} {} ({} neighbours, {nd} disparities)",
+                set.index,
+                method.name(),
+                problem.neighbours.len()
+            ));
+            let method_started = Instant::now();
+            let disparity = method
+                .run(&problem, &|fraction| progress.set_position((fraction * 100.0) as u64))
+                .with_context(|| format!("set {}: {}", set.index, method.name()))?;
+            let seconds = method_started.elapsed().as_secs_f64();
+            progress.finish_and_clear();
+            let regions = set.region_metrics(&disparity.data, nd as f64);
+            let metrics = regions.map(|r| r.all);
+            let outputs = write_set_outputs(&args.out, set, method.name(), &disparity, regions)?;
+            match &metrics {
+                Some(m) => info!(
+                    "set {} ({}): {} in {seconds:.2} s — AvgErr {:.3} px, RMS {:.3}, Bad1 {:.2} % → {}",
+                    set.index,
+                    set.name,
+                    method.name(),
+                    m.avg_err,
+                    m.rms,
+                    m.bad_1,
+                    outputs.dir.display()
+                ),
+                None => info!(
+                    "set {} ({}): {} in {seconds:.2} s → {}",
+                    set.index,
+                    set.name,
+                    method.name(),
+                    outputs.dir.display()
+                ),
+            }
+            if let Some(viewer) = &viewer {
+                let viewer_started = Instant::now();
+                if let Err(e) =
+                    replay::viewer::log_result(viewer, set, method.name(), &disparity, regions.as_ref(), &alignment)
+                {
+                    viewer_error(e);
+                }
+                viewer_seconds += viewer_started.elapsed().as_secs_f64();
+            }
+            let set_summary = serde_json::json!({
+                "method": method.name(),
+                "outputs": outputs,
+                "seconds": seconds,
+                "num_disparities": nd,
+                "alignment": alignment,
+            });
+            if let Some(result_log) = result_log.as_mut() {
+                result_log.write_set(set, method.name(), &disparity, &set_summary)?;
+            }
+            summaries.push(set_summary);
         }
-        summaries.push(set_summary);
+    }
+    if let Some(viewer) = viewer {
+        let viewer_started = Instant::now();
+        if let Err(e) = viewer.finish() {
+            viewer_error(e);
+        }
+        viewer_seconds += viewer_started.elapsed().as_secs_f64();
+        if let Some(path) = args.rerun.get(1).filter(|_| args.rerun[0] == "save") {
+            info!("wrote {path} (open it with `rerun {path}`)");
+        }
     }
     let summary = serde_json::json!({
         "tool": "replay",
         "tool_version": env!("CARGO_PKG_VERSION"),
         "log": log,
-        "method": method.name(),
-        "config": method.config_json(),
+        "method": args.method,
+        "methods": method_names,
+        "config": if methods.len() == 1 { methods[0].config_json() } else { serde_json::Value::Array(methods.iter().map(|m| m.config_json()).collect()) },
         "min_disparity": args.min_disparity,
         "sets": summaries,
         "incomplete_sets": contents.incomplete_sets,
         "truncation": contents.truncation,
         "log_metadata": contents.metadata,
+        "rerun": args.rerun,
+        "rerun_seconds": viewer_seconds,
+        "rerun_lost": viewer_lost,
         "seconds": started.elapsed().as_secs_f64(),
     });
     if let Some(result_log) = result_log {
@@ -324,7 +425,7 @@ fn run_method(args: &RunArgs, quiet: bool) -> Result<Outcome> {
     std::fs::write(&summary_path, serde_json::to_string_pretty(&summary)?)
         .with_context(|| format!("writing {}", summary_path.display()))?;
     info!("wrote {}", summary_path.display());
-    if contents.truncation.is_some() || !contents.incomplete_sets.is_empty() {
+    if contents.truncation.is_some() || !contents.incomplete_sets.is_empty() || viewer_lost {
         return Ok(Outcome::Incomplete);
     }
     Ok(Outcome::Complete)
@@ -391,7 +492,7 @@ fn run_demo(args: &DemoArgs, quiet: bool) -> Result<Outcome> {
             progress.set_message(format!("rendering set {set} view {}", view.role));
             progress.inc(1);
         },
-        |_, _| {},
+        |_| {},
     )?;
     progress.finish_and_clear();
     if recorded.path.is_none() {
@@ -411,6 +512,11 @@ fn run_demo(args: &DemoArgs, quiet: bool) -> Result<Outcome> {
             neighbours: Vec::new(),
             rectify: true,
             out_mcap: None,
+            rerun: if args.rerun.is_empty() {
+                vec!["save".to_owned(), args.out.join("demo.rrd").display().to_string()]
+            } else {
+                args.rerun.clone()
+            },
         },
         quiet,
     )

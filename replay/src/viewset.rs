@@ -25,6 +25,8 @@ pub struct View {
     pub true_world_from_camera: Option<Isometry3<f64>>,
     /// Image time (ns).
     pub capture_time_nanos: u64,
+    /// Arm joint positions at the image time (rad), when the log has them.
+    pub joints: Option<[f64; 6]>,
 }
 
 /// A multiscopic view set.
@@ -57,6 +59,7 @@ fn view_from_captured(view: &CapturedView) -> View {
         world_from_camera: view.world_from_camera,
         true_world_from_camera: view.world_from_camera_true,
         capture_time_nanos: view.capture_time_nanos,
+        joints: view.joints,
     }
 }
 

@@ -9,3 +9,4 @@ mod record_log;
 mod replay_check;
 mod replay_eval;
 mod replay_input;
+mod viz_rerun;

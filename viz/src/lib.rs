@@ -2,9 +2,12 @@
 //! Rerun viewer, or written as files (colour-mapped PNG, PFM, PLY) for people without a viewer.
 //!
 //! It never depends on `replay`; binaries hand it plain data. [`files`] writes PFM, 16-bit
-//! depth PNG and colour-mapped disparity PNG; [`turbo`] is the colour map.
+//! depth PNG and colour-mapped disparity PNG; [`stream`] logs captures, cost volumes and results
+//! to the Rerun viewer (spawned, connected, or saved as `.rrd`) with a blueprint built in code;
+//! [`turbo`] is the colour map.
 
 pub mod files;
+pub mod stream;
 
 /// Turbo colour map (Mikhailov, Google 2019) at `t` ∈ [0, 1], as 8-bit RGB, by the published
 /// polynomial approximation. Values outside [0, 1] are clamped; NaN maps to black.

@@ -1,0 +1,290 @@
+//! What `replay --rerun` shows: each set's arm, cameras and images, a bounded cost volume per
+//! neighbour and fused with the cost curves of probe pixels, and each method's result, error map,
+//! metrics and alignment report. The drawing is `viz::stream`'s; this module picks the data.
+
+use fuse::cost::PixelCost;
+use fuse::fusion::Fusion;
+use fuse::volume::{CostSpec, PreparedProblem};
+use fuse::{Image, Neighbour, Problem};
+use nalgebra::Isometry3;
+use record::ur10::Ur10;
+use viz::stream::{CameraView, Layout, Viewer, VizError};
+
+use crate::check::{SetCheck, Status};
+use crate::regions::RegionMetrics;
+use crate::viewset::{View, ViewSet};
+
+/// Largest cost volume sent to the viewer (cells): larger problems are shown downsampled.
+pub const MAX_TENSOR_CELLS: usize = 6_000_000;
+/// Error map colour range (px): errors at or above it are dark red.
+pub const ERROR_SCALE_PX: f32 = 4.0;
+/// Size of the work table drawn under the scene (m) and its centre.
+const TABLE_SIZE_M: [f32; 2] = [1.6, 1.2];
+const TABLE_CENTRE_M: [f32; 2] = [0.8, 0.0];
+
+/// The blueprint's contents for a set and methods.
+pub fn layout(set: &ViewSet, methods: &[&str]) -> Layout {
+    let mut roles = vec![set.reference.role.clone()];
+    roles.extend(set.neighbours.iter().map(|n| n.role.clone()));
+    let mut cost_sources = vec!["fused".to_owned()];
+    cost_sources.extend(set.neighbours.iter().map(|n| n.role.clone()));
+    Layout {
+        roles,
+        methods: methods.iter().map(|m| (*m).to_owned()).collect(),
+        cost_sources,
+    }
+}
+
+fn camera_view<'a>(view: &'a View, depth_m: Option<&'a [f32]>, world_from_camera: &'a Isometry3<f64>) -> CameraView<'a> {
+    CameraView {
+        role: &view.role,
+        world_from_camera,
+        intrinsics: [view.camera.fx, view.camera.fy, view.camera.cx, view.camera.cy],
+        width: view.camera.width,
+        height: view.camera.height,
+        rgb: &view.rgb,
+        depth_m,
+        time_nanos: view.capture_time_nanos,
+    }
+}
+
+/// The set's capture: the table, the arm at each view's capture time (when the log has the
+/// joints), and every camera with its image (and the reference's ground-truth depth).
+pub fn log_capture(viewer: &Viewer, set: &ViewSet) -> Result<(), VizError> {
+    viewer.log_table(TABLE_CENTRE_M, TABLE_SIZE_M)?;
+    let arm = Ur10::default();
+    let mut views: Vec<&View> = std::iter::once(&set.reference).chain(&set.neighbours).collect();
+    views.sort_by_key(|v| v.capture_time_nanos);
+    for view in views {
+        viewer.set_capture_time(view.capture_time_nanos);
+        if let Some(joints) = &view.joints {
+            let mut links = vec![Isometry3::identity()];
+            links.extend(arm.link_poses(joints));
+            viewer.log_arm(&links)?;
+        }
+        let depth = if view.role == set.reference.role {
+            set.ground_truth_depth_m.as_deref()
+        } else {
+            None
+        };
+        viewer.log_camera(&camera_view(view, depth, &view.world_from_camera))?;
+    }
+    Ok(())
+}
+
+/// Box-averages an image by `factor` (rows and columns beyond a whole block are dropped).
+fn downsample(image: &Image, factor: usize) -> Image {
+    let (w, h, c) = (image.width / factor, image.height / factor, image.channels);
+    let mut data = Vec::with_capacity(w * h * c);
+    for y in 0..h {
+        for x in 0..w {
+            for channel in 0..c {
+                let mut sum = 0u32;
+                for dy in 0..factor {
+                    for dx in 0..factor {
+                        sum += u32::from(image.data[((y * factor + dy) * image.width + x * factor + dx) * c + channel]);
+                    }
+                }
+                data.push((sum / (factor * factor) as u32) as u8);
+            }
+        }
+    }
+    Image {
+        width: w,
+        height: h,
+        channels: c,
+        data,
+    }
+}
+
+/// Probe pixels whose cost curves are shown: where ground truth says the pixel is occluded in
+/// some neighbour, textureless, or specular. Each is `(name, x, y)` in full-resolution pixels.
+pub fn probe_pixels(set: &ViewSet) -> Vec<(String, usize, usize)> {
+    let (w, h) = (set.width(), set.height());
+    let mut probes = Vec::new();
+    let Some(truth) = set.ground_truth_disparity() else {
+        // Without ground truth: the image centre.
+        return vec![("centre".to_owned(), w / 2, h / 2)];
+    };
+    let margin = w.min(h) / 8;
+    let inside = |x: usize, y: usize| x >= margin && y >= margin && x + margin < w && y + margin < h;
+    let mut occluded = vec![false; w * h];
+    for n in &set.neighbours {
+        for (o, hidden) in occluded
+            .iter_mut()
+            .zip(crate::regions::occluded_in(&truth, w, h, n.offset))
+        {
+            *o |= hidden;
+        }
+    }
+    let pick = |keep: &dyn Fn(usize) -> bool| {
+        (0..w * h)
+            .step_by(7)
+            .find(|p| truth[*p] > 0.0 && inside(p % w, p / w) && keep(*p))
+            .map(|p| (p % w, p / w))
+    };
+    if let Some((x, y)) = pick(&|p| occluded[p]) {
+        probes.push(("occluded".to_owned(), x, y));
+    }
+    if let Some(surface) = &set.surface_class
+        && let Some((x, y)) = pick(&|p| {
+            surface[p] == record::scene::SurfaceClass::Glossy as u8 || surface[p] == record::scene::SurfaceClass::Mirror as u8
+        })
+    {
+        probes.push(("specular".to_owned(), x, y));
+    }
+    // Textureless: the smallest local gradient on a coarse grid.
+    let grey = |x: usize, y: usize| {
+        let p = (y * w + x) * 3;
+        i32::from(set.reference.rgb[p]) + i32::from(set.reference.rgb[p + 1]) + i32::from(set.reference.rgb[p + 2])
+    };
+    let step = (w / 64).max(4);
+    let mut best: Option<(i32, usize, usize)> = None;
+    for y in (margin..h.saturating_sub(margin)).step_by(step) {
+        for x in (margin..w.saturating_sub(margin)).step_by(step) {
+            if truth[y * w + x] <= 0.0 || occluded[y * w + x] {
+                continue;
+            }
+            let mut gradient = 0;
+            for d in 1..4 {
+                gradient += (grey(x + d, y) - grey(x - d, y)).abs() + (grey(x, y + d) - grey(x, y - d)).abs();
+            }
+            if best.is_none_or(|(g, _, _)| gradient < g) {
+                best = Some((gradient, x, y));
+            }
+        }
+    }
+    if let Some((_, x, y)) = best {
+        probes.push(("textureless".to_owned(), x, y));
+    }
+    probes
+}
+
+/// Cost volumes (each neighbour's and the fused one, block matching's data term) at a
+/// resolution that keeps each under [`MAX_TENSOR_CELLS`], and the cost curves of the probe pixels.
+pub fn log_costs(viewer: &Viewer, set: &ViewSet, problem: &Problem) -> Result<(), VizError> {
+    let (w, h, nd) = (problem.reference.width, problem.reference.height, problem.num_disparities);
+    let mut factor = 1;
+    while (w / factor) * (h / factor) * nd.div_ceil(factor) > MAX_TENSOR_CELLS && factor < 16 {
+        factor *= 2;
+    }
+    let small = |image: &Image| if factor == 1 { image.clone() } else { downsample(image, factor) };
+    let reference = small(&problem.reference);
+    let (sw, sh, snd) = (reference.width, reference.height, nd.div_ceil(factor));
+    let spec = CostSpec {
+        pixel: PixelCost::BirchfieldTomasi,
+        block_radius: 4,
+    };
+    let max_cost = spec.max_cost().max(1);
+    let neighbours: Vec<Neighbour> = problem
+        .neighbours
+        .iter()
+        .map(|n| Neighbour {
+            image: small(&n.image),
+            ..n.clone()
+        })
+        .collect();
+    let probes = probe_pixels(set);
+    let min_disparity = problem.min_disparity / factor;
+    // Each neighbour's aggregated costs, then their heuristic fusion, as the methods fuse them.
+    let mut volumes: Vec<(String, Vec<u16>)> = Vec::new();
+    for neighbour in &neighbours {
+        let single = Problem {
+            reference: reference.clone(),
+            neighbours: vec![neighbour.clone()],
+            min_disparity,
+            num_disparities: snd,
+        };
+        let Ok(prepared) = PreparedProblem::new(&single, spec, Fusion::Min) else {
+            continue;
+        };
+        let mut costs = vec![0u16; sw * sh * snd];
+        prepared.fused_band(0..sh, &mut costs);
+        volumes.push((neighbour.role.clone(), costs));
+    }
+    let mut fused = vec![0u16; sw * sh * snd];
+    let rows: Vec<&[u16]> = volumes.iter().map(|(_, v)| v.as_slice()).collect();
+    fuse::fusion::fuse_rows(Fusion::Heuristic, &rows, &mut fused, max_cost);
+    volumes.insert(0, ("fused".to_owned(), fused));
+    for (name, costs) in &volumes {
+        let bytes: Vec<u8> = costs
+            .iter()
+            .map(|c| {
+                if *c == fuse::cost::INVALID_COST {
+                    255
+                } else {
+                    (u32::from(*c) * 254 / max_cost).min(254) as u8
+                }
+            })
+            .collect();
+        viewer.log_cost_volume(name, &bytes, [sh, sw, snd])?;
+        for (probe, x, y) in &probes {
+            let (px, py) = ((x / factor).min(sw - 1), (y / factor).min(sh - 1));
+            let cell = &costs[(py * sw + px) * snd..(py * sw + px + 1) * snd];
+            // Mean cost per block pixel, against full-resolution disparity.
+            let block_pixels = ((2 * spec.block_radius + 1) * (2 * spec.block_radius + 1)) as f32;
+            let curve: Vec<f32> = cell
+                .iter()
+                .map(|c| {
+                    if *c == fuse::cost::INVALID_COST {
+                        f32::NAN
+                    } else {
+                        f32::from(*c) / block_pixels
+                    }
+                })
+                .collect();
+            viewer.log_cost_curve(probe, name, min_disparity * factor, factor, &curve)?;
+        }
+    }
+    Ok(())
+}
+
+/// A method's result on a set: depth under the centre pinhole, error map, metrics, and the
+/// set's alignment report.
+pub fn log_result(
+    viewer: &Viewer,
+    set: &ViewSet,
+    method: &str,
+    disparity: &fuse::DisparityImage,
+    metrics: Option<&RegionMetrics>,
+    alignment: &SetCheck,
+) -> Result<(), VizError> {
+    viewer.set_capture_time(set.reference.capture_time_nanos);
+    viewer.set_set_index(set.index);
+    let truth = set.ground_truth_disparity();
+    viewer.log_result(
+        method,
+        [disparity.width as u32, disparity.height as u32],
+        &disparity.data,
+        set.reference.camera.fx * set.baseline_m,
+        truth.as_deref(),
+        ERROR_SCALE_PX,
+    )?;
+    if let Some(m) = metrics {
+        viewer.log_metrics(
+            method,
+            &[
+                ("avg_err_px", m.all.avg_err),
+                ("rms_px", m.all.rms),
+                ("bad1_percent", m.all.bad_1),
+                ("avg_err_occluded_px", m.occluded.map_or(f64::NAN, |o| o.avg_err)),
+                ("avg_err_specular_px", m.specular.map_or(f64::NAN, |s| s.avg_err)),
+            ],
+        )?;
+    }
+    let level = match alignment.status {
+        Status::Ok => "INFO",
+        Status::Warn => "WARN",
+        Status::Fail => "ERROR",
+    };
+    viewer.log_alignment(
+        &format!(
+            "set {} ({}) alignment {:?}\n{}",
+            set.index,
+            set.name,
+            alignment.status,
+            crate::check::table(alignment)
+        ),
+        level,
+    )
+}

@@ -1,0 +1,516 @@
+//! Streams to the Rerun viewer (0.36): spawn a viewer, connect to one, or save an `.rrd` file,
+//! with one recording per run and a blueprint built in code.
+//!
+//! Entity tree (roles and methods readable in the paths):
+//! - `world/table`, `world/arm/base`, `world/arm/links` (capsules between the joint origins,
+//!   animated on the `capture_time` timeline), `world/arm/flange`;
+//! - `world/camera/<role>`: `Transform3D` (world from camera) and `Pinhole`; below it `image`
+//!   and `ground_truth_depth` (`DepthImage`, metres);
+//! - `world/camera/center/<method>`: the result as a `DepthImage` under the centre pinhole, so the
+//!   3D view back-projects it to a point cloud; `results/<method>/error`: |disparity − truth|
+//!   (a colour-mapped `DepthImage` in 1/64 px, so that the viewer shows its scale);
+//! - `cost/<source>`: a bounded cost volume `Tensor` (disparity × height × width);
+//!   `cost_curves/<probe>/<source>`: cost against disparity (`Scalars` on the `disparity` timeline);
+//! - `metrics/<method>/<name>`: `Scalars` per set; `alignment`: the alignment report (`TextLog`).
+
+use std::path::PathBuf;
+
+use nalgebra::{Isometry3, UnitQuaternion, Vector3};
+use rerun::blueprint::components::PlayState;
+use rerun::blueprint::{
+    Blueprint, ContainerLike, Grid, Horizontal, Spatial2DView, Spatial3DView, Tabs, TensorView, TextLogView,
+    TimePanel, TimeSeriesView, Vertical,
+};
+use rerun::{RecordingStream, RecordingStreamBuilder};
+
+/// Timeline of everything the arm and cameras do (simulated or logged time).
+pub const CAPTURE_TIMELINE: &str = "capture_time";
+/// Timeline along which cost curves are drawn.
+pub const DISPARITY_TIMELINE: &str = "disparity";
+/// Timeline of per-set figures.
+pub const SET_TIMELINE: &str = "set";
+
+/// Where a recording goes.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum ViewerSink {
+    /// Start a viewer (the `rerun` executable on `PATH`) and stream to it.
+    Spawn,
+    /// Write an `.rrd` file.
+    Save(PathBuf),
+    /// Stream to a running viewer, e.g. `rerun+http://127.0.0.1:9876/proxy`.
+    Connect(String),
+}
+
+impl ViewerSink {
+    /// Parses the words after `--rerun`: `spawn`, `save FILE.rrd` or `connect [URL]`.
+    pub fn parse(words: &[String]) -> Result<Self, VizError> {
+        match words {
+            [mode] if mode == "spawn" => Ok(Self::Spawn),
+            [mode, path] if mode == "save" => Ok(Self::Save(PathBuf::from(path))),
+            [mode] if mode == "connect" => Ok(Self::Connect(DEFAULT_CONNECT_URL.to_owned())),
+            [mode, url] if mode == "connect" => Ok(Self::Connect(url.clone())),
+            _ => Err(VizError::Usage {
+                given: words.join(" "),
+            }),
+        }
+    }
+}
+
+/// The URL a local viewer (`rerun`) listens on by default.
+pub const DEFAULT_CONNECT_URL: &str = "rerun+http://127.0.0.1:9876/proxy";
+
+/// Errors of the Rerun streams.
+#[derive(Debug, thiserror::Error)]
+pub enum VizError {
+    /// `--rerun` was given something else than `spawn`, `save FILE` or `connect [URL]`.
+    #[error("--rerun {given}: expected `spawn`, `save FILE.rrd` or `connect [URL]`")]
+    Usage {
+        /// The words given.
+        given: String,
+    },
+    /// No viewer could be started.
+    #[error(
+        "cannot start the Rerun viewer: {reason}\n  install it with `pip install rerun-sdk==0.36.3` (or `cargo install rerun-cli --version 0.36.3`), \
+         or write a file instead with `--rerun save run.rrd` and open it later with `rerun run.rrd`"
+    )]
+    Spawn {
+        /// What the SDK said.
+        reason: String,
+    },
+    /// The `.rrd` file could not be created.
+    #[error("cannot write the Rerun recording '{path}': {reason}")]
+    Save {
+        /// File.
+        path: PathBuf,
+        /// What the SDK said.
+        reason: String,
+    },
+    /// The viewer URL is not usable.
+    #[error("cannot connect to the Rerun viewer at '{url}': {reason}")]
+    Connect {
+        /// URL.
+        url: String,
+        /// What the SDK said.
+        reason: String,
+    },
+    /// Logging an entity failed.
+    #[error("cannot log '{entity}' to Rerun: {reason}")]
+    Log {
+        /// Entity path.
+        entity: String,
+        /// What the SDK said.
+        reason: String,
+    },
+    /// A buffer does not match its size.
+    #[error("'{entity}': {len} values for {expected}")]
+    Size {
+        /// Entity path.
+        entity: String,
+        /// Values given.
+        len: usize,
+        /// Values expected.
+        expected: usize,
+    },
+}
+
+/// A camera of a view set as the viewer needs it.
+#[derive(Debug, Clone, Copy)]
+pub struct CameraView<'a> {
+    /// Role (`center`, `left`, …).
+    pub role: &'a str,
+    /// Pose (world from the optical frame: x right, y down, z forward).
+    pub world_from_camera: &'a Isometry3<f64>,
+    /// Intrinsics `[fx, fy, cx, cy]` (pixels).
+    pub intrinsics: [f64; 4],
+    /// Image size.
+    pub width: u32,
+    /// Image size.
+    pub height: u32,
+    /// 8-bit RGB, row-major.
+    pub rgb: &'a [u8],
+    /// Ground-truth z-depth (m, 0 = unknown), when known.
+    pub depth_m: Option<&'a [f32]>,
+    /// Image time (ns since the epoch).
+    pub time_nanos: u64,
+}
+
+/// What the layout shows: the camera roles and the methods.
+#[derive(Debug, Clone, Default)]
+pub struct Layout {
+    /// Camera roles, reference first.
+    pub roles: Vec<String>,
+    /// Methods whose results are logged.
+    pub methods: Vec<String>,
+    /// Sources of cost volumes (`fused` and the neighbour roles).
+    pub cost_sources: Vec<String>,
+}
+
+/// The blueprint: the views in a grid, the 3D scene, the cost tensors and curves, the metrics and
+/// the alignment report, so that a user opening the file sees the comparison at once.
+pub fn blueprint(layout: &Layout) -> Blueprint {
+    let mut cameras: Vec<ContainerLike> = layout
+        .roles
+        .iter()
+        .map(|role| {
+            Spatial2DView::new(role.as_str())
+                .with_origin(format!("world/camera/{role}"))
+                .into()
+        })
+        .collect();
+    for method in &layout.methods {
+        cameras.push(
+            Spatial2DView::new(format!("{method} error"))
+                .with_origin(format!("results/{method}"))
+                .into(),
+        );
+    }
+    let grid = Grid::new(cameras).with_name("views");
+    let scene = Spatial3DView::new("3D scene").with_origin("world");
+    let tensors: Vec<ContainerLike> = layout
+        .cost_sources
+        .iter()
+        .map(|source| TensorView::new(format!("cost {source}")).with_origin(format!("cost/{source}")).into())
+        .collect();
+    let analysis = Tabs::new([
+        ContainerLike::from(Tabs::new(tensors).with_name("cost volumes")),
+        TimeSeriesView::new("cost curves").with_origin("cost_curves").into(),
+        TimeSeriesView::new("metrics").with_origin("metrics").into(),
+        TextLogView::new("alignment").with_origin("alignment").into(),
+    ])
+    .with_name("analysis");
+    Blueprint::new(Horizontal::new([
+        ContainerLike::from(Vertical::new([ContainerLike::from(scene), ContainerLike::from(analysis)])),
+        grid.into(),
+    ]))
+    // Open at the end of the capture (every camera and result present), not at its first instant.
+    .with_time_panel(
+        TimePanel::new()
+            .with_timeline(CAPTURE_TIMELINE)
+            .with_play_state(PlayState::Following),
+    )
+}
+
+/// One recording, open on its sink.
+pub struct Viewer {
+    recording: RecordingStream,
+}
+
+/// Error maps are sent as bytes in steps of 1/64 px (0 = no ground truth, 255 = ≥ 4 px).
+const ERROR_STEPS_PER_PX: f32 = 64.0;
+
+/// A link of the arm as drawn: capsule radius (m) per segment between consecutive joint origins.
+const LINK_RADIUS_M: f32 = 0.05;
+
+impl Viewer {
+    /// Opens a recording named `app_id` on `sink`, with `layout`'s blueprint.
+    pub fn create(app_id: &'static str, sink: &ViewerSink, layout: &Layout) -> Result<Self, VizError> {
+        let builder = RecordingStreamBuilder::new(app_id).with_blueprint(blueprint(layout));
+        let recording = match sink {
+            ViewerSink::Spawn => builder.spawn().map_err(|e| VizError::Spawn { reason: e.to_string() })?,
+            ViewerSink::Save(path) => builder.save(path).map_err(|e| VizError::Save {
+                path: path.clone(),
+                reason: e.to_string(),
+            })?,
+            ViewerSink::Connect(url) => builder.connect_grpc_opts(url.as_str()).map_err(|e| VizError::Connect {
+                url: url.clone(),
+                reason: e.to_string(),
+            })?,
+        };
+        let viewer = Self { recording };
+        // The optical frame convention of every camera below `world`.
+        viewer.log_static("world", &rerun::ViewCoordinates::RIGHT_HAND_Z_UP())?;
+        Ok(viewer)
+    }
+
+    fn log<AS: ?Sized + rerun::AsComponents>(&self, entity: &str, archetype: &AS) -> Result<(), VizError> {
+        self.recording.log(entity, archetype).map_err(|e| VizError::Log {
+            entity: entity.to_owned(),
+            reason: e.to_string(),
+        })
+    }
+
+    fn log_static<AS: ?Sized + rerun::AsComponents>(&self, entity: &str, archetype: &AS) -> Result<(), VizError> {
+        self.recording.log_static(entity, archetype).map_err(|e| VizError::Log {
+            entity: entity.to_owned(),
+            reason: e.to_string(),
+        })
+    }
+
+    /// Sets the capture-time timeline (ns since the epoch).
+    pub fn set_capture_time(&self, time_nanos: u64) {
+        self.recording
+            .set_timestamp_nanos_since_epoch(CAPTURE_TIMELINE, time_nanos as i64);
+    }
+
+    /// Sets the set timeline.
+    pub fn set_set_index(&self, set: u32) {
+        self.recording.set_time_sequence(SET_TIMELINE, i64::from(set));
+    }
+
+    /// The work table: a box whose top is the plane z = 0 (static).
+    pub fn log_table(&self, centre_m: [f32; 2], size_m: [f32; 2]) -> Result<(), VizError> {
+        let thickness = 0.04;
+        self.log_static(
+            "world/table",
+            &rerun::Boxes3D::from_centers_and_half_sizes(
+                [(centre_m[0], centre_m[1], -thickness / 2.0)],
+                [(size_m[0] / 2.0, size_m[1] / 2.0, thickness / 2.0)],
+            )
+            .with_colors([rerun::Color::from_rgb(150, 120, 90)]),
+        )
+    }
+
+    /// The arm at the current capture time: the base as a box, capsules between consecutive
+    /// joint origins (`world_from_links`: each joint frame, base first, flange last).
+    pub fn log_arm(&self, world_from_links: &[Isometry3<f64>]) -> Result<(), VizError> {
+        if let Some(base) = world_from_links.first() {
+            let t = base.translation.vector;
+            self.log(
+                "world/arm/base",
+                &rerun::Boxes3D::from_centers_and_half_sizes(
+                    [(t.x as f32, t.y as f32, (t.z as f32 - 0.05).max(0.05))],
+                    [(0.09, 0.09, 0.05)],
+                )
+                .with_colors([rerun::Color::from_rgb(60, 60, 70)]),
+            )?;
+        }
+        let mut lengths = Vec::new();
+        let mut translations = Vec::new();
+        let mut rotations = Vec::new();
+        for pair in world_from_links.windows(2) {
+            let (a, b) = (pair[0].translation.vector, pair[1].translation.vector);
+            let direction = b - a;
+            let length = direction.norm();
+            if length < 1e-6 {
+                continue;
+            }
+            let rotation = UnitQuaternion::rotation_between(&Vector3::z(), &(direction / length))
+                .unwrap_or_else(|| UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI));
+            lengths.push(length as f32);
+            translations.push([a.x as f32, a.y as f32, a.z as f32]);
+            rotations.push(quaternion(&rotation));
+        }
+        let count = lengths.len();
+        self.log(
+            "world/arm/links",
+            &rerun::Capsules3D::from_lengths_and_radii(lengths, vec![LINK_RADIUS_M; count])
+                .with_translations(translations)
+                .with_quaternions(rotations)
+                .with_colors(vec![rerun::Color::from_rgb(90, 140, 200); count]),
+        )?;
+        if let Some(flange) = world_from_links.last() {
+            self.log("world/arm/flange", &transform(flange))?;
+            self.log("world/arm/flange", &rerun::TransformAxes3D::new(0.08))?;
+        }
+        Ok(())
+    }
+
+    /// One camera of a set at its capture time: pose, pinhole, image and ground-truth depth.
+    pub fn log_camera(&self, view: &CameraView<'_>) -> Result<(), VizError> {
+        let base = format!("world/camera/{}", view.role);
+        self.set_capture_time(view.time_nanos);
+        self.log(&base, &transform(view.world_from_camera))?;
+        let [fx, fy, cx, cy] = view.intrinsics;
+        self.log(
+            &base,
+            &rerun::Pinhole::from_focal_length_and_resolution([fx as f32, fy as f32], [
+                view.width as f32,
+                view.height as f32,
+            ])
+            .with_principal_point([cx as f32, cy as f32])
+            .with_image_plane_distance(0.05),
+        )?;
+        let pixels = (view.width * view.height) as usize;
+        let image_entity = format!("{base}/image");
+        if view.rgb.len() != pixels * 3 {
+            return Err(VizError::Size {
+                entity: image_entity,
+                len: view.rgb.len(),
+                expected: pixels * 3,
+            });
+        }
+        self.log(
+            &image_entity,
+            &rerun::Image::from_rgb24(view.rgb.to_vec(), [view.width, view.height]),
+        )?;
+        if let Some(depth) = view.depth_m {
+            self.log_depth(&format!("{base}/ground_truth_depth"), depth, [view.width, view.height])?;
+        }
+        Ok(())
+    }
+
+    /// A depth map in metres (0 or non-finite = unknown), sent as 16-bit millimetres (half the
+    /// bytes of `f32`, the precision of the depth PNG files).
+    fn log_depth(&self, entity: &str, depth_m: &[f32], size: [u32; 2]) -> Result<(), VizError> {
+        let expected = (size[0] * size[1]) as usize;
+        if depth_m.len() != expected {
+            return Err(VizError::Size {
+                entity: entity.to_owned(),
+                len: depth_m.len(),
+                expected,
+            });
+        }
+        let bytes: Vec<u8> = depth_m
+            .iter()
+            .flat_map(|z| {
+                let mm = if z.is_finite() && *z > 0.0 { (z * 1000.0).round().min(65_535.0) as u16 } else { 0 };
+                mm.to_le_bytes()
+            })
+            .collect();
+        self.log(
+            entity,
+            &rerun::DepthImage::from_data_type_and_bytes(bytes, size, rerun::datatypes::ChannelDatatype::U16)
+                .with_meter(1000.0)
+                .with_colormap(rerun::components::Colormap::Turbo),
+        )
+    }
+
+    /// A method's result for the centre view at the current capture time: its depth as a
+    /// `DepthImage` under the centre pinhole (back-projected to a point cloud in 3D), and, with
+    /// ground truth, the absolute disparity error as a colour map (0 … `error_scale_px`).
+    pub fn log_result(
+        &self,
+        method: &str,
+        size: [u32; 2],
+        disparity_px: &[f32],
+        focal_baseline_px_m: f64,
+        ground_truth_disparity_px: Option<&[f32]>,
+        error_scale_px: f32,
+    ) -> Result<(), VizError> {
+        let depth: Vec<f32> = disparity_px
+            .iter()
+            .map(|d| {
+                if d.is_finite() && *d > 0.0 {
+                    (focal_baseline_px_m / f64::from(*d)) as f32
+                } else {
+                    0.0
+                }
+            })
+            .collect();
+        self.log_depth(&format!("world/camera/center/{method}"), &depth, size)?;
+        if let Some(truth) = ground_truth_disparity_px {
+            // |error| in steps of 1/64 px (u8, capped), colour-mapped over 0 … error_scale_px by
+            // the viewer: a quarter of the bytes of an RGB image. 0 also marks "no ground truth".
+            let error: Vec<u8> = disparity_px
+                .iter()
+                .zip(truth)
+                .map(|(d, t)| {
+                    if *t > 0.0 && d.is_finite() {
+                        ((d - t).abs() * ERROR_STEPS_PER_PX).round().clamp(1.0, 255.0) as u8
+                    } else {
+                        0
+                    }
+                })
+                .collect();
+            self.log(
+                &format!("results/{method}/error"),
+                &rerun::DepthImage::from_data_type_and_bytes(error, size, rerun::datatypes::ChannelDatatype::U8)
+                    .with_meter(ERROR_STEPS_PER_PX)
+                    .with_colormap(rerun::components::Colormap::Turbo)
+                    .with_depth_range([0.0, f64::from(error_scale_px * ERROR_STEPS_PER_PX)]),
+            )?;
+        }
+        Ok(())
+    }
+
+    /// Figures of a method for the current set, one series each (`metrics/<method>/<name>`).
+    pub fn log_metrics(&self, method: &str, figures: &[(&str, f64)]) -> Result<(), VizError> {
+        for (name, value) in figures {
+            if value.is_finite() {
+                self.log(&format!("metrics/{method}/{name}"), &rerun::Scalars::single(*value))?;
+            }
+        }
+        Ok(())
+    }
+
+    /// The alignment report of a set: `level` is `INFO`, `WARN` or `ERROR`.
+    pub fn log_alignment(&self, text: &str, level: &str) -> Result<(), VizError> {
+        self.log(
+            "alignment",
+            &rerun::TextLog::new(text).with_level(rerun::TextLogLevel::from(level)),
+        )
+    }
+
+    /// A cost volume `[y][x][d]` (bytes, 255 = no correspondence) as a tensor
+    /// `height × width × disparity`: the viewer shows the two large dimensions as the image and
+    /// puts a slider on disparity.
+    pub fn log_cost_volume(&self, source: &str, costs: &[u8], [height, width, disparities]: [usize; 3]) -> Result<(), VizError> {
+        let entity = format!("cost/{source}");
+        if costs.len() != height * width * disparities {
+            return Err(VizError::Size {
+                entity,
+                len: costs.len(),
+                expected: height * width * disparities,
+            });
+        }
+        let data = rerun::datatypes::TensorData::new(
+            vec![height as u64, width as u64, disparities as u64],
+            rerun::datatypes::TensorBuffer::U8(costs.to_vec().into()),
+        )
+        .with_dim_names(["height", "width", "disparity"]);
+        self.log(&entity, &rerun::Tensor::new(data))
+    }
+
+    /// The costs of one probe pixel against disparity, for one source (a neighbour or `fused`):
+    /// `costs[i]` belongs to disparity `first_disparity + i · step` (a downsampled volume has
+    /// `step` > 1).
+    pub fn log_cost_curve(
+        &self,
+        probe: &str,
+        source: &str,
+        first_disparity: usize,
+        step: usize,
+        costs: &[f32],
+    ) -> Result<(), VizError> {
+        let entity = format!("cost_curves/{probe}/{source}");
+        for (i, cost) in costs.iter().enumerate() {
+            if cost.is_finite() {
+                self.recording
+                    .set_time_sequence(DISPARITY_TIMELINE, (first_disparity + i * step) as i64);
+                self.log(&entity, &rerun::Scalars::single(f64::from(*cost)))?;
+            }
+        }
+        self.recording.disable_timeline(DISPARITY_TIMELINE);
+        Ok(())
+    }
+
+    /// Sends everything still buffered (blocks until the sink has it).
+    pub fn finish(self) -> Result<(), VizError> {
+        self.recording.flush_blocking().map_err(|e| VizError::Log {
+            entity: "(flush)".to_owned(),
+            reason: e.to_string(),
+        })
+    }
+}
+
+fn quaternion(rotation: &UnitQuaternion<f64>) -> rerun::Quaternion {
+    let q = rotation.coords;
+    rerun::Quaternion::from_xyzw([q.x as f32, q.y as f32, q.z as f32, q.w as f32])
+}
+
+/// `Transform3D` of a pose (the parent from the entity's frame).
+fn transform(pose: &Isometry3<f64>) -> rerun::Transform3D {
+    let t = pose.translation.vector;
+    rerun::Transform3D::from_translation_rotation([t.x as f32, t.y as f32, t.z as f32], quaternion(&pose.rotation))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sinks_parse_from_the_command_line_words() {
+        let words = |s: &str| s.split_whitespace().map(str::to_owned).collect::<Vec<_>>();
+        assert_eq!(ViewerSink::parse(&words("spawn")).ok(), Some(ViewerSink::Spawn));
+        assert_eq!(
+            ViewerSink::parse(&words("save run.rrd")).ok(),
+            Some(ViewerSink::Save(PathBuf::from("run.rrd")))
+        );
+        assert_eq!(
+            ViewerSink::parse(&words("connect")).ok(),
+            Some(ViewerSink::Connect(DEFAULT_CONNECT_URL.to_owned()))
+        );
+        assert!(matches!(ViewerSink::parse(&words("show")), Err(VizError::Usage { .. })));
+        assert!(matches!(ViewerSink::parse(&words("save")), Err(VizError::Usage { .. })));
+    }
+}
