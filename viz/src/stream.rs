@@ -16,10 +16,10 @@
 use std::path::PathBuf;
 
 use nalgebra::{Isometry3, UnitQuaternion, Vector3};
-use rerun::blueprint::components::PlayState;
+use rerun::blueprint::components::{PanelState, PlayState};
 use rerun::blueprint::{
-    Blueprint, ContainerLike, Grid, Horizontal, Spatial2DView, Spatial3DView, Tabs, TensorView, TextLogView,
-    TimePanel, TimeSeriesView, Vertical,
+    Blueprint, BlueprintPanel, ContainerLike, Grid, Horizontal, SelectionPanel, Spatial2DView, Spatial3DView, Tabs,
+    TensorView, TextLogView, TimePanel, TimeSeriesView, Vertical,
 };
 use rerun::{RecordingStream, RecordingStreamBuilder};
 
@@ -182,6 +182,9 @@ pub fn blueprint(layout: &Layout) -> Blueprint {
         ContainerLike::from(Vertical::new([ContainerLike::from(scene), ContainerLike::from(analysis)])),
         grid.into(),
     ]))
+    // Room for the views: the blueprint tree and selection panels start collapsed.
+    .with_blueprint_panel(BlueprintPanel::new().with_state(PanelState::Collapsed))
+    .with_selection_panel(SelectionPanel::new().with_state(PanelState::Collapsed))
     // Open at the end of the capture (every camera and result present), not at its first instant.
     .with_time_panel(
         TimePanel::new()
