@@ -7,6 +7,7 @@ use fuse::fusion::Fusion;
 use fuse::volume::{CostSpec, PreparedProblem};
 use fuse::{Image, Neighbour, Problem};
 use nalgebra::Isometry3;
+use rayon::prelude::*;
 use record::ur10::Ur10;
 use viz::stream::{CameraView, Layout, Viewer, VizError};
 
@@ -75,20 +76,24 @@ pub fn log_capture(viewer: &Viewer, set: &ViewSet) -> Result<(), VizError> {
 /// Box-averages an image by `factor` (rows and columns beyond a whole block are dropped).
 fn downsample(image: &Image, factor: usize) -> Image {
     let (w, h, c) = (image.width / factor, image.height / factor, image.channels);
-    let mut data = Vec::with_capacity(w * h * c);
-    for y in 0..h {
-        for x in 0..w {
-            for channel in 0..c {
-                let mut sum = 0u32;
-                for dy in 0..factor {
-                    for dx in 0..factor {
-                        sum += u32::from(image.data[((y * factor + dy) * image.width + x * factor + dx) * c + channel]);
+    let mut data = vec![0u8; w * h * c];
+    let area = (factor * factor) as u32;
+    data.par_chunks_mut(w * c).enumerate().for_each(|(y, out)| {
+        let mut sums = vec![0u32; w * c];
+        for row in 0..factor {
+            let source = &image.data[(y * factor + row) * image.width * c..][..w * factor * c];
+            for (x, block) in source.chunks_exact(factor * c).enumerate() {
+                for pixel in block.chunks_exact(c) {
+                    for (sum, value) in sums[x * c..(x + 1) * c].iter_mut().zip(pixel) {
+                        *sum += u32::from(*value);
                     }
                 }
-                data.push((sum / (factor * factor) as u32) as u8);
             }
         }
-    }
+        for (o, sum) in out.iter_mut().zip(&sums) {
+            *o = (sum / area) as u8;
+        }
+    });
     Image {
         width: w,
         height: h,
@@ -108,12 +113,14 @@ pub fn probe_pixels(set: &ViewSet) -> Vec<(String, usize, usize)> {
     };
     let margin = w.min(h) / 8;
     let inside = |x: usize, y: usize| x >= margin && y >= margin && x + margin < w && y + margin < h;
+    let masks: Vec<Vec<bool>> = set
+        .neighbours
+        .par_iter()
+        .map(|n| crate::regions::occluded_in(&truth, w, h, n.offset))
+        .collect();
     let mut occluded = vec![false; w * h];
-    for n in &set.neighbours {
-        for (o, hidden) in occluded
-            .iter_mut()
-            .zip(crate::regions::occluded_in(&truth, w, h, n.offset))
-        {
+    for mask in &masks {
+        for (o, hidden) in occluded.iter_mut().zip(mask) {
             *o |= hidden;
         }
     }
@@ -184,7 +191,9 @@ pub fn log_costs(viewer: &Viewer, set: &ViewSet, problem: &Problem) -> Result<()
             ..n.clone()
         })
         .collect();
+    let started = std::time::Instant::now();
     let probes = probe_pixels(set);
+    tracing::debug!("rerun costs: downsampled and probes chosen in {:.3} s", started.elapsed().as_secs_f64());
     let min_disparity = problem.min_disparity / factor;
     // Each neighbour's aggregated costs, then their heuristic fusion, as the methods fuse them.
     let mut volumes: Vec<(String, Vec<u16>)> = Vec::new();
@@ -206,6 +215,7 @@ pub fn log_costs(viewer: &Viewer, set: &ViewSet, problem: &Problem) -> Result<()
     let rows: Vec<&[u16]> = volumes.iter().map(|(_, v)| v.as_slice()).collect();
     fuse::fusion::fuse_rows(Fusion::Heuristic, &rows, &mut fused, max_cost);
     volumes.insert(0, ("fused".to_owned(), fused));
+    tracing::debug!("rerun costs: volumes computed in {:.3} s", started.elapsed().as_secs_f64());
     for (name, costs) in &volumes {
         let bytes: Vec<u8> = costs
             .iter()
