@@ -97,7 +97,10 @@ fn birchfield_tomasi_bounds(image: &Image) -> (Vec<u8>, Vec<u8>) {
         let row = &image.data[y * stride..(y + 1) * stride];
         let up = &image.data[y.saturating_sub(1) * stride..][..stride];
         let down = &image.data[(y + 1).min(h - 1) * stride..][..stride];
-        let (lo, hi) = (&mut bt_min[y * stride..(y + 1) * stride], &mut bt_max[y * stride..(y + 1) * stride]);
+        let (lo, hi) = (
+            &mut bt_min[y * stride..(y + 1) * stride],
+            &mut bt_max[y * stride..(y + 1) * stride],
+        );
         // Interior columns: straight slices that the compiler vectorises.
         if w > 2 {
             let inner = channels..stride - channels;
@@ -160,7 +163,9 @@ pub fn census_planes(gray: &Image, radius: usize) -> Vec<Vec<u8>> {
             plane.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
                 let centre = &padded[(y + r) * padded_w + r..][..w];
                 for j in 0..8 {
-                    let Some(i) = (bits - 1).checked_sub(8 * b + j) else { break };
+                    let Some(i) = (bits - 1).checked_sub(8 * b + j) else {
+                        break;
+                    };
                     let (dx, dy) = offsets[i];
                     let source = &padded[(y + dy) * padded_w + dx..][..w];
                     for ((value, s), c) in row.iter_mut().zip(source).zip(centre) {
@@ -285,7 +290,11 @@ pub(crate) fn mean_of_three(sum: u16) -> u8 {
 /// Mean of `channels` (1 or 3) channel costs summing to `sum`, rounded down.
 #[inline]
 pub(crate) fn mean_of_channels(sum: u16, channels: usize) -> u8 {
-    if channels == 3 { mean_of_three(sum) } else { sum.min(255) as u8 }
+    if channels == 3 {
+        mean_of_three(sum)
+    } else {
+        sum.min(255) as u8
+    }
 }
 
 /// Sets to [`INVALID_COST`] every `(x, d)` of the `[x][d]` costs of reference pixels
@@ -325,7 +334,10 @@ pub fn mark_invalid(
             continue;
         }
         let first = (0..disparities).find(|d| valid(x, *d)).unwrap_or(disparities);
-        let last = (first..disparities).rev().find(|d| valid(x, *d)).map_or(first, |d| d + 1);
+        let last = (first..disparities)
+            .rev()
+            .find(|d| valid(x, *d))
+            .map_or(first, |d| d + 1);
         costs[..first].fill(INVALID_COST);
         costs[last..].fill(INVALID_COST);
     }
@@ -411,8 +423,8 @@ impl DisparityResampler {
         }
         let table: Vec<(usize, usize, u32)> = (0..disparities)
             .map(|d| {
-                let source = ((min_disparity + d) as f32 * ratio - min_disparity as f32)
-                    .clamp(0.0, (disparities - 1) as f32);
+                let source =
+                    ((min_disparity + d) as f32 * ratio - min_disparity as f32).clamp(0.0, (disparities - 1) as f32);
                 let lower = source.floor() as usize;
                 let upper = (lower + 1).min(disparities - 1);
                 (lower, upper, ((source - lower as f32) * 256.0).round() as u32)
@@ -440,7 +452,10 @@ impl DisparityResampler {
         let disparities = self.table.len();
         scratch.clear();
         scratch.extend_from_slice(costs);
-        for (costs, scratch) in costs.chunks_exact_mut(disparities).zip(scratch.chunks_exact(disparities)) {
+        for (costs, scratch) in costs
+            .chunks_exact_mut(disparities)
+            .zip(scratch.chunks_exact(disparities))
+        {
             for run in &self.runs {
                 let len = run.end - run.start;
                 let lower = &scratch[run.lower..run.lower + len];
@@ -450,7 +465,11 @@ impl DisparityResampler {
                 for i in 0..len {
                     let (a, b, w) = (lower[i], upper[i], weights[i].2);
                     let mixed = ((u32::from(a) * (256 - w) + u32::from(b) * w + 128) >> 8) as u16;
-                    out[i] = if a == INVALID_COST || b == INVALID_COST { INVALID_COST } else { mixed };
+                    out[i] = if a == INVALID_COST || b == INVALID_COST {
+                        INVALID_COST
+                    } else {
+                        mixed
+                    };
                 }
             }
         }
@@ -532,7 +551,10 @@ mod tests {
         let planes = census_planes(&image, 2);
         assert_eq!(planes.len(), 3);
         for (p, code) in codes.iter().enumerate() {
-            let from_planes = planes.iter().enumerate().fold(0u64, |a, (b, plane)| a | (u64::from(plane[p]) << (8 * b)));
+            let from_planes = planes
+                .iter()
+                .enumerate()
+                .fold(0u64, |a, (b, plane)| a | (u64::from(plane[p]) << (8 * b)));
             assert_eq!(from_planes, *code);
         }
         for y in 0..h as isize {
@@ -562,7 +584,15 @@ mod tests {
         // The vectorised runs give the table's definition, for ratios above and below 1.
         for ratio in [1.0012f32, 1.3, 0.97, 0.5] {
             let resampler = DisparityResampler::new(3, 40, ratio).unwrap_or_else(|| panic!("ratio {ratio}"));
-            let costs: Vec<u16> = (0..40 * 3).map(|i| if i % 17 == 5 { INVALID_COST } else { (i * 37 % 500) as u16 }).collect();
+            let costs: Vec<u16> = (0..40 * 3)
+                .map(|i| {
+                    if i % 17 == 5 {
+                        INVALID_COST
+                    } else {
+                        (i * 37 % 500) as u16
+                    }
+                })
+                .collect();
             let mut fast = costs.clone();
             resampler.apply(&mut fast, &mut Vec::new());
             for (pixel, (got, original)) in fast.chunks(40).zip(costs.chunks(40)).enumerate() {
@@ -609,7 +639,11 @@ mod tests {
                     for x_start in [0, 4] {
                         let mut got = vec![7u16; (w - x_start) * nd];
                         table.mark(&mut got, (x_start, y));
-                        assert_eq!(got, expected[x_start * nd..], "{offset:?} {min_d} {ratio} y {y} from {x_start}");
+                        assert_eq!(
+                            got,
+                            expected[x_start * nd..],
+                            "{offset:?} {min_d} {ratio} y {y} from {x_start}"
+                        );
                     }
                 }
             }

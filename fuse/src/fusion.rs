@@ -81,8 +81,16 @@ fn heuristic4(a: u16, b: u16, c: u16, d: u16) -> u16 {
     let two = (c1 | c2) - ((c1 ^ c2) >> 1);
     let sum = c1.wrapping_add(c2).wrapping_add(c3).wrapping_add(1);
     let three = (((u32::from(sum) * 43_691) >> 16) as u16) >> 1;
-    let fused = if c2 <= u16::MAX / 3 && c3 > c2.wrapping_mul(3) { two } else { three };
-    if c2 == INVALID_COST || c3 == INVALID_COST { c1 } else { fused }
+    let fused = if c2 <= u16::MAX / 3 && c3 > c2.wrapping_mul(3) {
+        two
+    } else {
+        three
+    };
+    if c2 == INVALID_COST || c3 == INVALID_COST {
+        c1
+    } else {
+        fused
+    }
 }
 
 /// Largest valid cost for which [`heuristic4`]'s `u16` arithmetic is exact (three valid costs
@@ -185,7 +193,11 @@ mod tests {
             state = state.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
             round += 1;
             // Small costs, and costs up to the largest the u16 arithmetic allows.
-            let limit = if round.is_multiple_of(2) { 300 } else { HEURISTIC_U16_MAX_COST + 1 };
+            let limit = if round.is_multiple_of(2) {
+                300
+            } else {
+                HEURISTIC_U16_MAX_COST + 1
+            };
             let v = (state >> 8) as u16 % (limit + limit / 10);
             if v > limit - 1 { X } else { v }
         };

@@ -158,7 +158,9 @@ pub fn pixel_cost_tile_lines(
                 let (l2, h2) = (&planes[4][range.clone()][..n], &planes[5][range][..n]);
                 for (d, o) in costs.iter_mut().enumerate() {
                     let bt = |c: u8, l: u8, h: u8| c.saturating_sub(h).max(l.saturating_sub(c));
-                    let sum = u16::from(bt(c0, l0[d], h0[d])) + u16::from(bt(c1, l1[d], h1[d])) + u16::from(bt(c2, l2[d], h2[d]));
+                    let sum = u16::from(bt(c0, l0[d], h0[d]))
+                        + u16::from(bt(c1, l1[d], h1[d]))
+                        + u16::from(bt(c2, l2[d], h2[d]));
                     *o = mean_of_three(sum);
                 }
             }
@@ -206,7 +208,17 @@ mod tests {
                     for y in 0..h {
                         let mut generic = vec![0u8; xs.len() * nd];
                         let mut fast = vec![0u8; xs.len() * nd];
-                        pixel_cost_tile(cost, &reference, &neighbour, offset, y, xs.clone(), min_d, nd, &mut generic);
+                        pixel_cost_tile(
+                            cost,
+                            &reference,
+                            &neighbour,
+                            offset,
+                            y,
+                            xs.clone(),
+                            min_d,
+                            nd,
+                            &mut generic,
+                        );
                         pixel_cost_tile_lines(cost, &reference, &lines, y, xs.clone(), min_d, nd, &mut fast);
                         assert_eq!(generic, fast, "{cost:?} {channels} channels {offset:?} row {y}");
                     }

@@ -316,15 +316,23 @@ impl BlockJob<'_> {
         let (mut left_ghost_min, mut right_ghost_min) = (0u16, 0u16);
         let mut total = vec![0u16; nd];
         for row_index in 0..height {
-            let y = if self.downward { row_index } else { height - 1 - row_index };
+            let y = if self.downward {
+                row_index
+            } else {
+                height - 1 - row_index
+            };
             if row_index > 0 {
                 self.barrier.wait();
                 let parity = (row_index - 1) % 2;
                 if self.worker > 0 {
-                    left_ghost_min = self.exchange.read(self.worker - 1, Side::Right, parity, &mut left_ghost);
+                    left_ghost_min = self
+                        .exchange
+                        .read(self.worker - 1, Side::Right, parity, &mut left_ghost);
                 }
                 if x0 + count < width {
-                    right_ghost_min = self.exchange.read(self.worker + 1, Side::Left, parity, &mut right_ghost);
+                    right_ghost_min = self
+                        .exchange
+                        .read(self.worker + 1, Side::Left, parity, &mut right_ghost);
                 }
             }
             let cost_row = &self.volume[y * width * nd..(y + 1) * width * nd];
@@ -347,7 +355,8 @@ impl BlockJob<'_> {
                         self.penalties.step(cost, before, previous_min[k][p], cell)
                     };
                 }
-                let [a, b, c] = [&current[0], &current[1], &current[2]].map(|o| &o[i * stride + PAD..i * stride + PAD + nd]);
+                let [a, b, c] =
+                    [&current[0], &current[1], &current[2]].map(|o| &o[i * stride + PAD..i * stride + PAD + nd]);
                 let sum_cell = &mut sum_row[i * nd..(i + 1) * nd];
                 match self.pick {
                     Some((min_disparity, subpixel)) => {
@@ -366,7 +375,13 @@ impl BlockJob<'_> {
             if count > 0 {
                 let parity = row_index % 2;
                 let last = count - 1;
-                self.exchange.write(self.worker, Side::Left, parity, &current[2][..stride], current_min[2][0]);
+                self.exchange.write(
+                    self.worker,
+                    Side::Left,
+                    parity,
+                    &current[2][..stride],
+                    current_min[2][0],
+                );
                 self.exchange.write(
                     self.worker,
                     Side::Right,
@@ -633,10 +648,16 @@ mod tests {
                     .build()
                     .unwrap_or_else(|e| panic!("{e}"));
                 pool.install(|| {
-                    assert!(aggregate(&volume, w, h, nd, max_cost, 40, 400) == reference, "{w}x{h}x{nd} {threads}");
+                    assert!(
+                        aggregate(&volume, w, h, nd, max_cost, 40, 400) == reference,
+                        "{w}x{h}x{nd} {threads}"
+                    );
                     let selected = select(&volume, w, h, nd, max_cost, (40, 400), 3, true);
                     assert!(
-                        selected.iter().zip(&expected).all(|(a, b)| a == b || (a.is_infinite() && b.is_infinite())),
+                        selected
+                            .iter()
+                            .zip(&expected)
+                            .all(|(a, b)| a == b || (a.is_infinite() && b.is_infinite())),
                         "{w}x{h}x{nd} selection, {threads} threads"
                     );
                 });

@@ -10,8 +10,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::FuseError;
 use crate::cost::{
-    DisparityResampler, MAX_BLOCK_RADIUS, MAX_CENSUS_RADIUS, PixelCost, PreparedView, ValidDisparities,
-    pixel_cost_tile,
+    DisparityResampler, MAX_BLOCK_RADIUS, MAX_CENSUS_RADIUS, PixelCost, PreparedView, ValidDisparities, pixel_cost_tile,
 };
 use crate::fusion::{Fusion, fuse_rows};
 use crate::image::Image;
@@ -240,7 +239,11 @@ impl PreparedProblem {
                     view,
                     offset: n.offset,
                     lines,
-                    resampler: DisparityResampler::new(problem.min_disparity, problem.num_disparities, n.baseline_ratio),
+                    resampler: DisparityResampler::new(
+                        problem.min_disparity,
+                        problem.num_disparities,
+                        n.baseline_ratio,
+                    ),
                     valid: ValidDisparities::new(
                         n.offset,
                         (problem.reference.width, problem.reference.height),
@@ -402,10 +405,9 @@ impl PreparedProblem {
         let band = band_rows(self.height);
         let nd = self.disparities;
         let mut volume = vec![0u8; self.height * row_len];
-        volume
-            .par_chunks_mut(band * row_len)
-            .enumerate()
-            .for_each_init(BandScratch::default, |buffers, (index, chunk)| {
+        volume.par_chunks_mut(band * row_len).enumerate().for_each_init(
+            BandScratch::default,
+            |buffers, (index, chunk)| {
                 let start = index * band;
                 let rows = start..start + chunk.len() / row_len;
                 self.fused_band_with(rows, buffers, &mut |y, x_start, costs| {
@@ -413,7 +415,8 @@ impl PreparedProblem {
                     quantise_into(costs, &mut chunk[at..at + costs.len()], shift);
                 });
                 on_band();
-            });
+            },
+        );
         volume
     }
 }
@@ -459,7 +462,11 @@ mod tests {
     /// invalid outside the neighbour, fused.
     fn brute_force(problem: &Problem, spec: CostSpec, fusion: Fusion) -> Vec<u16> {
         let (w, h) = (problem.reference.width, problem.reference.height);
-        let (min_d, nd, r) = (problem.min_disparity, problem.num_disparities, spec.block_radius as isize);
+        let (min_d, nd, r) = (
+            problem.min_disparity,
+            problem.num_disparities,
+            spec.block_radius as isize,
+        );
         let reference = PreparedView::new(problem.reference.clone(), spec.pixel);
         let per_neighbour: Vec<Vec<u16>> = problem
             .neighbours_for(fusion)
@@ -573,7 +580,10 @@ mod tests {
                 );
             }
             let quantised: Vec<u8> = expected.iter().map(|c| crate::sgm::quantise(*c, 2)).collect();
-            assert!(prepared.fused_volume(2, &|| {}) == quantised, "{spec:?} {fusion:?} volume");
+            assert!(
+                prepared.fused_volume(2, &|| {}) == quantised,
+                "{spec:?} {fusion:?} volume"
+            );
         }
     }
 }

@@ -21,9 +21,9 @@ use record::log::{LogOptions, METADATA_NAME, OutputFile};
 use record::rig::RigKind;
 use record::scene::SceneKind;
 use record::session::record_simulation;
-use viz::stream::{CameraView, Layout, Viewer, ViewerSink};
 use record::{ImageFormat, TOOL_VERSION};
 use tracing::{error, info, warn};
+use viz::stream::{CameraView, Layout, Viewer, ViewerSink};
 
 /// Record multiscopic captures (a simulated UR10 moving a camera in its image plane) as MCAP logs
 /// with Foxglove schemas and ground truth, or import real image sets into the same format.
@@ -351,7 +351,14 @@ fn run_simulation(args: &SimulateArgs, quiet: bool) -> Result<Outcome> {
             }
         },
         |set| {
-            bar.suspend(|| info!("set {}/{} done ({} views)", set.index + 1, config.captures, set.views.len()));
+            bar.suspend(|| {
+                info!(
+                    "set {}/{} done ({} views)",
+                    set.index + 1,
+                    config.captures,
+                    set.views.len()
+                )
+            });
             if let Some(live) = &viewer
                 && let Err(e) = live.motion(set)
             {

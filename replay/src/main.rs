@@ -221,7 +221,9 @@ fn open_viewer(words: &[String], set: Option<&ViewSet>, methods: &[&str]) -> Res
         Some(set) => replay::viewer::layout(set, methods),
         None => viz::stream::Layout::default(),
     };
-    Viewer::create("multiscopic_replay", &sink, &layout).map(Some).map_err(Some)
+    Viewer::create("multiscopic_replay", &sink, &layout)
+        .map(Some)
+        .map_err(Some)
 }
 
 fn run_method(args: &RunArgs, quiet: bool) -> Result<Outcome> {
@@ -323,16 +325,24 @@ fn run_method(args: &RunArgs, quiet: bool) -> Result<Outcome> {
         }
         let selected = set.with_neighbours(&args.neighbours)?;
         let problem = selected.problem(args.min_disparity, nd, args.rectify)?;
+        // Occlusions of the ground truth, once per set (metrics of every method, viewer probes).
+        let occluded = set.occlusion_mask();
         if let Some(viewer) = &viewer {
             let viewer_started = Instant::now();
             if let Err(e) = replay::viewer::log_capture(viewer, &selected) {
                 viewer_error(e);
             }
-            debug!("rerun: capture logged in {:.3} s", viewer_started.elapsed().as_secs_f64());
-            if let Err(e) = replay::viewer::log_costs(viewer, &selected, &problem) {
+            debug!(
+                "rerun: capture logged in {:.3} s",
+                viewer_started.elapsed().as_secs_f64()
+            );
+            if let Err(e) = replay::viewer::log_costs(viewer, &selected, &problem, occluded.as_deref()) {
                 viewer_error(e);
             }
-            debug!("rerun: capture and costs logged in {:.3} s", viewer_started.elapsed().as_secs_f64());
+            debug!(
+                "rerun: capture and costs logged in {:.3} s",
+                viewer_started.elapsed().as_secs_f64()
+            );
             viewer_seconds += viewer_started.elapsed().as_secs_f64();
         }
         for method in &methods {
@@ -349,7 +359,9 @@ fn run_method(args: &RunArgs, quiet: bool) -> Result<Outcome> {
                 .with_context(|| format!("set {}: {}", set.index, method.name()))?;
             let seconds = method_started.elapsed().as_secs_f64();
             progress.finish_and_clear();
-            let regions = set.region_metrics(&disparity.data, nd as f64);
+            let regions = occluded
+                .as_deref()
+                .and_then(|mask| set.region_metrics_with(&disparity.data, nd as f64, mask));
             let metrics = regions.map(|r| r.all);
             let outputs = write_set_outputs(&args.out, set, method.name(), &disparity, regions)?;
             match &metrics {

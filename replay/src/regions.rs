@@ -11,25 +11,25 @@ const OCCLUSION_MARGIN_PX: f32 = 1.0;
 /// `true` where the reference pixel is hidden in the neighbour at `offset` (grid units): some
 /// other pixel with a larger disparity lands on the same neighbour pixel.
 pub fn occluded_in(disparity: &[f32], width: usize, height: usize, offset: [i32; 2]) -> Vec<bool> {
-    let target = |i: usize, d: f32| -> Option<usize> {
-        let (x, y) = ((i % width) as f32, (i / width) as f32);
-        let qx = (x - offset[0] as f32 * d).round();
-        let qy = (y - offset[1] as f32 * d).round();
+    let target = |x: usize, y: usize, d: f32| -> Option<usize> {
+        let qx = (x as f32 - offset[0] as f32 * d).round();
+        let qy = (y as f32 - offset[1] as f32 * d).round();
         (qx >= 0.0 && qy >= 0.0 && (qx as usize) < width && (qy as usize) < height)
             .then(|| qy as usize * width + qx as usize)
     };
+    // Pixels row by row (no division per pixel).
+    let pixels = || (0..height).flat_map(move |y| (0..width).map(move |x| (x, y)));
     let mut front = vec![f32::NEG_INFINITY; width * height];
-    for (i, d) in disparity.iter().enumerate() {
+    for ((x, y), d) in pixels().zip(disparity) {
         if *d > 0.0
-            && let Some(q) = target(i, *d)
+            && let Some(q) = target(x, y, *d)
         {
             front[q] = front[q].max(*d);
         }
     }
-    disparity
-        .iter()
-        .enumerate()
-        .map(|(i, d)| *d > 0.0 && target(i, *d).is_none_or(|q| front[q] > d + OCCLUSION_MARGIN_PX))
+    pixels()
+        .zip(disparity)
+        .map(|((x, y), d)| *d > 0.0 && target(x, y, *d).is_none_or(|q| front[q] > d + OCCLUSION_MARGIN_PX))
         .collect()
 }
 

@@ -36,7 +36,11 @@ pub fn layout(set: &ViewSet, methods: &[&str]) -> Layout {
     }
 }
 
-fn camera_view<'a>(view: &'a View, depth_m: Option<&'a [f32]>, world_from_camera: &'a Isometry3<f64>) -> CameraView<'a> {
+fn camera_view<'a>(
+    view: &'a View,
+    depth_m: Option<&'a [f32]>,
+    world_from_camera: &'a Isometry3<f64>,
+) -> CameraView<'a> {
     CameraView {
         role: &view.role,
         world_from_camera,
@@ -104,7 +108,7 @@ fn downsample(image: &Image, factor: usize) -> Image {
 
 /// Probe pixels whose cost curves are shown: where ground truth says the pixel is occluded in
 /// some neighbour, textureless, or specular. Each is `(name, x, y)` in full-resolution pixels.
-pub fn probe_pixels(set: &ViewSet) -> Vec<(String, usize, usize)> {
+pub fn probe_pixels(set: &ViewSet, occluded: Option<&[bool]>) -> Vec<(String, usize, usize)> {
     let (w, h) = (set.width(), set.height());
     let mut probes = Vec::new();
     let Some(truth) = set.ground_truth_disparity() else {
@@ -113,17 +117,8 @@ pub fn probe_pixels(set: &ViewSet) -> Vec<(String, usize, usize)> {
     };
     let margin = w.min(h) / 8;
     let inside = |x: usize, y: usize| x >= margin && y >= margin && x + margin < w && y + margin < h;
-    let masks: Vec<Vec<bool>> = set
-        .neighbours
-        .par_iter()
-        .map(|n| crate::regions::occluded_in(&truth, w, h, n.offset))
-        .collect();
-    let mut occluded = vec![false; w * h];
-    for mask in &masks {
-        for (o, hidden) in occluded.iter_mut().zip(mask) {
-            *o |= hidden;
-        }
-    }
+    let no_occlusion = vec![false; w * h];
+    let occluded = occluded.unwrap_or(&no_occlusion);
     let pick = |keep: &dyn Fn(usize) -> bool| {
         (0..w * h)
             .step_by(7)
@@ -135,7 +130,8 @@ pub fn probe_pixels(set: &ViewSet) -> Vec<(String, usize, usize)> {
     }
     if let Some(surface) = &set.surface_class
         && let Some((x, y)) = pick(&|p| {
-            surface[p] == record::scene::SurfaceClass::Glossy as u8 || surface[p] == record::scene::SurfaceClass::Mirror as u8
+            surface[p] == record::scene::SurfaceClass::Glossy as u8
+                || surface[p] == record::scene::SurfaceClass::Mirror as u8
         })
     {
         probes.push(("specular".to_owned(), x, y));
@@ -169,13 +165,23 @@ pub fn probe_pixels(set: &ViewSet) -> Vec<(String, usize, usize)> {
 
 /// Cost volumes (each neighbour's and the fused one, block matching's data term) at a
 /// resolution that keeps each under [`MAX_TENSOR_CELLS`], and the cost curves of the probe pixels.
-pub fn log_costs(viewer: &Viewer, set: &ViewSet, problem: &Problem) -> Result<(), VizError> {
-    let (w, h, nd) = (problem.reference.width, problem.reference.height, problem.num_disparities);
+pub fn log_costs(viewer: &Viewer, set: &ViewSet, problem: &Problem, occluded: Option<&[bool]>) -> Result<(), VizError> {
+    let (w, h, nd) = (
+        problem.reference.width,
+        problem.reference.height,
+        problem.num_disparities,
+    );
     let mut factor = 1;
     while (w / factor) * (h / factor) * nd.div_ceil(factor) > MAX_TENSOR_CELLS && factor < 16 {
         factor *= 2;
     }
-    let small = |image: &Image| if factor == 1 { image.clone() } else { downsample(image, factor) };
+    let small = |image: &Image| {
+        if factor == 1 {
+            image.clone()
+        } else {
+            downsample(image, factor)
+        }
+    };
     let reference = small(&problem.reference);
     let (sw, sh, snd) = (reference.width, reference.height, nd.div_ceil(factor));
     let spec = CostSpec {
@@ -192,8 +198,11 @@ pub fn log_costs(viewer: &Viewer, set: &ViewSet, problem: &Problem) -> Result<()
         })
         .collect();
     let started = std::time::Instant::now();
-    let probes = probe_pixels(set);
-    tracing::debug!("rerun costs: downsampled and probes chosen in {:.3} s", started.elapsed().as_secs_f64());
+    let probes = probe_pixels(set, occluded);
+    tracing::debug!(
+        "rerun costs: downsampled and probes chosen in {:.3} s",
+        started.elapsed().as_secs_f64()
+    );
     let min_disparity = problem.min_disparity / factor;
     // Each neighbour's aggregated costs, then their heuristic fusion, as the methods fuse them.
     let mut volumes: Vec<(String, Vec<u16>)> = Vec::new();
@@ -215,7 +224,10 @@ pub fn log_costs(viewer: &Viewer, set: &ViewSet, problem: &Problem) -> Result<()
     let rows: Vec<&[u16]> = volumes.iter().map(|(_, v)| v.as_slice()).collect();
     fuse::fusion::fuse_rows(Fusion::Heuristic, &rows, &mut fused, max_cost);
     volumes.insert(0, ("fused".to_owned(), fused));
-    tracing::debug!("rerun costs: volumes computed in {:.3} s", started.elapsed().as_secs_f64());
+    tracing::debug!(
+        "rerun costs: volumes computed in {:.3} s",
+        started.elapsed().as_secs_f64()
+    );
     for (name, costs) in &volumes {
         let bytes: Vec<u8> = costs
             .iter()

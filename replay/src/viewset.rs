@@ -143,21 +143,42 @@ impl ViewSet {
     /// Metrics of a disparity estimate against the ground truth, overall and in the regions
     /// occluded in at least one of this set's neighbours and on specular surfaces.
     pub fn region_metrics(&self, estimate: &[f32], missing_error_px: f64) -> Option<crate::regions::RegionMetrics> {
+        self.region_metrics_with(estimate, missing_error_px, self.occlusion_mask()?.as_slice())
+    }
+
+    /// Pixels occluded in at least one neighbour, from the ground truth (forward warps, one per
+    /// neighbour, in parallel); `None` without ground truth. Compute once per set and hand it to
+    /// [`Self::region_metrics_with`] when several estimates are evaluated.
+    pub fn occlusion_mask(&self) -> Option<Vec<bool>> {
+        use rayon::prelude::*;
         let truth = self.ground_truth_disparity()?;
         let (w, h) = (self.width(), self.height());
+        let masks: Vec<Vec<bool>> = self
+            .neighbours
+            .par_iter()
+            .map(|n| crate::regions::occluded_in(&truth, w, h, n.offset))
+            .collect();
         let mut occluded = vec![false; w * h];
-        for n in &self.neighbours {
-            for (o, hidden) in occluded
-                .iter_mut()
-                .zip(crate::regions::occluded_in(&truth, w, h, n.offset))
-            {
+        for mask in &masks {
+            for (o, hidden) in occluded.iter_mut().zip(mask) {
                 *o |= hidden;
             }
         }
+        Some(occluded)
+    }
+
+    /// [`Self::region_metrics`] with the set's [`Self::occlusion_mask`] computed beforehand.
+    pub fn region_metrics_with(
+        &self,
+        estimate: &[f32],
+        missing_error_px: f64,
+        occluded: &[bool],
+    ) -> Option<crate::regions::RegionMetrics> {
+        let truth = self.ground_truth_disparity()?;
         crate::regions::region_metrics(
             estimate,
             &truth,
-            &occluded,
+            occluded,
             self.surface_class.as_deref(),
             missing_error_px,
         )

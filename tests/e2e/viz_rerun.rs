@@ -9,7 +9,11 @@ use multiscopic_tests::{assert_success, binary, record_log, replay, rerun_cli, r
 
 /// Records a small five-view capture (fast at this size, still every role and ground truth).
 fn small_capture(dir: &Path) -> PathBuf {
-    record_log(dir, "capture.mcap", &["--resolution", "320x180", "--samples-per-pixel", "1"])
+    record_log(
+        dir,
+        "capture.mcap",
+        &["--resolution", "320x180", "--samples-per-pixel", "1"],
+    )
 }
 
 /// `rerun rrd print` of a file, checked for success.
@@ -82,10 +86,9 @@ fn replay_saves_a_recording_the_viewer_verifies_with_every_entity() {
     expect("/world/table", "Boxes3D:half_sizes");
     expect("/alignment", "TextLog:text");
     // The files are written as without a viewer.
-    let summary: serde_json::Value = serde_json::from_slice(
-        &std::fs::read(dir.path().join("results/summary.json")).unwrap_or_default(),
-    )
-    .unwrap_or_default();
+    let summary: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("results/summary.json")).unwrap_or_default())
+            .unwrap_or_default();
     assert_eq!(summary["sets"].as_array().map(Vec::len), Some(2), "{summary}");
     assert_eq!(summary["rerun_lost"], false);
 }
@@ -97,7 +100,9 @@ fn luminance_stats(pixels: &[u8], channels: usize, width: usize, region: [usize;
     for y in y0..y1 {
         for x in x0..x1 {
             let p = (y * width + x) * channels;
-            values.push(0.299 * f64::from(pixels[p]) + 0.587 * f64::from(pixels[p + 1]) + 0.114 * f64::from(pixels[p + 2]));
+            values.push(
+                0.299 * f64::from(pixels[p]) + 0.587 * f64::from(pixels[p + 1]) + 0.114 * f64::from(pixels[p + 2]),
+            );
         }
     }
     let mean = values.iter().sum::<f64>() / values.len().max(1) as f64;
@@ -118,7 +123,10 @@ fn the_recording_renders_in_the_headless_viewer_with_every_panel_filled() {
         .arg("--screenshot-to")
         .arg(&shot)
         .args(["--window-size", "1600x900"]));
-    assert_success(&output, "rerun --headless --screenshot-to (needs Debian's mesa-vulkan-drivers)");
+    assert_success(
+        &output,
+        "rerun --headless --screenshot-to (needs Debian's mesa-vulkan-drivers)",
+    );
     let decoder = png::Decoder::new(std::io::BufReader::new(
         std::fs::File::open(&shot).unwrap_or_else(|e| panic!("no screenshot {}: {e}", shot.display())),
     ));
@@ -165,7 +173,11 @@ fn spawn_without_a_viewer_says_how_to_get_one_and_still_writes_the_results() {
     );
     assert!(results.join("summary.json").exists(), "summary.json missing");
     let set_dir = results.join("000-toy-0");
-    assert!(set_dir.join("bm-heuristic_disparity.pfm").exists(), "disparity missing in {}", set_dir.display());
+    assert!(
+        set_dir.join("bm-heuristic_disparity.pfm").exists(),
+        "disparity missing in {}",
+        set_dir.display()
+    );
 }
 
 #[test]

@@ -49,9 +49,7 @@ impl ViewerSink {
             [mode, path] if mode == "save" => Ok(Self::Save(PathBuf::from(path))),
             [mode] if mode == "connect" => Ok(Self::Connect(DEFAULT_CONNECT_URL.to_owned())),
             [mode, url] if mode == "connect" => Ok(Self::Connect(url.clone())),
-            _ => Err(VizError::Usage {
-                given: words.join(" "),
-            }),
+            _ => Err(VizError::Usage { given: words.join(" ") }),
         }
     }
 }
@@ -169,7 +167,11 @@ pub fn blueprint(layout: &Layout) -> Blueprint {
     let tensors: Vec<ContainerLike> = layout
         .cost_sources
         .iter()
-        .map(|source| TensorView::new(format!("cost {source}")).with_origin(format!("cost/{source}")).into())
+        .map(|source| {
+            TensorView::new(format!("cost {source}"))
+                .with_origin(format!("cost/{source}"))
+                .into()
+        })
         .collect();
     let analysis = Tabs::new([
         ContainerLike::from(Tabs::new(tensors).with_name("cost volumes")),
@@ -179,7 +181,10 @@ pub fn blueprint(layout: &Layout) -> Blueprint {
     ])
     .with_name("analysis");
     Blueprint::new(Horizontal::new([
-        ContainerLike::from(Vertical::new([ContainerLike::from(scene), ContainerLike::from(analysis)])),
+        ContainerLike::from(Vertical::new([
+            ContainerLike::from(scene),
+            ContainerLike::from(analysis),
+        ])),
         grid.into(),
     ]))
     // Room for the views: the blueprint tree and selection panels start collapsed.
@@ -316,10 +321,10 @@ impl Viewer {
         let [fx, fy, cx, cy] = view.intrinsics;
         self.log(
             &base,
-            &rerun::Pinhole::from_focal_length_and_resolution([fx as f32, fy as f32], [
-                view.width as f32,
-                view.height as f32,
-            ])
+            &rerun::Pinhole::from_focal_length_and_resolution(
+                [fx as f32, fy as f32],
+                [view.width as f32, view.height as f32],
+            )
             .with_principal_point([cx as f32, cy as f32])
             .with_image_plane_distance(0.05),
         )?;
@@ -356,7 +361,11 @@ impl Viewer {
         let bytes: Vec<u8> = depth_m
             .iter()
             .flat_map(|z| {
-                let mm = if z.is_finite() && *z > 0.0 { (z * 1000.0).round().min(65_535.0) as u16 } else { 0 };
+                let mm = if z.is_finite() && *z > 0.0 {
+                    (z * 1000.0).round().min(65_535.0) as u16
+                } else {
+                    0
+                };
                 mm.to_le_bytes()
             })
             .collect();
@@ -437,7 +446,12 @@ impl Viewer {
     /// A cost volume `[y][x][d]` (bytes, 255 = no correspondence) as a tensor
     /// `height × width × disparity`: the viewer shows the two large dimensions as the image and
     /// puts a slider on disparity.
-    pub fn log_cost_volume(&self, source: &str, costs: &[u8], [height, width, disparities]: [usize; 3]) -> Result<(), VizError> {
+    pub fn log_cost_volume(
+        &self,
+        source: &str,
+        costs: &[u8],
+        [height, width, disparities]: [usize; 3],
+    ) -> Result<(), VizError> {
         let entity = format!("cost/{source}");
         if costs.len() != height * width * disparities {
             return Err(VizError::Size {

@@ -78,9 +78,21 @@ impl Method for Sgm {
         let volume = prepared.fused_volume(shift, &|| {
             progress(0.5 * (done.fetch_add(1, Ordering::Relaxed) + 1) as f32 / bands as f32);
         });
-        let (p1, p2) = (quantise_penalty(self.config.p1, shift), quantise_penalty(self.config.p2, shift));
+        let (p1, p2) = (
+            quantise_penalty(self.config.p1, shift),
+            quantise_penalty(self.config.p2, shift),
+        );
         let max_cost = spec.max_cost() >> shift;
-        let data = select(&volume, w, h, nd, max_cost, (p1, p2), problem.min_disparity, self.config.subpixel);
+        let data = select(
+            &volume,
+            w,
+            h,
+            nd,
+            max_cost,
+            (p1, p2),
+            problem.min_disparity,
+            self.config.subpixel,
+        );
         drop(volume);
         progress(0.95);
         let mut disparity = DisparityImage {
