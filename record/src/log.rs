@@ -28,6 +28,12 @@ pub const WORLD_FRAME: &str = "world";
 pub const BASE_FRAME: &str = "base";
 /// The camera's optical frame (x right, y down, z forward).
 pub const CAMERA_FRAME: &str = "camera";
+
+/// The frame of one view (`camera_<role>`): where the camera was when it took that view, fixed
+/// in the world; the view's images, ground truth and calibration carry it as `frame_id`.
+pub fn view_frame(role: &str) -> String {
+    format!("{CAMERA_FRAME}_{role}")
+}
 /// All transforms (`foxglove.FrameTransforms`).
 pub const TF_TOPIC: &str = "/tf";
 /// Joint positions and velocities (`foxglove.JointStates`).
@@ -519,12 +525,20 @@ impl<W: Write + Seek> LogWriter<W> {
             while let Some(sample) = motion.next_if(|s| s.time_nanos <= view.capture_time_nanos) {
                 self.write_arm_state(sample.time_nanos, sample, flange_from_camera)?;
             }
+            let t = view.capture_time_nanos;
+            // The view's own frame, fixed in the world where it was taken (its images and
+            // calibration refer to it, so viewers keep every view's frustum in place); without an
+            // arm the moving camera frame is given directly too.
+            let mut transforms = vec![frame_transform(
+                t,
+                WORLD_FRAME,
+                &view_frame(&view.role),
+                &view.world_from_camera,
+            )];
             if set.motion.is_empty() {
-                // No arm: the camera pose is given directly.
-                let t = view.capture_time_nanos;
-                let transforms = vec![frame_transform(t, WORLD_FRAME, CAMERA_FRAME, &view.world_from_camera)];
-                self.write_message(TF_TOPIC, t, &FrameTransforms { transforms })?;
+                transforms.push(frame_transform(t, WORLD_FRAME, CAMERA_FRAME, &view.world_from_camera));
             }
+            self.write_message(TF_TOPIC, t, &FrameTransforms { transforms })?;
             self.write_view(set, view)?;
         }
         for sample in motion {
@@ -567,7 +581,7 @@ impl<W: Write + Seek> LogWriter<W> {
                 t,
                 &RawImage {
                     timestamp: Some(timestamp(t)),
-                    frame_id: CAMERA_FRAME.into(),
+                    frame_id: view_frame(&view.role),
                     width,
                     height,
                     encoding: "rgb8".into(),
@@ -587,7 +601,7 @@ impl<W: Write + Seek> LogWriter<W> {
                     t,
                     &CompressedImage {
                         timestamp: Some(timestamp(t)),
-                        frame_id: CAMERA_FRAME.into(),
+                        frame_id: view_frame(&view.role),
                         data: Bytes::from(data),
                         format: "png".into(),
                     },
@@ -595,7 +609,8 @@ impl<W: Write + Seek> LogWriter<W> {
             }
         }
         let calibration = calibration_topic(&view.role);
-        self.write_message(&calibration, t, &calibration_message(&view.camera, t))?;
+        let frame = view_frame(&view.role);
+        self.write_message(&calibration, t, &calibration_message(&view.camera, t, &frame))?;
         let depth = match &view.depth_m {
             Some(depth_m) => {
                 Self::check_len(set, view, "depth_m", depth_m.len(), 1)?;
@@ -609,7 +624,7 @@ impl<W: Write + Seek> LogWriter<W> {
                     t,
                     &RawImage {
                         timestamp: Some(timestamp(t)),
-                        frame_id: CAMERA_FRAME.into(),
+                        frame_id: view_frame(&view.role),
                         width,
                         height,
                         encoding: DEPTH_ENCODING.into(),
@@ -630,7 +645,7 @@ impl<W: Write + Seek> LogWriter<W> {
                     t,
                     &RawImage {
                         timestamp: Some(timestamp(t)),
-                        frame_id: CAMERA_FRAME.into(),
+                        frame_id: view_frame(&view.role),
                         width,
                         height,
                         encoding: SURFACE_ENCODING.into(),
@@ -687,11 +702,11 @@ impl<W: Write + Seek> LogWriter<W> {
 
 /// The `foxglove.CameraCalibration` of an ideal pinhole camera in [`CAMERA_FRAME`]: K, R = I,
 /// P = [K | 0], `plumb_bob` with zero distortion.
-pub fn calibration_message(camera: &crate::camera::PinholeCamera, nanos: u64) -> CameraCalibration {
+pub fn calibration_message(camera: &crate::camera::PinholeCamera, nanos: u64, frame_id: &str) -> CameraCalibration {
     let c = camera;
     CameraCalibration {
         timestamp: Some(timestamp(nanos)),
-        frame_id: CAMERA_FRAME.into(),
+        frame_id: frame_id.into(),
         width: c.width,
         height: c.height,
         distortion_model: "plumb_bob".into(),

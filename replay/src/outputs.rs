@@ -1,6 +1,7 @@
 //! Result files of one set: disparity (PFM, invalid = +inf), depth in metres (PFM) and
-//! millimetres (16-bit PNG), a colour-mapped disparity PNG with its range in the name, and
-//! `metrics.json` when ground truth exists.
+//! millimetres (16-bit PNG), a colour-mapped disparity PNG with its range in the name, the
+//! back-projected points (PLY), and with ground truth an error map (PNG, 0–4 px in the name) and
+//! `metrics.json`.
 
 use std::path::{Path, PathBuf};
 
@@ -9,6 +10,9 @@ use fuse::DisparityImage;
 use serde::Serialize;
 
 use crate::viewset::ViewSet;
+
+/// Range of the error-map colours (px): 0 is dark blue, 4 px and more dark red.
+pub const ERROR_MAP_RANGE_PX: (f32, f32) = (0.0, 4.0);
 
 /// What was written for one set.
 #[derive(Debug, Clone, Serialize)]
@@ -66,6 +70,42 @@ pub fn write_set_outputs(
             h,
             &disparity.data,
             range,
+        )?);
+    }
+    let ply = set_dir.join(format!("{method}_points.ply"));
+    viz::files::write_ply_points(
+        &ply,
+        (w, h),
+        &disparity.data,
+        &set.reference.rgb,
+        [
+            set.reference.camera.fx,
+            set.reference.camera.fy,
+            set.reference.camera.cx,
+            set.reference.camera.cy,
+        ],
+        set.baseline_m,
+    )?;
+    files.push(ply);
+    if let Some(truth) = set.ground_truth_disparity() {
+        // |estimate − truth| where the truth is known (no estimate counts as the largest error).
+        let error: Vec<f32> = disparity
+            .data
+            .iter()
+            .zip(&truth)
+            .map(|(d, t)| match (*t > 0.0, d.is_finite()) {
+                (true, true) => (d - t).abs(),
+                (true, false) => ERROR_MAP_RANGE_PX.1,
+                _ => f32::NAN,
+            })
+            .collect();
+        files.push(viz::files::write_colormap_png(
+            &set_dir,
+            &format!("{method}_error"),
+            w,
+            h,
+            &error,
+            ERROR_MAP_RANGE_PX,
         )?);
     }
     if let Some(metrics) = metrics {
@@ -140,7 +180,7 @@ fn raw_f32(time: u64, width: usize, height: usize, data: &[f32]) -> foxglove::me
     }
     foxglove::messages::RawImage {
         timestamp: Some(record::log::timestamp(time)),
-        frame_id: record::log::CAMERA_FRAME.into(),
+        frame_id: record::log::view_frame(record::rig::REFERENCE_ROLE),
         width: width as u32,
         height: height as u32,
         encoding: "32FC1".into(),
@@ -198,7 +238,11 @@ impl ResultLog {
         self.writer.write_message(
             RESULT_CALIBRATION_TOPIC,
             time,
-            &record::log::calibration_message(&set.reference.camera, time),
+            &record::log::calibration_message(
+                &set.reference.camera,
+                time,
+                &record::log::view_frame(&set.reference.role),
+            ),
         )?;
         self.writer
             .write_json(RESULT_SUMMARY_TOPIC, "multiscopic.SetResult", time, summary)

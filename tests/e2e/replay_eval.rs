@@ -139,13 +139,29 @@ fn replay_writes_result_files_and_a_result_log_other_tools_read() {
         metrics["metrics"]["all"]["avg_err"].as_f64().is_some_and(|e| e < 2.0),
         "{metrics}"
     );
-    let pngs = std::fs::read_dir(&set_dir)
+    let names: Vec<String> = std::fs::read_dir(&set_dir)
         .into_iter()
         .flatten()
         .flatten()
-        .filter(|e| e.file_name().to_string_lossy().ends_with(".png"))
-        .count();
-    assert_eq!(pngs, 2, "depth PNG and colour-mapped disparity PNG");
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .collect();
+    let pngs = names.iter().filter(|n| n.ends_with(".png")).count();
+    assert_eq!(pngs, 3, "depth PNG, colour-mapped disparity PNG and error map: {names:?}");
+    assert!(names.contains(&"bm-heuristic_error_0.0-4.0px.png".to_owned()), "{names:?}");
+    // The point cloud: a PLY header naming one vertex per pixel with an estimate.
+    let ply = std::fs::read(set_dir.join("bm-heuristic_points.ply")).unwrap_or_default();
+    let header = String::from_utf8_lossy(&ply[..ply.len().min(400)]).into_owned();
+    let vertices: usize = header
+        .lines()
+        .find_map(|l| l.strip_prefix("element vertex "))
+        .and_then(|n| n.trim().parse().ok())
+        .unwrap_or(0);
+    assert!(
+        header.starts_with("ply\nformat binary_little_endian 1.0") && vertices > 320 * 180 / 2,
+        "PLY header: {header}"
+    );
+    let body = ply.len() - header.find("end_header\n").map_or(ply.len(), |i| i + "end_header\n".len());
+    assert_eq!(body, vertices * 15, "15 bytes a vertex (x y z float, r g b)");
     let script = multiscopic_tests::workspace_root().join("tests/python/check_mcap.py");
     let check = multiscopic_tests::run(
         std::process::Command::new(multiscopic_tests::python_with_mcap())

@@ -217,9 +217,80 @@ pub fn write_colormap_png(
     Ok(path)
 }
 
+/// Intrinsics of the view a disparity map belongs to: `[fx, fy, cx, cy]` (pixels).
+pub type Intrinsics = [f64; 4];
+
+/// Writes the 3D points of a disparity map as a binary little-endian PLY (`x y z` float metres
+/// in the camera's optical frame: x right, y down, z forward; `red green blue` from `rgb`), one
+/// vertex per pixel with a finite positive disparity: `z = f·b / d`, `x = (u − cx)·z / fx`,
+/// `y = (v − cy)·z / fy`. Returns the number of points written.
+pub fn write_ply_points(
+    path: &Path,
+    (width, height): (usize, usize),
+    disparity_px: &[f32],
+    rgb: &[u8],
+    intrinsics: Intrinsics,
+    baseline_m: f64,
+) -> Result<usize, FileError> {
+    check(path, disparity_px.len(), width, height)?;
+    check(path, rgb.len(), width * 3, height)?;
+    let [fx, fy, cx, cy] = intrinsics;
+    let mut body = Vec::new();
+    let mut count = 0usize;
+    for (i, d) in disparity_px.iter().enumerate() {
+        if !(d.is_finite() && *d > 0.0) {
+            continue;
+        }
+        let (u, v) = ((i % width) as f64, (i / width) as f64);
+        let z = fx * baseline_m / f64::from(*d);
+        for coordinate in [(u - cx) * z / fx, (v - cy) * z / fy, z] {
+            body.extend_from_slice(&(coordinate as f32).to_le_bytes());
+        }
+        body.extend_from_slice(&rgb[i * 3..i * 3 + 3]);
+        count += 1;
+    }
+    let header = format!(
+        "ply\nformat binary_little_endian 1.0\ncomment multiscopic disparity back-projected in the camera frame (m)\n\
+         element vertex {count}\nproperty float x\nproperty float y\nproperty float z\n\
+         property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n"
+    );
+    let io = |source| FileError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    let mut file = BufWriter::new(File::create(path).map_err(io)?);
+    file.write_all(header.as_bytes()).map_err(io)?;
+    file.write_all(&body).map_err(io)?;
+    file.flush().map_err(io)?;
+    Ok(count)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn ply_holds_the_back_projected_plane() {
+        // A fronto-parallel plane: constant disparity 10 px, f = 100 px, b = 0.1 m → z = 1 m.
+        let dir = std::env::temp_dir().join(format!("viz-ply-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap_or_else(|e| panic!("{e}"));
+        let path = dir.join("p.ply");
+        let mut disparity = vec![10.0f32; 4 * 3];
+        disparity[5] = f32::INFINITY;
+        let rgb = vec![200u8; 4 * 3 * 3];
+        let count = write_ply_points(&path, (4, 3), &disparity, &rgb, [100.0, 100.0, 1.5, 1.0], 0.1)
+            .unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(count, 11);
+        let bytes = std::fs::read(&path).unwrap_or_else(|e| panic!("{e}"));
+        let end = b"end_header\n";
+        let start = bytes.windows(end.len()).position(|w| w == end).unwrap_or(0) + end.len();
+        assert_eq!(bytes.len() - start, 11 * 15);
+        let float = |at: usize| f32::from_le_bytes([bytes[at], bytes[at + 1], bytes[at + 2], bytes[at + 3]]);
+        // First vertex: pixel (0, 0) → x = (0 − 1.5)·1/100, y = (0 − 1)·1/100, z = 1.
+        assert!((float(start) + 0.015).abs() < 1e-6 && (float(start + 4) + 0.01).abs() < 1e-6);
+        assert!((float(start + 8) - 1.0).abs() < 1e-6);
+        let _ = std::fs::remove_dir_all(dir);
+    }
 
     #[test]
     fn pfm_round_trips_with_infinity() {
