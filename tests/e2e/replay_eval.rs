@@ -146,8 +146,14 @@ fn replay_writes_result_files_and_a_result_log_other_tools_read() {
         .map(|e| e.file_name().to_string_lossy().into_owned())
         .collect();
     let pngs = names.iter().filter(|n| n.ends_with(".png")).count();
-    assert_eq!(pngs, 3, "depth PNG, colour-mapped disparity PNG and error map: {names:?}");
-    assert!(names.contains(&"bm-heuristic_error_0.0-4.0px.png".to_owned()), "{names:?}");
+    assert_eq!(
+        pngs, 3,
+        "depth PNG, colour-mapped disparity PNG and error map: {names:?}"
+    );
+    assert!(
+        names.contains(&"bm-heuristic_error_0.0-4.0px.png".to_owned()),
+        "{names:?}"
+    );
     // The point cloud: a PLY header naming one vertex per pixel with an estimate.
     let ply = std::fs::read(set_dir.join("bm-heuristic_points.ply")).unwrap_or_default();
     let header = String::from_utf8_lossy(&ply[..ply.len().min(400)]).into_owned();
@@ -160,7 +166,10 @@ fn replay_writes_result_files_and_a_result_log_other_tools_read() {
         header.starts_with("ply\nformat binary_little_endian 1.0") && vertices > 320 * 180 / 2,
         "PLY header: {header}"
     );
-    let body = ply.len() - header.find("end_header\n").map_or(ply.len(), |i| i + "end_header\n".len());
+    let body = ply.len()
+        - header
+            .find("end_header\n")
+            .map_or(ply.len(), |i| i + "end_header\n".len());
     assert_eq!(body, vertices * 15, "15 bytes a vertex (x y z float, r g b)");
     let script = multiscopic_tests::workspace_root().join("tests/python/check_mcap.py");
     let check = multiscopic_tests::run(
