@@ -395,15 +395,18 @@ fn run_simulation(args: &SimulateArgs, quiet: bool) -> Result<Outcome> {
     Ok(Outcome::Complete)
 }
 
+/// The work table under the scene.
+fn log_table(viewer: &Viewer) -> Result<(), viz::stream::VizError> {
+    let [x, y, _] = record::scene::WORK_AREA_CENTER_M;
+    let [w, d] = record::scene::TABLE_DRAWN_SIZE_M;
+    viewer.log_table([x as f32, y as f32], [w as f32, d as f32])
+}
+
 /// `record --rerun`: the arm and cameras as the capture goes.
 struct LiveCapture {
     viewer: Viewer,
     arm: record::ur10::Ur10,
 }
-
-/// Size of the work table drawn under the scene (m) and its centre.
-const TABLE_CENTRE_M: [f32; 2] = [0.8, 0.0];
-const TABLE_SIZE_M: [f32; 2] = [1.6, 1.2];
 
 impl LiveCapture {
     fn new(viewer: Viewer, arm: record::ur10::Ur10) -> Self {
@@ -411,14 +414,12 @@ impl LiveCapture {
     }
 
     fn arm_at(&self, joints: &record::ur10::Joints) -> Result<(), viz::stream::VizError> {
-        let mut links = vec![nalgebra::Isometry3::identity()];
-        links.extend(self.arm.link_poses(joints));
-        self.viewer.log_arm(&links)
+        self.viewer.log_arm(&self.arm.frames_from_base(joints))
     }
 
     /// One view as soon as it is rendered: the arm where it took it, the camera and its image.
     fn view(&self, view: &record::CapturedView) -> Result<(), viz::stream::VizError> {
-        self.viewer.log_table(TABLE_CENTRE_M, TABLE_SIZE_M)?;
+        log_table(&self.viewer)?;
         self.viewer.set_capture_time(view.capture_time_nanos);
         if let Some(joints) = &view.joints {
             self.arm_at(joints)?;

@@ -13,6 +13,10 @@ use crate::rng::SplitMix64;
 /// Where the arm looks: the centre of the work area on the table (m, world frame).
 pub const WORK_AREA_CENTER_M: [f64; 3] = [0.80, 0.0, 0.0];
 
+/// The table as drawn by viewers (m): an infinite plane in the renderer, shown as a top of this
+/// size centred on the work area.
+pub const TABLE_DRAWN_SIZE_M: [f64; 2] = [1.6, 1.2];
+
 /// An RGB colour, linear, components in [0, 1].
 pub type Rgb = [f64; 3];
 

@@ -161,6 +161,14 @@ impl Ur10 {
         poses
     }
 
+    /// The base frame (identity) followed by every joint frame's pose, base to flange: the
+    /// polyline of joint origins a viewer draws the arm along.
+    pub fn frames_from_base(&self, joints: &Joints) -> Vec<Isometry3<f64>> {
+        let mut frames = vec![Isometry3::identity()];
+        frames.extend(self.link_poses(joints));
+        frames
+    }
+
     /// Forward kinematics: `base_from_flange`.
     pub fn forward_kinematics(&self, joints: &Joints) -> Isometry3<f64> {
         self.link_poses(joints)[JOINT_COUNT - 1]

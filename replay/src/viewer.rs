@@ -19,9 +19,6 @@ use crate::viewset::{View, ViewSet};
 pub const MAX_TENSOR_CELLS: usize = 6_000_000;
 /// Error map colour range (px): errors at or above it are dark red.
 pub const ERROR_SCALE_PX: f32 = 4.0;
-/// Size of the work table drawn under the scene (m) and its centre.
-const TABLE_SIZE_M: [f32; 2] = [1.6, 1.2];
-const TABLE_CENTRE_M: [f32; 2] = [0.8, 0.0];
 
 /// The blueprint's contents for a set and methods.
 pub fn layout(set: &ViewSet, methods: &[&str]) -> Layout {
@@ -56,16 +53,16 @@ fn camera_view<'a>(
 /// The set's capture: the table, the arm at each view's capture time (when the log has the
 /// joints), and every camera with its image (and the reference's ground-truth depth).
 pub fn log_capture(viewer: &Viewer, set: &ViewSet) -> Result<(), VizError> {
-    viewer.log_table(TABLE_CENTRE_M, TABLE_SIZE_M)?;
+    let [x, y, _] = record::scene::WORK_AREA_CENTER_M;
+    let [w, d] = record::scene::TABLE_DRAWN_SIZE_M;
+    viewer.log_table([x as f32, y as f32], [w as f32, d as f32])?;
     let arm = Ur10::default();
     let mut views: Vec<&View> = std::iter::once(&set.reference).chain(&set.neighbours).collect();
     views.sort_by_key(|v| v.capture_time_nanos);
     for view in views {
         viewer.set_capture_time(view.capture_time_nanos);
         if let Some(joints) = &view.joints {
-            let mut links = vec![Isometry3::identity()];
-            links.extend(arm.link_poses(joints));
-            viewer.log_arm(&links)?;
+            viewer.log_arm(&arm.frames_from_base(joints))?;
         }
         let depth = if view.role == set.reference.role {
             set.ground_truth_depth_m.as_deref()
