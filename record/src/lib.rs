@@ -13,6 +13,7 @@ pub mod camera;
 pub mod capture;
 pub mod cli;
 pub mod import;
+pub mod live;
 pub mod log;
 pub mod render;
 pub mod rig;

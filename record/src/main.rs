@@ -17,13 +17,14 @@ use record::capture::{
 };
 use record::cli::{Outcome, UsageError, exit_code, init_logging, parse_args, progress_bar};
 use record::import::{ImportConfig, find_set_dirs, import_set};
+use record::live::LiveCapture;
 use record::log::{LogOptions, METADATA_NAME, OutputFile};
 use record::rig::RigKind;
 use record::scene::SceneKind;
 use record::session::record_simulation;
 use record::{ImageFormat, TOOL_VERSION};
 use tracing::{error, info, warn};
-use viz::stream::{CameraView, Layout, Viewer, ViewerSink};
+use viz::stream::{Layout, Viewer, ViewerSink};
 
 /// Record multiscopic captures (a simulated UR10 moving a camera in its image plane) as MCAP logs
 /// with Foxglove schemas and ground truth, or import real image sets into the same format.
@@ -327,7 +328,14 @@ fn run_simulation(args: &SimulateArgs, quiet: bool) -> Result<Outcome> {
             ..Layout::default()
         };
         match Viewer::create("multiscopic_record", &sink, &layout) {
-            Ok(viewer) => Some(LiveCapture::new(viewer, sim.arm().clone())),
+            Ok(viewer) => match LiveCapture::new(viewer, sim.arm().clone()) {
+                Ok(live) => Some(live),
+                Err(e) => {
+                    error!("Rerun: {e}\n  (the recording goes on; the log is still written)");
+                    viewer_lost = true;
+                    None
+                }
+            },
             Err(e) => {
                 error!("{e}\n  (the recording goes on; the log is still written)");
                 viewer_lost = true;
@@ -368,7 +376,7 @@ fn run_simulation(args: &SimulateArgs, quiet: bool) -> Result<Outcome> {
     )
     .with_context(|| format!("recording {}", args.output.display()))?;
     if let Some(live) = viewer
-        && let Err(e) = live.viewer.finish()
+        && let Err(e) = live.finish()
     {
         viewer_error.set(Some(e));
     }
@@ -393,57 +401,6 @@ fn run_simulation(args: &SimulateArgs, quiet: bool) -> Result<Outcome> {
         return Ok(Outcome::Incomplete);
     }
     Ok(Outcome::Complete)
-}
-
-/// The work table under the scene.
-fn log_table(viewer: &Viewer) -> Result<(), viz::stream::VizError> {
-    let [x, y, _] = record::scene::WORK_AREA_CENTER_M;
-    let [w, d] = record::scene::TABLE_DRAWN_SIZE_M;
-    viewer.log_table([x as f32, y as f32], [w as f32, d as f32])
-}
-
-/// `record --rerun`: the arm and cameras as the capture goes.
-struct LiveCapture {
-    viewer: Viewer,
-    arm: record::ur10::Ur10,
-}
-
-impl LiveCapture {
-    fn new(viewer: Viewer, arm: record::ur10::Ur10) -> Self {
-        Self { viewer, arm }
-    }
-
-    fn arm_at(&self, joints: &record::ur10::Joints) -> Result<(), viz::stream::VizError> {
-        self.viewer.log_arm(&self.arm.frames_from_base(joints))
-    }
-
-    /// One view as soon as it is rendered: the arm where it took it, the camera and its image.
-    fn view(&self, view: &record::CapturedView) -> Result<(), viz::stream::VizError> {
-        log_table(&self.viewer)?;
-        self.viewer.set_capture_time(view.capture_time_nanos);
-        if let Some(joints) = &view.joints {
-            self.arm_at(joints)?;
-        }
-        self.viewer.log_camera(&CameraView {
-            role: &view.role,
-            world_from_camera: &view.world_from_camera,
-            intrinsics: [view.camera.fx, view.camera.fy, view.camera.cx, view.camera.cy],
-            width: view.camera.width,
-            height: view.camera.height,
-            rgb: &view.rgb,
-            depth_m: view.depth_m.as_deref(),
-            time_nanos: view.capture_time_nanos,
-        })
-    }
-
-    /// The arm's motion between the views of a finished set, on the capture timeline.
-    fn motion(&self, set: &record::CapturedSet) -> Result<(), viz::stream::VizError> {
-        for sample in &set.motion {
-            self.viewer.set_capture_time(sample.time_nanos);
-            self.arm_at(&sample.joints)?;
-        }
-        Ok(())
-    }
 }
 
 fn report(path: &Path, sets: u32, started: Instant) {

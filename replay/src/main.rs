@@ -212,18 +212,16 @@ fn methods_named(names: &str, overrides: Option<&serde_json::Value>) -> Result<V
 /// Opens the Rerun recording when `--rerun` was given. A viewer that cannot be started or a file
 /// that cannot be written is reported and the run goes on without it (its other outputs are
 /// still written; the exit code is then 3).
-fn open_viewer(words: &[String], set: Option<&ViewSet>, methods: &[&str]) -> Result<Option<Viewer>, Option<VizError>> {
+fn open_viewer(words: &[String], set: Option<&ViewSet>, methods: &[&str]) -> Result<Option<Viewer>, VizError> {
     if words.is_empty() {
         return Ok(None);
     }
-    let sink = ViewerSink::parse(words).map_err(Some)?;
+    let sink = ViewerSink::parse(words)?;
     let layout = match set {
         Some(set) => replay::viewer::layout(set, methods),
         None => viz::stream::Layout::default(),
     };
-    Viewer::create("multiscopic_replay", &sink, &layout)
-        .map(Some)
-        .map_err(Some)
+    Viewer::create("multiscopic_replay", &sink, &layout).map(Some)
 }
 
 fn run_method(args: &RunArgs, quiet: bool) -> Result<Outcome> {
@@ -269,9 +267,7 @@ fn run_method(args: &RunArgs, quiet: bool) -> Result<Outcome> {
     let viewer = match open_viewer(&args.rerun, sets.first().copied(), &method_names) {
         Ok(viewer) => viewer,
         Err(error) => {
-            if let Some(error) = error {
-                error!("{error}\n  (the run goes on; its files are still written)");
-            }
+            error!("{error}\n  (the run goes on; its files are still written)");
             viewer_lost = true;
             None
         }

@@ -6,7 +6,6 @@ use fuse::cost::PixelCost;
 use fuse::fusion::Fusion;
 use fuse::volume::{CostSpec, PreparedProblem};
 use fuse::{Image, Neighbour, Problem};
-use nalgebra::Isometry3;
 use rayon::prelude::*;
 use record::ur10::Ur10;
 use viz::stream::{CameraView, Layout, Viewer, VizError};
@@ -33,14 +32,10 @@ pub fn layout(set: &ViewSet, methods: &[&str]) -> Layout {
     }
 }
 
-fn camera_view<'a>(
-    view: &'a View,
-    depth_m: Option<&'a [f32]>,
-    world_from_camera: &'a Isometry3<f64>,
-) -> CameraView<'a> {
+fn camera_view<'a>(view: &'a View, depth_m: Option<&'a [f32]>) -> CameraView<'a> {
     CameraView {
         role: &view.role,
-        world_from_camera,
+        world_from_camera: &view.world_from_camera,
         intrinsics: [view.camera.fx, view.camera.fy, view.camera.cx, view.camera.cy],
         width: view.camera.width,
         height: view.camera.height,
@@ -53,9 +48,7 @@ fn camera_view<'a>(
 /// The set's capture: the table, the arm at each view's capture time (when the log has the
 /// joints), and every camera with its image (and the reference's ground-truth depth).
 pub fn log_capture(viewer: &Viewer, set: &ViewSet) -> Result<(), VizError> {
-    let [x, y, _] = record::scene::WORK_AREA_CENTER_M;
-    let [w, d] = record::scene::TABLE_DRAWN_SIZE_M;
-    viewer.log_table([x as f32, y as f32], [w as f32, d as f32])?;
+    record::live::log_table(viewer)?;
     let arm = Ur10::default();
     let mut views: Vec<&View> = std::iter::once(&set.reference).chain(&set.neighbours).collect();
     views.sort_by_key(|v| v.capture_time_nanos);
@@ -69,7 +62,7 @@ pub fn log_capture(viewer: &Viewer, set: &ViewSet) -> Result<(), VizError> {
         } else {
             None
         };
-        viewer.log_camera(&camera_view(view, depth, &view.world_from_camera))?;
+        viewer.log_camera(&camera_view(view, depth))?;
     }
     Ok(())
 }
@@ -190,8 +183,10 @@ pub fn log_costs(viewer: &Viewer, set: &ViewSet, problem: &Problem, occluded: Op
         .neighbours
         .iter()
         .map(|n| Neighbour {
+            role: n.role.clone(),
             image: small(&n.image),
-            ..n.clone()
+            offset: n.offset,
+            baseline_ratio: n.baseline_ratio,
         })
         .collect();
     let started = std::time::Instant::now();

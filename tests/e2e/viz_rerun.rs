@@ -234,7 +234,22 @@ fn record_streams_the_arm_and_cameras_as_it_captures() {
         let camera = columns_of(&printed, &format!("/world/camera/{role}/image"));
         assert!(camera.contains("Image:buffer"), "{role}: {camera}");
     }
-    // The arm moves: many capture times of its links.
+    // The arm moves: its links are logged at every motion sample, far more rows than the
+    // three views' capture times.
+    let link_rows: usize = printed
+        .lines()
+        .filter(|line| line.contains(" - /world/arm/links - "))
+        .filter_map(|line| {
+            line.split(" with ")
+                .nth(1)?
+                .split(" rows")
+                .next()?
+                .trim()
+                .parse::<usize>()
+                .ok()
+        })
+        .sum();
+    assert!(link_rows > 10, "arm links logged at {link_rows} times only:\n{links}");
     let stats = run(rerun_cli().args(["rrd", "stats"]).arg(&rrd));
     assert_success(&stats, "rerun rrd stats");
 }
