@@ -1,11 +1,69 @@
 //! `record --rerun`: the simulated capture streamed to the Rerun viewer as it happens (the arm,
 //! the table, each camera with its image), through `viz::stream`. Also the table drawing that
-//! `replay --rerun` shares.
+//! `replay --rerun` shares, and the layout file (`<log>.rbl`) the viewer opens a log with.
 
+use std::path::{Path, PathBuf};
+
+use viz::log_blueprint::{LogLayout, LogView, app_id_for_log, blueprint_path_for_log, save_log_blueprint};
 use viz::stream::{CameraView, Viewer, VizError};
 
+use crate::log::{depth_topic, image_topic, surface_topic};
 use crate::ur10::{Joints, Ur10};
 use crate::{CapturedSet, CapturedView};
+
+/// Width of a view's image drawn in the 3D scene, as a fraction of the distance between the
+/// closest two views (the images sit side by side with a gap).
+const DRAWN_IMAGE_WIDTH_PER_SPACING: f64 = 0.8;
+
+/// The views of a set as the viewer imports a log of it (its entity paths are the log's topics),
+/// with image planes drawn at a distance that fits the rig's spacing.
+pub fn log_layout(set: &CapturedSet) -> LogLayout {
+    let views = set
+        .views
+        .iter()
+        .map(|view| LogView {
+            role: view.role.clone(),
+            image_entity: image_topic(&view.role),
+            depth_entity: view.depth_m.is_some().then(|| depth_topic(&view.role)),
+            hidden_in_3d: view
+                .surface_class
+                .is_some()
+                .then(|| surface_topic(&view.role))
+                .into_iter()
+                .collect(),
+        })
+        .collect();
+    let positions: Vec<_> = set
+        .views
+        .iter()
+        .map(|v| v.world_from_camera.translation.vector)
+        .collect();
+    let spacing_m = positions
+        .iter()
+        .enumerate()
+        .flat_map(|(i, a)| positions[i + 1..].iter().map(move |b| (a - b).norm()))
+        .filter(|d| *d > 0.0)
+        .fold(f64::INFINITY, f64::min);
+    // An image `width` px wide at distance d spans d · width / fx metres.
+    let image_plane_distance_m = set.views.first().and_then(|view| {
+        let width_per_distance = f64::from(view.camera.width) / view.camera.fx;
+        let distance = DRAWN_IMAGE_WIDTH_PER_SPACING * spacing_m / width_per_distance;
+        (distance.is_finite() && distance > 0.0).then_some(distance as f32)
+    });
+    LogLayout {
+        views,
+        image_plane_distance_m,
+    }
+}
+
+/// Writes the viewer layout of the log at `log_path` (from [`log_layout`] of its first set) beside
+/// it, as `<stem>.rbl`, so that `rerun <log> <stem>.rbl` opens on the cameras and images; returns
+/// its path.
+pub fn write_log_blueprint(log_path: &Path, layout: &LogLayout) -> Result<PathBuf, VizError> {
+    let path = blueprint_path_for_log(log_path);
+    save_log_blueprint(&path, app_id_for_log(log_path)?, layout)?;
+    Ok(path)
+}
 
 /// The work table under the scene (static): a top of [`crate::scene::TABLE_DRAWN_SIZE_M`]
 /// centred on the work area.

@@ -1,7 +1,7 @@
 //! `record`: simulate a UR10 multiscopic capture, or import an image set, into an MCAP log.
 //!
 //! Exit codes: 0 ok, 1 error, 2 usage, 3 finished but incomplete (interrupted with Ctrl-C: the
-//! log holds the sets completed so far).
+//! log holds the sets completed so far, or the viewer layout beside the log could not be written).
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -17,7 +17,7 @@ use record::capture::{
 };
 use record::cli::{Outcome, UsageError, exit_code, init_logging, parse_args, progress_bar};
 use record::import::{ImportConfig, find_set_dirs, import_set};
-use record::live::LiveCapture;
+use record::live::{LiveCapture, log_layout, write_log_blueprint};
 use record::log::{LogOptions, METADATA_NAME, OutputFile};
 use record::rig::RigKind;
 use record::scene::SceneKind;
@@ -200,6 +200,10 @@ struct SimulateArgs {
     /// zstd level of the log's chunks (1 fastest … 19 smallest).
     #[arg(long, default_value = "3", value_parser = clap::value_parser!(u32).range(1..=19))]
     zstd_level: u32,
+    /// Do not write the viewer layout beside the log (`<log stem>.rbl`, opened with
+    /// `rerun LOG.mcap LOG.rbl`).
+    #[arg(long)]
+    no_blueprint: bool,
 }
 
 #[derive(Debug, Args)]
@@ -236,6 +240,10 @@ struct ImportArgs {
     /// Only these set directories (comma-separated names).
     #[arg(long, value_delimiter = ',')]
     sets: Vec<String>,
+    /// Do not write the viewer layout beside the log (`<log stem>.rbl`, opened with
+    /// `rerun LOG.mcap LOG.rbl`).
+    #[arg(long)]
+    no_blueprint: bool,
 }
 
 fn main() -> ExitCode {
@@ -344,6 +352,7 @@ fn run_simulation(args: &SimulateArgs, quiet: bool) -> Result<Outcome> {
         }
     };
     let viewer_error = std::cell::Cell::new(None::<viz::stream::VizError>);
+    let mut layout_of_log = None;
     let outcome = record_simulation(
         &mut sim,
         &args.output,
@@ -359,6 +368,7 @@ fn run_simulation(args: &SimulateArgs, quiet: bool) -> Result<Outcome> {
             }
         },
         |set| {
+            layout_of_log.get_or_insert_with(|| log_layout(set));
             bar.suspend(|| {
                 info!(
                     "set {}/{} done ({} views)",
@@ -390,6 +400,12 @@ fn run_simulation(args: &SimulateArgs, quiet: bool) -> Result<Outcome> {
         return Ok(Outcome::Incomplete);
     };
     report(path, outcome.completed_sets, started);
+    if !args.no_blueprint
+        && let Some(layout) = &layout_of_log
+        && !write_blueprint(path, layout)
+    {
+        viewer_lost = true;
+    }
     if outcome.interrupted() {
         warn!(
             "interrupted: the log holds {} of {} requested sets",
@@ -401,6 +417,24 @@ fn run_simulation(args: &SimulateArgs, quiet: bool) -> Result<Outcome> {
         return Ok(Outcome::Incomplete);
     }
     Ok(Outcome::Complete)
+}
+
+/// Writes the viewer layout beside the log and says how to open both; false when it failed.
+fn write_blueprint(log_path: &Path, layout: &viz::log_blueprint::LogLayout) -> bool {
+    match write_log_blueprint(log_path, layout) {
+        Ok(blueprint) => {
+            info!(
+                "open it in Rerun with its layout: rerun {} {}",
+                log_path.display(),
+                blueprint.display()
+            );
+            true
+        }
+        Err(e) => {
+            error!("viewer layout not written: {e}");
+            false
+        }
+    }
 }
 
 fn report(path: &Path, sets: u32, started: Instant) {
@@ -445,8 +479,10 @@ fn run_import(args: &ImportArgs) -> Result<Outcome> {
     let (output, writer) = OutputFile::create(&args.output).context("cannot start the output log")?;
     let mut log = LogOptions::new().create(writer)?;
     let bar = progress_bar(dirs.len() as u64, false, "sets");
+    let mut layout_of_log = None;
     for (index, dir) in dirs.iter().enumerate() {
         let set = import_set(dir, index as u32, &config)?;
+        layout_of_log.get_or_insert_with(|| log_layout(&set));
         bar.set_message(set.name.clone());
         log.write_set(&set, None)?;
         bar.inc(1);
@@ -462,5 +498,11 @@ fn run_import(args: &ImportArgs) -> Result<Outcome> {
     let writer = log.finish()?;
     let path = output.commit(writer)?;
     report(&path, dirs.len() as u32, started);
+    if !args.no_blueprint
+        && let Some(layout) = &layout_of_log
+        && !write_blueprint(&path, layout)
+    {
+        return Ok(Outcome::Incomplete);
+    }
     Ok(Outcome::Complete)
 }

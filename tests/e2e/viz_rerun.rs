@@ -96,7 +96,7 @@ fn replay_saves_a_recording_the_viewer_verifies_with_every_entity() {
 /// Runs the headless viewer on `input` and saves a screenshot to `shot`. One viewer at a time
 /// (software rendering of two at once can miss the viewer's render deadline), each on its own
 /// gRPC port, and a second try when the first left no screenshot.
-fn headless_screenshot(input: &Path, shot: &Path, window: &str) -> std::process::Output {
+fn headless_screenshot(inputs: &[&Path], shot: &Path, window: &str) -> std::process::Output {
     static ONE_VIEWER: std::sync::Mutex<u16> = std::sync::Mutex::new(0);
     let mut runs = ONE_VIEWER.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
     let mut output = None;
@@ -105,7 +105,7 @@ fn headless_screenshot(input: &Path, shot: &Path, window: &str) -> std::process:
         let port = 19_876 + *runs;
         let result = run(rerun_cli()
             .arg("--headless")
-            .arg(input)
+            .args(inputs)
             .arg("--screenshot-to")
             .arg(shot)
             .args(["--window-size", window, "--port", &port.to_string()]));
@@ -135,6 +135,39 @@ fn luminance_stats(pixels: &[u8], channels: usize, width: usize, region: [usize;
     (mean, variance.sqrt())
 }
 
+/// The screenshot's pixels: (RGB or RGBA bytes, channels, width, height).
+fn read_screenshot(shot: &Path) -> (Vec<u8>, usize, usize, usize) {
+    let decoder = png::Decoder::new(std::io::BufReader::new(
+        std::fs::File::open(shot).unwrap_or_else(|e| panic!("no screenshot {}: {e}", shot.display())),
+    ));
+    let mut reader = decoder.read_info().unwrap_or_else(|e| panic!("{e}"));
+    let mut pixels = vec![0u8; reader.output_buffer_size().unwrap_or(0)];
+    let info = reader.next_frame(&mut pixels).unwrap_or_else(|e| panic!("{e}"));
+    let channels = info.color_type.samples();
+    (pixels, channels, info.width as usize, info.height as usize)
+}
+
+/// Asserts that each named region (fractions of the width and height: x0, y0, x1, y1) of the
+/// screenshot shows content: a luminance deviation above `min_deviation`, not an empty panel.
+fn assert_regions_filled(shot: &Path, regions: &[(&str, [f64; 4], f64)]) {
+    let (pixels, channels, w, h) = read_screenshot(shot);
+    for (name, [x0, y0, x1, y1], min_deviation) in regions {
+        let region = [
+            (x0 * w as f64) as usize,
+            (y0 * h as f64) as usize,
+            (x1 * w as f64) as usize,
+            (y1 * h as f64) as usize,
+        ];
+        let (mean, deviation) = luminance_stats(&pixels, channels, w, region);
+        println!("{name}: mean luminance {mean:.1}, deviation {deviation:.1}");
+        assert!(
+            deviation > *min_deviation,
+            "{name} looks empty (luminance deviation {deviation:.1} ≤ {min_deviation}, mean {mean:.1}) in {}",
+            shot.display()
+        );
+    }
+}
+
 #[test]
 fn the_recording_renders_in_the_headless_viewer_with_every_panel_filled() {
     let dir = temp_dir();
@@ -142,40 +175,21 @@ fn the_recording_renders_in_the_headless_viewer_with_every_panel_filled() {
     let rrd = dir.path().join("run.rrd");
     replay_with_rerun(dir.path(), &log, &rrd);
     let shot = dir.path().join("shot.png");
-    let output = run(rerun_cli()
-        .arg("--headless")
-        .arg(&rrd)
-        .arg("--screenshot-to")
-        .arg(&shot)
-        .args(["--window-size", "1600x900"]));
+    let output = headless_screenshot(&[&rrd], &shot, "1600x900");
     assert_success(
         &output,
         "rerun --headless --screenshot-to (needs Debian's mesa-vulkan-drivers)",
     );
-    let decoder = png::Decoder::new(std::io::BufReader::new(
-        std::fs::File::open(&shot).unwrap_or_else(|e| panic!("no screenshot {}: {e}", shot.display())),
-    ));
-    let mut reader = decoder.read_info().unwrap_or_else(|e| panic!("{e}"));
-    let mut pixels = vec![0u8; reader.output_buffer_size().unwrap_or(0)];
-    let info = reader.next_frame(&mut pixels).unwrap_or_else(|e| panic!("{e}"));
-    let (w, h) = (info.width as usize, info.height as usize);
-    let channels = info.color_type.samples();
     // The blueprint: the 3D scene (top left), the analysis tabs (bottom left), the views grid
     // (right half). Each region must show content, not an empty dark panel.
-    let regions = [
-        ("3D scene", [w / 20, h / 8, w * 9 / 20, h * 4 / 10]),
-        ("views grid, upper", [w * 11 / 20, h / 8, w * 19 / 20, h * 4 / 10]),
-        ("views grid, lower", [w * 11 / 20, h / 2, w * 19 / 20, h * 8 / 10]),
-    ];
-    for (name, region) in regions {
-        let (mean, deviation) = luminance_stats(&pixels, channels, w, region);
-        println!("{name}: mean luminance {mean:.1}, deviation {deviation:.1}");
-        assert!(
-            deviation > 12.0,
-            "{name} looks empty (luminance deviation {deviation:.1}, mean {mean:.1}) in {}",
-            shot.display()
-        );
-    }
+    assert_regions_filled(
+        &shot,
+        &[
+            ("3D scene", [0.05, 0.125, 0.45, 0.4], 12.0),
+            ("views grid, upper", [0.55, 0.125, 0.95, 0.4], 12.0),
+            ("views grid, lower", [0.55, 0.5, 0.95, 0.8], 12.0),
+        ],
+    );
 }
 
 #[test]
@@ -255,12 +269,48 @@ fn record_streams_the_arm_and_cameras_as_it_captures() {
 }
 
 #[test]
-fn the_viewer_opens_a_recorded_log_with_one_frame_per_view() {
+fn the_viewer_shows_a_recorded_log_with_its_cameras_and_images() {
     let dir = temp_dir();
     let log = small_capture(dir.path());
+    let blueprint = log.with_extension("rbl");
+    assert!(blueprint.exists(), "record writes the viewer layout beside the log");
+    // The viewer's own checks of the file, then its Foxglove import: every view's image, its
+    // calibration as a pinhole, the transforms.
+    let check = run(rerun_cli().args(["mcap", "check"]).arg(&log));
+    assert_success(&check, "rerun mcap check");
+    let converted = dir.path().join("converted.rrd");
+    assert_success(
+        &run(rerun_cli()
+            .args(["mcap", "convert"])
+            .arg(&log)
+            .arg("-o")
+            .arg(&converted)),
+        "rerun mcap convert",
+    );
+    assert_success(
+        &run(rerun_cli().args(["rrd", "verify"]).arg(&converted)),
+        "rerun rrd verify",
+    );
+    let printed = printed(&converted);
+    let expect = |entity: &str, column: &str| {
+        let columns = columns_of(&printed, entity);
+        assert!(
+            columns.contains(column),
+            "{entity} lacks {column} after the viewer's import; its columns:\n{columns}"
+        );
+    };
+    expect("/tf", "Transform3D:translation");
+    expect("/tf", "Transform3D:child_frame");
+    for role in ["center", "left", "right", "top", "bottom"] {
+        expect(&format!("/camera/{role}/image"), "Image:buffer");
+        expect(&format!("/camera/{role}/image"), "CoordinateFrame:frame");
+        expect(&format!("/camera/{role}/calibration"), "Pinhole:image_from_camera");
+        expect(&format!("/camera/{role}/calibration"), "Pinhole:parent_frame");
+    }
+    // Rendered with its layout: `rerun capture.mcap capture.rbl`.
     let shot = dir.path().join("mcap.png");
-    let output = headless_screenshot(&log, &shot, "1280x720");
-    assert_success(&output, "rerun --headless capture.mcap");
+    let output = headless_screenshot(&[&log, &blueprint], &shot, "1280x720");
+    assert_success(&output, "rerun --headless capture.mcap capture.rbl");
     let stderr = String::from_utf8_lossy(&output.stderr);
     // Each view's images and calibration carry their own frame (`camera_<role>`): the viewer's
     // MCAP importer must not find two pinholes claiming one image plane.
@@ -268,5 +318,15 @@ fn the_viewer_opens_a_recorded_log_with_one_frame_per_view() {
         !stderr.contains("define the same child frame"),
         "frame conflict in the viewer:\n{stderr}"
     );
-    assert!(shot.exists(), "no screenshot of the log");
+    // The layout: the 3D scene (left half: the five frustums with their images), the images grid
+    // (right; the viewer's notifications cover its right column, so the left column is checked).
+    // Without the images in the frustums the 3D region measures a deviation of about 7.
+    assert_regions_filled(
+        &shot,
+        &[
+            ("3D scene", [0.02, 0.1, 0.48, 0.62], 20.0),
+            ("images grid, upper left", [0.51, 0.15, 0.66, 0.31], 12.0),
+            ("images grid, lower left", [0.51, 0.45, 0.66, 0.6], 12.0),
+        ],
+    );
 }

@@ -4,9 +4,11 @@
 //! It never depends on `replay`; binaries hand it plain data. [`files`] writes PFM, 16-bit
 //! depth PNG and colour-mapped disparity PNG; [`stream`] logs captures, cost volumes and results
 //! to the Rerun viewer (spawned, connected, or saved as `.rrd`) with a blueprint built in code;
+//! [`log_blueprint`] writes the layout a recorded MCAP log is opened with (`rerun log.mcap log.rbl`);
 //! [`turbo`] is the colour map.
 
 pub mod files;
+pub mod log_blueprint;
 pub mod stream;
 
 /// Turbo colour map (Mikhailov, Google 2019) at `t` ∈ [0, 1], as 8-bit RGB, by the published
