@@ -494,6 +494,7 @@ fn run_demo(args: &DemoArgs, quiet: bool) -> Result<Outcome> {
         log.display()
     );
     let stop = std::sync::atomic::AtomicBool::new(false);
+    let mut log_layout = None;
     let recorded = record::session::record_simulation(
         &mut sim,
         &log,
@@ -503,13 +504,31 @@ fn run_demo(args: &DemoArgs, quiet: bool) -> Result<Outcome> {
             progress.set_message(format!("rendering set {set} view {}", view.role));
             progress.inc(1);
         },
-        |_| {},
+        |set| {
+            log_layout.get_or_insert_with(|| record::live::log_layout(set));
+        },
     )?;
     progress.finish_and_clear();
     if recorded.path.is_none() {
         anyhow::bail!("the recording produced no complete set");
     }
-    run_method(
+    // The capture's own layout, for `rerun demo/capture.mcap demo/capture.rbl`.
+    let layout_lost = match log_layout.map(|layout| record::live::write_log_blueprint(&log, &layout)) {
+        Some(Ok(path)) => {
+            info!(
+                "the capture opens in Rerun with: rerun {} {}",
+                log.display(),
+                path.display()
+            );
+            false
+        }
+        Some(Err(e)) => {
+            error!("viewer layout of the capture not written: {e}");
+            true
+        }
+        None => false,
+    };
+    let outcome = run_method(
         &RunArgs {
             log: Some(log),
             method: args.method.clone(),
@@ -530,7 +549,8 @@ fn run_demo(args: &DemoArgs, quiet: bool) -> Result<Outcome> {
             },
         },
         quiet,
-    )
+    )?;
+    Ok(if layout_lost { Outcome::Incomplete } else { outcome })
 }
 
 fn read_inputs(inputs: &[PathBuf]) -> Result<Vec<ViewSet>> {

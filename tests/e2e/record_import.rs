@@ -56,6 +56,20 @@ fn imported_set_round_trips_pixels_and_ground_truth() {
         .unwrap_or_else(|| panic!("no left view"));
     assert!((left.world_from_camera.translation_m[0] + 0.04).abs() < 1e-12);
     assert!(left.depth_topic.is_none());
+    // The viewer layout is written beside the log, unless asked not to.
+    assert!(out.with_extension("rbl").exists(), "no import.rbl beside the log");
+    let bare = dir.path().join("bare.mcap");
+    let output = record(&[
+        "import",
+        dir.path().join("scenes").to_str().unwrap_or_default(),
+        "-o",
+        bare.to_str().unwrap_or_default(),
+        "--focal-px",
+        "100",
+        "--no-blueprint",
+    ]);
+    assert_success(&output, "record import --no-blueprint");
+    assert!(bare.exists() && !bare.with_extension("rbl").exists());
 }
 
 #[test]
