@@ -146,20 +146,42 @@ pub struct Layout {
 /// The blueprint: the views in a grid, the 3D scene, the cost tensors and curves, the metrics and
 /// the alignment report, so that a user opening the file sees the comparison at once.
 pub fn blueprint(layout: &Layout) -> Blueprint {
+    // Each camera's own image: the depth maps logged under the same pinhole (ground truth, the
+    // methods' results) get their own tabs instead of covering it.
     let mut cameras: Vec<ContainerLike> = layout
         .roles
         .iter()
         .map(|role| {
-            Spatial2DView::new(role.as_str())
-                .with_origin(format!("world/camera/{role}"))
+            let origin = format!("world/camera/{role}");
+            let image = Spatial2DView::new(role.as_str())
+                .with_origin(origin.as_str())
+                .with_contents([format!("+ {origin}/image")]);
+            if role == REFERENCE_ROLE {
+                Tabs::new([
+                    ContainerLike::from(image),
+                    Spatial2DView::new(format!("{role} ground truth"))
+                        .with_origin(origin.as_str())
+                        .with_contents([format!("+ {origin}/ground_truth_depth")])
+                        .into(),
+                ])
                 .into()
+            } else {
+                image.into()
+            }
         })
         .collect();
     for method in &layout.methods {
         cameras.push(
-            Spatial2DView::new(format!("{method} error"))
-                .with_origin(format!("results/{method}"))
-                .into(),
+            Tabs::new([
+                ContainerLike::from(
+                    Spatial2DView::new(format!("{method} error")).with_origin(format!("results/{method}")),
+                ),
+                Spatial2DView::new(format!("{method} depth"))
+                    .with_origin(format!("world/camera/{REFERENCE_ROLE}"))
+                    .with_contents([format!("+ world/camera/{REFERENCE_ROLE}/{method}")])
+                    .into(),
+            ])
+            .into(),
         );
     }
     let grid = Grid::new(cameras).with_name("views");
@@ -197,6 +219,9 @@ pub fn blueprint(layout: &Layout) -> Blueprint {
             .with_play_state(PlayState::Following),
     )
 }
+
+/// The role whose camera the results are computed for.
+pub const REFERENCE_ROLE: &str = "center";
 
 /// One recording, open on its sink.
 pub struct Viewer {
@@ -378,8 +403,9 @@ impl Viewer {
     }
 
     /// A method's result for the centre view at the current capture time: its depth as a
-    /// `DepthImage` under the centre pinhole (back-projected to a point cloud in 3D), and, with
-    /// ground truth, the absolute disparity error as a colour map (0 … `error_scale_px`).
+    /// `DepthImage` under the centre pinhole (back-projected to a point cloud in 3D; failed
+    /// matches far behind the scene are left out, see [`drop_far_outliers`]), and, with ground
+    /// truth, the absolute disparity error as a colour map (0 … `error_scale_px`).
     pub fn log_result(
         &self,
         method: &str,
@@ -389,7 +415,7 @@ impl Viewer {
         ground_truth_disparity_px: Option<&[f32]>,
         error_scale_px: f32,
     ) -> Result<(), VizError> {
-        let depth: Vec<f32> = disparity_px
+        let mut depth: Vec<f32> = disparity_px
             .iter()
             .map(|d| {
                 if d.is_finite() && *d > 0.0 {
@@ -399,7 +425,8 @@ impl Viewer {
                 }
             })
             .collect();
-        self.log_depth(&format!("world/camera/center/{method}"), &depth, size)?;
+        drop_far_outliers(&mut depth);
+        self.log_depth(&format!("world/camera/{REFERENCE_ROLE}/{method}"), &depth, size)?;
         if let Some(truth) = ground_truth_disparity_px {
             // |error| in steps of 1/64 px (u8, capped), colour-mapped over 0 … error_scale_px by
             // the viewer: a quarter of the bytes of an RGB image. 0 also marks "no ground truth".
@@ -500,6 +527,29 @@ impl Viewer {
     }
 }
 
+/// Depths beyond this multiple of the 95th percentile are not drawn.
+const FAR_LIMIT_PER_P95_DEPTH: f32 = 2.0;
+
+/// Marks unknown (0) the depths beyond [`FAR_LIMIT_PER_P95_DEPTH`] × their 95th percentile.
+///
+/// A failed match at a disparity near zero puts a point tens of metres behind the scene; the
+/// viewer frames the 3D view on everything drawn, so a handful of them shrink the arm, the table
+/// and the cloud itself to a streak. The disparity maps, files and metrics keep every value.
+pub fn drop_far_outliers(depth_m: &mut [f32]) {
+    let mut valid: Vec<f32> = depth_m.iter().copied().filter(|d| *d > 0.0).collect();
+    if valid.is_empty() {
+        return;
+    }
+    let rank = (valid.len() - 1) * 95 / 100;
+    let (_, p95, _) = valid.select_nth_unstable_by(rank, f32::total_cmp);
+    let far_limit = *p95 * FAR_LIMIT_PER_P95_DEPTH;
+    for d in depth_m.iter_mut() {
+        if *d > far_limit {
+            *d = 0.0;
+        }
+    }
+}
+
 fn quaternion(rotation: &UnitQuaternion<f64>) -> rerun::Quaternion {
     let q = rotation.coords;
     rerun::Quaternion::from_xyzw([q.x as f32, q.y as f32, q.z as f32, q.w as f32])
@@ -514,6 +564,21 @@ fn transform(pose: &Isometry3<f64>) -> rerun::Transform3D {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn far_outliers_are_dropped_and_the_scene_kept() {
+        // A plane at 0.8 m with two failed matches at 33 m and one unknown pixel.
+        let mut depth = vec![0.8_f32; 100];
+        depth[3] = 33.0;
+        depth[50] = 40.0;
+        depth[7] = 0.0;
+        depth[9] = 1.5;
+        drop_far_outliers(&mut depth);
+        assert_eq!((depth[3], depth[50], depth[7]), (0.0, 0.0, 0.0));
+        assert_eq!(depth[9], 1.5, "within twice the 95th percentile");
+        assert_eq!(depth.iter().filter(|d| **d == 0.8).count(), 96);
+        drop_far_outliers(&mut []);
+    }
 
     #[test]
     fn sinks_parse_from_the_command_line_words() {
