@@ -32,6 +32,15 @@ fn columns_of(printed: &str, entity: &str) -> String {
         .join("\n")
 }
 
+/// Asserts that `rerun rrd print` lists `column` for `entity`.
+fn assert_column(printed: &str, entity: &str, column: &str) {
+    let columns = columns_of(printed, entity);
+    assert!(
+        columns.contains(column),
+        "{entity} lacks {column}; its columns:\n{columns}"
+    );
+}
+
 fn replay_with_rerun(dir: &Path, log: &Path, rrd: &Path) {
     let output = replay(&[
         log.to_str().unwrap_or_default(),
@@ -59,13 +68,7 @@ fn replay_saves_a_recording_the_viewer_verifies_with_every_entity() {
         assert_success(&output, &format!("rerun {}", check.join(" ")));
     }
     let printed = printed(&rrd);
-    let expect = |entity: &str, column: &str| {
-        let columns = columns_of(&printed, entity);
-        assert!(
-            columns.contains(column),
-            "{entity} lacks {column}; its columns:\n{columns}"
-        );
-    };
+    let expect = |entity: &str, column: &str| assert_column(&printed, entity, column);
     for role in ["center", "left", "right", "top", "bottom"] {
         expect(&format!("/world/camera/{role}"), "Pinhole:image_from_camera");
         expect(&format!("/world/camera/{role}"), "Transform3D:translation");
@@ -292,13 +295,7 @@ fn the_viewer_shows_a_recorded_log_with_its_cameras_and_images() {
         "rerun rrd verify",
     );
     let printed = printed(&converted);
-    let expect = |entity: &str, column: &str| {
-        let columns = columns_of(&printed, entity);
-        assert!(
-            columns.contains(column),
-            "{entity} lacks {column} after the viewer's import; its columns:\n{columns}"
-        );
-    };
+    let expect = |entity: &str, column: &str| assert_column(&printed, entity, column);
     expect("/tf", "Transform3D:translation");
     expect("/tf", "Transform3D:child_frame");
     for role in ["center", "left", "right", "top", "bottom"] {
