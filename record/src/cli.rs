@@ -1,6 +1,8 @@
 //! What the `record` and `replay` binaries share: exit codes, usage errors, logging set-up,
-//! progress bars, and the mapping from a run's outcome to the process exit code.
+//! progress bars, the mapping from a run's outcome to the process exit code, and the viewer layout
+//! written beside a log.
 
+use std::path::Path;
 use std::process::ExitCode;
 
 use indicatif::{ProgressBar, ProgressStyle};
@@ -75,4 +77,23 @@ pub fn progress_bar(total: u64, quiet: bool, unit: &str) -> ProgressBar {
         bar.set_style(style);
     }
     bar
+}
+
+/// Writes the viewer layout beside the log (`record::live::write_log_blueprint`) and says how to
+/// open both, or logs why it could not; false when it failed (the run then exits 3).
+pub fn write_log_layout(log_path: &Path, layout: &viz::log_blueprint::LogLayout) -> bool {
+    match crate::live::write_log_blueprint(log_path, layout) {
+        Ok(blueprint) => {
+            tracing::info!(
+                "open it in Rerun with its layout: rerun {} {}",
+                log_path.display(),
+                blueprint.display()
+            );
+            true
+        }
+        Err(e) => {
+            tracing::error!("viewer layout of {} not written: {e}", log_path.display());
+            false
+        }
+    }
 }

@@ -15,9 +15,9 @@ use clap::{Args, Parser, Subcommand};
 use record::capture::{
     CameraAxis, ErrorInjection, Simulation, SimulationConfig, SimulationError, ViewExposure, ViewPoseError,
 };
-use record::cli::{Outcome, UsageError, exit_code, init_logging, parse_args, progress_bar};
+use record::cli::{Outcome, UsageError, exit_code, init_logging, parse_args, progress_bar, write_log_layout};
 use record::import::{ImportConfig, find_set_dirs, import_set};
-use record::live::{LiveCapture, log_layout, write_log_blueprint};
+use record::live::{LiveCapture, log_layout};
 use record::log::{LogOptions, METADATA_NAME, OutputFile};
 use record::rig::RigKind;
 use record::scene::SceneKind;
@@ -402,7 +402,7 @@ fn run_simulation(args: &SimulateArgs, quiet: bool) -> Result<Outcome> {
     report(path, outcome.completed_sets, started);
     if !args.no_blueprint
         && let Some(layout) = &layout_of_log
-        && !write_blueprint(path, layout)
+        && !write_log_layout(path, layout)
     {
         viewer_lost = true;
     }
@@ -417,24 +417,6 @@ fn run_simulation(args: &SimulateArgs, quiet: bool) -> Result<Outcome> {
         return Ok(Outcome::Incomplete);
     }
     Ok(Outcome::Complete)
-}
-
-/// Writes the viewer layout beside the log and says how to open both; false when it failed.
-fn write_blueprint(log_path: &Path, layout: &viz::log_blueprint::LogLayout) -> bool {
-    match write_log_blueprint(log_path, layout) {
-        Ok(blueprint) => {
-            info!(
-                "open it in Rerun with its layout: rerun {} {}",
-                log_path.display(),
-                blueprint.display()
-            );
-            true
-        }
-        Err(e) => {
-            error!("viewer layout not written: {e}");
-            false
-        }
-    }
 }
 
 fn report(path: &Path, sets: u32, started: Instant) {
@@ -500,7 +482,7 @@ fn run_import(args: &ImportArgs) -> Result<Outcome> {
     report(&path, dirs.len() as u32, started);
     if !args.no_blueprint
         && let Some(layout) = &layout_of_log
-        && !write_blueprint(&path, layout)
+        && !write_log_layout(&path, layout)
     {
         return Ok(Outcome::Incomplete);
     }

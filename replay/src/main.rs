@@ -513,21 +513,7 @@ fn run_demo(args: &DemoArgs, quiet: bool) -> Result<Outcome> {
         anyhow::bail!("the recording produced no complete set");
     }
     // The capture's own layout, for `rerun demo/capture.mcap demo/capture.rbl`.
-    let layout_lost = match log_layout.map(|layout| record::live::write_log_blueprint(&log, &layout)) {
-        Some(Ok(path)) => {
-            info!(
-                "the capture opens in Rerun with: rerun {} {}",
-                log.display(),
-                path.display()
-            );
-            false
-        }
-        Some(Err(e)) => {
-            error!("viewer layout of the capture not written: {e}");
-            true
-        }
-        None => false,
-    };
+    let layout_lost = log_layout.is_some_and(|layout| !record::cli::write_log_layout(&log, &layout));
     let outcome = run_method(
         &RunArgs {
             log: Some(log),

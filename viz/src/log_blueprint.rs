@@ -180,7 +180,7 @@ mod tests {
         save_log_blueprint(&path, app_id_for_log(Path::new("capture.mcap"))?, &layout)?;
         let bytes = std::fs::read(&path)?;
         std::fs::remove_dir_all(&dir)?;
-        // An RRD stream starts with its magic ("RRF2") and carries the view origins.
+        // An RRD stream starts with its magic ("RRF2"); the layout makes it more than a header.
         assert_eq!(bytes.get(..4), Some(&b"RRF2"[..]), "not an RRD stream");
         assert!(bytes.len() > 1000, "{} bytes only", bytes.len());
         Ok(())
