@@ -16,6 +16,7 @@ pub mod fusion;
 pub mod image;
 pub mod lines;
 pub mod methods;
+pub mod nn;
 pub mod metrics;
 pub mod postprocess;
 pub mod sgm;

@@ -1,0 +1,187 @@
+//! BatchNorm3d (PyTorch semantics, batch 1): in train mode each channel is normalised with the
+//! mean and biased variance of the batch and the running statistics move by `momentum` towards
+//! the batch's (unbiased variance); in eval mode it is an affine map that
+//! [`BatchNorm::fold_into`] merges into the preceding convolution.
+
+use super::Tensor;
+
+/// PyTorch's default ε.
+pub const EPS: f32 = 1e-5;
+/// PyTorch's default momentum.
+pub const MOMENTUM: f32 = 0.1;
+
+/// The parameters and running statistics of one BatchNorm3d.
+#[derive(Debug, Clone, PartialEq)]
+pub struct BatchNorm {
+    /// γ (`weight`).
+    pub weight: Vec<f32>,
+    /// β (`bias`).
+    pub bias: Vec<f32>,
+    /// Running mean.
+    pub running_mean: Vec<f32>,
+    /// Running variance.
+    pub running_var: Vec<f32>,
+    /// Train-mode passes seen.
+    pub num_batches_tracked: i64,
+}
+
+/// What the backward pass of a train-mode BatchNorm needs.
+#[derive(Debug, Clone)]
+pub struct BatchNormCache {
+    /// The normalised input `(x − μ) / σ`.
+    pub normalised: Tensor,
+    /// `1 / σ` per channel.
+    pub inv_std: Vec<f32>,
+}
+
+/// Gradients of a BatchNorm's parameters.
+#[derive(Debug, Clone, PartialEq)]
+pub struct BatchNormGrad {
+    /// ∂L/∂γ.
+    pub weight: Vec<f32>,
+    /// ∂L/∂β.
+    pub bias: Vec<f32>,
+}
+
+impl BatchNorm {
+    /// γ = 1, β = 0, running mean 0 and variance 1 (PyTorch's initialisation).
+    pub fn new(channels: usize) -> Self {
+        Self {
+            weight: vec![1.0; channels],
+            bias: vec![0.0; channels],
+            running_mean: vec![0.0; channels],
+            running_var: vec![1.0; channels],
+            num_batches_tracked: 0,
+        }
+    }
+
+    /// Channels.
+    pub fn channels(&self) -> usize {
+        self.weight.len()
+    }
+
+    /// Train mode: normalises with the batch statistics, updates the running ones, and returns
+    /// the output with the cache for [`BatchNorm::backward`].
+    pub fn forward_train(&mut self, x: Tensor) -> (Tensor, BatchNormCache) {
+        let n = x.channel_len();
+        let mut normalised = x;
+        let mut inv_std = Vec::with_capacity(self.channels());
+        let mut out = Tensor::zeros(normalised.shape);
+        for c in 0..self.channels() {
+            let values = &mut normalised.data[c * n..(c + 1) * n];
+            let mean = values.iter().map(|v| f64::from(*v)).sum::<f64>() / n as f64;
+            let var = values.iter().map(|v| (f64::from(*v) - mean).powi(2)).sum::<f64>() / n as f64;
+            let inv = 1.0 / (var + f64::from(EPS)).sqrt();
+            let (g, b) = (self.weight[c], self.bias[c]);
+            for (v, o) in values.iter_mut().zip(&mut out.data[c * n..(c + 1) * n]) {
+                *v = ((f64::from(*v) - mean) * inv) as f32;
+                *o = *v * g + b;
+            }
+            inv_std.push(inv as f32);
+            let unbiased = if n > 1 { var * n as f64 / (n - 1) as f64 } else { var };
+            self.running_mean[c] = (1.0 - MOMENTUM) * self.running_mean[c] + MOMENTUM * mean as f32;
+            self.running_var[c] = (1.0 - MOMENTUM) * self.running_var[c] + MOMENTUM * unbiased as f32;
+        }
+        self.num_batches_tracked += 1;
+        (out, BatchNormCache { normalised, inv_std })
+    }
+
+    /// Train-mode backward: the input gradient and the parameter gradients from the output's.
+    pub fn backward(&self, grad: &Tensor, cache: &BatchNormCache) -> (Tensor, BatchNormGrad) {
+        let n = grad.channel_len();
+        let mut input_grad = Tensor::zeros(grad.shape);
+        let (mut dweight, mut dbias) = (Vec::new(), Vec::new());
+        for c in 0..self.channels() {
+            let g = grad.channel(c);
+            let xhat = cache.normalised.channel(c);
+            let sum_g: f64 = g.iter().map(|v| f64::from(*v)).sum();
+            let sum_gx: f64 = g.iter().zip(xhat).map(|(a, b)| f64::from(*a) * f64::from(*b)).sum();
+            dweight.push(sum_gx as f32);
+            dbias.push(sum_g as f32);
+            let scale = f64::from(self.weight[c]) * f64::from(cache.inv_std[c]) / n as f64;
+            for ((out, gv), xv) in input_grad.data[c * n..(c + 1) * n].iter_mut().zip(g).zip(xhat) {
+                *out = (scale * (n as f64 * f64::from(*gv) - sum_g - f64::from(*xv) * sum_gx)) as f32;
+            }
+        }
+        (
+            input_grad,
+            BatchNormGrad {
+                weight: dweight,
+                bias: dbias,
+            },
+        )
+    }
+
+    /// Eval mode folded into the convolution before it (`weight` `[cout][…]`, no bias): returns
+    /// the scaled weights and the bias `β − μ·γ/σ`.
+    pub fn fold_into(&self, weight: &[f32]) -> (Vec<f32>, Vec<f32>) {
+        let per_channel = weight.len() / self.channels().max(1);
+        let mut folded = weight.to_vec();
+        let mut bias = Vec::with_capacity(self.channels());
+        for c in 0..self.channels() {
+            let scale = self.weight[c] / (self.running_var[c] + EPS).sqrt();
+            for w in &mut folded[c * per_channel..(c + 1) * per_channel] {
+                *w *= scale;
+            }
+            bias.push(self.bias[c] - self.running_mean[c] * scale);
+        }
+        (folded, bias)
+    }
+
+    /// Eval mode on a tensor (for tests and the transposed convolutions, whose channels are the
+    /// weight's second axis): `γ·(x − μ)/σ + β`.
+    pub fn forward_eval(&self, mut x: Tensor) -> Tensor {
+        let n = x.channel_len();
+        for c in 0..self.channels() {
+            let scale = self.weight[c] / (self.running_var[c] + EPS).sqrt();
+            let shift = self.bias[c] - self.running_mean[c] * scale;
+            for v in &mut x.data[c * n..(c + 1) * n] {
+                *v = *v * scale + shift;
+            }
+        }
+        x
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::nn::conv::tests::{random, random_values};
+
+    #[test]
+    fn backward_matches_finite_differences() {
+        let x = random([2, 3, 4, 5], 1);
+        let upstream = random(x.shape, 2);
+        let mut bn = BatchNorm::new(2);
+        bn.weight = vec![1.5, -0.7];
+        bn.bias = vec![0.2, 0.1];
+        // Loss = <upstream, bn(x)>.
+        let loss = |bn: &BatchNorm, x: &Tensor| -> f64 {
+            let mut copy = bn.clone();
+            let (y, _) = copy.forward_train(x.clone());
+            y.data.iter().zip(&upstream.data).map(|(a, b)| f64::from(*a) * f64::from(*b)).sum()
+        };
+        let (_, cache) = bn.clone().forward_train(x.clone());
+        let (dx, dparams) = bn.backward(&upstream, &cache);
+        let h = 1e-2f32;
+        for i in [0, 7, 33, 59, 100] {
+            let (mut plus, mut minus) = (x.clone(), x.clone());
+            plus.data[i] += h;
+            minus.data[i] -= h;
+            let numeric = (loss(&bn, &plus) - loss(&bn, &minus)) / (2.0 * f64::from(h));
+            assert!((numeric - f64::from(dx.data[i])).abs() < 2e-3, "dx[{i}] {numeric} vs {}", dx.data[i]);
+        }
+        for c in 0..2 {
+            let (mut plus, mut minus) = (bn.clone(), bn.clone());
+            plus.weight[c] += h;
+            minus.weight[c] -= h;
+            let numeric = (loss(&plus, &x) - loss(&minus, &x)) / (2.0 * f64::from(h));
+            assert!((numeric - f64::from(dparams.weight[c])).abs() < 2e-3, "dγ {numeric}");
+        }
+        // Folding equals eval mode after the convolution.
+        let w = random_values(2 * 3, 3);
+        let (folded, bias) = bn.fold_into(&w);
+        assert!((folded[4] - w[4] * bn.weight[1] / (1.0 + EPS).sqrt()).abs() < 1e-6);
+        assert!((bias[0] - 0.2).abs() < 1e-6);
+    }
+}
