@@ -15,6 +15,7 @@ pub mod cost;
 pub mod fusion;
 pub mod image;
 pub mod lines;
+pub mod mfusenet;
 pub mod methods;
 pub mod nn;
 pub mod metrics;
@@ -84,6 +85,9 @@ pub enum FuseError {
         /// What is allowed.
         reason: &'static str,
     },
+    /// The MFuseNet network or its weights.
+    #[error(transparent)]
+    MFuseNet(#[from] mfusenet::Error),
     /// No method has this name.
     #[error("unknown method '{name}' (known: {known})")]
     UnknownMethod {

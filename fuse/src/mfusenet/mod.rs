@@ -1,0 +1,116 @@
+//! MFuseNet (paper, section IV): a small 3D CNN that takes one cost volume per neighbour view
+//! and returns the disparity by soft-argmin.
+//!
+//! - [`network`]: the layers and their wiring, eval (BatchNorm folded) and train mode with the
+//!   backward pass, PyTorch's parameter names.
+//! - [`weights`]: safetensors files with the reference `state_dict`'s names and shapes.
+
+pub mod network;
+pub mod weights;
+
+pub use network::Network;
+pub use weights::WeightsInfo;
+
+/// Errors of the network and its weight files; each names the file and tensor or the shape.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum Error {
+    /// The network got another number of cost volumes than it was built for.
+    #[error("the network takes {expected} cost volume(s), got {got}")]
+    InputCount {
+        /// Views of the network.
+        expected: usize,
+        /// Volumes given.
+        got: usize,
+    },
+    /// A cost volume is not `[1, D, H, W]` with D, H, W multiples of 4, or differs from the others.
+    #[error("cost volume of shape {shape:?}: expected [1, D, H, W], all alike, D, H, W multiples of 4")]
+    InputShape {
+        /// The shape given.
+        shape: [usize; 4],
+    },
+    /// A weights file cannot be read.
+    #[error("cannot read weights file {file}: {reason}")]
+    Read {
+        /// File.
+        file: String,
+        /// Why.
+        reason: String,
+    },
+    /// A weights file cannot be written.
+    #[error("cannot write weights file {file}: {reason}")]
+    Write {
+        /// File.
+        file: String,
+        /// Why.
+        reason: String,
+    },
+    /// Not a safetensors file (truncated, bad header).
+    #[error("weights file {file} is not a valid safetensors file: {reason}")]
+    Format {
+        /// File.
+        file: String,
+        /// The parser's words.
+        reason: String,
+    },
+    /// A tensor of the model is missing.
+    #[error("weights file {file} has no tensor '{tensor}'")]
+    MissingTensor {
+        /// File.
+        file: String,
+        /// Tensor name.
+        tensor: String,
+    },
+    /// A tensor that is not the model's.
+    #[error("weights file {file} has tensor '{tensor}', which is not in the MFuseNet state_dict")]
+    UnexpectedTensor {
+        /// File.
+        file: String,
+        /// Tensor name.
+        tensor: String,
+    },
+    /// A tensor has the wrong shape.
+    #[error("weights file {file}: tensor '{tensor}' has shape {got:?}, expected {expected}")]
+    TensorShape {
+        /// File.
+        file: String,
+        /// Tensor name.
+        tensor: String,
+        /// Expected shape.
+        expected: String,
+        /// Shape found.
+        got: Vec<usize>,
+    },
+    /// A tensor has a type we do not read.
+    #[error("weights file {file}: tensor '{tensor}' is {dtype} (expected F32 or F64; I64 for num_batches_tracked)")]
+    TensorDtype {
+        /// File.
+        file: String,
+        /// Tensor name.
+        tensor: String,
+        /// Type found.
+        dtype: String,
+    },
+    /// A NaN or infinite value (or a negative running variance).
+    #[error("weights file {file}: tensor '{tensor}' has an invalid value (NaN, infinite or negative variance) at index {index}")]
+    NonFinite {
+        /// File.
+        file: String,
+        /// Tensor name.
+        tensor: String,
+        /// Flat index of the first bad value.
+        index: usize,
+    },
+    /// The file is for another number of views.
+    #[error("weights file {file} is for {got} cost volume(s) (concat.0.weight), the method needs {expected}")]
+    Variant {
+        /// File.
+        file: String,
+        /// Views needed.
+        expected: usize,
+        /// Views of the file.
+        got: usize,
+    },
+}
+
+#[cfg(test)]
+mod fixtures;

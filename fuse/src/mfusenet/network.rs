@@ -1,0 +1,545 @@
+//! MFuseNet's network (paper, section IV; the authors' `FuseNetwork` in `weihaosky/MFuseNet`,
+//! `network.py`, MIT), layer for layer and with PyTorch's parameter names:
+//!
+//! ```text
+//! per view i:  [1, D, H, W] ─ feature (shared): convbn 1→4 k7, 4→4 k5, 4→4 k5, 4→4 k3, ReLU each
+//! concat:      [4N, D, H, W] ─ convbn 4N→4 k7, ReLU                                   = c
+//! down1:       c      ─ convbn k3 stride 2, ReLU                                      = d1   (½)
+//! dconv1:      cdown1 = ReLU(convbn k3 (d1)) + d1
+//! down2:       cdown1 ─ convbn k3 stride 2, ReLU                                      = d2   (¼)
+//! dconv21/22:  e1 = ReLU(convbn k7 (d2)) + d2;  cdown2 = ReLU(convbn k3 (e1)) + e1
+//! up1, uconv1: cup1 = ReLU(convbn 8→4 k3 ([ReLU(convTbn (cdown2)), cdown1]))         (½)
+//! up2, uconv2: cup2 = ReLU(convbn 8→4 k7 ([ReLU(convTbn (cup1)), c]))                (1)
+//! distill1:    f = ReLU(convbn k5 (cup2)) + cup2
+//! classify:    logits = conv 4→1 k3 + bias;  disparity = Σ_d d · softmax_d(logits)
+//! ```
+//!
+//! D, H and W must be multiples of 4 here ([`super::infer`] pads and crops). Eval mode folds
+//! every BatchNorm into its convolution; train mode keeps what the backward pass needs.
+
+use super::Error;
+use crate::nn::Tensor;
+use crate::nn::batch_norm::{BatchNorm, BatchNormCache};
+use crate::nn::conv::{
+    conv3d_same, conv3d_same_input_grad, conv3d_same_weight_grad, transposed_as_conv, transposed_weight_grad,
+};
+use crate::nn::regression::{smooth_l1, soft_argmin, soft_argmin_backward};
+
+/// How a convolution samples its input.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ConvKind {
+    /// Stride 1, padding `k / 2`.
+    Same,
+    /// Kernel 3, stride 2, padding 1 (half the size).
+    Down,
+    /// Transposed: kernel 3, stride 2, padding 1, output padding 1 (twice the size); weight
+    /// `[cin][cout][3][3][3]`.
+    Up,
+}
+
+/// `convbn3d` / `convTbn3d` of the reference: a convolution without bias and a BatchNorm3d
+/// (`<name>.0.weight`, `<name>.1.*`), followed in this network by a ReLU.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ConvBn {
+    /// PyTorch module path (`feature.0`, `concat`, `up1`, …).
+    pub name: String,
+    /// Input channels.
+    pub cin: usize,
+    /// Output channels.
+    pub cout: usize,
+    /// Kernel size.
+    pub k: usize,
+    /// Sampling.
+    pub kind: ConvKind,
+    /// Weights, `[cout][cin][k³]` (`[cin][cout][k³]` for [`ConvKind::Up`]).
+    pub weight: Vec<f32>,
+    /// The BatchNorm after it.
+    pub bn: BatchNorm,
+}
+
+/// What [`ConvBn::backward`] needs from the train-mode forward pass.
+#[derive(Debug, Clone)]
+pub struct ConvBnCache {
+    /// The input of the stride-1 convolution (zero-upsampled for [`ConvKind::Up`]).
+    input: Tensor,
+    /// Spatial size of the layer's real input.
+    input_spatial: [usize; 3],
+    bn: BatchNormCache,
+    /// The output after the ReLU (its sign is the ReLU's mask).
+    output: Tensor,
+}
+
+/// Gradients of one [`ConvBn`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct ConvBnGrad {
+    /// ∂L/∂weight (the weight's layout).
+    pub weight: Vec<f32>,
+    /// ∂L/∂γ.
+    pub bn_weight: Vec<f32>,
+    /// ∂L/∂β.
+    pub bn_bias: Vec<f32>,
+}
+
+impl ConvBnGrad {
+    fn add(&mut self, other: &ConvBnGrad) {
+        for (a, b) in [
+            (&mut self.weight, &other.weight),
+            (&mut self.bn_weight, &other.bn_weight),
+            (&mut self.bn_bias, &other.bn_bias),
+        ] {
+            for (x, y) in a.iter_mut().zip(b) {
+                *x += y;
+            }
+        }
+    }
+}
+
+impl ConvBn {
+    /// A layer with zero weights and a fresh BatchNorm.
+    pub fn new(name: &str, cin: usize, cout: usize, k: usize, kind: ConvKind) -> Self {
+        Self {
+            name: name.to_owned(),
+            cin,
+            cout,
+            k,
+            kind,
+            weight: vec![0.0; cin * cout * k * k * k],
+            bn: BatchNorm::new(cout),
+        }
+    }
+
+    /// PyTorch's shape of the weight.
+    pub fn weight_shape(&self) -> [usize; 5] {
+        match self.kind {
+            ConvKind::Up => [self.cin, self.cout, self.k, self.k, self.k],
+            _ => [self.cout, self.cin, self.k, self.k, self.k],
+        }
+    }
+
+    /// The weights of the equivalent stride-1 convolution (`[cout][cin][k³]`).
+    fn conv_weight(&self) -> Vec<f32> {
+        match self.kind {
+            ConvKind::Up => transposed_as_conv(&self.weight, self.cin, self.cout),
+            _ => self.weight.clone(),
+        }
+    }
+
+    /// The input of the stride-1 convolution.
+    fn conv_input(&self, x: &Tensor) -> Tensor {
+        match self.kind {
+            ConvKind::Up => x.upsample2_zeros([2 * x.shape[1], 2 * x.shape[2], 2 * x.shape[3]]),
+            _ => x.clone(),
+        }
+    }
+
+    fn sample(&self, z: Tensor) -> Tensor {
+        match self.kind {
+            ConvKind::Down => z.subsample2(),
+            _ => z,
+        }
+    }
+
+    /// Eval mode: `ReLU(BN(conv(x)))` with the BatchNorm folded into the convolution.
+    pub fn forward_eval(&self, x: &Tensor) -> Tensor {
+        let (weight, bias) = self.bn.fold_into(&self.conv_weight());
+        let input = self.conv_input(x);
+        self.sample(conv3d_same(&input, &weight, self.cout, self.k, Some(&bias))).relu()
+    }
+
+    /// Train mode: `ReLU(BN(conv(x)))` with batch statistics (running statistics updated).
+    pub fn forward_train(&mut self, x: &Tensor) -> (Tensor, ConvBnCache) {
+        let input = self.conv_input(x);
+        let z = self.sample(conv3d_same(&input, &self.conv_weight(), self.cout, self.k, None));
+        let (y, bn) = self.bn.forward_train(z);
+        let output = y.relu();
+        let cache = ConvBnCache {
+            input,
+            input_spatial: [x.shape[1], x.shape[2], x.shape[3]],
+            bn,
+            output: output.clone(),
+        };
+        (output, cache)
+    }
+
+    /// Backward of [`ConvBn::forward_train`]: the input gradient (skipped when `need_input` is
+    /// false, for the first layer) and the parameter gradients.
+    pub fn backward(&self, grad: &Tensor, cache: &ConvBnCache, need_input: bool) -> (Option<Tensor>, ConvBnGrad) {
+        let mut g = grad.clone();
+        for (v, y) in g.data.iter_mut().zip(&cache.output.data) {
+            if *y <= 0.0 {
+                *v = 0.0;
+            }
+        }
+        let (gz, bn_grad) = self.bn.backward(&g, &cache.bn);
+        let gz = match self.kind {
+            ConvKind::Down => gz.upsample2_zeros(cache.input_spatial),
+            _ => gz,
+        };
+        let conv_weight_grad = conv3d_same_weight_grad(&cache.input, &gz, self.k);
+        let weight = match self.kind {
+            ConvKind::Up => transposed_weight_grad(&conv_weight_grad, self.cin, self.cout),
+            _ => conv_weight_grad,
+        };
+        let input_grad = need_input.then(|| {
+            let gi = conv3d_same_input_grad(&gz, &self.conv_weight(), self.cin, self.k);
+            match self.kind {
+                ConvKind::Up => gi.subsample2(),
+                _ => gi,
+            }
+        });
+        (
+            input_grad,
+            ConvBnGrad {
+                weight,
+                bn_weight: bn_grad.weight,
+                bn_bias: bn_grad.bias,
+            },
+        )
+    }
+}
+
+/// The final `Conv3d(4, 1, 3, padding=1)` with bias.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Classify {
+    /// `[1][4][3][3][3]`.
+    pub weight: Vec<f32>,
+    /// `[1]`.
+    pub bias: Vec<f32>,
+}
+
+/// The whole network for `views` cost volumes.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Network {
+    /// Number of cost volumes N (1, 2 or 4).
+    pub views: usize,
+    /// `feature.0`, `feature.2`, `feature.4`, `feature.6` (shared by the views).
+    pub feature: Vec<ConvBn>,
+    /// `concat`, `down1`, `dconv1`, `down2`, `dconv21`, `dconv22`, `up1`, `uconv1`, `up2`,
+    /// `uconv2`, `distill1`, in this order.
+    pub fuse: Vec<ConvBn>,
+    /// `classify`.
+    pub classify: Classify,
+}
+
+/// Indices into [`Network::fuse`].
+const CONCAT: usize = 0;
+const DOWN1: usize = 1;
+const DCONV1: usize = 2;
+const DOWN2: usize = 3;
+const DCONV21: usize = 4;
+const DCONV22: usize = 5;
+const UP1: usize = 6;
+const UCONV1: usize = 7;
+const UP2: usize = 8;
+const UCONV2: usize = 9;
+const DISTILL1: usize = 10;
+
+/// What the backward pass needs from a train-mode forward pass.
+pub struct Tape {
+    feature: Vec<Vec<ConvBnCache>>,
+    fuse: Vec<ConvBnCache>,
+    /// Input of `classify`.
+    head_input: Tensor,
+    probabilities: Tensor,
+    /// The predicted disparity (`[H·W]`).
+    pub disparity: Vec<f32>,
+}
+
+/// Gradients of every trainable parameter, in [`Network::parameters`] order.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Gradients {
+    /// `(PyTorch name, gradient)`.
+    pub tensors: Vec<(String, Vec<f32>)>,
+}
+
+impl Network {
+    /// The architecture with zero weights and fresh BatchNorms.
+    pub fn zeros(views: usize) -> Self {
+        use ConvKind::{Down, Same, Up};
+        let feature = vec![
+            ConvBn::new("feature.0", 1, 4, 7, Same),
+            ConvBn::new("feature.2", 4, 4, 5, Same),
+            ConvBn::new("feature.4", 4, 4, 5, Same),
+            ConvBn::new("feature.6", 4, 4, 3, Same),
+        ];
+        let fuse = vec![
+            ConvBn::new("concat", 4 * views, 4, 7, Same),
+            ConvBn::new("down1", 4, 4, 3, Down),
+            ConvBn::new("dconv1", 4, 4, 3, Same),
+            ConvBn::new("down2", 4, 4, 3, Down),
+            ConvBn::new("dconv21", 4, 4, 7, Same),
+            ConvBn::new("dconv22", 4, 4, 3, Same),
+            ConvBn::new("up1", 4, 4, 3, Up),
+            ConvBn::new("uconv1", 8, 4, 3, Same),
+            ConvBn::new("up2", 4, 4, 3, Up),
+            ConvBn::new("uconv2", 8, 4, 7, Same),
+            ConvBn::new("distill1", 4, 4, 5, Same),
+        ];
+        Self {
+            views,
+            feature,
+            fuse,
+            classify: Classify {
+                weight: vec![0.0; 4 * 27],
+                bias: vec![0.0],
+            },
+        }
+    }
+
+    /// PyTorch's default initialisation (`kaiming_uniform_(a=√5)`: U(±1/√fan_in) for weights and
+    /// the classifier's bias; γ = 1, β = 0), from a seed.
+    pub fn init(views: usize, seed: u64) -> Self {
+        let mut net = Self::zeros(views);
+        let mut rng = SplitMix(seed);
+        for layer in net.feature.iter_mut().chain(net.fuse.iter_mut()) {
+            // PyTorch's fan_in is weight.size(1)·k³: cin for convolutions, cout for transposed.
+            let [_, fan, k, ..] = layer.weight_shape();
+            let bound = 1.0 / ((fan * k * k * k) as f32).sqrt();
+            for w in &mut layer.weight {
+                *w = rng.uniform(-bound, bound);
+            }
+        }
+        let bound = 1.0 / ((4 * 27) as f32).sqrt();
+        for w in net.classify.weight.iter_mut().chain(net.classify.bias.iter_mut()) {
+            *w = rng.uniform(-bound, bound);
+        }
+        net
+    }
+
+    /// Every layer with a BatchNorm, feature tower first.
+    pub fn layers(&self) -> impl Iterator<Item = &ConvBn> {
+        self.feature.iter().chain(self.fuse.iter())
+    }
+
+    /// Mutable [`Network::layers`].
+    pub fn layers_mut(&mut self) -> impl Iterator<Item = &mut ConvBn> {
+        self.feature.iter_mut().chain(self.fuse.iter_mut())
+    }
+
+    /// Trainable parameters with their PyTorch names: per layer `<name>.0.weight`,
+    /// `<name>.1.weight`, `<name>.1.bias`; then `classify.weight`, `classify.bias`.
+    pub fn parameters_mut(&mut self) -> Vec<(String, &mut Vec<f32>)> {
+        let mut out = Vec::new();
+        for layer in self.feature.iter_mut().chain(self.fuse.iter_mut()) {
+            let name = layer.name.clone();
+            out.push((format!("{name}.0.weight"), &mut layer.weight));
+            out.push((format!("{name}.1.weight"), &mut layer.bn.weight));
+            out.push((format!("{name}.1.bias"), &mut layer.bn.bias));
+        }
+        out.push(("classify.weight".to_owned(), &mut self.classify.weight));
+        out.push(("classify.bias".to_owned(), &mut self.classify.bias));
+        out
+    }
+
+    /// Number of trainable values (convolution weights, BatchNorm γ and β, classifier bias):
+    /// 33,441 / 38,929 / 49,905 for N = 1 / 2 / 4, as the reference.
+    pub fn parameter_count(&self) -> usize {
+        self.layers()
+            .map(|l| l.weight.len() + 2 * l.bn.channels())
+            .sum::<usize>()
+            + self.classify.weight.len()
+            + self.classify.bias.len()
+    }
+
+    fn check_inputs(&self, inputs: &[Tensor]) -> Result<[usize; 3], Error> {
+        if inputs.len() != self.views {
+            return Err(Error::InputCount {
+                expected: self.views,
+                got: inputs.len(),
+            });
+        }
+        let shape = inputs[0].shape;
+        for input in inputs {
+            let [c, d, h, w] = input.shape;
+            if input.shape != shape || c != 1 || d % 4 != 0 || h % 4 != 0 || w % 4 != 0 || d * h * w == 0 {
+                return Err(Error::InputShape { shape: input.shape });
+            }
+        }
+        Ok([shape[1], shape[2], shape[3]])
+    }
+
+    /// Eval-mode logits `[1, D, H, W]` of `views` cost volumes `[1, D, H, W]` (D, H, W multiples
+    /// of 4), freeing each intermediate as soon as it is used.
+    pub fn logits(&self, inputs: &[Tensor]) -> Result<Tensor, Error> {
+        self.check_inputs(inputs)?;
+        let features: Vec<Tensor> = inputs
+            .iter()
+            .map(|x| {
+                let mut y = self.feature[0].forward_eval(x);
+                for layer in &self.feature[1..] {
+                    y = layer.forward_eval(&y);
+                }
+                y
+            })
+            .collect();
+        let c = self.fuse[CONCAT].forward_eval(&Tensor::concat(&features.iter().collect::<Vec<_>>()));
+        drop(features);
+        let d1 = self.fuse[DOWN1].forward_eval(&c);
+        let cdown1 = residual(self.fuse[DCONV1].forward_eval(&d1), &d1);
+        drop(d1);
+        let d2 = self.fuse[DOWN2].forward_eval(&cdown1);
+        let e1 = residual(self.fuse[DCONV21].forward_eval(&d2), &d2);
+        drop(d2);
+        let cdown2 = residual(self.fuse[DCONV22].forward_eval(&e1), &e1);
+        drop(e1);
+        let u1 = self.fuse[UP1].forward_eval(&cdown2);
+        drop(cdown2);
+        let cup1 = self.fuse[UCONV1].forward_eval(&Tensor::concat(&[&u1, &cdown1]));
+        drop((u1, cdown1));
+        let u2 = self.fuse[UP2].forward_eval(&cup1);
+        drop(cup1);
+        let cup2 = self.fuse[UCONV2].forward_eval(&Tensor::concat(&[&u2, &c]));
+        drop((u2, c));
+        let f = residual(self.fuse[DISTILL1].forward_eval(&cup2), &cup2);
+        drop(cup2);
+        Ok(conv3d_same(&f, &self.classify.weight, 1, 3, Some(&self.classify.bias)))
+    }
+
+    /// Train mode: the disparity with batch-statistics BatchNorms (running statistics updated,
+    /// once per view in the shared feature tower as in the reference) and the tape for
+    /// [`Network::backward`].
+    pub fn forward_train(&mut self, inputs: &[Tensor]) -> Result<Tape, Error> {
+        self.check_inputs(inputs)?;
+        let mut feature_caches = Vec::new();
+        let mut features = Vec::new();
+        for x in inputs {
+            let mut caches = Vec::new();
+            let mut y = x.clone();
+            for layer in &mut self.feature {
+                let (out, cache) = layer.forward_train(&y);
+                caches.push(cache);
+                y = out;
+            }
+            feature_caches.push(caches);
+            features.push(y);
+        }
+        let mut caches = Vec::new();
+        let mut step = |net: &mut Self, index: usize, x: &Tensor| {
+            let (y, cache) = net.fuse[index].forward_train(x);
+            caches.push(cache);
+            y
+        };
+        let c = step(self, CONCAT, &Tensor::concat(&features.iter().collect::<Vec<_>>()));
+        let d1 = step(self, DOWN1, &c);
+        let cdown1 = residual(step(self, DCONV1, &d1), &d1);
+        let d2 = step(self, DOWN2, &cdown1);
+        let e1 = residual(step(self, DCONV21, &d2), &d2);
+        let cdown2 = residual(step(self, DCONV22, &e1), &e1);
+        let u1 = step(self, UP1, &cdown2);
+        let cup1 = step(self, UCONV1, &Tensor::concat(&[&u1, &cdown1]));
+        let u2 = step(self, UP2, &cup1);
+        let cup2 = step(self, UCONV2, &Tensor::concat(&[&u2, &c]));
+        let f = residual(step(self, DISTILL1, &cup2), &cup2);
+        let logits = conv3d_same(&f, &self.classify.weight, 1, 3, Some(&self.classify.bias));
+        let (disparity, probabilities) = soft_argmin(&logits);
+        Ok(Tape {
+            feature: feature_caches,
+            fuse: caches,
+            head_input: f,
+            probabilities,
+            disparity,
+        })
+    }
+
+    /// Gradients of every parameter given ∂L/∂disparity (`[H·W]`).
+    pub fn backward(&self, tape: &Tape, grad_disparity: &[f32]) -> Gradients {
+        let mut grads: Vec<Option<ConvBnGrad>> = vec![None; self.fuse.len()];
+        let mut back = |index: usize, g: &Tensor| -> Tensor {
+            let (input_grad, grad) = self.fuse[index].backward(g, &tape.fuse[index], true);
+            grads[index] = Some(grad);
+            input_grad.unwrap_or_else(|| Tensor::zeros(g.shape))
+        };
+        let g_logits = soft_argmin_backward(grad_disparity, &tape.disparity, &tape.probabilities);
+        let classify_weight = conv3d_same_weight_grad(&tape.head_input, &g_logits, 3);
+        let classify_bias = vec![g_logits.data.iter().map(|v| f64::from(*v)).sum::<f64>() as f32];
+        let g_f = conv3d_same_input_grad(&g_logits, &self.classify.weight, 4, 3);
+        // f = distill1(cup2) + cup2
+        let mut g_cup2 = back(DISTILL1, &g_f);
+        g_cup2.add_assign(&g_f);
+        let parts = back(UCONV2, &g_cup2).split(&[4, 4]);
+        let (g_u2, mut g_c) = (parts[0].clone(), parts[1].clone());
+        let g_cup1 = back(UP2, &g_u2);
+        let parts = back(UCONV1, &g_cup1).split(&[4, 4]);
+        let (g_u1, mut g_cdown1) = (parts[0].clone(), parts[1].clone());
+        let g_cdown2 = back(UP1, &g_u1);
+        // cdown2 = dconv22(e1) + e1
+        let mut g_e1 = back(DCONV22, &g_cdown2);
+        g_e1.add_assign(&g_cdown2);
+        // e1 = dconv21(d2) + d2
+        let mut g_d2 = back(DCONV21, &g_e1);
+        g_d2.add_assign(&g_e1);
+        g_cdown1.add_assign(&back(DOWN2, &g_d2));
+        // cdown1 = dconv1(d1) + d1
+        let mut g_d1 = back(DCONV1, &g_cdown1);
+        g_d1.add_assign(&g_cdown1);
+        g_c.add_assign(&back(DOWN1, &g_d1));
+        let g_features = back(CONCAT, &g_c).split(&vec![4; self.views]);
+
+        let mut feature_grads: Vec<Option<ConvBnGrad>> = vec![None; self.feature.len()];
+        for (g_view, caches) in g_features.iter().zip(&tape.feature) {
+            let mut g = g_view.clone();
+            for index in (0..self.feature.len()).rev() {
+                let (input_grad, grad) = self.feature[index].backward(&g, &caches[index], index > 0);
+                match &mut feature_grads[index] {
+                    Some(sum) => sum.add(&grad),
+                    slot => *slot = Some(grad),
+                }
+                if let Some(next) = input_grad {
+                    g = next;
+                }
+            }
+        }
+        let mut tensors = Vec::new();
+        for (layer, grad) in self.layers().zip(feature_grads.into_iter().chain(grads)) {
+            let grad = grad.unwrap_or_else(|| ConvBnGrad {
+                weight: vec![0.0; layer.weight.len()],
+                bn_weight: vec![0.0; layer.cout],
+                bn_bias: vec![0.0; layer.cout],
+            });
+            tensors.push((format!("{}.0.weight", layer.name), grad.weight));
+            tensors.push((format!("{}.1.weight", layer.name), grad.bn_weight));
+            tensors.push((format!("{}.1.bias", layer.name), grad.bn_bias));
+        }
+        tensors.push(("classify.weight".to_owned(), classify_weight));
+        tensors.push(("classify.bias".to_owned(), classify_bias));
+        Gradients { tensors }
+    }
+
+    /// One train-mode pass with the smooth-L1 loss against `target` on `mask`: returns the loss,
+    /// the disparity and the gradients.
+    pub fn loss_and_gradients(
+        &mut self,
+        inputs: &[Tensor],
+        target: &[f32],
+        mask: &[bool],
+    ) -> Result<(f32, Vec<f32>, Gradients), Error> {
+        let tape = self.forward_train(inputs)?;
+        let (loss, grad) = smooth_l1(&tape.disparity, target, mask);
+        let gradients = self.backward(&tape, &grad);
+        Ok((loss, tape.disparity, gradients))
+    }
+}
+
+fn residual(mut y: Tensor, skip: &Tensor) -> Tensor {
+    y.add_assign(skip);
+    y
+}
+
+/// A small deterministic generator for initialisation (SplitMix64).
+pub(crate) struct SplitMix(pub u64);
+
+impl SplitMix {
+    pub(crate) fn next_u64(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    }
+
+    /// Uniform in `[lo, hi)`.
+    pub(crate) fn uniform(&mut self, lo: f32, hi: f32) -> f32 {
+        let unit = (self.next_u64() >> 40) as f32 / (1u64 << 24) as f32;
+        lo + (hi - lo) * unit
+    }
+}

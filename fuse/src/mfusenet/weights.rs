@@ -1,0 +1,260 @@
+//! Weights as safetensors files whose tensor names and shapes are the reference model's
+//! `state_dict` (`feature.0.0.weight`, `feature.0.1.running_var`, `concat.0.weight`,
+//! `up1.0.weight` as `[cin, cout, 3, 3, 3]`, `classify.bias`, …), so that PyTorch's
+//! `FuseNetwork.load_state_dict(safetensors.torch.load_file(path))` takes our files and we take
+//! files exported from it (float32 or float64; `num_batches_tracked` int64 and optional).
+//! The header's metadata records the variant, the disparity range, the input normalisation and
+//! how the file was made ([`WeightsInfo`]).
+
+use std::collections::{BTreeMap, HashMap};
+use std::path::Path;
+
+use safetensors::tensor::{Dtype, SafeTensors, TensorView};
+
+use super::Error;
+use super::network::Network;
+
+/// The metadata of a weights file (safetensors `__metadata__`, all strings).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct WeightsInfo {
+    /// Every key and value.
+    pub entries: BTreeMap<String, String>,
+}
+
+impl WeightsInfo {
+    /// A value.
+    pub fn get(&self, key: &str) -> Option<&str> {
+        self.entries.get(key).map(String::as_str)
+    }
+
+    /// Sets a value.
+    pub fn set(&mut self, key: &str, value: impl Into<String>) {
+        self.entries.insert(key.to_owned(), value.into());
+    }
+}
+
+/// Every tensor of the reference `state_dict` for `views` inputs, with its shape, in the
+/// reference's order.
+pub fn state_dict_shapes(views: usize) -> Vec<(String, Vec<usize>)> {
+    let net = Network::zeros(views);
+    let mut out = Vec::new();
+    for layer in net.layers() {
+        let c = layer.cout;
+        out.push((format!("{}.0.weight", layer.name), layer.weight_shape().to_vec()));
+        for field in ["weight", "bias", "running_mean", "running_var"] {
+            out.push((format!("{}.1.{field}", layer.name), vec![c]));
+        }
+        out.push((format!("{}.1.num_batches_tracked", layer.name), vec![]));
+    }
+    out.push(("classify.weight".to_owned(), vec![1, 4, 3, 3, 3]));
+    out.push(("classify.bias".to_owned(), vec![1]));
+    out
+}
+
+/// Reads a weights file. `views`, when given, is the variant the caller needs: a file for
+/// another number of views is an error naming both.
+pub fn load(path: &Path, views: Option<usize>) -> Result<(Network, WeightsInfo), Error> {
+    let file = path.display().to_string();
+    let bytes = std::fs::read(path).map_err(|e| Error::Read {
+        file: file.clone(),
+        reason: e.to_string(),
+    })?;
+    from_bytes(&bytes, &file, "", views)
+}
+
+/// Reads weights from safetensors bytes; only tensors whose names start with `prefix` are the
+/// model's (the prefix is stripped), so that test fixtures can hold more. `file` names the
+/// source in errors.
+pub fn from_bytes(bytes: &[u8], file: &str, prefix: &str, views: Option<usize>) -> Result<(Network, WeightsInfo), Error> {
+    let format = |reason: String| Error::Format {
+        file: file.to_owned(),
+        reason,
+    };
+    let tensors = SafeTensors::deserialize(bytes).map_err(|e| format(e.to_string()))?;
+    let (_, metadata) = SafeTensors::read_metadata(bytes).map_err(|e| format(e.to_string()))?;
+    let info = WeightsInfo {
+        entries: metadata.metadata().clone().unwrap_or_default().into_iter().collect(),
+    };
+    let concat_name = format!("{prefix}concat.0.weight");
+    let concat = tensors.tensor(&concat_name).map_err(|_| Error::MissingTensor {
+        file: file.to_owned(),
+        tensor: "concat.0.weight".to_owned(),
+    })?;
+    let found_views = concat.shape().get(1).copied().unwrap_or(0) / 4;
+    if !matches!(found_views, 1 | 2 | 4) {
+        return Err(Error::TensorShape {
+            file: file.to_owned(),
+            tensor: "concat.0.weight".to_owned(),
+            expected: "[4, 4·N, 7, 7, 7] with N = 1, 2 or 4".to_owned(),
+            got: concat.shape().to_vec(),
+        });
+    }
+    if let Some(expected) = views
+        && expected != found_views
+    {
+        return Err(Error::Variant {
+            file: file.to_owned(),
+            expected,
+            got: found_views,
+        });
+    }
+    let mut values: HashMap<String, Vec<f32>> = HashMap::new();
+    let mut batches: HashMap<String, i64> = HashMap::new();
+    let expected = state_dict_shapes(found_views);
+    for (name, shape) in &expected {
+        let full = format!("{prefix}{name}");
+        let tracked = name.ends_with("num_batches_tracked");
+        let view = match tensors.tensor(&full) {
+            Ok(view) => view,
+            // PyTorch omits it with track_running_stats=False; it only counts passes.
+            Err(_) if tracked => continue,
+            Err(_) => {
+                return Err(Error::MissingTensor {
+                    file: file.to_owned(),
+                    tensor: name.clone(),
+                });
+            }
+        };
+        if view.shape() != shape.as_slice() {
+            return Err(Error::TensorShape {
+                file: file.to_owned(),
+                tensor: name.clone(),
+                expected: format!("{shape:?}"),
+                got: view.shape().to_vec(),
+            });
+        }
+        if tracked {
+            let count = match (view.dtype(), view.data()) {
+                (Dtype::I64, data) if data.len() == 8 => {
+                    i64::from_le_bytes(data.try_into().unwrap_or([0; 8]))
+                }
+                (dtype, _) => {
+                    return Err(Error::TensorDtype {
+                        file: file.to_owned(),
+                        tensor: name.clone(),
+                        dtype: format!("{dtype:?}"),
+                    });
+                }
+            };
+            batches.insert(name.clone(), count);
+            continue;
+        }
+        let floats = to_f32(&view).ok_or_else(|| Error::TensorDtype {
+            file: file.to_owned(),
+            tensor: name.clone(),
+            dtype: format!("{:?}", view.dtype()),
+        })?;
+        if let Some(index) = floats.iter().position(|v| !v.is_finite()) {
+            return Err(Error::NonFinite {
+                file: file.to_owned(),
+                tensor: name.clone(),
+                index,
+            });
+        }
+        if name.ends_with("running_var")
+            && let Some(index) = floats.iter().position(|v| *v < 0.0)
+        {
+            return Err(Error::NonFinite {
+                file: file.to_owned(),
+                tensor: name.clone(),
+                index,
+            });
+        }
+        values.insert(name.clone(), floats);
+    }
+    let unexpected: Vec<String> = tensors
+        .names()
+        .into_iter()
+        .filter_map(|n| n.strip_prefix(prefix))
+        .filter(|n| !expected.iter().any(|(e, _)| e == n))
+        .map(str::to_owned)
+        .collect();
+    if let Some(tensor) = unexpected.into_iter().min() {
+        return Err(Error::UnexpectedTensor {
+            file: file.to_owned(),
+            tensor,
+        });
+    }
+    let mut net = Network::zeros(found_views);
+    let mut take = |name: String| values.remove(&name).unwrap_or_default();
+    for layer in net.feature.iter_mut().chain(net.fuse.iter_mut()) {
+        let n = layer.name.clone();
+        layer.weight = take(format!("{n}.0.weight"));
+        layer.bn.weight = take(format!("{n}.1.weight"));
+        layer.bn.bias = take(format!("{n}.1.bias"));
+        layer.bn.running_mean = take(format!("{n}.1.running_mean"));
+        layer.bn.running_var = take(format!("{n}.1.running_var"));
+        layer.bn.num_batches_tracked = batches.get(&format!("{n}.1.num_batches_tracked")).copied().unwrap_or(0);
+    }
+    net.classify.weight = take("classify.weight".to_owned());
+    net.classify.bias = take("classify.bias".to_owned());
+    Ok((net, info))
+}
+
+fn to_f32(view: &TensorView<'_>) -> Option<Vec<f32>> {
+    match view.dtype() {
+        Dtype::F32 => Some(
+            view.data()
+                .chunks_exact(4)
+                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                .collect(),
+        ),
+        Dtype::F64 => Some(
+            view.data()
+                .chunks_exact(8)
+                .map(|b| f64::from_le_bytes([b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]]) as f32)
+                .collect(),
+        ),
+        _ => None,
+    }
+}
+
+/// The network as safetensors bytes (float32, `num_batches_tracked` int64), with `info` as the
+/// header metadata.
+pub fn to_bytes(net: &Network, info: &WeightsInfo) -> Result<Vec<u8>, Error> {
+    let mut owned: Vec<(String, Dtype, Vec<usize>, Vec<u8>)> = Vec::new();
+    let floats = |v: &[f32]| v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>();
+    for layer in net.layers() {
+        let n = &layer.name;
+        let c = vec![layer.cout];
+        owned.push((format!("{n}.0.weight"), Dtype::F32, layer.weight_shape().to_vec(), floats(&layer.weight)));
+        owned.push((format!("{n}.1.weight"), Dtype::F32, c.clone(), floats(&layer.bn.weight)));
+        owned.push((format!("{n}.1.bias"), Dtype::F32, c.clone(), floats(&layer.bn.bias)));
+        owned.push((format!("{n}.1.running_mean"), Dtype::F32, c.clone(), floats(&layer.bn.running_mean)));
+        owned.push((format!("{n}.1.running_var"), Dtype::F32, c, floats(&layer.bn.running_var)));
+        owned.push((
+            format!("{n}.1.num_batches_tracked"),
+            Dtype::I64,
+            vec![],
+            layer.bn.num_batches_tracked.to_le_bytes().to_vec(),
+        ));
+    }
+    owned.push(("classify.weight".to_owned(), Dtype::F32, vec![1, 4, 3, 3, 3], floats(&net.classify.weight)));
+    owned.push(("classify.bias".to_owned(), Dtype::F32, vec![1], floats(&net.classify.bias)));
+    let mut views = Vec::new();
+    for (name, dtype, shape, data) in &owned {
+        let view = TensorView::new(*dtype, shape.clone(), data).map_err(|e| Error::Format {
+            file: name.clone(),
+            reason: e.to_string(),
+        })?;
+        views.push((name.clone(), view));
+    }
+    let metadata: HashMap<String, String> = info.entries.clone().into_iter().collect();
+    safetensors::serialize(views, Some(metadata)).map_err(|e| Error::Format {
+        file: "(serialising)".to_owned(),
+        reason: e.to_string(),
+    })
+}
+
+/// Writes the network to `path` (through a temporary file renamed when complete).
+pub fn save(net: &Network, info: &WeightsInfo, path: &Path) -> Result<(), Error> {
+    let bytes = to_bytes(net, info)?;
+    let file = path.display().to_string();
+    let io = |e: std::io::Error| Error::Write {
+        file: file.clone(),
+        reason: e.to_string(),
+    };
+    let temporary = path.with_extension("safetensors.partial");
+    std::fs::write(&temporary, bytes).map_err(io)?;
+    std::fs::rename(&temporary, path).map_err(io)
+}
