@@ -10,6 +10,7 @@ use std::sync::atomic::{AtomicU16, AtomicUsize, Ordering};
 use rayon::prelude::*;
 
 use crate::cost::INVALID_COST;
+use crate::volume::CostVolume;
 use crate::wta::winner_take_all;
 
 /// Scales costs so that the sum of eight paths fits `u16`: returns the right shift to apply.
@@ -138,6 +139,29 @@ pub fn aggregate(
 ) -> Vec<u16> {
     let penalties = Penalties::new(max_cost, p1, p2);
     passes(volume, width, height, disparities, &penalties, None)
+}
+
+/// [`aggregate`] on a [`CostVolume`]: the eight paths' summed costs, a volume of the same
+/// source whose `max_cost` bounds the sums (`8 · (cap + P2)` in the scaled units).
+pub fn aggregate_volume(volume: &CostVolume<u8>, p1: u16, p2: u16) -> CostVolume<u16> {
+    let penalties = Penalties::new(volume.max_cost, p1, p2);
+    let data = passes(
+        &volume.data,
+        volume.width,
+        volume.height,
+        volume.disparities,
+        &penalties,
+        None,
+    );
+    CostVolume {
+        width: volume.width,
+        height: volume.height,
+        min_disparity: volume.min_disparity,
+        disparities: volume.disparities,
+        data,
+        max_cost: 8 * (u32::from(penalties.cap) + u32::from(p2)),
+        source: volume.source.clone(),
+    }
 }
 
 /// Winner-take-all over the eight-path sums of `volume` (as [`aggregate`] then

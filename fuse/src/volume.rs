@@ -93,6 +93,80 @@ impl Problem {
     }
 }
 
+/// What a [`CostVolume`] holds the costs of.
+#[derive(Debug, Clone, PartialEq)]
+pub enum VolumeSource {
+    /// One neighbour's costs against the reference.
+    Neighbour {
+        /// Role.
+        role: String,
+        /// Grid offset.
+        offset: [i32; 2],
+    },
+    /// The neighbours' costs fused by a rule.
+    Fused(Fusion),
+}
+
+/// A cost volume of the reference view, `[y][x][d]` (disparity fastest): one neighbour's or the
+/// fused costs, block-aggregated or aggregated along SGM's paths, quantised to bytes (`u8`,
+/// [`crate::sgm::INVALID_QUANTISED`] where the correspondence leaves the neighbour), summed
+/// (`u16`) or normalised. SGM, MFuseNet and the viewer take volumes of this type.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CostVolume<T> {
+    /// Width of the reference view.
+    pub width: usize,
+    /// Height of the reference view.
+    pub height: usize,
+    /// Disparity of the first slice.
+    pub min_disparity: usize,
+    /// Disparities per pixel.
+    pub disparities: usize,
+    /// `height × width × disparities` costs.
+    pub data: Vec<T>,
+    /// Largest valid cost.
+    pub max_cost: u32,
+    /// Whose costs these are.
+    pub source: VolumeSource,
+}
+
+impl<T> CostVolume<T> {
+    /// The costs of pixel `(x, y)` over the disparities.
+    pub fn costs(&self, x: usize, y: usize) -> &[T] {
+        let at = (y * self.width + x) * self.disparities;
+        &self.data[at..at + self.disparities]
+    }
+}
+
+/// Each neighbour's block-aggregated costs as its own volume, quantised to bytes by `shift`
+/// ([`crate::sgm::quantise`]), in the order of `neighbours`; `on_band` is called after each band.
+pub fn neighbour_volumes(
+    problem: &Problem,
+    neighbours: &[&Neighbour],
+    spec: CostSpec,
+    shift: u32,
+    on_band: &(dyn Fn() + Sync),
+) -> Result<Vec<CostVolume<u8>>, FuseError> {
+    neighbours
+        .iter()
+        .map(|n| {
+            let single = Problem {
+                reference: problem.reference.clone(),
+                neighbours: vec![(*n).clone()],
+                min_disparity: problem.min_disparity,
+                num_disparities: problem.num_disparities,
+            };
+            // With one neighbour every fusion rule returns its costs.
+            let prepared = PreparedProblem::new(&single, spec, Fusion::Min)?;
+            let mut volume = prepared.fused_volume(shift, on_band);
+            volume.source = VolumeSource::Neighbour {
+                role: n.role.clone(),
+                offset: n.offset,
+            };
+            Ok(volume)
+        })
+        .collect()
+}
+
 /// The data term: pixel cost and aggregation block.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub struct CostSpec {
@@ -400,7 +474,7 @@ impl PreparedProblem {
 
     /// The whole fused volume `[y][x][d]` for global optimisers, quantised to bytes by `shift`
     /// ([`crate::sgm::quantise`]) and computed band-parallel; `on_band` is called after each band.
-    pub fn fused_volume(&self, shift: u32, on_band: &(dyn Fn() + Sync)) -> Vec<u8> {
+    pub fn fused_volume(&self, shift: u32, on_band: &(dyn Fn() + Sync)) -> CostVolume<u8> {
         let row_len = self.width * self.disparities;
         let band = band_rows(self.height);
         let nd = self.disparities;
@@ -417,7 +491,15 @@ impl PreparedProblem {
                 on_band();
             },
         );
-        volume
+        CostVolume {
+            width: self.width,
+            height: self.height,
+            min_disparity: self.min_disparity,
+            disparities: nd,
+            data: volume,
+            max_cost: (self.spec.max_cost() >> shift).min(u32::from(crate::sgm::INVALID_QUANTISED) - 1),
+            source: VolumeSource::Fused(self.fusion),
+        }
     }
 }
 
@@ -581,7 +663,7 @@ mod tests {
             }
             let quantised: Vec<u8> = expected.iter().map(|c| crate::sgm::quantise(*c, 2)).collect();
             assert!(
-                prepared.fused_volume(2, &|| {}) == quantised,
+                prepared.fused_volume(2, &|| {}).data == quantised,
                 "{spec:?} {fusion:?} volume"
             );
         }

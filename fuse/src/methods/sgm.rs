@@ -84,7 +84,7 @@ impl Method for Sgm {
         );
         let max_cost = spec.max_cost() >> shift;
         let data = select(
-            &volume,
+            &volume.data,
             w,
             h,
             nd,

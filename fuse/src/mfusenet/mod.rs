@@ -5,7 +5,10 @@
 //!   backward pass, PyTorch's parameter names.
 //! - [`weights`]: safetensors files with the reference `state_dict`'s names and shapes.
 
+pub mod infer;
+pub mod input;
 pub mod network;
+pub mod train;
 pub mod weights;
 
 pub use network::Network;

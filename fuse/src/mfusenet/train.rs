@@ -1,0 +1,260 @@
+//! Training pieces that need no data source: random crops of the input volumes with their
+//! target, Adam, and checkpoints (weights, Adam's moments and the step, in one safetensors file)
+//! so that an interrupted run resumes where it stopped. The loop itself, with the synthetic
+//! captures, lives in `replay::train`.
+
+use std::collections::HashMap;
+use std::path::Path;
+
+use safetensors::tensor::{Dtype, SafeTensors, TensorView};
+
+use super::Error;
+use super::input::STEPS_PER_UNIT;
+use super::network::{Gradients, Network};
+use super::weights::{self, WeightsInfo};
+use crate::nn::Tensor;
+use crate::volume::CostVolume;
+
+/// One training example: the network's inputs and the target disparity (in slices, i.e. minus
+/// the volumes' first disparity) with the pixels that count.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Example {
+    /// `[1, D, H, W]` per view.
+    pub inputs: Vec<Tensor>,
+    /// `H·W` targets.
+    pub target: Vec<f32>,
+    /// `H·W`: ground truth known and inside the searched range.
+    pub mask: Vec<bool>,
+}
+
+/// The crop `rows × columns` at `(y0, x0)` of the volumes (padded to `depth` slices, a multiple
+/// of 4, by repeating the last) with the ground-truth disparity `truth` (px, `[y][x]`, 0 or
+/// non-finite = unknown).
+pub fn crop(
+    volumes: &[&CostVolume<u8>],
+    truth: &[f32],
+    (y0, x0): (usize, usize),
+    (rows, columns): (usize, usize),
+    depth: usize,
+) -> Example {
+    let (w, nd) = (volumes[0].width, volumes[0].disparities);
+    let min = volumes[0].min_disparity as f32;
+    let inputs = volumes
+        .iter()
+        .map(|v| {
+            let mut t = Tensor::zeros([1, depth, rows, columns]);
+            for y in 0..rows {
+                for x in 0..columns {
+                    let costs = v.costs(x0 + x, y0 + y);
+                    for d in 0..depth {
+                        t.data[(d * rows + y) * columns + x] = f32::from(costs[d.min(nd - 1)]) / STEPS_PER_UNIT;
+                    }
+                }
+            }
+            t
+        })
+        .collect();
+    let mut target = Vec::with_capacity(rows * columns);
+    let mut mask = Vec::with_capacity(rows * columns);
+    for y in 0..rows {
+        for x in 0..columns {
+            let d = truth[(y0 + y) * w + x0 + x] - min;
+            let known = truth[(y0 + y) * w + x0 + x] > 0.0 && d.is_finite() && d >= 0.0 && d <= (nd - 1) as f32;
+            target.push(if known { d } else { 0.0 });
+            mask.push(known);
+        }
+    }
+    Example { inputs, target, mask }
+}
+
+/// Adam (Kingma & Ba) with PyTorch's defaults (β = 0.9, 0.999, ε = 1e-8), no weight decay.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Adam {
+    /// Learning rate.
+    pub learning_rate: f32,
+    /// Steps taken.
+    pub step: u64,
+    /// First moments, per parameter tensor (in [`Network::parameters_mut`] order).
+    pub m: Vec<Vec<f32>>,
+    /// Second moments.
+    pub v: Vec<Vec<f32>>,
+}
+
+impl Adam {
+    /// Zero moments for `net`.
+    pub fn new(net: &mut Network, learning_rate: f32) -> Self {
+        let sizes: Vec<usize> = net.parameters_mut().iter().map(|(_, p)| p.len()).collect();
+        Self {
+            learning_rate,
+            step: 0,
+            m: sizes.iter().map(|n| vec![0.0; *n]).collect(),
+            v: sizes.iter().map(|n| vec![0.0; *n]).collect(),
+        }
+    }
+
+    /// One update of every parameter from its gradient.
+    pub fn update(&mut self, net: &mut Network, gradients: &Gradients) {
+        const BETA1: f32 = 0.9;
+        const BETA2: f32 = 0.999;
+        const EPS: f32 = 1e-8;
+        self.step += 1;
+        let bias1 = 1.0 - BETA1.powi(self.step as i32);
+        let bias2 = 1.0 - BETA2.powi(self.step as i32);
+        for (((_, param), (_, grad)), (m, v)) in net
+            .parameters_mut()
+            .into_iter()
+            .zip(&gradients.tensors)
+            .zip(self.m.iter_mut().zip(self.v.iter_mut()))
+        {
+            for (((p, g), m), v) in param.iter_mut().zip(grad).zip(m.iter_mut()).zip(v.iter_mut()) {
+                *m = BETA1 * *m + (1.0 - BETA1) * g;
+                *v = BETA2 * *v + (1.0 - BETA2) * g * g;
+                *p -= self.learning_rate * (*m / bias1) / ((*v / bias2).sqrt() + EPS);
+            }
+        }
+    }
+}
+
+/// Writes a checkpoint: the weights (`model.<name>`), Adam's moments (`adam_m.<name>`,
+/// `adam_v.<name>`), and `info` with the step, through a temporary file renamed when complete.
+pub fn save_checkpoint(net: &mut Network, adam: &Adam, info: &WeightsInfo, path: &Path) -> Result<(), Error> {
+    let model = weights::to_bytes(net, info)?;
+    let model = SafeTensors::deserialize(&model).map_err(|e| Error::Format {
+        file: path.display().to_string(),
+        reason: e.to_string(),
+    })?;
+    let mut owned: Vec<(String, Dtype, Vec<usize>, Vec<u8>)> = Vec::new();
+    for (name, view) in model.tensors() {
+        owned.push((format!("model.{name}"), view.dtype(), view.shape().to_vec(), view.data().to_vec()));
+    }
+    let names: Vec<String> = net.parameters_mut().into_iter().map(|(n, _)| n).collect();
+    for (kind, moments) in [("adam_m", &adam.m), ("adam_v", &adam.v)] {
+        for (name, values) in names.iter().zip(moments) {
+            owned.push((
+                format!("{kind}.{name}"),
+                Dtype::F32,
+                vec![values.len()],
+                values.iter().flat_map(|v| v.to_le_bytes()).collect(),
+            ));
+        }
+    }
+    let format = |e: safetensors::SafeTensorError| Error::Format {
+        file: path.display().to_string(),
+        reason: e.to_string(),
+    };
+    let views = owned
+        .iter()
+        .map(|(n, d, s, b)| TensorView::new(*d, s.clone(), b).map(|v| (n.clone(), v)))
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(format)?;
+    let mut metadata: HashMap<String, String> = info.entries.clone().into_iter().collect();
+    metadata.insert("adam_step".to_owned(), adam.step.to_string());
+    metadata.insert("adam_learning_rate".to_owned(), adam.learning_rate.to_string());
+    let bytes = safetensors::serialize(views, Some(metadata)).map_err(format)?;
+    let io = |e: std::io::Error| Error::Write {
+        file: path.display().to_string(),
+        reason: e.to_string(),
+    };
+    let temporary = path.with_extension("partial");
+    std::fs::write(&temporary, bytes).map_err(io)?;
+    std::fs::rename(&temporary, path).map_err(io)
+}
+
+/// Reads a checkpoint written by [`save_checkpoint`].
+pub fn load_checkpoint(path: &Path, views: usize) -> Result<(Network, Adam, WeightsInfo), Error> {
+    let file = path.display().to_string();
+    let bytes = std::fs::read(path).map_err(|e| Error::Read {
+        file: file.clone(),
+        reason: e.to_string(),
+    })?;
+    let (mut net, info) = weights::from_bytes(&bytes, &file, "model.", Some(views))?;
+    let tensors = SafeTensors::deserialize(&bytes).map_err(|e| Error::Format {
+        file: file.clone(),
+        reason: e.to_string(),
+    })?;
+    let mut adam = Adam::new(&mut net, info.get("adam_learning_rate").and_then(|v| v.parse().ok()).unwrap_or(1e-3));
+    adam.step = info.get("adam_step").and_then(|v| v.parse().ok()).unwrap_or(0);
+    let names: Vec<String> = net.parameters_mut().into_iter().map(|(n, _)| n).collect();
+    for (kind, moments) in [("adam_m", &mut adam.m), ("adam_v", &mut adam.v)] {
+        for (name, values) in names.iter().zip(moments.iter_mut()) {
+            let tensor = format!("{kind}.{name}");
+            let view = tensors.tensor(&tensor).map_err(|_| Error::MissingTensor {
+                file: file.clone(),
+                tensor: tensor.clone(),
+            })?;
+            if view.dtype() != Dtype::F32 || view.data().len() != values.len() * 4 {
+                return Err(Error::TensorShape {
+                    file: file.clone(),
+                    tensor,
+                    expected: format!("[{}] F32", values.len()),
+                    got: view.shape().to_vec(),
+                });
+            }
+            for (v, b) in values.iter_mut().zip(view.data().chunks_exact(4)) {
+                *v = f32::from_le_bytes([b[0], b[1], b[2], b[3]]);
+            }
+        }
+    }
+    Ok((net, adam, info))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::volume::VolumeSource;
+
+    /// Two views of a fronto-parallel plane at disparity 5: each volume's cost is lowest at 5.
+    fn plane_volumes(w: usize, h: usize, nd: usize) -> (Vec<CostVolume<u8>>, Vec<f32>) {
+        let volume = |noise: usize| CostVolume {
+            width: w,
+            height: h,
+            min_disparity: 0,
+            disparities: nd,
+            data: (0..w * h * nd)
+                .map(|i| {
+                    let d = (i % nd) as i32;
+                    ((d - 5).unsigned_abs() * 12 + ((i * 7 + noise) % 5) as u32) as u8
+                })
+                .collect(),
+            max_cost: 255,
+            source: VolumeSource::Neighbour {
+                role: "left".into(),
+                offset: [-1, 0],
+            },
+        };
+        (vec![volume(0), volume(3)], vec![5.0; w * h])
+    }
+
+    #[test]
+    fn training_lowers_the_loss_on_a_tiny_set_and_resumes() {
+        let (volumes, truth) = plane_volumes(16, 16, 12);
+        let refs: Vec<&CostVolume<u8>> = volumes.iter().collect();
+        let example = crop(&refs, &truth, (0, 0), (16, 16), 12);
+        assert!(example.mask.iter().all(|m| *m));
+        let mut net = Network::init(2, 3);
+        let mut adam = Adam::new(&mut net, 1e-2);
+        let mut losses = Vec::new();
+        for _ in 0..30 {
+            let (loss, _, gradients) = net
+                .loss_and_gradients(&example.inputs, &example.target, &example.mask)
+                .unwrap_or_else(|e| panic!("{e}"));
+            adam.update(&mut net, &gradients);
+            losses.push(loss);
+        }
+        let first = losses[..3].iter().sum::<f32>() / 3.0;
+        let last = losses[losses.len() - 3..].iter().sum::<f32>() / 3.0;
+        assert!(last < 0.5 * first, "loss {first} → {last}: {losses:?}");
+
+        let dir = std::env::temp_dir().join(format!("mfusenet-ckpt-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap_or_else(|e| panic!("{e}"));
+        let path = dir.join("checkpoint.safetensors");
+        let mut info = WeightsInfo::default();
+        info.set("step", "30");
+        save_checkpoint(&mut net, &adam, &info, &path).unwrap_or_else(|e| panic!("{e}"));
+        let (again, adam_again, info_again) = load_checkpoint(&path, 2).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(again, net);
+        assert_eq!(adam_again, adam);
+        assert_eq!(info_again.get("step"), Some("30"));
+        std::fs::remove_dir_all(&dir).ok();
+    }
+}
