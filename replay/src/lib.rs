@@ -15,6 +15,7 @@ pub mod foreign;
 pub mod log;
 pub mod outputs;
 pub mod regions;
+pub mod train;
 pub mod viewer;
 pub mod viewset;
 

@@ -596,3 +596,31 @@ mod tests {
         assert!(matches!(ViewerSink::parse(&words("save")), Err(VizError::Usage { .. })));
     }
 }
+
+/// Writes training curves as a Rerun recording: each series `(entity, [(step, value)])` as
+/// `Scalars` on a `step` sequence timeline (`rerun curves.rrd` plots them, one line per entity).
+/// The file is rewritten whole, so that a resumed run's file holds its full history.
+pub fn write_curves(path: &std::path::Path, app_id: &'static str, series: &[(&str, Vec<(i64, f64)>)]) -> Result<(), VizError> {
+    let recording = RecordingStreamBuilder::new(app_id).save(path).map_err(|e| VizError::Save {
+        path: path.to_path_buf(),
+        reason: e.to_string(),
+    })?;
+    for (entity, points) in series {
+        for (step, value) in points {
+            if !value.is_finite() {
+                continue;
+            }
+            recording.set_time_sequence("step", *step);
+            recording
+                .log(*entity, &rerun::Scalars::single(*value))
+                .map_err(|e| VizError::Log {
+                    entity: (*entity).to_owned(),
+                    reason: e.to_string(),
+                })?;
+        }
+    }
+    recording.flush_blocking().map_err(|e| VizError::Log {
+        entity: "(flush)".to_owned(),
+        reason: e.to_string(),
+    })
+}

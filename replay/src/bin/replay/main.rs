@@ -3,6 +3,8 @@
 //! Exit codes: 0 ok, 1 error, 2 usage, 3 finished but something was wrong or lost (a cut-off
 //! log was recovered, or sets were incomplete).
 
+mod train;
+
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Instant;
@@ -46,6 +48,8 @@ enum Command {
     /// The one-command demo: record a simulated five-view capture, replay it with the best
     /// method, write the results (and the log) into one folder.
     Demo(DemoArgs),
+    /// Train MFuseNet on simulated captures (checkpoints, resume, curves); writes safetensors weights.
+    Train(train::TrainArgs),
 }
 
 #[derive(Debug, Args)]
@@ -187,6 +191,7 @@ fn main() -> ExitCode {
             Some(Command::Eval(args)) => run_eval(args),
             Some(Command::Demo(args)) => run_demo(args, cli.quiet),
             Some(Command::Check(args)) => run_check(args),
+            Some(Command::Train(args)) => train::run(args, cli.quiet),
             None => run_method(&cli.run, cli.quiet),
         }
     };

@@ -1,0 +1,167 @@
+//! `replay train`: train MFuseNet on synthetic captures (see `replay::train`).
+
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
+
+use anyhow::{Context, Result};
+use clap::Args;
+use record::cli::{Outcome, UsageError, progress_bar};
+use replay::train::{TrainConfig, train, variant_name};
+use tracing::info;
+
+/// Arguments of `replay train`.
+#[derive(Debug, Args)]
+pub struct TrainArgs {
+    /// Network variant: cost volumes per set (1 = mfusenet-stereo, 2 = three-view, 4 = five-view).
+    #[arg(long, default_value = "2", value_parser = ["1", "2", "4"])]
+    views: String,
+    /// Run folder: dataset cache, checkpoint, curves.csv, curves.rrd, training.json
+    /// (default: train/<variant>; a run in it resumes).
+    #[arg(long)]
+    dir: Option<PathBuf>,
+    /// Cache of the simulated captures' input volumes, shared by runs (default: train/dataset).
+    #[arg(long, default_value = "train/dataset")]
+    dataset_dir: PathBuf,
+    /// Where the trained weights go (default: <dir>/<variant>.safetensors).
+    #[arg(long)]
+    weights_out: Option<PathBuf>,
+    /// Optimiser steps.
+    #[arg(long, default_value_t = TrainConfig::default().steps)]
+    steps: u64,
+    /// Side of the square training crops (px, a multiple of 4).
+    #[arg(long, default_value_t = TrainConfig::default().crop)]
+    crop: usize,
+    /// Disparities of the training volumes (a multiple of 4).
+    #[arg(long, default_value_t = TrainConfig::default().disparities)]
+    disparities: usize,
+    /// Adam's learning rate (÷4 for the last quarter).
+    #[arg(long, default_value_t = TrainConfig::default().learning_rate)]
+    learning_rate: f32,
+    /// Seed of the scenes, the initial weights and the crops.
+    #[arg(long, default_value_t = TrainConfig::default().seed)]
+    seed: u64,
+    /// Simulated training captures.
+    #[arg(long, default_value_t = TrainConfig::default().train_sets)]
+    train_sets: usize,
+    /// Simulated validation captures (other seeds).
+    #[arg(long, default_value_t = TrainConfig::default().val_sets)]
+    val_sets: usize,
+    /// Capture resolution, WxH.
+    #[arg(long, default_value = "448x336")]
+    resolution: String,
+    /// Baselines drawn from LOW,HIGH (mm).
+    #[arg(long, default_value = "6,28")]
+    baseline_mm: String,
+    /// Steps between validations.
+    #[arg(long, default_value_t = TrainConfig::default().validate_every)]
+    validate_every: u64,
+    /// Steps between checkpoints.
+    #[arg(long, default_value_t = TrainConfig::default().checkpoint_every)]
+    checkpoint_every: u64,
+}
+
+impl TrainArgs {
+    fn config(&self) -> Result<TrainConfig> {
+        let usage = |m: String| -> anyhow::Error { UsageError(m).into() };
+        let (w, h) = self
+            .resolution
+            .split_once('x')
+            .and_then(|(w, h)| Some((w.parse().ok()?, h.parse().ok()?)))
+            .ok_or_else(|| usage(format!("--resolution {}: expected WxH, e.g. 448x336", self.resolution)))?;
+        let (lo, hi) = self
+            .baseline_mm
+            .split_once(',')
+            .and_then(|(a, b)| Some((a.parse().ok()?, b.parse().ok()?)))
+            .ok_or_else(|| usage(format!("--baseline-mm {}: expected LOW,HIGH, e.g. 6,28", self.baseline_mm)))?;
+        let config = TrainConfig {
+            views: self.views.parse().unwrap_or(2),
+            steps: self.steps,
+            crop: self.crop,
+            disparities: self.disparities,
+            learning_rate: self.learning_rate,
+            seed: self.seed,
+            train_sets: self.train_sets,
+            val_sets: self.val_sets,
+            resolution: [w, h],
+            baseline_mm: [lo, hi],
+            checkpoint_every: self.checkpoint_every.max(1),
+            validate_every: self.validate_every.max(1),
+            ..TrainConfig::default()
+        };
+        config.validate().map_err(|e| usage(e.to_string()))?;
+        Ok(config)
+    }
+}
+
+/// Runs `replay train`.
+pub fn run(args: &TrainArgs, quiet: bool) -> Result<Outcome> {
+    let config = args.config()?;
+    let variant = variant_name(config.views);
+    let dir = args.dir.clone().unwrap_or_else(|| PathBuf::from("train").join(variant));
+    let weights_out = args
+        .weights_out
+        .clone()
+        .unwrap_or_else(|| dir.join(format!("{variant}.safetensors")));
+    let stop = Arc::new(AtomicBool::new(false));
+    let presses = AtomicU32::new(0);
+    let flag = Arc::clone(&stop);
+    let _ = ctrlc::set_handler(move || {
+        if presses.fetch_add(1, Ordering::SeqCst) == 0 {
+            flag.store(true, Ordering::SeqCst);
+            eprintln!("\ninterrupt: saving a checkpoint and the weights so far (Ctrl-C again to abort; rerun to resume)");
+        } else {
+            std::process::exit(130);
+        }
+    });
+    let command = std::env::args().collect::<Vec<_>>().join(" ");
+    info!(
+        "training {variant} ({} steps, {}×{} crops, {} disparities) in {}",
+        config.steps,
+        config.crop,
+        config.crop,
+        config.disparities,
+        dir.display()
+    );
+    let dataset_bar = progress_bar((config.train_sets + config.val_sets) as u64, quiet, "captures");
+    dataset_bar.set_message("simulating captures and their cost volumes (cached)");
+    let step_bar = progress_bar(config.steps, quiet, "steps");
+    let summary = train(
+        &config,
+        &dir,
+        &args.dataset_dir,
+        &weights_out,
+        &command,
+        &stop,
+        &mut |done, _| {
+            dataset_bar.set_position(done as u64);
+        },
+        &mut |report| {
+            if report.step == 1 || step_bar.position() == 0 {
+                dataset_bar.finish_and_clear();
+            }
+            step_bar.set_position(report.step);
+            let validation = report
+                .validation
+                .map_or_else(String::new, |(avg, bad1)| format!(" · val AvgErr {avg:.3} px Bad1 {bad1:.1} %"));
+            step_bar.set_message(format!(
+                "loss {:.3} (mean {:.3}) · {:.2} s/step{validation}",
+                report.loss, report.mean_loss, report.seconds_per_step
+            ));
+        },
+    )
+    .with_context(|| format!("training in {}", dir.display()))?;
+    step_bar.finish_and_clear();
+    info!(
+        "{} steps in {:.0} s (dataset {:.0} s): validation AvgErr {} px, Bad1 {} % → {} (curves: {}, {})",
+        summary.steps_done,
+        summary.train_seconds,
+        summary.dataset_seconds,
+        summary.val_avg_err_px.map_or("–".into(), |v| format!("{v:.3}")),
+        summary.val_bad1_percent.map_or("–".into(), |v| format!("{v:.2}")),
+        summary.weights.display(),
+        dir.join("curves.csv").display(),
+        dir.join("curves.rrd").display()
+    );
+    Ok(if summary.interrupted { Outcome::Incomplete } else { Outcome::Complete })
+}

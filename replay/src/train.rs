@@ -1,0 +1,700 @@
+//! Training MFuseNet on synthetic captures made by `record` (never on the evaluation scenes):
+//! a dataset of simulated five-view sets with ground truth, each reduced once to its four
+//! per-neighbour input volumes (cached as safetensors in the run folder), then Adam on random
+//! crops with the smooth-L1 loss, validation on sets of other seeds, checkpoints and resume.
+//!
+//! Everything is seeded: the scenes (`seed + i` for training, `seed + 1_000_000 + i` for
+//! validation), the initial weights and every crop (drawn from the seed and the step, so a
+//! resumed run draws what the uninterrupted one would have).
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Instant;
+
+use fuse::mfusenet::input::{InputSpec, input_volumes, ordered_neighbours};
+use fuse::mfusenet::train::{Adam, Example, crop, load_checkpoint, save_checkpoint};
+use fuse::mfusenet::{Network, WeightsInfo, weights};
+use fuse::nn::regression::soft_argmin;
+use fuse::volume::{CostVolume, VolumeSource};
+use record::capture::{Simulation, SimulationConfig};
+use record::rig::RigKind;
+use record::scene::SceneKind;
+use safetensors::tensor::{Dtype, SafeTensors, TensorView};
+use serde::{Deserialize, Serialize};
+
+use crate::viewset::ViewSet;
+
+/// Errors of a training run.
+#[derive(Debug, thiserror::Error)]
+pub enum TrainError {
+    /// The simulator refused a configuration or failed.
+    #[error("simulating training set {index}")]
+    Simulation {
+        /// Set index.
+        index: usize,
+        /// Cause.
+        #[source]
+        source: record::capture::SimulationError,
+    },
+    /// A simulated set did not become a view set.
+    #[error("training set {index}")]
+    Replay {
+        /// Set index.
+        index: usize,
+        /// Cause.
+        #[source]
+        source: crate::ReplayError,
+    },
+    /// The cost volumes could not be made.
+    #[error("cost volumes of training set {index}")]
+    Fuse {
+        /// Set index.
+        index: usize,
+        /// Cause.
+        #[source]
+        source: fuse::FuseError,
+    },
+    /// The network or a weights/checkpoint file.
+    #[error(transparent)]
+    Network(#[from] fuse::mfusenet::Error),
+    /// A file of the run folder.
+    #[error("cannot write or read '{path}': {reason}")]
+    File {
+        /// File.
+        path: PathBuf,
+        /// Why.
+        reason: String,
+    },
+    /// A configuration value is unusable.
+    #[error("invalid training configuration: {field} = {value} ({reason})")]
+    Config {
+        /// Field.
+        field: &'static str,
+        /// Value.
+        value: String,
+        /// What is allowed.
+        reason: &'static str,
+    },
+}
+
+/// Everything that defines a training run (stored in the weights' metadata and `training.json`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrainConfig {
+    /// Cost volumes of the network: 1 (stereo), 2 (three-view) or 4 (five-view).
+    pub views: usize,
+    /// Optimiser steps.
+    pub steps: u64,
+    /// Side of the square training crops (px, a multiple of 4).
+    pub crop: usize,
+    /// Disparities of the training volumes (a multiple of 4).
+    pub disparities: usize,
+    /// Adam's learning rate (divided by 4 for the last quarter of the steps).
+    pub learning_rate: f32,
+    /// Seed of scenes, weights and crops.
+    pub seed: u64,
+    /// Training captures.
+    pub train_sets: usize,
+    /// Validation captures (other seeds).
+    pub val_sets: usize,
+    /// Image size of the captures (px).
+    pub resolution: [u32; 2],
+    /// Baselines drawn uniformly from this range (mm).
+    pub baseline_mm: [f64; 2],
+    /// Scene families, used in turn.
+    pub scenes: Vec<SceneKind>,
+    /// Samples per pixel of the renderer.
+    pub samples_per_pixel: u32,
+    /// How the input volumes are made.
+    pub input: InputSpec,
+    /// Steps between checkpoints.
+    pub checkpoint_every: u64,
+    /// Steps between validations.
+    pub validate_every: u64,
+}
+
+impl Default for TrainConfig {
+    fn default() -> Self {
+        Self {
+            views: 2,
+            steps: 3000,
+            crop: 64,
+            disparities: 32,
+            learning_rate: 1e-3,
+            seed: 1,
+            train_sets: 40,
+            val_sets: 6,
+            resolution: [448, 336],
+            baseline_mm: [6.0, 28.0],
+            scenes: vec![SceneKind::Random, SceneKind::Random, SceneKind::Toy, SceneKind::Workpiece],
+            samples_per_pixel: 2,
+            input: InputSpec::default(),
+            checkpoint_every: 100,
+            validate_every: 250,
+        }
+    }
+}
+
+/// One sample of the cache: the four per-neighbour volumes (left, right, top, bottom) and the
+/// ground-truth disparity.
+pub struct Sample {
+    /// Left, right, top, bottom.
+    pub volumes: Vec<CostVolume<u8>>,
+    /// `[y][x]` px, 0 = unknown.
+    pub truth: Vec<f32>,
+}
+
+impl Sample {
+    /// The volumes a network of `views` inputs takes (see `fuse::mfusenet::input`).
+    pub fn for_views(&self, views: usize) -> Vec<&CostVolume<u8>> {
+        let indices: &[usize] = match views {
+            1 => &[1],
+            2 => &[0, 1],
+            _ => &[0, 1, 2, 3],
+        };
+        indices.iter().map(|i| &self.volumes[*i]).collect()
+    }
+}
+
+/// What the caller sees after each step.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StepReport {
+    /// Steps done.
+    pub step: u64,
+    /// Loss of this step.
+    pub loss: f32,
+    /// Mean loss over the last 50 steps.
+    pub mean_loss: f32,
+    /// Seconds per step (mean over this session's steps).
+    pub seconds_per_step: f64,
+    /// The last validation `(AvgErr px, Bad1 %)`.
+    pub validation: Option<(f64, f64)>,
+}
+
+/// The outcome of a run.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrainSummary {
+    /// The configuration.
+    pub config: TrainConfig,
+    /// Steps done (all sessions).
+    pub steps_done: u64,
+    /// Whether the run stopped early (interrupted).
+    pub interrupted: bool,
+    /// Seconds of training, all sessions.
+    pub train_seconds: f64,
+    /// Seconds to make the dataset (this session; 0 when cached).
+    pub dataset_seconds: f64,
+    /// Final validation AvgErr (px) on the validation crops.
+    pub val_avg_err_px: Option<f64>,
+    /// Final validation Bad1 (%).
+    pub val_bad1_percent: Option<f64>,
+    /// Trainable parameters.
+    pub parameters: usize,
+    /// The weights file written.
+    pub weights: PathBuf,
+}
+
+fn file_error(path: &Path, reason: impl ToString) -> TrainError {
+    TrainError::File {
+        path: path.to_path_buf(),
+        reason: reason.to_string(),
+    }
+}
+
+impl TrainConfig {
+    /// Checks the values.
+    pub fn validate(&self) -> Result<(), TrainError> {
+        let bad = |field, value: String, reason| Err(TrainError::Config { field, value, reason });
+        if !matches!(self.views, 1 | 2 | 4) {
+            return bad("views", self.views.to_string(), "1, 2 or 4");
+        }
+        if self.crop < 16 || self.crop % 4 != 0 || self.crop as u32 > self.resolution[0].min(self.resolution[1]) {
+            return bad("crop", self.crop.to_string(), "a multiple of 4, ≥ 16, within the resolution");
+        }
+        if self.disparities < 4 || self.disparities % 4 != 0 {
+            return bad("disparities", self.disparities.to_string(), "a multiple of 4, ≥ 4");
+        }
+        if self.train_sets == 0 || self.val_sets == 0 || self.scenes.is_empty() {
+            return bad("train_sets/val_sets/scenes", String::new(), "at least one each");
+        }
+        if !(self.baseline_mm[0] > 0.0 && self.baseline_mm[1] >= self.baseline_mm[0]) {
+            return bad("baseline_mm", format!("{:?}", self.baseline_mm), "0 < low ≤ high");
+        }
+        Ok(())
+    }
+
+    /// A hash of everything that makes the dataset (seed, captures, volumes): cached samples
+    /// are reused only by runs that would make the same ones.
+    pub fn data_key(&self) -> u64 {
+        let key = serde_json::json!({
+            "seed": self.seed,
+            "resolution": self.resolution,
+            "baseline_mm": self.baseline_mm,
+            "scenes": self.scenes,
+            "samples_per_pixel": self.samples_per_pixel,
+            "disparities": self.disparities,
+            "input": self.input,
+        })
+        .to_string();
+        // FNV-1a.
+        key.bytes()
+            .fold(0xcbf2_9ce4_8422_2325u64, |h, b| (h ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3))
+    }
+
+    /// The simulation of dataset capture `index` (validation captures have other seeds).
+    /// `attempt` > 0 draws another scene for the same index (after an unreachable station).
+    pub fn capture_config(&self, index: usize, validation: bool, attempt: u64) -> SimulationConfig {
+        let seed = self.seed + index as u64 + if validation { 1_000_000 } else { 0 } + attempt * 10_000_000;
+        let mut rng = Rng(seed.wrapping_mul(0x2545_F491_4F6C_DD1D));
+        let unit = rng.unit();
+        SimulationConfig {
+            rig: RigKind::FiveView,
+            baseline_mm: self.baseline_mm[0] + (self.baseline_mm[1] - self.baseline_mm[0]) * unit,
+            captures: 1,
+            scene: self.scenes[index % self.scenes.len()],
+            seed,
+            width: self.resolution[0],
+            height: self.resolution[1],
+            samples_per_pixel: self.samples_per_pixel,
+            ..SimulationConfig::default()
+        }
+    }
+}
+
+/// A small seeded generator (xorshift*), for crops.
+struct Rng(u64);
+
+impl Rng {
+    fn next(&mut self) -> u64 {
+        self.0 ^= self.0 >> 12;
+        self.0 ^= self.0 << 25;
+        self.0 ^= self.0 >> 27;
+        self.0.max(1).wrapping_mul(0x2545_F491_4F6C_DD1D)
+    }
+
+    fn unit(&mut self) -> f64 {
+        (self.next() >> 11) as f64 / (1u64 << 53) as f64
+    }
+
+    fn below(&mut self, n: usize) -> usize {
+        (self.next() % n.max(1) as u64) as usize
+    }
+}
+
+/// Makes (or reads from `cache_dir`) one dataset sample.
+pub fn sample(config: &TrainConfig, index: usize, validation: bool, cache_dir: &Path) -> Result<Sample, TrainError> {
+    let name = format!(
+        "{}-{index:04}-{:016x}.safetensors",
+        if validation { "val" } else { "train" },
+        config.data_key()
+    );
+    let path = cache_dir.join(name);
+    if let Ok(bytes) = std::fs::read(&path)
+        && let Some(sample) = read_sample(&bytes, config.disparities)
+    {
+        return Ok(sample);
+    }
+    // Some random stations are out of the arm's reach: draw another scene (a few times).
+    let mut attempt = 0;
+    let set = loop {
+        let stop = AtomicBool::new(false);
+        let captured = Simulation::new(config.capture_config(index, validation, attempt))
+            .and_then(|mut sim| sim.capture_set(0, &stop, |_| {}));
+        match captured {
+            Ok(Some(set)) => break set,
+            Ok(None) => return Err(file_error(&path, "the simulation produced no set")),
+            Err(source) if attempt >= 4 => return Err(TrainError::Simulation { index, source }),
+            Err(source) => tracing::debug!("training set {index}: {source}; drawing another scene"),
+        }
+        attempt += 1;
+    };
+    let view_set = ViewSet::from_captured(&set).map_err(|source| TrainError::Replay { index, source })?;
+    let problem = view_set
+        .problem(0, config.disparities, false)
+        .map_err(|source| TrainError::Replay { index, source })?;
+    let neighbours = ordered_neighbours(&problem, 4).map_err(|source| TrainError::Fuse { index, source })?;
+    let volumes =
+        input_volumes(&problem, &neighbours, config.input, &|| {}).map_err(|source| TrainError::Fuse { index, source })?;
+    let truth = view_set
+        .ground_truth_disparity()
+        .ok_or_else(|| file_error(&path, "the simulated set has no ground truth"))?;
+    let sample = Sample { volumes, truth };
+    write_sample(&sample, &path)?;
+    Ok(sample)
+}
+
+fn write_sample(sample: &Sample, path: &Path) -> Result<(), TrainError> {
+    let v = &sample.volumes[0];
+    let truth: Vec<u8> = sample.truth.iter().flat_map(|t| t.to_le_bytes()).collect();
+    let mut views = Vec::new();
+    for (i, volume) in sample.volumes.iter().enumerate() {
+        let view = TensorView::new(Dtype::U8, vec![v.height, v.width, v.disparities], &volume.data)
+            .map_err(|e| file_error(path, e))?;
+        views.push((format!("volume.{i}"), view));
+    }
+    views.push((
+        "truth".to_owned(),
+        TensorView::new(Dtype::F32, vec![v.height, v.width], &truth).map_err(|e| file_error(path, e))?,
+    ));
+    let bytes = safetensors::serialize(views, None).map_err(|e| file_error(path, e))?;
+    if let Some(dir) = path.parent() {
+        std::fs::create_dir_all(dir).map_err(|e| file_error(dir, e))?;
+    }
+    let temporary = path.with_extension("partial");
+    std::fs::write(&temporary, bytes).map_err(|e| file_error(&temporary, e))?;
+    std::fs::rename(&temporary, path).map_err(|e| file_error(path, e))
+}
+
+fn read_sample(bytes: &[u8], disparities: usize) -> Option<Sample> {
+    let tensors = SafeTensors::deserialize(bytes).ok()?;
+    let truth_view = tensors.tensor("truth").ok()?;
+    let (height, width) = (*truth_view.shape().first()?, *truth_view.shape().get(1)?);
+    let truth = truth_view
+        .data()
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        .collect();
+    let roles = [("left", [-1, 0]), ("right", [1, 0]), ("top", [0, -1]), ("bottom", [0, 1])];
+    let mut volumes = Vec::new();
+    for (i, (role, offset)) in roles.iter().enumerate() {
+        let view = tensors.tensor(&format!("volume.{i}")).ok()?;
+        if view.shape() != [height, width, disparities] {
+            return None;
+        }
+        volumes.push(CostVolume {
+            width,
+            height,
+            min_disparity: 0,
+            disparities,
+            data: view.data().to_vec(),
+            max_cost: 255,
+            source: VolumeSource::Neighbour {
+                role: (*role).to_owned(),
+                offset: *offset,
+            },
+        });
+    }
+    Some(Sample { volumes, truth })
+}
+
+/// Validation crops: the centre `side × side` (largest multiple of 4 that fits, at most 160)
+/// of every validation sample.
+fn validation_examples(samples: &[Sample], views: usize, disparities: usize) -> Vec<Example> {
+    samples
+        .iter()
+        .map(|s| {
+            let (w, h) = (s.volumes[0].width, s.volumes[0].height);
+            let side = (w.min(h).min(160)) / 4 * 4;
+            crop(&s.for_views(views), &s.truth, ((h - side) / 2, (w - side) / 2), (side, side), disparities)
+        })
+        .collect()
+}
+
+/// AvgErr (px) and Bad1 (%) of the winner-take-all of the mean input volume (with parabola
+/// refinement): what the network's inputs say on their own.
+pub fn winner_take_all_reference(examples: &[Example]) -> (f64, f64) {
+    let (mut sum, mut bad, mut count) = (0f64, 0usize, 0usize);
+    for example in examples {
+        let [_, d, h, w] = example.inputs[0].shape;
+        let plane = h * w;
+        for pixel in 0..plane {
+            if !example.mask[pixel] {
+                continue;
+            }
+            let cost = |z: usize| example.inputs.iter().map(|t| t.data[z * plane + pixel]).sum::<f32>();
+            let best = (0..d).min_by(|a, b| cost(*a).total_cmp(&cost(*b))).unwrap_or(0);
+            let mut estimate = best as f32;
+            if best > 0 && best + 1 < d {
+                let (l, c, r) = (cost(best - 1), cost(best), cost(best + 1));
+                let denominator = l - 2.0 * c + r;
+                if denominator > 0.0 {
+                    estimate += 0.5 * (l - r) / denominator;
+                }
+            }
+            let error = f64::from((estimate - example.target[pixel]).abs());
+            sum += error;
+            bad += usize::from(error > 1.0);
+            count += 1;
+        }
+    }
+    let count = count.max(1) as f64;
+    (sum / count, 100.0 * bad as f64 / count)
+}
+
+/// AvgErr (px) and Bad1 (%) of the eval-mode network over the examples' masked pixels.
+pub fn validate(net: &Network, examples: &[Example]) -> Result<(f64, f64), TrainError> {
+    let (mut sum, mut bad, mut count) = (0f64, 0usize, 0usize);
+    for example in examples {
+        let logits = net.logits(&example.inputs)?;
+        let (disparity, _) = soft_argmin(&logits);
+        for ((d, t), m) in disparity.iter().zip(&example.target).zip(&example.mask) {
+            if *m {
+                let error = f64::from((d - t).abs());
+                sum += error;
+                bad += usize::from(error > 1.0);
+                count += 1;
+            }
+        }
+    }
+    let count = count.max(1) as f64;
+    Ok((sum / count, 100.0 * bad as f64 / count))
+}
+
+/// Paths of a run folder.
+pub struct RunFiles {
+    /// The folder.
+    pub dir: PathBuf,
+}
+
+impl RunFiles {
+    /// Checkpoint (weights + Adam + step).
+    pub fn checkpoint(&self) -> PathBuf {
+        self.dir.join("checkpoint.safetensors")
+    }
+    /// Loss and validation per step (CSV).
+    pub fn curves_csv(&self) -> PathBuf {
+        self.dir.join("curves.csv")
+    }
+    /// The same as a Rerun recording.
+    pub fn curves_rrd(&self) -> PathBuf {
+        self.dir.join("curves.rrd")
+    }
+    /// The run's record.
+    pub fn summary(&self) -> PathBuf {
+        self.dir.join("training.json")
+    }
+}
+
+/// Runs (or resumes) training in `dir` with the dataset cached in `dataset_dir`; writes the weights to `weights_out`. `on_dataset(done,
+/// total)` reports the dataset, `on_step` every step; `stop` ends the run early after a
+/// checkpoint (the summary says it was interrupted).
+pub fn train(
+    config: &TrainConfig,
+    dir: &Path,
+    dataset_dir: &Path,
+    weights_out: &Path,
+    command: &str,
+    stop: &AtomicBool,
+    on_dataset: &mut dyn FnMut(usize, usize),
+    on_step: &mut dyn FnMut(&StepReport),
+) -> Result<TrainSummary, TrainError> {
+    config.validate()?;
+    let files = RunFiles { dir: dir.to_path_buf() };
+    std::fs::create_dir_all(dir).map_err(|e| file_error(dir, e))?;
+    let dataset_started = Instant::now();
+    let total = config.train_sets + config.val_sets;
+    let mut train_samples = Vec::new();
+    let mut val_samples = Vec::new();
+    for i in 0..total {
+        let validation = i >= config.train_sets;
+        let index = if validation { i - config.train_sets } else { i };
+        let s = sample(config, index, validation, dataset_dir)?;
+        if validation {
+            val_samples.push(s);
+        } else {
+            train_samples.push(s);
+        }
+        on_dataset(i + 1, total);
+        if stop.load(Ordering::SeqCst) {
+            break;
+        }
+    }
+    let dataset_seconds = dataset_started.elapsed().as_secs_f64();
+    let val_examples = validation_examples(&val_samples, config.views, config.disparities);
+    let (wta_avg, wta_bad1) = winner_take_all_reference(&val_examples);
+    tracing::info!(
+        "validation crops: winner-take-all of the mean input volume gives AvgErr {wta_avg:.3} px, Bad1 {wta_bad1:.2} % (the network must do better)"
+    );
+
+    // Resume or start.
+    let (mut net, mut adam, mut history, mut train_seconds) = match load_checkpoint(&files.checkpoint(), config.views) {
+        Ok((net, adam, info)) if info.get("train_config") == Some(&serde_json::to_string(config).unwrap_or_default()) => {
+            let history = read_curves(&files.curves_csv(), adam.step);
+            let seconds = info.get("train_seconds").and_then(|s| s.parse().ok()).unwrap_or(0.0);
+            (net, adam, history, seconds)
+        }
+        _ => {
+            let mut net = Network::init(config.views, config.seed);
+            let adam = Adam::new(&mut net, config.learning_rate);
+            (net, adam, Vec::new(), 0.0)
+        }
+    };
+    let started = Instant::now();
+    let session_start_step = adam.step;
+    let mut recent: Vec<f32> = history.iter().rev().take(50).map(|r: &CurveRow| r.loss).collect();
+    let mut last_validation = history.iter().rev().find_map(|r| r.val_avg_err.zip(r.val_bad1));
+    let info_for = |seconds: f64| {
+        let mut info = WeightsInfo::default();
+        info.set("train_config", serde_json::to_string(config).unwrap_or_default());
+        info.set("train_seconds", format!("{seconds:.1}"));
+        info
+    };
+    let mut interrupted = false;
+    while adam.step < config.steps {
+        if stop.load(Ordering::SeqCst) {
+            interrupted = true;
+            break;
+        }
+        let step = adam.step;
+        adam.learning_rate = if step >= config.steps * 3 / 4 {
+            config.learning_rate / 4.0
+        } else {
+            config.learning_rate
+        };
+        let mut rng = Rng((config.seed ^ 0x9E37_79B9_7F4A_7C15).wrapping_add(step.wrapping_mul(0xD1B5_4A32_D192_ED03)));
+        // A crop with enough ground truth (a few tries).
+        let mut example = None;
+        for _ in 0..8 {
+            let s = &train_samples[rng.below(train_samples.len())];
+            let (w, h) = (s.volumes[0].width, s.volumes[0].height);
+            let (y0, x0) = (rng.below(h - config.crop + 1), rng.below(w - config.crop + 1));
+            let e = crop(&s.for_views(config.views), &s.truth, (y0, x0), (config.crop, config.crop), config.disparities);
+            if e.mask.iter().filter(|m| **m).count() * 2 > e.mask.len() {
+                example = Some(e);
+                break;
+            }
+        }
+        let Some(example) = example else {
+            adam.step += 1;
+            continue;
+        };
+        let (loss, _, gradients) = net.loss_and_gradients(&example.inputs, &example.target, &example.mask)?;
+        adam.update(&mut net, &gradients);
+        recent.insert(0, loss);
+        recent.truncate(50);
+        let done = adam.step;
+        let mut row = CurveRow {
+            step: done,
+            loss,
+            val_avg_err: None,
+            val_bad1: None,
+        };
+        if done % config.validate_every == 0 || done == config.steps {
+            let (avg, bad1) = validate(&net, &val_examples)?;
+            row.val_avg_err = Some(avg);
+            row.val_bad1 = Some(bad1);
+            last_validation = Some((avg, bad1));
+        }
+        history.push(row);
+        let elapsed = started.elapsed().as_secs_f64();
+        on_step(&StepReport {
+            step: done,
+            loss,
+            mean_loss: recent.iter().sum::<f32>() / recent.len().max(1) as f32,
+            seconds_per_step: elapsed / (done - session_start_step).max(1) as f64,
+            validation: last_validation,
+        });
+        if done % config.checkpoint_every == 0 || done == config.steps {
+            let seconds = train_seconds + elapsed;
+            save_checkpoint(&mut net, &adam, &info_for(seconds), &files.checkpoint())?;
+            write_curves(&files, &history)?;
+        }
+    }
+    train_seconds += started.elapsed().as_secs_f64();
+    save_checkpoint(&mut net, &adam, &info_for(train_seconds), &files.checkpoint())?;
+    write_curves(&files, &history)?;
+    let mut info = info_for(train_seconds);
+    info.set("format", "mfusenet-weights/1");
+    info.set("variant", variant_name(config.views));
+    info.set("views", config.views.to_string());
+    info.set(
+        "input_order",
+        match config.views {
+            1 => "right",
+            2 => "left,right",
+            _ => "left,right,top,bottom",
+        },
+    );
+    info.set("disparities_trained", config.disparities.to_string());
+    info.set(
+        "input_normalisation",
+        "per neighbour: census 7x7 block-summed, SGM 8 paths; (S - min_d S) / (8 P2), steps of 1/32, max 255 steps; tensor = byte / 32",
+    );
+    info.set("input_spec", serde_json::to_string(&config.input).unwrap_or_default());
+    info.set("made_by", command);
+    info.set("steps", adam.step.to_string());
+    if let Some((avg, bad1)) = last_validation {
+        info.set("val_avg_err_px", format!("{avg:.4}"));
+        info.set("val_bad1_percent", format!("{bad1:.3}"));
+    }
+    weights::save(&net, &info, weights_out)?;
+    let summary = TrainSummary {
+        config: config.clone(),
+        steps_done: adam.step,
+        interrupted,
+        train_seconds,
+        dataset_seconds,
+        val_avg_err_px: last_validation.map(|v| v.0),
+        val_bad1_percent: last_validation.map(|v| v.1),
+        parameters: net.parameter_count(),
+        weights: weights_out.to_path_buf(),
+    };
+    let json = serde_json::to_string_pretty(&summary).map_err(|e| file_error(&files.summary(), e))?;
+    std::fs::write(files.summary(), json).map_err(|e| file_error(&files.summary(), e))?;
+    Ok(summary)
+}
+
+/// The registry name of a variant.
+pub fn variant_name(views: usize) -> &'static str {
+    match views {
+        1 => "mfusenet-stereo",
+        2 => "mfusenet-3view",
+        _ => "mfusenet-5view",
+    }
+}
+
+/// One row of `curves.csv`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct CurveRow {
+    step: u64,
+    loss: f32,
+    val_avg_err: Option<f64>,
+    val_bad1: Option<f64>,
+}
+
+fn read_curves(path: &Path, up_to: u64) -> Vec<CurveRow> {
+    let Ok(text) = std::fs::read_to_string(path) else {
+        return Vec::new();
+    };
+    text.lines()
+        .skip(1)
+        .filter_map(|line| {
+            let f: Vec<&str> = line.split(',').collect();
+            Some(CurveRow {
+                step: f.first()?.parse().ok()?,
+                loss: f.get(1)?.parse().ok()?,
+                val_avg_err: f.get(2).and_then(|v| v.parse().ok()),
+                val_bad1: f.get(3).and_then(|v| v.parse().ok()),
+            })
+        })
+        .filter(|r| r.step <= up_to)
+        .collect()
+}
+
+fn write_curves(files: &RunFiles, history: &[CurveRow]) -> Result<(), TrainError> {
+    let mut csv = String::from("step,loss,val_avg_err_px,val_bad1_percent\n");
+    let opt = |v: Option<f64>| v.map_or_else(String::new, |v| format!("{v:.5}"));
+    for r in history {
+        csv.push_str(&format!("{},{:.6},{},{}\n", r.step, r.loss, opt(r.val_avg_err), opt(r.val_bad1)));
+    }
+    let path = files.curves_csv();
+    std::fs::write(&path, csv).map_err(|e| file_error(&path, e))?;
+    // Mean loss over windows of 25 steps, and the validations.
+    let mut series: HashMap<&str, Vec<(i64, f64)>> = HashMap::new();
+    for chunk in history.chunks(25) {
+        if let Some(last) = chunk.last() {
+            let mean = chunk.iter().map(|r| f64::from(r.loss)).sum::<f64>() / chunk.len() as f64;
+            series.entry("train/loss").or_default().push((last.step as i64, mean));
+        }
+    }
+    for r in history {
+        if let (Some(avg), Some(bad1)) = (r.val_avg_err, r.val_bad1) {
+            series.entry("val/avg_err_px").or_default().push((r.step as i64, avg));
+            series.entry("val/bad1_percent").or_default().push((r.step as i64, bad1));
+        }
+    }
+    let mut series: Vec<(&str, Vec<(i64, f64)>)> = series.into_iter().collect();
+    series.sort_by(|a, b| a.0.cmp(b.0));
+    viz::stream::write_curves(&files.curves_rrd(), "mfusenet_training", &series)
+        .map_err(|e| file_error(&files.curves_rrd(), e))
+}
