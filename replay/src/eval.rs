@@ -33,11 +33,29 @@ pub struct EvalRow {
     pub seconds: f64,
 }
 
-/// The stereo method of a method's family.
+/// The stereo method of a method's family (from its registry entry).
 pub fn baseline_of(method: &str) -> Option<String> {
-    let (family, _) = method.split_once('-')?;
-    let baseline = format!("{family}-stereo");
-    (baseline != method).then_some(baseline)
+    fuse::methods::stereo_baseline_of(method).map(str::to_owned)
+}
+
+/// The configuration overrides of method `name`: `overrides` as given, plus `{"weights": FILE}`
+/// for the MFuseNet family when a weights file was given (other families have no weights).
+pub fn overrides_for(
+    name: &str,
+    overrides: Option<&serde_json::Value>,
+    weights: Option<&std::path::Path>,
+) -> Option<serde_json::Value> {
+    let learned = fuse::methods::entry(name).is_some_and(|e| e.family == fuse::methods::Family::MFuseNet);
+    match (weights, learned) {
+        (Some(path), true) => {
+            let mut merged = overrides
+                .and_then(|o| o.as_object().cloned())
+                .unwrap_or_default();
+            merged.insert("weights".to_owned(), serde_json::Value::String(path.display().to_string()));
+            Some(serde_json::Value::Object(merged))
+        }
+        _ => overrides.cloned(),
+    }
 }
 
 /// How methods are run during an evaluation.
@@ -51,6 +69,8 @@ pub struct EvalOptions {
     pub neighbours: Vec<String>,
     /// Resample each neighbour's costs by its real baseline ratio (from the poses).
     pub rectify: bool,
+    /// MFuseNet weights instead of the shipped ones.
+    pub weights: Option<std::path::PathBuf>,
 }
 
 /// Runs `methods` on every set with ground truth and tabulates the results.
@@ -62,7 +82,8 @@ pub fn evaluate_sets(
 ) -> Result<Vec<EvalRow>, ReplayError> {
     let mut rows = Vec::new();
     for name in methods {
-        let method = fuse::methods::build(name, options.overrides.as_ref())
+        let overrides = overrides_for(name, options.overrides.as_ref(), options.weights.as_deref());
+        let method = fuse::methods::build(name, overrides.as_ref())
             .map_err(|source| ReplayError::Fuse { set: 0, source })?;
         let mut scenes = Vec::new();
         let mut occluded = Vec::new();

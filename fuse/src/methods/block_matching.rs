@@ -6,7 +6,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::{Method, MethodEntry, Progress, apply_overrides};
+use super::{Family, Method, MethodEntry, Progress, apply_overrides};
 use crate::FuseError;
 use crate::cost::PixelCost;
 use crate::fusion::Fusion;
@@ -134,21 +134,25 @@ pub const ENTRIES: &[MethodEntry] = &[
     MethodEntry {
         name: "bm-stereo",
         summary: "block matching (Birchfield–Tomasi, 9×9), two-view stereo against the right view, winner-take-all",
+        family: Family::BlockMatching,
         build: |o| build("bm-stereo", Fusion::Stereo, o),
     },
     MethodEntry {
         name: "bm-mean",
         summary: "block matching (Birchfield–Tomasi, 9×9), mean of the neighbours' costs (c_ave)",
+        family: Family::BlockMatching,
         build: |o| build("bm-mean", Fusion::Mean, o),
     },
     MethodEntry {
         name: "bm-min",
         summary: "block matching (Birchfield–Tomasi, 9×9), minimum of the neighbours' costs (c_min)",
+        family: Family::BlockMatching,
         build: |o| build("bm-min", Fusion::Min, o),
     },
     MethodEntry {
         name: "bm-heuristic",
         summary: "block matching (Birchfield–Tomasi, 9×9), the paper's heuristic fusion (c_heu)",
+        family: Family::BlockMatching,
         build: |o| build("bm-heuristic", Fusion::Heuristic, o),
     },
 ];

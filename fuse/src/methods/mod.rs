@@ -3,6 +3,7 @@
 //! [`registry`].
 
 pub mod block_matching;
+pub mod mfusenet;
 pub mod sgm;
 
 use serde::Serialize;
@@ -28,12 +29,38 @@ pub trait Method: Send + Sync {
 /// Builds a method from its default configuration with optional JSON overrides.
 pub type BuildMethod = fn(Option<&serde_json::Value>) -> Result<Box<dyn Method>, FuseError>;
 
+/// The family of a method: methods of one family share their optimiser and differ in how the
+/// neighbours' costs are fused; each family has a two-view stereo member to compare with.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Family {
+    /// Block matching with winner-take-all.
+    BlockMatching,
+    /// Semi-global matching.
+    Sgm,
+    /// MFuseNet, the learned fusion.
+    MFuseNet,
+}
+
+impl Family {
+    /// The family's two-view stereo method.
+    pub fn stereo_method(self) -> &'static str {
+        match self {
+            Family::BlockMatching => "bm-stereo",
+            Family::Sgm => "sgm-stereo",
+            Family::MFuseNet => "mfusenet-stereo",
+        }
+    }
+}
+
 /// A registry entry.
 pub struct MethodEntry {
     /// Name used on the command line.
     pub name: &'static str,
     /// One line for `--list-methods`.
     pub summary: &'static str,
+    /// The method's family.
+    pub family: Family,
     /// Builds the method from its default configuration, with optional JSON overrides.
     pub build: BuildMethod,
 }
@@ -43,12 +70,24 @@ pub fn registry() -> Vec<&'static MethodEntry> {
     let mut entries = Vec::new();
     entries.extend(block_matching::ENTRIES);
     entries.extend(sgm::ENTRIES);
+    entries.extend(mfusenet::ENTRIES);
     entries
+}
+
+/// The registry entry of a method name.
+pub fn entry(name: &str) -> Option<&'static MethodEntry> {
+    registry().into_iter().find(|e| e.name == name)
+}
+
+/// The stereo method a method is compared with: its family's, unless it is that one.
+pub fn stereo_baseline_of(name: &str) -> Option<&'static str> {
+    let stereo = entry(name)?.family.stereo_method();
+    (stereo != name).then_some(stereo)
 }
 
 /// Builds a method by name.
 pub fn build(name: &str, overrides: Option<&serde_json::Value>) -> Result<Box<dyn Method>, FuseError> {
-    match registry().into_iter().find(|e| e.name == name) {
+    match entry(name) {
         Some(entry) => (entry.build)(overrides),
         None => Err(FuseError::UnknownMethod {
             name: name.to_owned(),
@@ -121,5 +160,9 @@ mod tests {
         assert!(matches!(build("nope", None), Err(FuseError::UnknownMethod { .. })));
         let overrides = serde_json::json!({"no_such_field": 1});
         assert!(build("bm-heuristic", Some(&overrides)).is_err());
+        assert_eq!(stereo_baseline_of("sgm-heuristic"), Some("sgm-stereo"));
+        assert_eq!(stereo_baseline_of("mfusenet"), Some("mfusenet-stereo"));
+        assert_eq!(stereo_baseline_of("bm-stereo"), None);
+        assert_eq!(stereo_baseline_of("nope"), None);
     }
 }

@@ -4,7 +4,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 
 use serde::{Deserialize, Serialize};
 
-use super::{Method, MethodEntry, Progress, apply_overrides};
+use super::{Family, Method, MethodEntry, Progress, apply_overrides};
 use crate::FuseError;
 use crate::cost::PixelCost;
 use crate::fusion::Fusion;
@@ -129,21 +129,25 @@ pub const ENTRIES: &[MethodEntry] = &[
     MethodEntry {
         name: "sgm-stereo",
         summary: "semi-global matching (census, 8 paths), two-view stereo against the right view",
+        family: Family::Sgm,
         build: |o| build("sgm-stereo", Fusion::Stereo, o),
     },
     MethodEntry {
         name: "sgm-mean",
         summary: "semi-global matching over the mean-fused cost volume",
+        family: Family::Sgm,
         build: |o| build("sgm-mean", Fusion::Mean, o),
     },
     MethodEntry {
         name: "sgm-min",
         summary: "semi-global matching over the min-fused cost volume",
+        family: Family::Sgm,
         build: |o| build("sgm-min", Fusion::Min, o),
     },
     MethodEntry {
         name: "sgm-heuristic",
         summary: "semi-global matching over the heuristic-fused cost volume (the best classical method)",
+        family: Family::Sgm,
         build: |o| build("sgm-heuristic", Fusion::Heuristic, o),
     },
 ];

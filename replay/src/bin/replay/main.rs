@@ -134,6 +134,9 @@ struct RunArgs {
     /// `connect [URL]` (default rerun+http://127.0.0.1:9876/proxy).
     #[arg(long, num_args = 1..=2, value_names = ["MODE", "ARG"])]
     rerun: Vec<String>,
+    /// MFuseNet weights (safetensors, e.g. from `replay train` or exported from PyTorch) instead of the shipped ones.
+    #[arg(long, value_name = "FILE")]
+    weights: Option<PathBuf>,
 }
 
 #[derive(Debug, Clone, Copy, ValueEnum)]
@@ -173,6 +176,9 @@ struct EvalArgs {
     /// Correct what the logged poses allow: de-rotate each neighbour (homography), resample its costs by its real baseline ratio.
     #[arg(long)]
     rectify: bool,
+    /// MFuseNet weights (safetensors) instead of the shipped ones.
+    #[arg(long, value_name = "FILE")]
+    weights: Option<PathBuf>,
 }
 
 fn main() -> ExitCode {
@@ -199,7 +205,11 @@ fn main() -> ExitCode {
 }
 
 /// The methods named by `--method`: one name, a comma-separated list, or `all`.
-fn methods_named(names: &str, overrides: Option<&serde_json::Value>) -> Result<Vec<Box<dyn fuse::methods::Method>>> {
+fn methods_named(
+    names: &str,
+    overrides: Option<&serde_json::Value>,
+    weights: Option<&Path>,
+) -> Result<Vec<Box<dyn fuse::methods::Method>>> {
     let names: Vec<&str> = if names == "all" {
         fuse::methods::registry().iter().map(|e| e.name).collect()
     } else {
@@ -210,7 +220,14 @@ fn methods_named(names: &str, overrides: Option<&serde_json::Value>) -> Result<V
     }
     names
         .into_iter()
-        .map(|name| fuse::methods::build(name, overrides).map_err(|e| UsageError(e.to_string()).into()))
+        .map(|name| {
+            let overrides = replay::eval::overrides_for(name, overrides, weights);
+            fuse::methods::build(name, overrides.as_ref()).map_err(|e| match e {
+                // A bad weights file is not a usage error: say which file and tensor, exit 1.
+                fuse::FuseError::MFuseNet(_) => anyhow::Error::new(e),
+                e => UsageError(e.to_string()).into(),
+            })
+        })
         .collect()
 }
 
@@ -240,7 +257,7 @@ fn run_method(args: &RunArgs, quiet: bool) -> Result<Outcome> {
         ),
         None => None,
     };
-    let methods = methods_named(&args.method, overrides.as_ref())?;
+    let methods = methods_named(&args.method, overrides.as_ref(), args.weights.as_deref())?;
     if !args.rerun.is_empty() {
         ViewerSink::parse(&args.rerun).map_err(|e| UsageError(e.to_string()))?;
     }
@@ -533,6 +550,7 @@ fn run_demo(args: &DemoArgs, quiet: bool) -> Result<Outcome> {
             neighbours: Vec::new(),
             rectify: true,
             out_mcap: None,
+            weights: None,
             rerun: if args.rerun.is_empty() {
                 vec!["save".to_owned(), args.out.join("demo.rrd").display().to_string()]
             } else {
@@ -590,6 +608,7 @@ fn run_eval(args: &EvalArgs) -> Result<Outcome> {
         overrides,
         neighbours: args.neighbours.clone(),
         rectify: args.rectify,
+        weights: args.weights.clone(),
     };
     let rows = evaluate_sets(&sets, &args.methods, &options, |method, scene| {
         progress.set_message(format!("{method} on {scene}"));
