@@ -99,7 +99,7 @@ pub fn python_with_mcap() -> PathBuf {
     let found = PYTHON.get_or_init(|| {
         let has_clients = |python: &Path| {
             Command::new(python)
-                .args(["-c", "import mcap, mcap_protobuf, rerun"])
+                .args(["-c", "import mcap, mcap_protobuf, rerun, safetensors, numpy"])
                 .output()
                 .is_ok_and(|o| o.status.success())
         };
@@ -108,7 +108,7 @@ pub fn python_with_mcap() -> PathBuf {
                 Ok(explicit)
             } else {
                 Err(format!(
-                    "MULTISCOPIC_PYTHON={} cannot import mcap, mcap_protobuf and rerun",
+                    "MULTISCOPIC_PYTHON={} cannot import mcap, mcap_protobuf, rerun, safetensors and numpy",
                     explicit.display()
                 ))
             };

@@ -1,6 +1,7 @@
 //! Evaluation of methods over many view sets: the paper's table (RMS, AvgErr, Bad0.5, Bad1,
 //! Bad2 over pixels with known ground truth, averaged per scene) and the change against the
-//! stereo method of the same family (`bm-*` against `bm-stereo`, `sgm-*` against `sgm-stereo`).
+//! stereo method of the same family (`bm-*` against `bm-stereo`, `sgm-*` against `sgm-stereo`,
+//! `mfusenet` against `mfusenet-stereo`; the family is on the method's registry entry).
 
 use std::time::Instant;
 
@@ -8,6 +9,7 @@ use fuse::metrics::{Metrics, average};
 use serde::Serialize;
 
 use crate::ReplayError;
+use crate::pipeline::{PreparedSet, RunOptions};
 use crate::viewset::ViewSet;
 
 /// One method's row of the table.
@@ -38,26 +40,6 @@ pub fn baseline_of(method: &str) -> Option<String> {
     fuse::methods::stereo_baseline_of(method).map(str::to_owned)
 }
 
-/// The configuration overrides of method `name`: `overrides` as given, plus `{"weights": FILE}`
-/// for the MFuseNet family when a weights file was given (other families have no weights).
-pub fn overrides_for(
-    name: &str,
-    overrides: Option<&serde_json::Value>,
-    weights: Option<&std::path::Path>,
-) -> Option<serde_json::Value> {
-    let learned = fuse::methods::entry(name).is_some_and(|e| e.family == fuse::methods::Family::MFuseNet);
-    match (weights, learned) {
-        (Some(path), true) => {
-            let mut merged = overrides
-                .and_then(|o| o.as_object().cloned())
-                .unwrap_or_default();
-            merged.insert("weights".to_owned(), serde_json::Value::String(path.display().to_string()));
-            Some(serde_json::Value::Object(merged))
-        }
-        _ => overrides.cloned(),
-    }
-}
-
 /// How methods are run during an evaluation.
 #[derive(Debug, Clone, Default)]
 pub struct EvalOptions {
@@ -82,7 +64,7 @@ pub fn evaluate_sets(
 ) -> Result<Vec<EvalRow>, ReplayError> {
     let mut rows = Vec::new();
     for name in methods {
-        let overrides = overrides_for(name, options.overrides.as_ref(), options.weights.as_deref());
+        let overrides = crate::pipeline::overrides_for(name, options.overrides.as_ref(), options.weights.as_deref());
         let method = fuse::methods::build(name, overrides.as_ref())
             .map_err(|source| ReplayError::Fuse { set: 0, source })?;
         let mut scenes = Vec::new();
@@ -94,14 +76,16 @@ pub fn evaluate_sets(
                 continue;
             }
             on_progress(name, &set.name);
-            let nd = options.num_disparities.unwrap_or_else(|| set.default_num_disparities());
-            let problem = set
-                .with_neighbours(&options.neighbours)?
-                .problem(0, nd, options.rectify)?;
-            let disparity = method
-                .run(&problem, &|_| {})
-                .map_err(|source| ReplayError::Fuse { set: set.index, source })?;
-            if let Some(metrics) = set.region_metrics(&disparity.data, nd as f64) {
+            let prepared = PreparedSet::new(
+                set,
+                &RunOptions {
+                    num_disparities: options.num_disparities,
+                    min_disparity: 0,
+                    neighbours: options.neighbours.clone(),
+                    rectify: options.rectify,
+                },
+            )?;
+            if let Some(metrics) = prepared.run(method.as_ref(), &|_| {})?.regions {
                 scenes.push((set.name.clone(), metrics.all));
                 occluded.extend(metrics.occluded);
                 specular.extend(metrics.specular);

@@ -14,6 +14,7 @@ pub mod eval;
 pub mod foreign;
 pub mod log;
 pub mod outputs;
+pub mod pipeline;
 pub mod regions;
 pub mod train;
 pub mod viewer;

@@ -13,7 +13,10 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use fuse::mfusenet::input::{InputSpec, input_volumes, ordered_neighbours};
-use fuse::mfusenet::train::{Adam, Example, crop, load_checkpoint, save_checkpoint};
+use fuse::mfusenet::network::BatchNormMode;
+use fuse::mfusenet::train::{
+    Adam, Example, clip_gradients, crop, load_checkpoint, recalibrate_batch_norm, save_checkpoint,
+};
 use fuse::mfusenet::{Network, WeightsInfo, weights};
 use fuse::nn::regression::soft_argmin;
 use fuse::volume::{CostVolume, VolumeSource};
@@ -120,7 +123,7 @@ impl Default for TrainConfig {
             steps: 3000,
             crop: 64,
             disparities: 32,
-            learning_rate: 1e-3,
+            learning_rate: 5e-4,
             seed: 1,
             train_sets: 40,
             val_sets: 6,
@@ -379,7 +382,7 @@ fn read_sample(bytes: &[u8], disparities: usize) -> Option<Sample> {
 
 /// Validation crops: the centre `side × side` (largest multiple of 4 that fits, at most 160)
 /// of every validation sample.
-fn validation_examples(samples: &[Sample], views: usize, disparities: usize) -> Vec<Example> {
+pub fn validation_examples(samples: &[Sample], views: usize, disparities: usize) -> Vec<Example> {
     samples
         .iter()
         .map(|s| {
@@ -500,12 +503,26 @@ pub fn train(
         }
     }
     let dataset_seconds = dataset_started.elapsed().as_secs_f64();
+    if train_samples.len() < config.train_sets || val_samples.len() < config.val_sets {
+        return Err(TrainError::Config {
+            field: "dataset",
+            value: format!("{} of {total} captures", train_samples.len() + val_samples.len()),
+            reason: "interrupted before the dataset was complete (the captures made so far are cached)",
+        });
+    }
     let val_examples = validation_examples(&val_samples, config.views, config.disparities);
     let (wta_avg, wta_bad1) = winner_take_all_reference(&val_examples);
     tracing::info!(
         "validation crops: winner-take-all of the mean input volume gives AvgErr {wta_avg:.3} px, Bad1 {wta_bad1:.2} % (the network must do better)"
     );
 
+    // BatchNorm statistics: batch statistics of a few dozen fixed crops, re-estimated every
+    // `RECALIBRATE_EVERY` steps in the first half of the run and frozen in between and after
+    // (see `BatchNorm::forward_frozen`): one crop per step is far too small a batch for them.
+    let mut calibration_rng = Rng(config.seed ^ 0x5EED_CA1B);
+    let calibration: Vec<Example> = (0..CALIBRATION_CROPS)
+        .map(|_| random_crop(config, &train_samples, &mut calibration_rng))
+        .collect();
     // Resume or start.
     let (mut net, mut adam, mut history, mut train_seconds) = match load_checkpoint(&files.checkpoint(), config.views) {
         Ok((net, adam, info)) if info.get("train_config") == Some(&serde_json::to_string(config).unwrap_or_default()) => {
@@ -515,6 +532,7 @@ pub fn train(
         }
         _ => {
             let mut net = Network::init(config.views, config.seed);
+            recalibrate_batch_norm(&mut net, &calibration)?;
             let adam = Adam::new(&mut net, config.learning_rate);
             (net, adam, Vec::new(), 0.0)
         }
@@ -542,23 +560,13 @@ pub fn train(
             config.learning_rate
         };
         let mut rng = Rng((config.seed ^ 0x9E37_79B9_7F4A_7C15).wrapping_add(step.wrapping_mul(0xD1B5_4A32_D192_ED03)));
-        // A crop with enough ground truth (a few tries).
-        let mut example = None;
-        for _ in 0..8 {
-            let s = &train_samples[rng.below(train_samples.len())];
-            let (w, h) = (s.volumes[0].width, s.volumes[0].height);
-            let (y0, x0) = (rng.below(h - config.crop + 1), rng.below(w - config.crop + 1));
-            let e = crop(&s.for_views(config.views), &s.truth, (y0, x0), (config.crop, config.crop), config.disparities);
-            if e.mask.iter().filter(|m| **m).count() * 2 > e.mask.len() {
-                example = Some(e);
-                break;
-            }
+        let example = random_crop(config, &train_samples, &mut rng);
+        if step > 0 && step % RECALIBRATE_EVERY == 0 && step <= config.steps / 2 {
+            recalibrate_batch_norm(&mut net, &calibration)?;
         }
-        let Some(example) = example else {
-            adam.step += 1;
-            continue;
-        };
-        let (loss, _, gradients) = net.loss_and_gradients(&example.inputs, &example.target, &example.mask)?;
+        let (loss, _, mut gradients) =
+            net.loss_and_gradients_with(&example.inputs, &example.target, &example.mask, BatchNormMode::Frozen)?;
+        clip_gradients(&mut gradients, MAX_GRADIENT_NORM);
         adam.update(&mut net, &gradients);
         recent.insert(0, loss);
         recent.truncate(50);
@@ -632,6 +640,35 @@ pub fn train(
     let json = serde_json::to_string_pretty(&summary).map_err(|e| file_error(&files.summary(), e))?;
     std::fs::write(files.summary(), json).map_err(|e| file_error(&files.summary(), e))?;
     Ok(summary)
+}
+
+/// Crops whose batch statistics set the BatchNorms.
+const CALIBRATION_CROPS: usize = 32;
+/// Steps between re-estimations of the BatchNorm statistics (first half of the run).
+const RECALIBRATE_EVERY: u64 = 250;
+/// Largest global gradient norm (larger ones are scaled down).
+const MAX_GRADIENT_NORM: f32 = 1.0;
+
+/// A random training crop with ground truth on at least half its pixels (the last of a few
+/// tries otherwise).
+fn random_crop(config: &TrainConfig, samples: &[Sample], rng: &mut Rng) -> Example {
+    let mut example = None;
+    for _ in 0..8 {
+        let s = &samples[rng.below(samples.len())];
+        let (w, h) = (s.volumes[0].width, s.volumes[0].height);
+        let (y0, x0) = (rng.below(h - config.crop + 1), rng.below(w - config.crop + 1));
+        let e = crop(&s.for_views(config.views), &s.truth, (y0, x0), (config.crop, config.crop), config.disparities);
+        let enough = e.mask.iter().filter(|m| **m).count() * 2 > e.mask.len();
+        example = Some(e);
+        if enough {
+            break;
+        }
+    }
+    example.unwrap_or_else(|| Example {
+        inputs: Vec::new(),
+        target: Vec::new(),
+        mask: Vec::new(),
+    })
 }
 
 /// The registry name of a variant.

@@ -25,6 +25,16 @@ use crate::nn::conv::{
 };
 use crate::nn::regression::{smooth_l1, soft_argmin, soft_argmin_backward};
 
+/// How the BatchNorms behave in a training pass.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum BatchNormMode {
+    /// PyTorch's train mode: batch statistics, running statistics updated.
+    #[default]
+    Batch,
+    /// Running statistics, frozen (see [`BatchNorm::forward_frozen`]); only γ and β learn.
+    Frozen,
+}
+
 /// How a convolution samples its input.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum ConvKind {
@@ -65,6 +75,8 @@ pub struct ConvBnCache {
     /// Spatial size of the layer's real input.
     input_spatial: [usize; 3],
     bn: BatchNormCache,
+    /// Which BatchNorm pass made it.
+    mode: BatchNormMode,
     /// The output after the ReLU (its sign is the ReLU's mask).
     output: Tensor,
 }
@@ -146,16 +158,21 @@ impl ConvBn {
         self.sample(conv3d_same(&input, &weight, self.cout, self.k, Some(&bias))).relu()
     }
 
-    /// Train mode: `ReLU(BN(conv(x)))` with batch statistics (running statistics updated).
-    pub fn forward_train(&mut self, x: &Tensor) -> (Tensor, ConvBnCache) {
+    /// Train mode: `ReLU(BN(conv(x)))` with batch statistics (running statistics updated) or
+    /// frozen ones.
+    pub fn forward_train(&mut self, x: &Tensor, mode: BatchNormMode) -> (Tensor, ConvBnCache) {
         let input = self.conv_input(x);
         let z = self.sample(conv3d_same(&input, &self.conv_weight(), self.cout, self.k, None));
-        let (y, bn) = self.bn.forward_train(z);
+        let (y, bn) = match mode {
+            BatchNormMode::Batch => self.bn.forward_train(z),
+            BatchNormMode::Frozen => self.bn.forward_frozen(z),
+        };
         let output = y.relu();
         let cache = ConvBnCache {
             input,
             input_spatial: [x.shape[1], x.shape[2], x.shape[3]],
             bn,
+            mode,
             output: output.clone(),
         };
         (output, cache)
@@ -170,7 +187,10 @@ impl ConvBn {
                 *v = 0.0;
             }
         }
-        let (gz, bn_grad) = self.bn.backward(&g, &cache.bn);
+        let (gz, bn_grad) = match cache.mode {
+            BatchNormMode::Batch => self.bn.backward(&g, &cache.bn),
+            BatchNormMode::Frozen => self.bn.backward_frozen(&g, &cache.bn),
+        };
         let gz = match self.kind {
             ConvKind::Down => gz.upsample2_zeros(cache.input_spatial),
             _ => gz,
@@ -399,6 +419,11 @@ impl Network {
     /// once per view in the shared feature tower as in the reference) and the tape for
     /// [`Network::backward`].
     pub fn forward_train(&mut self, inputs: &[Tensor]) -> Result<Tape, Error> {
+        self.forward_train_with(inputs, BatchNormMode::Batch)
+    }
+
+    /// [`Network::forward_train`] with the BatchNorms in `mode`.
+    pub fn forward_train_with(&mut self, inputs: &[Tensor], mode: BatchNormMode) -> Result<Tape, Error> {
         self.check_inputs(inputs)?;
         let mut feature_caches = Vec::new();
         let mut features = Vec::new();
@@ -406,7 +431,7 @@ impl Network {
             let mut caches = Vec::new();
             let mut y = x.clone();
             for layer in &mut self.feature {
-                let (out, cache) = layer.forward_train(&y);
+                let (out, cache) = layer.forward_train(&y, mode);
                 caches.push(cache);
                 y = out;
             }
@@ -415,7 +440,7 @@ impl Network {
         }
         let mut caches = Vec::new();
         let mut step = |net: &mut Self, index: usize, x: &Tensor| {
-            let (y, cache) = net.fuse[index].forward_train(x);
+            let (y, cache) = net.fuse[index].forward_train(x, mode);
             caches.push(cache);
             y
         };
@@ -513,7 +538,18 @@ impl Network {
         target: &[f32],
         mask: &[bool],
     ) -> Result<(f32, Vec<f32>, Gradients), Error> {
-        let tape = self.forward_train(inputs)?;
+        self.loss_and_gradients_with(inputs, target, mask, BatchNormMode::Batch)
+    }
+
+    /// [`Network::loss_and_gradients`] with the BatchNorms in `mode`.
+    pub fn loss_and_gradients_with(
+        &mut self,
+        inputs: &[Tensor],
+        target: &[f32],
+        mask: &[bool],
+        mode: BatchNormMode,
+    ) -> Result<(f32, Vec<f32>, Gradients), Error> {
+        let tape = self.forward_train_with(inputs, mode)?;
         let (loss, grad) = smooth_l1(&tape.disparity, target, mask);
         let gradients = self.backward(&tape, &grad);
         Ok((loss, tape.disparity, gradients))
@@ -541,5 +577,92 @@ impl SplitMix {
     pub(crate) fn uniform(&mut self, lo: f32, hi: f32) -> f32 {
         let unit = (self.next_u64() >> 40) as f32 / (1u64 << 24) as f32;
         lo + (hi - lo) * unit
+    }
+}
+
+#[cfg(test)]
+mod layer_tests {
+    use super::*;
+    use crate::nn::conv::tests::{random, random_values};
+
+    #[test]
+    fn conv_bn_layers_match_finite_differences_in_both_modes() {
+        for mode in [BatchNormMode::Frozen, BatchNormMode::Batch] {
+            for (kind, k, shape) in [
+                (ConvKind::Same, 3, [4, 4, 6, 6]),
+                (ConvKind::Down, 3, [4, 4, 6, 6]),
+                (ConvKind::Up, 3, [4, 2, 3, 3]),
+            ] {
+                let mut layer = ConvBn::new("l", 4, 4, k, kind);
+                layer.weight = random_values(layer.weight.len(), 3);
+                layer.bn.running_mean = vec![0.1, -0.2, 0.0, 0.3];
+                layer.bn.running_var = vec![0.5, 1.5, 0.8, 1.1];
+                layer.bn.weight = vec![1.2, 0.7, -0.9, 1.0];
+                layer.bn.bias = vec![0.1, 0.2, -0.1, 0.05];
+                let x = random(shape, 4);
+                let (y, cache) = layer.clone().forward_train(&x, mode);
+                let u = random(y.shape, 5);
+                let value = |l: &ConvBn, x: &Tensor| -> f64 {
+                    let (y, _) = l.clone().forward_train(x, mode);
+                    y.data.iter().zip(&u.data).map(|(a, b)| f64::from(*a) * f64::from(*b)).sum()
+                };
+                let (dx, grad) = layer.backward(&u, &cache, true);
+                let dx = dx.unwrap_or_else(|| Tensor::zeros([0; 4]));
+                let h = 1e-3f32;
+                for c in 0..4 {
+                    let (mut p, mut m) = (layer.clone(), layer.clone());
+                    p.bn.bias[c] += h;
+                    m.bn.bias[c] -= h;
+                    let numeric = (value(&p, &x) - value(&m, &x)) / (2.0 * f64::from(h));
+                    assert!((numeric - f64::from(grad.bn_bias[c])).abs() < 1e-2 * (1.0 + numeric.abs()), "{mode:?} {kind:?} dβ[{c}] {} vs {numeric}", grad.bn_bias[c]);
+                }
+                for i in [0, 5, 17, 40] {
+                    let (mut p, mut m) = (x.clone(), x.clone());
+                    p.data[i] += h;
+                    m.data[i] -= h;
+                    let numeric = (value(&layer, &p) - value(&layer, &m)) / (2.0 * f64::from(h));
+                    assert!((numeric - f64::from(dx.data[i])).abs() < 1e-2 * (1.0 + numeric.abs()), "{mode:?} {kind:?} dx[{i}] {} vs {numeric}", dx.data[i]);
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod mode_tests {
+    use super::*;
+    use crate::nn::conv::tests::random;
+
+    /// With the running statistics set to this batch's own, frozen mode computes the batch-mode
+    /// forward pass, and the last BatchNorm's β gradient (nothing normalises after it) is the same.
+    #[test]
+    fn frozen_mode_equals_batch_mode_at_the_batch_statistics() {
+        let mut net = Network::init(1, 11);
+        let inputs = vec![random([1, 8, 8, 8], 1)];
+        let target: Vec<f32> = (0..64).map(|i| (i % 8) as f32 * 0.9).collect();
+        let mask: Vec<bool> = (0..64).map(|i| i % 5 != 0).collect();
+        let mut stats = net.clone();
+        for layer in stats.layers_mut() {
+            layer.bn.momentum = Some(1.0);
+        }
+        let batch = stats.clone().forward_train(&inputs).unwrap_or_else(|e| panic!("{e}"));
+        let _ = stats.forward_train(&inputs);
+        let sizes = [512, 512, 512, 512, 512, 64, 64, 8, 8, 8, 64, 64, 512, 512, 512];
+        for ((layer, fitted), n) in net.layers_mut().zip(stats.layers()).zip(sizes) {
+            layer.bn.running_mean = fitted.bn.running_mean.clone();
+            layer.bn.running_var = fitted.bn.running_var.iter().map(|v| v * (n - 1) as f32 / n as f32).collect();
+        }
+        let frozen = net.clone().forward_train_with(&inputs, BatchNormMode::Frozen).unwrap_or_else(|e| panic!("{e}"));
+        let worst = batch.disparity.iter().zip(&frozen.disparity).map(|(a, b)| (a - b).abs()).fold(0f32, f32::max);
+        assert!(worst < 1e-3, "forward differs by {worst}");
+        let (_, _, gb) = net.clone().loss_and_gradients_with(&inputs, &target, &mask, BatchNormMode::Batch).unwrap_or_else(|e| panic!("{e}"));
+        let (_, _, gf) = net.clone().loss_and_gradients_with(&inputs, &target, &mask, BatchNormMode::Frozen).unwrap_or_else(|e| panic!("{e}"));
+        for name in ["distill1.1.bias", "distill1.1.weight", "classify.weight"] {
+            let b = &gb.tensors.iter().find(|(n, _)| n == name).unwrap_or_else(|| panic!("{name}")).1;
+            let f = &gf.tensors.iter().find(|(n, _)| n == name).unwrap_or_else(|| panic!("{name}")).1;
+            let scale = b.iter().fold(0f32, |m, v| m.max(v.abs()));
+            let worst = b.iter().zip(f).map(|(x, y)| (x - y).abs()).fold(0f32, f32::max);
+            assert!(scale > 1e-4 && worst <= 1e-3 * scale, "{name}: worst {worst} of {scale}");
+        }
     }
 }

@@ -67,6 +67,56 @@ pub fn crop(
     Example { inputs, target, mask }
 }
 
+/// Re-estimates every BatchNorm's running statistics as the plain average of the batch
+/// statistics over `examples` in train mode (PyTorch's `momentum=None` after resetting the
+/// counts), instead of the exponential average of the last training steps: the eval-mode network
+/// then normalises with the population statistics. Weights are unchanged.
+pub fn recalibrate_batch_norm<'a>(
+    net: &mut Network,
+    examples: impl IntoIterator<Item = &'a Example>,
+) -> Result<usize, Error> {
+    let saved: Vec<(i64, Option<f32>)> = net.layers().map(|l| (l.bn.num_batches_tracked, l.bn.momentum)).collect();
+    for layer in net.layers_mut() {
+        layer.bn.num_batches_tracked = 0;
+        layer.bn.momentum = None;
+    }
+    let mut passes = 0;
+    let mut outcome = Ok(());
+    for example in examples {
+        if let Err(e) = net.forward_train(&example.inputs) {
+            outcome = Err(e);
+            break;
+        }
+        passes += 1;
+    }
+    for (layer, (count, momentum)) in net.layers_mut().zip(saved) {
+        layer.bn.num_batches_tracked = count + layer.bn.num_batches_tracked;
+        layer.bn.momentum = momentum;
+    }
+    outcome.map(|()| passes)
+}
+
+/// Scales the gradients so that their global L2 norm is at most `max_norm`; returns the norm
+/// before scaling.
+pub fn clip_gradients(gradients: &mut Gradients, max_norm: f32) -> f32 {
+    let norm = gradients
+        .tensors
+        .iter()
+        .flat_map(|(_, g)| g.iter())
+        .map(|v| f64::from(*v) * f64::from(*v))
+        .sum::<f64>()
+        .sqrt() as f32;
+    if norm > max_norm && norm.is_finite() {
+        let scale = max_norm / norm;
+        for (_, g) in &mut gradients.tensors {
+            for v in g.iter_mut() {
+                *v *= scale;
+            }
+        }
+    }
+    norm
+}
+
 /// Adam (Kingma & Ba) with PyTorch's defaults (β = 0.9, 0.999, ε = 1e-8), no weight decay.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Adam {

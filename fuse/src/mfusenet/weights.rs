@@ -185,6 +185,7 @@ pub fn from_bytes(bytes: &[u8], file: &str, prefix: &str, views: Option<usize>) 
         layer.bn.running_mean = take(format!("{n}.1.running_mean"));
         layer.bn.running_var = take(format!("{n}.1.running_var"));
         layer.bn.num_batches_tracked = batches.get(&format!("{n}.1.num_batches_tracked")).copied().unwrap_or(0);
+        layer.bn.momentum = Some(crate::nn::batch_norm::MOMENTUM);
     }
     net.classify.weight = take("classify.weight".to_owned());
     net.classify.bias = take("classify.bias".to_owned());
@@ -257,4 +258,102 @@ pub fn save(net: &Network, info: &WeightsInfo, path: &Path) -> Result<(), Error>
     let temporary = path.with_extension("safetensors.partial");
     std::fs::write(&temporary, bytes).map_err(io)?;
     std::fs::rename(&temporary, path).map_err(io)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn saved(net: &Network) -> Vec<u8> {
+        to_bytes(net, &WeightsInfo::default()).unwrap_or_else(|e| panic!("{e}"))
+    }
+
+    /// Rebuilds a file from its tensors with one of them changed (`None` drops it).
+    fn edited(bytes: &[u8], name: &str, change: Option<(Dtype, Vec<usize>, Vec<u8>)>) -> Vec<u8> {
+        let tensors = SafeTensors::deserialize(bytes).unwrap_or_else(|e| panic!("{e}"));
+        let mut owned: Vec<(String, Dtype, Vec<usize>, Vec<u8>)> = tensors
+            .tensors()
+            .into_iter()
+            .map(|(n, v)| (n, v.dtype(), v.shape().to_vec(), v.data().to_vec()))
+            .collect();
+        owned.retain(|(n, ..)| n != name);
+        if let Some((dtype, shape, data)) = change {
+            owned.push((name.to_owned(), dtype, shape, data));
+        }
+        let views: Vec<(String, TensorView<'_>)> = owned
+            .iter()
+            .map(|(n, d, s, b)| (n.clone(), TensorView::new(*d, s.clone(), b).unwrap_or_else(|e| panic!("{e}"))))
+            .collect();
+        safetensors::serialize(views, None).unwrap_or_else(|e| panic!("{e}"))
+    }
+
+    #[test]
+    fn bad_weight_files_are_errors_naming_file_and_tensor() {
+        let net = Network::init(2, 5);
+        let good = saved(&net);
+        let (again, _) = from_bytes(&good, "w.safetensors", "", Some(2)).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(again, net);
+
+        // Truncated.
+        let error = from_bytes(&good[..good.len() / 2], "w.safetensors", "", None).err();
+        assert!(matches!(&error, Some(Error::Format { file, .. }) if file == "w.safetensors"), "{error:?}");
+        assert!(from_bytes(b"not a file", "x", "", None).is_err());
+        // Wrong variant.
+        let error = from_bytes(&good, "w.safetensors", "", Some(4)).err();
+        assert_eq!(
+            error,
+            Some(Error::Variant {
+                file: "w.safetensors".into(),
+                expected: 4,
+                got: 2
+            })
+        );
+        // Missing tensor.
+        let error = from_bytes(&edited(&good, "down1.1.running_var", None), "w", "", None).err();
+        assert!(matches!(&error, Some(Error::MissingTensor { tensor, .. }) if tensor == "down1.1.running_var"), "{error:?}");
+        // Wrong shape.
+        let wrong = Some((Dtype::F32, vec![4, 4, 3, 3], vec![0u8; 4 * 4 * 9 * 4]));
+        let error = from_bytes(&edited(&good, "dconv1.0.weight", wrong), "w", "", None).err();
+        assert!(matches!(&error, Some(Error::TensorShape { tensor, .. }) if tensor == "dconv1.0.weight"), "{error:?}");
+        // NaN.
+        let mut nan = vec![0u8; 16];
+        nan[4..8].copy_from_slice(&f32::NAN.to_le_bytes());
+        let error = from_bytes(&edited(&good, "up2.1.bias", Some((Dtype::F32, vec![4], nan))), "w", "", None).err();
+        assert_eq!(
+            error,
+            Some(Error::NonFinite {
+                file: "w".into(),
+                tensor: "up2.1.bias".into(),
+                index: 1
+            })
+        );
+        // Wrong type.
+        let error = from_bytes(&edited(&good, "up2.1.bias", Some((Dtype::I32, vec![4], vec![0; 16]))), "w", "", None).err();
+        assert!(matches!(&error, Some(Error::TensorDtype { tensor, .. }) if tensor == "up2.1.bias"), "{error:?}");
+        // A tensor that is not the model's.
+        let error = from_bytes(&edited(&good, "extra", Some((Dtype::F32, vec![1], vec![0; 4]))), "w", "", None).err();
+        assert!(matches!(&error, Some(Error::UnexpectedTensor { tensor, .. }) if tensor == "extra"), "{error:?}");
+        // A missing file names it.
+        let error = load(Path::new("/nonexistent/w.safetensors"), None).err();
+        assert!(matches!(&error, Some(Error::Read { file, .. }) if file == "/nonexistent/w.safetensors"), "{error:?}");
+        // The messages carry the evidence.
+        let message = Error::NonFinite {
+            file: "w".into(),
+            tensor: "up2.1.bias".into(),
+            index: 1,
+        }
+        .to_string();
+        assert!(message.contains("w") && message.contains("up2.1.bias"), "{message}");
+    }
+
+    #[test]
+    fn shipped_weights_load_with_their_metadata() {
+        for (views, file) in [(1, "mfusenet-stereo"), (2, "mfusenet-3view"), (4, "mfusenet-5view")] {
+            let path = Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("weights/{file}.safetensors"));
+            let (net, info) = load(&path, Some(views)).unwrap_or_else(|e| panic!("{e}"));
+            assert_eq!(net.views, views);
+            assert_eq!(info.get("views"), Some(views.to_string().as_str()), "{file}");
+            assert!(info.get("made_by").is_some() && info.get("input_normalisation").is_some(), "{file}");
+        }
+    }
 }

@@ -23,6 +23,10 @@ pub struct BatchNorm {
     pub running_var: Vec<f32>,
     /// Train-mode passes seen.
     pub num_batches_tracked: i64,
+    /// Weight of a batch's statistics in the running ones; `None` = the cumulative average of
+    /// every batch since `num_batches_tracked` was 0 (PyTorch's `momentum=None`, used to
+    /// recalibrate the statistics of a trained network).
+    pub momentum: Option<f32>,
 }
 
 /// What the backward pass of a train-mode BatchNorm needs.
@@ -52,6 +56,7 @@ impl BatchNorm {
             running_mean: vec![0.0; channels],
             running_var: vec![1.0; channels],
             num_batches_tracked: 0,
+            momentum: Some(MOMENTUM),
         }
     }
 
@@ -67,6 +72,8 @@ impl BatchNorm {
         let mut normalised = x;
         let mut inv_std = Vec::with_capacity(self.channels());
         let mut out = Tensor::zeros(normalised.shape);
+        self.num_batches_tracked += 1;
+        let momentum = self.momentum.unwrap_or(1.0 / self.num_batches_tracked as f32);
         for c in 0..self.channels() {
             let values = &mut normalised.data[c * n..(c + 1) * n];
             let mean = values.iter().map(|v| f64::from(*v)).sum::<f64>() / n as f64;
@@ -79,11 +86,59 @@ impl BatchNorm {
             }
             inv_std.push(inv as f32);
             let unbiased = if n > 1 { var * n as f64 / (n - 1) as f64 } else { var };
-            self.running_mean[c] = (1.0 - MOMENTUM) * self.running_mean[c] + MOMENTUM * mean as f32;
-            self.running_var[c] = (1.0 - MOMENTUM) * self.running_var[c] + MOMENTUM * unbiased as f32;
+            self.running_mean[c] = (1.0 - momentum) * self.running_mean[c] + momentum * mean as f32;
+            self.running_var[c] = (1.0 - momentum) * self.running_var[c] + momentum * unbiased as f32;
         }
-        self.num_batches_tracked += 1;
         (out, BatchNormCache { normalised, inv_std })
+    }
+
+    /// Training with frozen statistics: normalises with the running statistics (as in eval
+    /// mode) and leaves them unchanged; only γ and β learn. With batches as small as a CPU
+    /// affords (one crop), batch statistics swing from crop to crop and a network trained on
+    /// them fails with the running ones at inference; frozen statistics make training and
+    /// inference compute the same function.
+    pub fn forward_frozen(&self, x: Tensor) -> (Tensor, BatchNormCache) {
+        let n = x.channel_len();
+        let mut normalised = x;
+        let mut out = Tensor::zeros(normalised.shape);
+        let mut inv_std = Vec::with_capacity(self.channels());
+        for c in 0..self.channels() {
+            let inv = 1.0 / (self.running_var[c] + EPS).sqrt();
+            let (mean, g, b) = (self.running_mean[c], self.weight[c], self.bias[c]);
+            for (v, o) in normalised.data[c * n..(c + 1) * n]
+                .iter_mut()
+                .zip(&mut out.data[c * n..(c + 1) * n])
+            {
+                *v = (*v - mean) * inv;
+                *o = *v * g + b;
+            }
+            inv_std.push(inv);
+        }
+        (out, BatchNormCache { normalised, inv_std })
+    }
+
+    /// Backward of [`BatchNorm::forward_frozen`]: `∂x = γ/σ · ∂y` and the γ, β gradients.
+    pub fn backward_frozen(&self, grad: &Tensor, cache: &BatchNormCache) -> (Tensor, BatchNormGrad) {
+        let n = grad.channel_len();
+        let mut input_grad = Tensor::zeros(grad.shape);
+        let (mut dweight, mut dbias) = (Vec::new(), Vec::new());
+        for c in 0..self.channels() {
+            let g = grad.channel(c);
+            let xhat = cache.normalised.channel(c);
+            dbias.push(g.iter().map(|v| f64::from(*v)).sum::<f64>() as f32);
+            dweight.push(g.iter().zip(xhat).map(|(a, b)| f64::from(*a) * f64::from(*b)).sum::<f64>() as f32);
+            let scale = self.weight[c] * cache.inv_std[c];
+            for (out, gv) in input_grad.data[c * n..(c + 1) * n].iter_mut().zip(g) {
+                *out = scale * gv;
+            }
+        }
+        (
+            input_grad,
+            BatchNormGrad {
+                weight: dweight,
+                bias: dbias,
+            },
+        )
     }
 
     /// Train-mode backward: the input gradient and the parameter gradients from the output's.

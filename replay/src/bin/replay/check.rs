@@ -1,0 +1,63 @@
+//! `replay check LOG`: the alignment report of every set.
+
+use std::path::PathBuf;
+
+use anyhow::{Context, Result};
+use clap::Args;
+use record::cli::Outcome;
+use tracing::warn;
+
+/// Arguments of `replay check`.
+/// Arguments of `replay check`.
+#[derive(Debug, Args)]
+pub struct CheckArgs {
+    /// The log to check.
+    log: PathBuf,
+    /// Print JSON instead of the table.
+    #[arg(long)]
+    json: bool,
+    /// Disparities searched by the image-based shift estimate (default: as for replay).
+    #[arg(long)]
+    num_disparities: Option<usize>,
+    /// Only images logged at least this many seconds after the log's first message.
+    #[arg(long, value_name = "SECS")]
+    start: Option<f64>,
+    /// Only images logged at most this many seconds after the log's first message.
+    #[arg(long, value_name = "SECS")]
+    end: Option<f64>,
+}
+
+/// Runs `replay check`.
+pub fn run(args: &CheckArgs) -> Result<Outcome> {
+    let contents = replay::log::read_log_file_in(&args.log, args.start, args.end)
+        .with_context(|| format!("reading {}", args.log.display()))?;
+    let checks: Vec<replay::check::SetCheck> = contents
+        .sets
+        .iter()
+        .map(|set| {
+            replay::check::check_set(
+                set,
+                args.num_disparities.unwrap_or_else(|| set.default_num_disparities()),
+            )
+        })
+        .collect();
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&checks)?);
+    } else {
+        for check in &checks {
+            print!("{}", replay::check::table(check));
+        }
+    }
+    let failed = checks
+        .iter()
+        .filter(|c| c.status == replay::check::Status::Fail)
+        .count();
+    if failed > 0 || contents.truncation.is_some() || !contents.incomplete_sets.is_empty() {
+        if failed > 0 {
+            warn!("{failed} of {} set(s) failed the alignment check", checks.len());
+        }
+        return Ok(Outcome::Incomplete);
+    }
+    Ok(Outcome::Complete)
+}
+

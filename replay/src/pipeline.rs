@@ -1,0 +1,189 @@
+//! The per-set pipeline every subcommand shares (`replay LOG`, `eval`, `demo`): check the set's
+//! alignment, keep the requested neighbours, build the matching problem (rectified if asked),
+//! compute the occlusion mask once, run each method and measure it against the ground truth.
+//! The summaries written as JSON are the serde types here.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use fuse::methods::Method;
+use fuse::{DisparityImage, Problem};
+use serde::Serialize;
+
+use crate::ReplayError;
+use crate::check::{SetCheck, check_set};
+use crate::outputs::SetOutputs;
+use crate::regions::RegionMetrics;
+use crate::viewset::ViewSet;
+
+/// How sets are run.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct RunOptions {
+    /// Disparities searched (default: per set, [`ViewSet::default_num_disparities`]).
+    pub num_disparities: Option<usize>,
+    /// Smallest disparity searched.
+    pub min_disparity: usize,
+    /// Only these neighbours (all when empty).
+    pub neighbours: Vec<String>,
+    /// De-rotate the neighbours and resample their costs by their real baseline ratio.
+    pub rectify: bool,
+}
+
+/// The method names of `--method`: `all`, or a comma-separated list.
+pub fn method_names(spec: &str) -> Vec<String> {
+    if spec == "all" {
+        fuse::methods::registry().iter().map(|e| e.name.to_owned()).collect()
+    } else {
+        spec.split(',')
+            .map(str::trim)
+            .filter(|n| !n.is_empty())
+            .map(str::to_owned)
+            .collect()
+    }
+}
+
+/// The configuration overrides of method `name`: `overrides` as given, plus `{"weights": FILE}`
+/// for the MFuseNet family when a weights file was given (other families have no weights).
+pub fn overrides_for(
+    name: &str,
+    overrides: Option<&serde_json::Value>,
+    weights: Option<&Path>,
+) -> Option<serde_json::Value> {
+    let learned = fuse::methods::entry(name).is_some_and(|e| e.family == fuse::methods::Family::MFuseNet);
+    match (weights, learned) {
+        (Some(path), true) => {
+            let mut merged = overrides.and_then(|o| o.as_object().cloned()).unwrap_or_default();
+            merged.insert("weights".to_owned(), serde_json::Value::String(path.display().to_string()));
+            Some(serde_json::Value::Object(merged))
+        }
+        _ => overrides.cloned(),
+    }
+}
+
+/// Builds the methods by name with their overrides (and MFuseNet's weights file).
+pub fn build_methods(
+    names: &[String],
+    overrides: Option<&serde_json::Value>,
+    weights: Option<&Path>,
+) -> Result<Vec<Box<dyn Method>>, fuse::FuseError> {
+    names
+        .iter()
+        .map(|name| fuse::methods::build(name, overrides_for(name, overrides, weights).as_ref()))
+        .collect()
+}
+
+/// A set ready for the methods.
+#[derive(Debug)]
+pub struct PreparedSet<'a> {
+    /// The set as read.
+    pub set: &'a ViewSet,
+    /// The set with the requested neighbours only.
+    pub selected: ViewSet,
+    /// The matching problem.
+    pub problem: Problem,
+    /// Disparities searched.
+    pub num_disparities: usize,
+    /// The alignment report of the set.
+    pub alignment: SetCheck,
+    /// Pixels of the reference occluded in some neighbour (from the ground truth).
+    pub occluded: Option<Vec<bool>>,
+}
+
+/// One method's result on a set.
+#[derive(Debug, Clone)]
+pub struct MethodResult {
+    /// The disparity of the reference view.
+    pub disparity: DisparityImage,
+    /// Seconds the method took.
+    pub seconds: f64,
+    /// Metrics against ground truth (overall, occluded, visible, specular), when known.
+    pub regions: Option<RegionMetrics>,
+}
+
+impl<'a> PreparedSet<'a> {
+    /// Checks the alignment, selects the neighbours and builds the problem.
+    pub fn new(set: &'a ViewSet, options: &RunOptions) -> Result<Self, ReplayError> {
+        let num_disparities = options.num_disparities.unwrap_or_else(|| set.default_num_disparities());
+        let alignment = check_set(set, num_disparities);
+        let selected = set.with_neighbours(&options.neighbours)?;
+        let problem = selected.problem(options.min_disparity, num_disparities, options.rectify)?;
+        Ok(Self {
+            set,
+            selected,
+            problem,
+            num_disparities,
+            alignment,
+            occluded: set.occlusion_mask(),
+        })
+    }
+
+    /// Runs a method and evaluates it; `progress` gets the fraction done.
+    pub fn run(&self, method: &dyn Method, progress: &(dyn Fn(f32) + Sync)) -> Result<MethodResult, ReplayError> {
+        let started = Instant::now();
+        let disparity = method.run(&self.problem, progress).map_err(|source| ReplayError::Fuse {
+            set: self.set.index,
+            source,
+        })?;
+        let seconds = started.elapsed().as_secs_f64();
+        let regions = self
+            .occluded
+            .as_deref()
+            .and_then(|mask| self.set.region_metrics_with(&disparity.data, self.num_disparities as f64, mask));
+        Ok(MethodResult {
+            disparity,
+            seconds,
+            regions,
+        })
+    }
+}
+
+/// One method on one set, as `summary.json` and the result log record it.
+#[derive(Debug, Clone, Serialize)]
+pub struct SetSummary {
+    /// Method name.
+    pub method: String,
+    /// Files written and metrics.
+    pub outputs: SetOutputs,
+    /// Seconds the method took.
+    pub seconds: f64,
+    /// Disparities searched.
+    pub num_disparities: usize,
+    /// The set's alignment report.
+    pub alignment: SetCheck,
+}
+
+/// `summary.json` of a `replay LOG` run.
+#[derive(Debug, Clone, Serialize)]
+pub struct RunSummary {
+    /// `replay`.
+    pub tool: &'static str,
+    /// Its version.
+    pub tool_version: &'static str,
+    /// The log replayed.
+    pub log: PathBuf,
+    /// `--method` as given.
+    pub method: String,
+    /// The methods run.
+    pub methods: Vec<String>,
+    /// Their effective configurations (one object for one method, else an array).
+    pub config: serde_json::Value,
+    /// Smallest disparity searched.
+    pub min_disparity: usize,
+    /// Per set and method.
+    pub sets: Vec<SetSummary>,
+    /// Sets skipped as incomplete, with the reason.
+    pub incomplete_sets: Vec<(u32, String)>,
+    /// Why the log's scan stopped early, when it did.
+    pub truncation: Option<String>,
+    /// The log's metadata records.
+    pub log_metadata: BTreeMap<String, BTreeMap<String, String>>,
+    /// `--rerun` as given.
+    pub rerun: Vec<String>,
+    /// Seconds spent on the viewer.
+    pub rerun_seconds: f64,
+    /// Whether the viewer was lost.
+    pub rerun_lost: bool,
+    /// Seconds of the whole run.
+    pub seconds: f64,
+}

@@ -1,0 +1,154 @@
+//! MFuseNet through the real binaries: the shipped weights read by the reference Python
+//! safetensors client, `replay --method mfusenet` on a recorded capture, bad weight files, and a
+//! tiny `replay train` that is interrupted (by its step budget) and resumed.
+
+use std::path::Path;
+use std::process::Command;
+
+use multiscopic_tests::{assert_success, python_with_mcap, record_log, replay, run, temp_dir, workspace_root};
+
+fn weights(file: &str) -> String {
+    workspace_root().join("fuse/weights").join(file).display().to_string()
+}
+
+#[test]
+fn shipped_weights_have_the_reference_state_dict_names_and_shapes() {
+    let script = workspace_root().join("tests/python/check_weights.py");
+    let output = run(Command::new(python_with_mcap()).arg(&script).args([
+        "1",
+        &weights("mfusenet-stereo.safetensors"),
+        "2",
+        &weights("mfusenet-3view.safetensors"),
+        "4",
+        &weights("mfusenet-5view.safetensors"),
+    ]));
+    assert_success(&output, "check_weights.py");
+    let text = String::from_utf8_lossy(&output.stdout);
+    println!("{text}");
+    for count in ["33441 trainable", "38929 trainable", "49905 trainable"] {
+        assert!(text.contains(count), "{count} not in {text}");
+    }
+}
+
+#[test]
+fn replay_runs_mfusenet_and_names_bad_weight_files() {
+    let dir = temp_dir();
+    let log = record_log(dir.path(), "five.mcap", &["--resolution", "256x192", "--samples-per-pixel", "1"]);
+    let log = log.to_str().unwrap_or_default();
+    let out = dir.path().join("results");
+    let output = replay(&[
+        log,
+        "--method",
+        "mfusenet,mfusenet-stereo",
+        "--out",
+        out.to_str().unwrap_or_default(),
+        "-q",
+    ]);
+    assert_success(&output, "replay --method mfusenet");
+    let summary: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap_or_default())
+        .unwrap_or_else(|e| panic!("summary.json: {e}"));
+    for method in ["mfusenet", "mfusenet-stereo"] {
+        let set = summary["sets"]
+            .as_array()
+            .and_then(|sets| sets.iter().find(|s| s["method"] == method))
+            .unwrap_or_else(|| panic!("no {method} in {summary}"));
+        let avg = set["outputs"]["metrics"]["all"]["avg_err"].as_f64().unwrap_or(f64::NAN);
+        println!("{method}: AvgErr {avg:.3} px");
+        assert!(avg.is_finite() && avg < 3.0, "{method}: AvgErr {avg}");
+        let files = set["outputs"]["files"].as_array().map_or(0, Vec::len);
+        assert!(files >= 5, "{method} wrote {files} files");
+    }
+
+    // Bad weight files: exit 1, the file (and tensor) named, nothing panics.
+    let truncated = dir.path().join("truncated.safetensors");
+    let bytes = std::fs::read(weights("mfusenet-3view.safetensors")).unwrap_or_default();
+    std::fs::write(&truncated, &bytes[..bytes.len() / 3]).unwrap_or_else(|e| panic!("{e}"));
+    let cases: [(&str, String, &str); 3] = [
+        ("mfusenet", dir.path().join("missing.safetensors").display().to_string(), "missing.safetensors"),
+        ("mfusenet", truncated.display().to_string(), "truncated.safetensors"),
+        ("mfusenet-stereo", weights("mfusenet-3view.safetensors"), "concat.0.weight"),
+    ];
+    for (method, file, expected) in cases {
+        let output = replay(&[log, "--method", method, "--weights", &file, "--out", out.to_str().unwrap_or_default()]);
+        let stderr = String::from_utf8_lossy(&output.stderr);
+        assert_eq!(output.status.code(), Some(1), "{method} --weights {file}: {stderr}");
+        assert!(stderr.contains(expected) && !stderr.contains("panicked"), "{stderr}");
+    }
+    // The five-view weights on a three-view selection say what the network needs.
+    let output = replay(&[
+        log,
+        "--method",
+        "mfusenet",
+        "--neighbours",
+        "left,right",
+        "--weights",
+        &weights("mfusenet-5view.safetensors"),
+        "--out",
+        out.to_str().unwrap_or_default(),
+    ]);
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert_eq!(output.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains("five-view network needs"), "{stderr}");
+}
+
+fn train(dir: &Path, steps: &str) -> serde_json::Value {
+    let run_dir = dir.join("run");
+    let output = replay(&[
+        "train",
+        "--views",
+        "2",
+        "--dir",
+        run_dir.to_str().unwrap_or_default(),
+        "--dataset-dir",
+        dir.join("dataset").to_str().unwrap_or_default(),
+        "--resolution",
+        "96x72",
+        "--disparities",
+        "12",
+        "--crop",
+        "32",
+        "--train-sets",
+        "2",
+        "--val-sets",
+        "1",
+        "--steps",
+        steps,
+        "--checkpoint-every",
+        "2",
+        "--validate-every",
+        "3",
+        "-q",
+    ]);
+    assert_success(&output, "replay train");
+    serde_json::from_slice(&std::fs::read(run_dir.join("training.json")).unwrap_or_default())
+        .unwrap_or_else(|e| panic!("training.json: {e}"))
+}
+
+#[test]
+fn training_resumes_and_its_weights_run() {
+    let dir = temp_dir();
+    let first = train(dir.path(), "4");
+    assert_eq!(first["steps_done"], 4);
+    // A longer budget resumes from the checkpoint instead of starting over.
+    let second = train(dir.path(), "6");
+    assert_eq!(second["steps_done"], 6);
+    let curves = std::fs::read_to_string(dir.path().join("run/curves.csv")).unwrap_or_default();
+    let steps: Vec<&str> = curves.lines().skip(1).filter_map(|l| l.split(',').next()).collect();
+    assert_eq!(steps, ["1", "2", "3", "4", "5", "6"], "{curves}");
+    assert!(dir.path().join("run/curves.rrd").is_file());
+    assert!(second["val_avg_err_px"].as_f64().is_some_and(f64::is_finite), "{second}");
+    // The weights load through --weights.
+    let weights = dir.path().join("run/mfusenet-3view.safetensors");
+    let log = record_log(dir.path(), "three.mcap", &["--rig", "three-view", "--resolution", "96x72", "--samples-per-pixel", "1"]);
+    let output = replay(&[
+        log.to_str().unwrap_or_default(),
+        "--method",
+        "mfusenet",
+        "--weights",
+        weights.to_str().unwrap_or_default(),
+        "--out",
+        dir.path().join("out").to_str().unwrap_or_default(),
+        "-q",
+    ]);
+    assert_success(&output, "replay with trained weights");
+}
