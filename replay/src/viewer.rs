@@ -4,7 +4,8 @@
 
 use fuse::cost::PixelCost;
 use fuse::fusion::Fusion;
-use fuse::volume::{CostSpec, PreparedProblem};
+use fuse::sgm::{INVALID_QUANTISED, quantisation_shift};
+use fuse::volume::{CostSpec, PreparedProblem, VolumeSource, neighbour_volumes};
 use fuse::{Image, Neighbour, Problem};
 use rayon::prelude::*;
 use record::ur10::Ur10;
@@ -178,7 +179,6 @@ pub fn log_costs(viewer: &Viewer, set: &ViewSet, problem: &Problem, occluded: Op
         pixel: PixelCost::BirchfieldTomasi,
         block_radius: 4,
     };
-    let max_cost = spec.max_cost().max(1);
     let neighbours: Vec<Neighbour> = problem
         .neighbours
         .iter()
@@ -196,54 +196,45 @@ pub fn log_costs(viewer: &Viewer, set: &ViewSet, problem: &Problem, occluded: Op
         started.elapsed().as_secs_f64()
     );
     let min_disparity = problem.min_disparity / factor;
-    // Each neighbour's aggregated costs, then their heuristic fusion, as the methods fuse them.
-    let mut volumes: Vec<(String, Vec<u16>)> = Vec::new();
-    for neighbour in &neighbours {
-        let single = Problem {
-            reference: reference.clone(),
-            neighbours: vec![neighbour.clone()],
-            min_disparity,
-            num_disparities: snd,
-        };
-        let Ok(prepared) = PreparedProblem::new(&single, spec, Fusion::Min) else {
-            continue;
-        };
-        let mut costs = vec![0u16; sw * sh * snd];
-        prepared.fused_band(0..sh, &mut costs);
-        volumes.push((neighbour.role.clone(), costs));
+    // Each neighbour's aggregated costs and their heuristic fusion, as the methods fuse them,
+    // quantised to bytes (255 = no correspondence), the viewer's tensor encoding.
+    let small_problem = Problem {
+        reference,
+        neighbours,
+        min_disparity,
+        num_disparities: snd,
+    };
+    let shift = quantisation_shift(spec.max_cost());
+    let refs: Vec<&Neighbour> = small_problem.neighbours.iter().collect();
+    let Ok(mut volumes) = neighbour_volumes(&small_problem, &refs, spec, shift, &|| {}) else {
+        return Ok(());
+    };
+    if let Ok(prepared) = PreparedProblem::new(&small_problem, spec, Fusion::Heuristic) {
+        volumes.insert(0, prepared.fused_volume(shift, &|| {}));
     }
-    let mut fused = vec![0u16; sw * sh * snd];
-    let rows: Vec<&[u16]> = volumes.iter().map(|(_, v)| v.as_slice()).collect();
-    fuse::fusion::fuse_rows(Fusion::Heuristic, &rows, &mut fused, max_cost);
-    volumes.insert(0, ("fused".to_owned(), fused));
     tracing::debug!(
         "rerun costs: volumes computed in {:.3} s",
         started.elapsed().as_secs_f64()
     );
-    for (name, costs) in &volumes {
-        let bytes: Vec<u8> = costs
-            .iter()
-            .map(|c| {
-                if *c == fuse::cost::INVALID_COST {
-                    255
-                } else {
-                    (u32::from(*c) * 254 / max_cost).min(254) as u8
-                }
-            })
-            .collect();
-        viewer.log_cost_volume(name, &bytes, [sh, sw, snd])?;
+    // Mean cost per block pixel, in the units of the pixel cost.
+    let block_pixels = ((2 * spec.block_radius + 1) * (2 * spec.block_radius + 1)) as f32;
+    let unit = (1u32 << shift) as f32 / block_pixels;
+    for volume in &volumes {
+        let name = match &volume.source {
+            VolumeSource::Neighbour { role, .. } => role.as_str(),
+            VolumeSource::Fused(_) => "fused",
+        };
+        viewer.log_cost_volume(name, &volume.data, [sh, sw, snd])?;
         for (probe, x, y) in &probes {
             let (px, py) = ((x / factor).min(sw - 1), (y / factor).min(sh - 1));
-            let cell = &costs[(py * sw + px) * snd..(py * sw + px + 1) * snd];
-            // Mean cost per block pixel, against full-resolution disparity.
-            let block_pixels = ((2 * spec.block_radius + 1) * (2 * spec.block_radius + 1)) as f32;
-            let curve: Vec<f32> = cell
+            let curve: Vec<f32> = volume
+                .costs(px, py)
                 .iter()
                 .map(|c| {
-                    if *c == fuse::cost::INVALID_COST {
+                    if *c == INVALID_QUANTISED {
                         f32::NAN
                     } else {
-                        f32::from(*c) / block_pixels
+                        f32::from(*c) * unit
                     }
                 })
                 .collect();

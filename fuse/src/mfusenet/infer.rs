@@ -14,14 +14,14 @@ use crate::volume::CostVolume;
 /// Pixels of context around each tile (≥ the receptive radius, a multiple of 4).
 pub const HALO: usize = 48;
 
-/// Default memory budget of one tile's activations.
-pub const DEFAULT_TILE_BUDGET_BYTES: usize = 640 << 20;
+/// Default memory budget of one tile's activations (a Middlebury third-size set runs whole).
+pub const DEFAULT_TILE_BUDGET_BYTES: usize = 1 << 30;
 
-/// Peak bytes per voxel of a forward pass with `views` inputs: the concatenated features, their
-/// padded copy and the per-view features (`12·N` channels) plus about 16 channels of other
-/// tensors alive at the widest point (measured: the `uconv2` stage), 4 bytes each.
+/// Peak bytes per voxel of a forward pass with `views` inputs: the concatenated features and
+/// their padded copy (`8·N` channels) plus about 16 channels of other tensors alive at the
+/// widest point, 4 bytes each.
 pub fn bytes_per_voxel(views: usize) -> usize {
-    4 * (12 * views + 16)
+    4 * (8 * views + 16)
 }
 
 fn round4(n: usize) -> usize {

@@ -154,8 +154,12 @@ impl ConvBn {
     /// Eval mode: `ReLU(BN(conv(x)))` with the BatchNorm folded into the convolution.
     pub fn forward_eval(&self, x: &Tensor) -> Tensor {
         let (weight, bias) = self.bn.fold_into(&self.conv_weight());
-        let input = self.conv_input(x);
-        self.sample(conv3d_same(&input, &weight, self.cout, self.k, Some(&bias))).relu()
+        let z = match self.kind {
+            ConvKind::Up => conv3d_same(&self.conv_input(x), &weight, self.cout, self.k, Some(&bias)),
+            // No copy of the input: the convolution pads its own.
+            _ => conv3d_same(x, &weight, self.cout, self.k, Some(&bias)),
+        };
+        self.sample(z).relu()
     }
 
     /// Train mode: `ReLU(BN(conv(x)))` with batch statistics (running statistics updated) or
@@ -381,18 +385,19 @@ impl Network {
     /// Eval-mode logits `[1, D, H, W]` of `views` cost volumes `[1, D, H, W]` (D, H, W multiples
     /// of 4), freeing each intermediate as soon as it is used.
     pub fn logits(&self, inputs: &[Tensor]) -> Result<Tensor, Error> {
-        self.check_inputs(inputs)?;
-        let features: Vec<Tensor> = inputs
-            .iter()
-            .map(|x| {
-                let mut y = self.feature[0].forward_eval(x);
-                for layer in &self.feature[1..] {
-                    y = layer.forward_eval(&y);
-                }
-                y
-            })
-            .collect();
-        let c = self.fuse[CONCAT].forward_eval(&Tensor::concat(&features.iter().collect::<Vec<_>>()));
+        let [d, h, w] = self.check_inputs(inputs)?;
+        // Each view's features straight into its channels of the concatenation (one copy of
+        // the 4·N feature channels alive, not two).
+        let mut features = Tensor::zeros([4 * self.views, d, h, w]);
+        let per_view = 4 * d * h * w;
+        for (i, x) in inputs.iter().enumerate() {
+            let mut y = self.feature[0].forward_eval(x);
+            for layer in &self.feature[1..] {
+                y = layer.forward_eval(&y);
+            }
+            features.data[i * per_view..(i + 1) * per_view].copy_from_slice(&y.data);
+        }
+        let c = self.fuse[CONCAT].forward_eval(&features);
         drop(features);
         let d1 = self.fuse[DOWN1].forward_eval(&c);
         let cdown1 = residual(self.fuse[DCONV1].forward_eval(&d1), &d1);
@@ -404,12 +409,17 @@ impl Network {
         drop(e1);
         let u1 = self.fuse[UP1].forward_eval(&cdown2);
         drop(cdown2);
-        let cup1 = self.fuse[UCONV1].forward_eval(&Tensor::concat(&[&u1, &cdown1]));
+        let skip1 = Tensor::concat(&[&u1, &cdown1]);
         drop((u1, cdown1));
+        let cup1 = self.fuse[UCONV1].forward_eval(&skip1);
+        drop(skip1);
         let u2 = self.fuse[UP2].forward_eval(&cup1);
         drop(cup1);
-        let cup2 = self.fuse[UCONV2].forward_eval(&Tensor::concat(&[&u2, &c]));
+        // The widest point at full resolution: the 8 skip channels and their padded copy.
+        let skip2 = Tensor::concat(&[&u2, &c]);
         drop((u2, c));
+        let cup2 = self.fuse[UCONV2].forward_eval(&skip2);
+        drop(skip2);
         let f = residual(self.fuse[DISTILL1].forward_eval(&cup2), &cup2);
         drop(cup2);
         Ok(conv3d_same(&f, &self.classify.weight, 1, 3, Some(&self.classify.bias)))
