@@ -58,5 +58,39 @@ fn methods(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, methods);
+/// The hot shapes of MFuseNet (a 32 × 96 × 128 volume): the k7 8→4 convolution, its two
+/// gradients, and the whole three-view forward pass with cost volumes (`mfusenet` on a 128×96 set).
+fn mfusenet(c: &mut Criterion) {
+    use fuse::nn::Tensor;
+    use fuse::nn::conv::{conv3d_same, conv3d_same_input_grad, conv3d_same_weight_grad};
+    let shape = [8, 32, 96, 128];
+    let x = Tensor {
+        shape,
+        data: (0..shape.iter().product::<usize>()).map(|i| ((i * 7919) % 97) as f32 / 97.0).collect(),
+    };
+    let weight: Vec<f32> = (0..4 * 8 * 343).map(|i| ((i * 31) % 17) as f32 / 170.0 - 0.05).collect();
+    let grad = conv3d_same(&x, &weight, 4, 7, None);
+    let mut group = c.benchmark_group("mfusenet_32x96x128");
+    group.sample_size(10);
+    group.bench_function("conv_k7_8to4_forward", |b| {
+        b.iter(|| black_box(conv3d_same(&x, &weight, 4, 7, None)))
+    });
+    group.bench_function("conv_k7_8to4_input_grad", |b| {
+        b.iter(|| black_box(conv3d_same_input_grad(&grad, &weight, 8, 7)))
+    });
+    group.bench_function("conv_k7_8to4_weight_grad", |b| {
+        b.iter(|| black_box(conv3d_same_weight_grad(&x, &grad, 7)))
+    });
+    let three_view = Problem {
+        neighbours: problem(128, 96, 32).neighbours.into_iter().take(2).collect(),
+        ..problem(128, 96, 32)
+    };
+    let method = fuse::methods::build("mfusenet", None).unwrap_or_else(|e| panic!("{e}"));
+    group.bench_function("mfusenet_three_view_128x96", |b| {
+        b.iter(|| black_box(method.run(&three_view, &|_| {})))
+    });
+    group.finish();
+}
+
+criterion_group!(benches, methods, mfusenet);
 criterion_main!(benches);

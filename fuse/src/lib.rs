@@ -1,14 +1,19 @@
 //! `fuse`: the multiscopic depth algorithms — cost volumes between the reference view and each
 //! neighbour, their fusion (mean, min, the paper's heuristic, MFuseNet), and the optimisers
-//! (winner-take-all, SGM, graph cuts).
+//! (winner-take-all, SGM).
 //!
 //! This crate is the leaf of the workspace: plain buffers in, disparity out. No log formats, no
 //! command line, no viewer (see ARCHITECTURE.md).
 //!
 //! - [`volume::Problem`]: the reference view, its neighbours (with their grid offsets) and the
-//!   disparity range; [`cost`] and [`fusion`] build the fused data term band by band.
+//!   disparity range; [`cost`] and [`fusion`] build the fused data term band by band;
+//!   [`volume::CostVolume`] holds a whole volume (one neighbour's or fused, quantised, summed or
+//!   normalised) for the methods that need one (SGM, MFuseNet).
 //! - [`methods`]: every method behind the [`methods::Method`] trait, listed in
-//!   [`methods::registry`].
+//!   [`methods::registry`] with its family.
+//! - [`nn`]: the 3D convolutions, BatchNorm and soft-argmin MFuseNet is made of (forward and
+//!   backward, fast kernels checked against plain loops); [`mfusenet`]: the network, its
+//!   safetensors weights, its inputs, tiled inference and the training pieces.
 //! - [`metrics`]: the paper's error measures against ground truth.
 
 pub mod cost;

@@ -264,7 +264,39 @@ pub struct Scene {
     pub camera_height_m: f64,
 }
 
+impl Shape {
+    /// The highest point of the shape (m above the table plane, an upper bound for tilted
+    /// boxes); `None` for an infinite plane.
+    pub fn top_m(&self) -> Option<f64> {
+        match self {
+            Shape::Plane { .. } => None,
+            Shape::Box {
+                center, half_extents_m, ..
+            } => Some(center[2] + half_extents_m.iter().map(|e| e * e).sum::<f64>().sqrt()),
+            Shape::Sphere { center, radius_m } => Some(center[2] + radius_m),
+            Shape::Cylinder {
+                center,
+                axis,
+                radius_m,
+                half_length_m,
+            } => {
+                let norm = axis.iter().map(|a| a * a).sum::<f64>().sqrt().max(f64::EPSILON);
+                Some(center[2] + half_length_m * (axis[2] / norm).abs() + radius_m)
+            }
+        }
+    }
+}
+
 impl Scene {
+    /// The highest point of any object (m above the table plane, at least 0): with
+    /// [`Scene::camera_height_m`], the working depth range of a capture looking down at it.
+    pub fn highest_point_m(&self) -> f64 {
+        self.objects
+            .iter()
+            .filter_map(|o| o.shape.top_m())
+            .fold(0.0, f64::max)
+    }
+
     /// Builds the scene of a family for a seed.
     pub fn build(kind: SceneKind, seed: u64) -> Self {
         match kind {

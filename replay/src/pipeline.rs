@@ -105,7 +105,8 @@ impl<'a> PreparedSet<'a> {
     /// Checks the alignment, selects the neighbours and builds the problem.
     pub fn new(set: &'a ViewSet, options: &RunOptions) -> Result<Self, ReplayError> {
         let num_disparities = options.num_disparities.unwrap_or_else(|| set.default_num_disparities());
-        let alignment = check_set(set, num_disparities);
+        // The image-based shift search must reach the disparities searched.
+        let alignment = check_set(set, options.min_disparity + num_disparities);
         let selected = set.with_neighbours(&options.neighbours)?;
         let problem = selected.problem(options.min_disparity, num_disparities, options.rectify)?;
         Ok(Self {

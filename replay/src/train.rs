@@ -237,6 +237,7 @@ impl TrainConfig {
             "samples_per_pixel": self.samples_per_pixel,
             "disparities": self.disparities,
             "input": self.input,
+            "steps_per_unit": fuse::mfusenet::input::STEPS_PER_UNIT,
         })
         .to_string();
         // FNV-1a.
@@ -516,8 +517,7 @@ pub fn train(
         "validation crops: winner-take-all of the mean input volume gives AvgErr {wta_avg:.3} px, Bad1 {wta_bad1:.2} % (the network must do better)"
     );
 
-    // BatchNorm statistics: batch statistics of a few dozen fixed crops, re-estimated every
-    // `RECALIBRATE_EVERY` steps in the first half of the run and frozen in between and after
+    // BatchNorm statistics: batch statistics of a few dozen fixed crops at the start, then frozen
     // (see `BatchNorm::forward_frozen`): one crop per step is far too small a batch for them.
     let mut calibration_rng = Rng(config.seed ^ 0x5EED_CA1B);
     let calibration: Vec<Example> = (0..CALIBRATION_CROPS)
@@ -561,9 +561,6 @@ pub fn train(
         };
         let mut rng = Rng((config.seed ^ 0x9E37_79B9_7F4A_7C15).wrapping_add(step.wrapping_mul(0xD1B5_4A32_D192_ED03)));
         let example = random_crop(config, &train_samples, &mut rng);
-        if step > 0 && step % RECALIBRATE_EVERY == 0 && step <= config.steps / 2 {
-            recalibrate_batch_norm(&mut net, &calibration)?;
-        }
         let (loss, _, mut gradients) =
             net.loss_and_gradients_with(&example.inputs, &example.target, &example.mask, BatchNormMode::Frozen)?;
         clip_gradients(&mut gradients, MAX_GRADIENT_NORM);
@@ -616,7 +613,7 @@ pub fn train(
     info.set("disparities_trained", config.disparities.to_string());
     info.set(
         "input_normalisation",
-        "per neighbour: census 7x7 block-summed, SGM 8 paths; (S - min_d S) / (8 P2), steps of 1/32, max 255 steps; tensor = byte / 32",
+        "per neighbour: census 7x7 block-summed, SGM 8 paths; (S - min_d S) / (8 P2), steps of 1/128, max 255 steps; tensor = byte / 128",
     );
     info.set("input_spec", serde_json::to_string(&config.input).unwrap_or_default());
     info.set("made_by", command);
@@ -644,8 +641,6 @@ pub fn train(
 
 /// Crops whose batch statistics set the BatchNorms.
 const CALIBRATION_CROPS: usize = 32;
-/// Steps between re-estimations of the BatchNorm statistics (first half of the run).
-const RECALIBRATE_EVERY: u64 = 250;
 /// Largest global gradient norm (larger ones are scaled down).
 const MAX_GRADIENT_NORM: f32 = 1.0;
 

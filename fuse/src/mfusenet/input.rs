@@ -5,7 +5,9 @@
 //! Normalisation: `c(x, y, d) = (S(d) − min_d S) / (8 · P2)` with `S` the sum of the eight path
 //! costs and `P2` the large-jump penalty in the same units, so that one unit is what eight paths
 //! pay for one disparity jump, whatever the image size, cost or block; values are kept in steps
-//! of 1/[`STEPS_PER_UNIT`] up to 255 steps (≈ 8 units; farther costs never win). Costs whose
+//! of 1/[`STEPS_PER_UNIT`] up to 255 steps (≈ 2 units: farther costs never win, while near the
+//! minimum, where the curve rises by about P1/P2 = 0.1 unit per disparity, a step is 1/13 of
+//! that rise, enough for sub-pixel positions). Costs whose
 //! correspondence leaves the neighbour image enter SGM as its largest cost, so every pixel has a
 //! full curve and no value is missing.
 //!
@@ -24,7 +26,7 @@ use crate::sgm::{aggregate_volume, quantisation_shift, quantise_penalty};
 use crate::volume::{CostSpec, CostVolume, Neighbour, Problem, neighbour_volumes};
 
 /// Byte steps per normalised cost unit.
-pub const STEPS_PER_UNIT: f32 = 32.0;
+pub const STEPS_PER_UNIT: f32 = 128.0;
 
 /// How the per-neighbour volumes are made.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]

@@ -4,7 +4,7 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result};
 use clap::Args;
-use record::cli::{Outcome, progress_bar};
+use record::cli::{Outcome, UsageError, progress_bar};
 use tracing::info;
 
 use crate::run::RunArgs;
@@ -31,19 +31,49 @@ pub struct DemoArgs {
     /// Seed.
     #[arg(long, default_value = "0")]
     seed: u64,
+    /// Image size, WxH (960x540 keeps the whole demo, MFuseNet included, near a minute).
+    #[arg(long, default_value = "960x540")]
+    resolution: String,
+}
+
+/// The disparity search range `(first, count)` of a capture from its known working depth: the
+/// table at the scene's camera height is the farthest point, the top of its highest object the
+/// nearest (2 px of margin each side, the count a multiple of 16).
+pub fn working_disparity_range(sim: &record::capture::Simulation) -> (usize, usize) {
+    let scene = sim.scene();
+    let far_m = scene.camera_height_m;
+    let near_m = (far_m - scene.highest_point_m()).max(0.2 * far_m);
+    let fb = sim.camera().fx * sim.config().baseline_mm / 1000.0;
+    let first = ((fb / far_m).floor() as usize).saturating_sub(2);
+    let last = (fb / near_m).ceil() as usize + 2;
+    (first, (last - first).div_ceil(16).max(1) * 16)
 }
 
 /// Runs `replay demo`.
 pub fn run(args: &DemoArgs, quiet: bool) -> Result<Outcome> {
+    let (width, height) = args
+        .resolution
+        .split_once('x')
+        .and_then(|(w, h)| Some((w.parse().ok()?, h.parse().ok()?)))
+        .ok_or_else(|| UsageError(format!("--resolution {}: expected WxH, e.g. 960x540", args.resolution)))?;
     let config = record::capture::SimulationConfig {
         scene: args.scene,
         rig: args.rig,
         seed: args.seed,
+        width,
+        height,
         ..record::capture::SimulationConfig::default()
     };
     std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
     let log = args.out.join("capture.mcap");
-    let mut sim = record::capture::Simulation::new(config.clone())?;
+    let mut sim = record::capture::Simulation::new(config.clone()).map_err(|e| UsageError(e.to_string()))?;
+    let (min_disparity, num_disparities) = working_disparity_range(&sim);
+    info!(
+        "disparities {min_disparity}..{} px from the working depth (table at {:.2} m, objects up to {:.2} m above it)",
+        min_disparity + num_disparities,
+        sim.scene().camera_height_m,
+        sim.scene().highest_point_m()
+    );
     let views = config.rig.capture_order().len() as u64 * u64::from(config.captures);
     let progress = progress_bar(views, quiet, "views");
     info!(
@@ -79,8 +109,8 @@ pub fn run(args: &DemoArgs, quiet: bool) -> Result<Outcome> {
             method: args.method.clone(),
             config: None,
             out: args.out.join("results"),
-            num_disparities: None,
-            min_disparity: 0,
+            num_disparities: Some(num_disparities),
+            min_disparity,
             sets: Vec::new(),
             start: None,
             end: None,

@@ -1,0 +1,41 @@
+#!/usr/bin/env bash
+# MFuseNet benchmarks (issue 9): prints the host's CPU, then
+#  1. three-view Middlebury third-size inference, cost volumes included (`replay` on each of the
+#     seven dev scenes, 32 disparities): seconds per scene and peak RSS;
+#  2. one training step on the default crop (64 × 64 × 32) for N = 1, 2, 4 (`replay train`, 30 steps);
+#  3. with --full: five-view 1920×1080 with 128 disparities (record + replay mfusenet): time and peak RSS.
+# PyTorch peer: the reference network on the same three-view shape takes 12.7–13.0 s on our AMD
+# EPYC hosts and 14.0 s on the Intel ones (issue 9); install torch into a venv to time it here.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+cargo build --release -q -p record -p replay
+R=target/release/replay
+T=$(mktemp -d)
+trap 'rm -rf "$T"' EXIT
+echo "host: $(lscpu | sed -n 's/^Model name: *//p') ($(nproc) vCPUs)"
+
+DATA=../shared/data/middlebury2006-third-dev
+if [ -d "$DATA" ]; then
+    target/release/record import "$DATA" --focal-px 1246.67 -o "$T/midd.mcap" -q --no-blueprint
+    for set in 0 1 2 3 4 5 6; do
+        /usr/bin/time -f "%e %M" -o "$T/time" $R "$T/midd.mcap" --sets $set --method mfusenet --out "$T/out" -q
+        read -r wall rss < "$T/time"
+        method=$(python3 -c "import json;d=json.load(open('$T/out/summary.json'));s=d['sets'][0];print(f\"{s['seconds']:.2f} {s['outputs']['name']}\")")
+        echo "middlebury three-view set $set: method ${method%% *} s (${method#* }), process ${wall} s, peak RSS $((rss / 1024)) MB"
+    done
+else
+    echo "skipped the Middlebury inference: $DATA is missing (the shared evaluation data sits beside the checkout)"
+fi
+
+for views in 1 2 4; do
+    $R train --views "$views" --steps 30 --train-sets 4 --val-sets 1 --validate-every 1000 \
+        --dir "$T/train-$views" --dataset-dir "$T/dataset" -q
+    python3 -c "import json;d=json.load(open('$T/train-$views/training.json'));print(f\"training step N=$views, 64x64x32 crop: {d['train_seconds']/d['steps_done']:.3f} s\")"
+done
+
+if [ "${1:-}" = "--full" ]; then
+    target/release/record --rig five-view -o "$T/hd.mcap" -q --no-blueprint
+    /usr/bin/time -f "%e %M" -o "$T/time" $R "$T/hd.mcap" --method mfusenet --num-disparities 128 --out "$T/hd" -q
+    read -r wall rss < "$T/time"
+    echo "five-view 1920x1080, 128 disparities: ${wall} s, peak RSS $((rss / 1024)) MB"
+fi
