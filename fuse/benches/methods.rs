@@ -66,9 +66,13 @@ fn mfusenet(c: &mut Criterion) {
     let shape = [8, 32, 96, 128];
     let x = Tensor {
         shape,
-        data: (0..shape.iter().product::<usize>()).map(|i| ((i * 7919) % 97) as f32 / 97.0).collect(),
+        data: (0..shape.iter().product::<usize>())
+            .map(|i| ((i * 7919) % 97) as f32 / 97.0)
+            .collect(),
     };
-    let weight: Vec<f32> = (0..4 * 8 * 343).map(|i| ((i * 31) % 17) as f32 / 170.0 - 0.05).collect();
+    let weight: Vec<f32> = (0..4 * 8 * 343)
+        .map(|i| ((i * 31) % 17) as f32 / 170.0 - 0.05)
+        .collect();
     let grad = conv3d_same(&x, &weight, 4, 7, None);
     let mut group = c.benchmark_group("mfusenet_32x96x128");
     group.sample_size(10);

@@ -11,7 +11,9 @@ fn main() {
     let inputs: Vec<Tensor> = (0..views)
         .map(|v| Tensor {
             shape: [1, d, h, w],
-            data: (0..d * h * w).map(|i| ((i * 7 + v * 13) % 101) as f32 / 101.0).collect(),
+            data: (0..d * h * w)
+                .map(|i| ((i * 7 + v * 13) % 101) as f32 / 101.0)
+                .collect(),
         })
         .collect();
     for _ in 0..2 {

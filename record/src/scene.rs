@@ -291,10 +291,7 @@ impl Scene {
     /// The highest point of any object (m above the table plane, at least 0): with
     /// [`Scene::camera_height_m`], the working depth range of a capture looking down at it.
     pub fn highest_point_m(&self) -> f64 {
-        self.objects
-            .iter()
-            .filter_map(|o| o.shape.top_m())
-            .fold(0.0, f64::max)
+        self.objects.iter().filter_map(|o| o.shape.top_m()).fold(0.0, f64::max)
     }
 
     /// Builds the scene of a family for a seed.

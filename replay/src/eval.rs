@@ -65,8 +65,8 @@ pub fn evaluate_sets(
     let mut rows = Vec::new();
     for name in methods {
         let overrides = crate::pipeline::overrides_for(name, options.overrides.as_ref(), options.weights.as_deref());
-        let method = fuse::methods::build(name, overrides.as_ref())
-            .map_err(|source| ReplayError::Fuse { set: 0, source })?;
+        let method =
+            fuse::methods::build(name, overrides.as_ref()).map_err(|source| ReplayError::Fuse { set: 0, source })?;
         let mut scenes = Vec::new();
         let mut occluded = Vec::new();
         let mut specular = Vec::new();

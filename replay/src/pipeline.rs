@@ -54,7 +54,10 @@ pub fn overrides_for(
     match (weights, learned) {
         (Some(path), true) => {
             let mut merged = overrides.and_then(|o| o.as_object().cloned()).unwrap_or_default();
-            merged.insert("weights".to_owned(), serde_json::Value::String(path.display().to_string()));
+            merged.insert(
+                "weights".to_owned(),
+                serde_json::Value::String(path.display().to_string()),
+            );
             Some(serde_json::Value::Object(merged))
         }
         _ => overrides.cloned(),
@@ -122,15 +125,17 @@ impl<'a> PreparedSet<'a> {
     /// Runs a method and evaluates it; `progress` gets the fraction done.
     pub fn run(&self, method: &dyn Method, progress: &(dyn Fn(f32) + Sync)) -> Result<MethodResult, ReplayError> {
         let started = Instant::now();
-        let disparity = method.run(&self.problem, progress).map_err(|source| ReplayError::Fuse {
-            set: self.set.index,
-            source,
-        })?;
+        let disparity = method
+            .run(&self.problem, progress)
+            .map_err(|source| ReplayError::Fuse {
+                set: self.set.index,
+                source,
+            })?;
         let seconds = started.elapsed().as_secs_f64();
-        let regions = self
-            .occluded
-            .as_deref()
-            .and_then(|mask| self.set.region_metrics_with(&disparity.data, self.num_disparities as f64, mask));
+        let regions = self.occluded.as_deref().and_then(|mask| {
+            self.set
+                .region_metrics_with(&disparity.data, self.num_disparities as f64, mask)
+        });
         Ok(MethodResult {
             disparity,
             seconds,

@@ -129,7 +129,12 @@ impl Default for TrainConfig {
             val_sets: 6,
             resolution: [448, 336],
             baseline_mm: [6.0, 28.0],
-            scenes: vec![SceneKind::Random, SceneKind::Random, SceneKind::Toy, SceneKind::Workpiece],
+            scenes: vec![
+                SceneKind::Random,
+                SceneKind::Random,
+                SceneKind::Toy,
+                SceneKind::Workpiece,
+            ],
             samples_per_pixel: 2,
             input: InputSpec::default(),
             checkpoint_every: 100,
@@ -197,10 +202,10 @@ pub struct TrainSummary {
     pub weights: PathBuf,
 }
 
-fn file_error(path: &Path, reason: impl ToString) -> TrainError {
+fn file_error(path: &Path, reason: String) -> TrainError {
     TrainError::File {
         path: path.to_path_buf(),
-        reason: reason.to_string(),
+        reason,
     }
 }
 
@@ -211,10 +216,17 @@ impl TrainConfig {
         if !matches!(self.views, 1 | 2 | 4) {
             return bad("views", self.views.to_string(), "1, 2 or 4");
         }
-        if self.crop < 16 || self.crop % 4 != 0 || self.crop as u32 > self.resolution[0].min(self.resolution[1]) {
-            return bad("crop", self.crop.to_string(), "a multiple of 4, ≥ 16, within the resolution");
+        if self.crop < 16
+            || !self.crop.is_multiple_of(4)
+            || self.crop as u32 > self.resolution[0].min(self.resolution[1])
+        {
+            return bad(
+                "crop",
+                self.crop.to_string(),
+                "a multiple of 4, ≥ 16, within the resolution",
+            );
         }
-        if self.disparities < 4 || self.disparities % 4 != 0 {
+        if self.disparities < 4 || !self.disparities.is_multiple_of(4) {
             return bad("disparities", self.disparities.to_string(), "a multiple of 4, ≥ 4");
         }
         if self.train_sets == 0 || self.val_sets == 0 || self.scenes.is_empty() {
@@ -241,8 +253,9 @@ impl TrainConfig {
         })
         .to_string();
         // FNV-1a.
-        key.bytes()
-            .fold(0xcbf2_9ce4_8422_2325u64, |h, b| (h ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3))
+        key.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| {
+            (h ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3)
+        })
     }
 
     /// The simulation of dataset capture `index` (validation captures have other seeds).
@@ -306,7 +319,7 @@ pub fn sample(config: &TrainConfig, index: usize, validation: bool, cache_dir: &
             .and_then(|mut sim| sim.capture_set(0, &stop, |_| {}));
         match captured {
             Ok(Some(set)) => break set,
-            Ok(None) => return Err(file_error(&path, "the simulation produced no set")),
+            Ok(None) => return Err(file_error(&path, "the simulation produced no set".to_owned())),
             Err(source) if attempt >= 4 => return Err(TrainError::Simulation { index, source }),
             Err(source) => tracing::debug!("training set {index}: {source}; drawing another scene"),
         }
@@ -317,11 +330,11 @@ pub fn sample(config: &TrainConfig, index: usize, validation: bool, cache_dir: &
         .problem(0, config.disparities, false)
         .map_err(|source| TrainError::Replay { index, source })?;
     let neighbours = ordered_neighbours(&problem, 4).map_err(|source| TrainError::Fuse { index, source })?;
-    let volumes =
-        input_volumes(&problem, &neighbours, config.input, &|| {}).map_err(|source| TrainError::Fuse { index, source })?;
+    let volumes = input_volumes(&problem, &neighbours, config.input, &|| {})
+        .map_err(|source| TrainError::Fuse { index, source })?;
     let truth = view_set
         .ground_truth_disparity()
-        .ok_or_else(|| file_error(&path, "the simulated set has no ground truth"))?;
+        .ok_or_else(|| file_error(&path, "the simulated set has no ground truth".to_owned()))?;
     let sample = Sample { volumes, truth };
     write_sample(&sample, &path)?;
     Ok(sample)
@@ -333,20 +346,20 @@ fn write_sample(sample: &Sample, path: &Path) -> Result<(), TrainError> {
     let mut views = Vec::new();
     for (i, volume) in sample.volumes.iter().enumerate() {
         let view = TensorView::new(Dtype::U8, vec![v.height, v.width, v.disparities], &volume.data)
-            .map_err(|e| file_error(path, e))?;
+            .map_err(|e| file_error(path, e.to_string()))?;
         views.push((format!("volume.{i}"), view));
     }
     views.push((
         "truth".to_owned(),
-        TensorView::new(Dtype::F32, vec![v.height, v.width], &truth).map_err(|e| file_error(path, e))?,
+        TensorView::new(Dtype::F32, vec![v.height, v.width], &truth).map_err(|e| file_error(path, e.to_string()))?,
     ));
-    let bytes = safetensors::serialize(views, None).map_err(|e| file_error(path, e))?;
+    let bytes = safetensors::serialize(views, None).map_err(|e| file_error(path, e.to_string()))?;
     if let Some(dir) = path.parent() {
-        std::fs::create_dir_all(dir).map_err(|e| file_error(dir, e))?;
+        std::fs::create_dir_all(dir).map_err(|e| file_error(dir, e.to_string()))?;
     }
     let temporary = path.with_extension("partial");
-    std::fs::write(&temporary, bytes).map_err(|e| file_error(&temporary, e))?;
-    std::fs::rename(&temporary, path).map_err(|e| file_error(path, e))
+    std::fs::write(&temporary, bytes).map_err(|e| file_error(&temporary, e.to_string()))?;
+    std::fs::rename(&temporary, path).map_err(|e| file_error(path, e.to_string()))
 }
 
 fn read_sample(bytes: &[u8], disparities: usize) -> Option<Sample> {
@@ -358,7 +371,12 @@ fn read_sample(bytes: &[u8], disparities: usize) -> Option<Sample> {
         .chunks_exact(4)
         .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
         .collect();
-    let roles = [("left", [-1, 0]), ("right", [1, 0]), ("top", [0, -1]), ("bottom", [0, 1])];
+    let roles = [
+        ("left", [-1, 0]),
+        ("right", [1, 0]),
+        ("top", [0, -1]),
+        ("bottom", [0, 1]),
+    ];
     let mut volumes = Vec::new();
     for (i, (role, offset)) in roles.iter().enumerate() {
         let view = tensors.tensor(&format!("volume.{i}")).ok()?;
@@ -389,7 +407,13 @@ pub fn validation_examples(samples: &[Sample], views: usize, disparities: usize)
         .map(|s| {
             let (w, h) = (s.volumes[0].width, s.volumes[0].height);
             let side = (w.min(h).min(160)) / 4 * 4;
-            crop(&s.for_views(views), &s.truth, ((h - side) / 2, (w - side) / 2), (side, side), disparities)
+            crop(
+                &s.for_views(views),
+                &s.truth,
+                ((h - side) / 2, (w - side) / 2),
+                (side, side),
+                disparities,
+            )
         })
         .collect()
 }
@@ -444,6 +468,17 @@ pub fn validate(net: &Network, examples: &[Example]) -> Result<(f64, f64), Train
     Ok((sum / count, 100.0 * bad as f64 / count))
 }
 
+/// Where a run keeps its files.
+#[derive(Debug, Clone, Copy)]
+pub struct TrainPaths<'a> {
+    /// The run folder: checkpoint, curves, `training.json`.
+    pub dir: &'a Path,
+    /// The dataset cache (shared by runs).
+    pub dataset: &'a Path,
+    /// The weights written at the end.
+    pub weights: &'a Path,
+}
+
 /// Paths of a run folder.
 pub struct RunFiles {
     /// The folder.
@@ -474,17 +509,20 @@ impl RunFiles {
 /// checkpoint (the summary says it was interrupted).
 pub fn train(
     config: &TrainConfig,
-    dir: &Path,
-    dataset_dir: &Path,
-    weights_out: &Path,
+    paths: &TrainPaths<'_>,
     command: &str,
     stop: &AtomicBool,
     on_dataset: &mut dyn FnMut(usize, usize),
     on_step: &mut dyn FnMut(&StepReport),
 ) -> Result<TrainSummary, TrainError> {
     config.validate()?;
+    let TrainPaths {
+        dir,
+        dataset: dataset_dir,
+        weights: weights_out,
+    } = *paths;
     let files = RunFiles { dir: dir.to_path_buf() };
-    std::fs::create_dir_all(dir).map_err(|e| file_error(dir, e))?;
+    std::fs::create_dir_all(dir).map_err(|e| file_error(dir, e.to_string()))?;
     let dataset_started = Instant::now();
     let total = config.train_sets + config.val_sets;
     let mut train_samples = Vec::new();
@@ -525,7 +563,9 @@ pub fn train(
         .collect();
     // Resume or start.
     let (mut net, mut adam, mut history, mut train_seconds) = match load_checkpoint(&files.checkpoint(), config.views) {
-        Ok((net, adam, info)) if info.get("train_config") == Some(&serde_json::to_string(config).unwrap_or_default()) => {
+        Ok((net, adam, info))
+            if info.get("train_config") == Some(&serde_json::to_string(config).unwrap_or_default()) =>
+        {
             let history = read_curves(&files.curves_csv(), adam.step);
             let seconds = info.get("train_seconds").and_then(|s| s.parse().ok()).unwrap_or(0.0);
             (net, adam, history, seconds)
@@ -634,8 +674,8 @@ pub fn train(
         parameters: net.parameter_count(),
         weights: weights_out.to_path_buf(),
     };
-    let json = serde_json::to_string_pretty(&summary).map_err(|e| file_error(&files.summary(), e))?;
-    std::fs::write(files.summary(), json).map_err(|e| file_error(&files.summary(), e))?;
+    let json = serde_json::to_string_pretty(&summary).map_err(|e| file_error(&files.summary(), e.to_string()))?;
+    std::fs::write(files.summary(), json).map_err(|e| file_error(&files.summary(), e.to_string()))?;
     Ok(summary)
 }
 
@@ -652,7 +692,13 @@ fn random_crop(config: &TrainConfig, samples: &[Sample], rng: &mut Rng) -> Examp
         let s = &samples[rng.below(samples.len())];
         let (w, h) = (s.volumes[0].width, s.volumes[0].height);
         let (y0, x0) = (rng.below(h - config.crop + 1), rng.below(w - config.crop + 1));
-        let e = crop(&s.for_views(config.views), &s.truth, (y0, x0), (config.crop, config.crop), config.disparities);
+        let e = crop(
+            &s.for_views(config.views),
+            &s.truth,
+            (y0, x0),
+            (config.crop, config.crop),
+            config.disparities,
+        );
         let enough = e.mask.iter().filter(|m| **m).count() * 2 > e.mask.len();
         example = Some(e);
         if enough {
@@ -707,10 +753,16 @@ fn write_curves(files: &RunFiles, history: &[CurveRow]) -> Result<(), TrainError
     let mut csv = String::from("step,loss,val_avg_err_px,val_bad1_percent\n");
     let opt = |v: Option<f64>| v.map_or_else(String::new, |v| format!("{v:.5}"));
     for r in history {
-        csv.push_str(&format!("{},{:.6},{},{}\n", r.step, r.loss, opt(r.val_avg_err), opt(r.val_bad1)));
+        csv.push_str(&format!(
+            "{},{:.6},{},{}\n",
+            r.step,
+            r.loss,
+            opt(r.val_avg_err),
+            opt(r.val_bad1)
+        ));
     }
     let path = files.curves_csv();
-    std::fs::write(&path, csv).map_err(|e| file_error(&path, e))?;
+    std::fs::write(&path, csv).map_err(|e| file_error(&path, e.to_string()))?;
     // Mean loss over windows of 25 steps, and the validations.
     let mut series: HashMap<&str, Vec<(i64, f64)>> = HashMap::new();
     for chunk in history.chunks(25) {
@@ -722,11 +774,14 @@ fn write_curves(files: &RunFiles, history: &[CurveRow]) -> Result<(), TrainError
     for r in history {
         if let (Some(avg), Some(bad1)) = (r.val_avg_err, r.val_bad1) {
             series.entry("val/avg_err_px").or_default().push((r.step as i64, avg));
-            series.entry("val/bad1_percent").or_default().push((r.step as i64, bad1));
+            series
+                .entry("val/bad1_percent")
+                .or_default()
+                .push((r.step as i64, bad1));
         }
     }
     let mut series: Vec<(&str, Vec<(i64, f64)>)> = series.into_iter().collect();
     series.sort_by(|a, b| a.0.cmp(b.0));
     viz::stream::write_curves(&files.curves_rrd(), "mfusenet_training", &series)
-        .map_err(|e| file_error(&files.curves_rrd(), e))
+        .map_err(|e| file_error(&files.curves_rrd(), e.to_string()))
 }

@@ -33,7 +33,11 @@ fn shipped_weights_have_the_reference_state_dict_names_and_shapes() {
 #[test]
 fn replay_runs_mfusenet_and_names_bad_weight_files() {
     let dir = temp_dir();
-    let log = record_log(dir.path(), "five.mcap", &["--resolution", "256x192", "--samples-per-pixel", "1"]);
+    let log = record_log(
+        dir.path(),
+        "five.mcap",
+        &["--resolution", "256x192", "--samples-per-pixel", "1"],
+    );
     let log = log.to_str().unwrap_or_default();
     let out = dir.path().join("results");
     let output = replay(&[
@@ -45,8 +49,9 @@ fn replay_runs_mfusenet_and_names_bad_weight_files() {
         "-q",
     ]);
     assert_success(&output, "replay --method mfusenet");
-    let summary: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap_or_default())
-        .unwrap_or_else(|e| panic!("summary.json: {e}"));
+    let summary: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap_or_default())
+            .unwrap_or_else(|e| panic!("summary.json: {e}"));
     for method in ["mfusenet", "mfusenet-stereo"] {
         let set = summary["sets"]
             .as_array()
@@ -64,12 +69,28 @@ fn replay_runs_mfusenet_and_names_bad_weight_files() {
     let bytes = std::fs::read(weights("mfusenet-3view.safetensors")).unwrap_or_default();
     std::fs::write(&truncated, &bytes[..bytes.len() / 3]).unwrap_or_else(|e| panic!("{e}"));
     let cases: [(&str, String, &str); 3] = [
-        ("mfusenet", dir.path().join("missing.safetensors").display().to_string(), "missing.safetensors"),
+        (
+            "mfusenet",
+            dir.path().join("missing.safetensors").display().to_string(),
+            "missing.safetensors",
+        ),
         ("mfusenet", truncated.display().to_string(), "truncated.safetensors"),
-        ("mfusenet-stereo", weights("mfusenet-3view.safetensors"), "concat.0.weight"),
+        (
+            "mfusenet-stereo",
+            weights("mfusenet-3view.safetensors"),
+            "concat.0.weight",
+        ),
     ];
     for (method, file, expected) in cases {
-        let output = replay(&[log, "--method", method, "--weights", &file, "--out", out.to_str().unwrap_or_default()]);
+        let output = replay(&[
+            log,
+            "--method",
+            method,
+            "--weights",
+            &file,
+            "--out",
+            out.to_str().unwrap_or_default(),
+        ]);
         let stderr = String::from_utf8_lossy(&output.stderr);
         assert_eq!(output.status.code(), Some(1), "{method} --weights {file}: {stderr}");
         assert!(stderr.contains(expected) && !stderr.contains("panicked"), "{stderr}");
@@ -136,10 +157,24 @@ fn training_resumes_and_its_weights_run() {
     let steps: Vec<&str> = curves.lines().skip(1).filter_map(|l| l.split(',').next()).collect();
     assert_eq!(steps, ["1", "2", "3", "4", "5", "6"], "{curves}");
     assert!(dir.path().join("run/curves.rrd").is_file());
-    assert!(second["val_avg_err_px"].as_f64().is_some_and(f64::is_finite), "{second}");
+    assert!(
+        second["val_avg_err_px"].as_f64().is_some_and(f64::is_finite),
+        "{second}"
+    );
     // The weights load through --weights.
     let weights = dir.path().join("run/mfusenet-3view.safetensors");
-    let log = record_log(dir.path(), "three.mcap", &["--rig", "three-view", "--resolution", "96x72", "--samples-per-pixel", "1"]);
+    let log = record_log(
+        dir.path(),
+        "three.mcap",
+        &[
+            "--rig",
+            "three-view",
+            "--resolution",
+            "96x72",
+            "--samples-per-pixel",
+            "1",
+        ],
+    );
     let output = replay(&[
         log.to_str().unwrap_or_default(),
         "--method",

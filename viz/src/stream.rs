@@ -561,6 +561,40 @@ fn transform(pose: &Isometry3<f64>) -> rerun::Transform3D {
     rerun::Transform3D::from_translation_rotation([t.x as f32, t.y as f32, t.z as f32], quaternion(&pose.rotation))
 }
 
+/// Writes training curves as a Rerun recording: each series `(entity, [(step, value)])` as
+/// `Scalars` on a `step` sequence timeline (`rerun curves.rrd` plots them, one line per entity).
+/// The file is rewritten whole, so that a resumed run's file holds its full history.
+pub fn write_curves(
+    path: &std::path::Path,
+    app_id: &'static str,
+    series: &[(&str, Vec<(i64, f64)>)],
+) -> Result<(), VizError> {
+    let recording = RecordingStreamBuilder::new(app_id)
+        .save(path)
+        .map_err(|e| VizError::Save {
+            path: path.to_path_buf(),
+            reason: e.to_string(),
+        })?;
+    for (entity, points) in series {
+        for (step, value) in points {
+            if !value.is_finite() {
+                continue;
+            }
+            recording.set_time_sequence("step", *step);
+            recording
+                .log(*entity, &rerun::Scalars::single(*value))
+                .map_err(|e| VizError::Log {
+                    entity: (*entity).to_owned(),
+                    reason: e.to_string(),
+                })?;
+        }
+    }
+    recording.flush_blocking().map_err(|e| VizError::Log {
+        entity: "(flush)".to_owned(),
+        reason: e.to_string(),
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -595,32 +629,4 @@ mod tests {
         assert!(matches!(ViewerSink::parse(&words("show")), Err(VizError::Usage { .. })));
         assert!(matches!(ViewerSink::parse(&words("save")), Err(VizError::Usage { .. })));
     }
-}
-
-/// Writes training curves as a Rerun recording: each series `(entity, [(step, value)])` as
-/// `Scalars` on a `step` sequence timeline (`rerun curves.rrd` plots them, one line per entity).
-/// The file is rewritten whole, so that a resumed run's file holds its full history.
-pub fn write_curves(path: &std::path::Path, app_id: &'static str, series: &[(&str, Vec<(i64, f64)>)]) -> Result<(), VizError> {
-    let recording = RecordingStreamBuilder::new(app_id).save(path).map_err(|e| VizError::Save {
-        path: path.to_path_buf(),
-        reason: e.to_string(),
-    })?;
-    for (entity, points) in series {
-        for (step, value) in points {
-            if !value.is_finite() {
-                continue;
-            }
-            recording.set_time_sequence("step", *step);
-            recording
-                .log(*entity, &rerun::Scalars::single(*value))
-                .map_err(|e| VizError::Log {
-                    entity: (*entity).to_owned(),
-                    reason: e.to_string(),
-                })?;
-        }
-    }
-    recording.flush_blocking().map_err(|e| VizError::Log {
-        entity: "(flush)".to_owned(),
-        reason: e.to_string(),
-    })
 }

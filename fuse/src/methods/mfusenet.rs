@@ -22,9 +22,21 @@ use crate::volume::Problem;
 
 /// The shipped weights, per number of input volumes.
 const SHIPPED: [(usize, &str, &[u8]); 3] = [
-    (1, "mfusenet-stereo.safetensors", include_bytes!("../../weights/mfusenet-stereo.safetensors")),
-    (2, "mfusenet-3view.safetensors", include_bytes!("../../weights/mfusenet-3view.safetensors")),
-    (4, "mfusenet-5view.safetensors", include_bytes!("../../weights/mfusenet-5view.safetensors")),
+    (
+        1,
+        "mfusenet-stereo.safetensors",
+        include_bytes!("../../weights/mfusenet-stereo.safetensors"),
+    ),
+    (
+        2,
+        "mfusenet-3view.safetensors",
+        include_bytes!("../../weights/mfusenet-3view.safetensors"),
+    ),
+    (
+        4,
+        "mfusenet-5view.safetensors",
+        include_bytes!("../../weights/mfusenet-5view.safetensors"),
+    ),
 ];
 
 /// Configuration of MFuseNet.
@@ -121,7 +133,9 @@ impl Method for MFuseNet {
         // Cost volumes: about a tenth of the work; the network the rest.
         let volumes = input_volumes(problem, &neighbours, self.config.input, &|| {})?;
         progress(0.1);
-        let data = infer(net, &volumes, self.config.tile_budget_mib << 20, &|f| progress(0.1 + 0.9 * f))?;
+        let data = infer(net, &volumes, self.config.tile_budget_mib << 20, &|f| {
+            progress(0.1 + 0.9 * f)
+        })?;
         Ok(DisparityImage {
             width: problem.reference.width,
             height: problem.reference.height,
@@ -130,7 +144,11 @@ impl Method for MFuseNet {
     }
 }
 
-fn build(name: &'static str, stereo: bool, overrides: Option<&serde_json::Value>) -> Result<Box<dyn Method>, FuseError> {
+fn build(
+    name: &'static str,
+    stereo: bool,
+    overrides: Option<&serde_json::Value>,
+) -> Result<Box<dyn Method>, FuseError> {
     let config = apply_overrides(MFuseNetConfig::default(), overrides)?;
     Ok(Box::new(MFuseNet::new(name, config, stereo)?))
 }

@@ -91,14 +91,20 @@ fn check(views: usize, parameters: usize) {
         if expected.iter().all(|v| v.abs() < 1e-9) {
             // classify.bias: a constant shift of the logits leaves the softmax unchanged, so its
             // gradient is zero up to rounding.
-            assert!(grad.iter().all(|v| v.abs() < 1e-5), "N={views} grad.{name}: {grad:?} should be 0");
+            assert!(
+                grad.iter().all(|v| v.abs() < 1e-5),
+                "N={views} grad.{name}: {grad:?} should be 0"
+            );
             continue;
         }
         let error = relative_error(grad, &expected);
         assert!(error < 1e-3, "N={views} grad.{name}: relative error {error:e}");
     }
     for layer in train.layers() {
-        for (field, values) in [("running_mean", &layer.bn.running_mean), ("running_var", &layer.bn.running_var)] {
+        for (field, values) in [
+            ("running_mean", &layer.bn.running_mean),
+            ("running_var", &layer.bn.running_var),
+        ] {
             let name = format!("after_train.{}.1.{field}", layer.name);
             let error = relative_error(values, &floats(&tensors, &name).1);
             assert!(error < 1e-4, "N={views} {name}: relative error {error:e}");
@@ -107,7 +113,10 @@ fn check(views: usize, parameters: usize) {
     // The shared feature tower counts one pass per view.
     let before = net.feature[0].bn.num_batches_tracked;
     assert_eq!(train.feature[0].bn.num_batches_tracked, before + views as i64);
-    assert_eq!(train.fuse[0].bn.num_batches_tracked, net.fuse[0].bn.num_batches_tracked + 1);
+    assert_eq!(
+        train.fuse[0].bn.num_batches_tracked,
+        net.fuse[0].bn.num_batches_tracked + 1
+    );
 }
 
 #[test]

@@ -67,7 +67,11 @@ pub fn infer(
     }
     let (dp, hp, wp) = (round4(nd), round4(h), round4(w));
     let whole = dp * hp * wp * bytes_per_voxel(net.views) <= budget_bytes;
-    let side = if whole { hp.max(wp) } else { tile_side(net.views, nd, budget_bytes) };
+    let side = if whole {
+        hp.max(wp)
+    } else {
+        tile_side(net.views, nd, budget_bytes)
+    };
     let tiles: Vec<(usize, usize)> = (0..hp)
         .step_by(side)
         .flat_map(|y| (0..wp).step_by(side).map(move |x| (y, x)))
@@ -101,7 +105,9 @@ pub fn infer(
         for y in y0..y1.min(h) {
             for x in x0..x1.min(w) {
                 let at = (y - ry0) * rw + (x - rx0);
-                let max = (0..nd).map(|d| logits.data[d * plane + at]).fold(f32::NEG_INFINITY, f32::max);
+                let max = (0..nd)
+                    .map(|d| logits.data[d * plane + at])
+                    .fold(f32::NEG_INFINITY, f32::max);
                 let (mut sum, mut weighted) = (0f64, 0f64);
                 for d in 0..nd {
                     let e = f64::from((logits.data[d * plane + at] - max).exp());
@@ -126,7 +132,7 @@ mod tests {
         let mut net = Network::init(2, 7);
         // A peaked softmax, so that the disparity depends on every layer (as in the fixtures).
         for w in &mut net.classify.weight {
-            *w *= 40.0;
+            *w *= 400.0;
         }
         // Odd sizes: every axis needs padding; 70 × 61 px cut into 16-px tile cores.
         let (w, h, nd) = (70, 61, 10);
@@ -136,7 +142,10 @@ mod tests {
             min_disparity: 3,
             disparities: nd,
             data: (0..w * h * nd)
-                .map(|i| (((i / nd) % w) * 7 + ((i / nd) / w) * 3 + (i % nd) * (11 + seed) + seed * 5 + (i * i) % 13) as u8 % 97)
+                .map(|i| {
+                    (((i / nd) % w) * 7 + ((i / nd) / w) * 3 + (i % nd) * (11 + seed) + seed * 5 + (i * i) % 13) as u8
+                        % 97
+                })
                 .collect(),
             max_cost: 255,
             source: VolumeSource::Neighbour {
@@ -149,7 +158,11 @@ mod tests {
         let budget = (16 + 2 * HALO).pow(2) * 12 * bytes_per_voxel(2);
         assert_eq!(tile_side(2, nd, budget), 16);
         let tiled = infer(&net, &volumes, budget, &|_| {}).unwrap_or_else(|e| panic!("{e}"));
-        let worst = whole.iter().zip(&tiled).map(|(a, b)| (a - b).abs()).fold(0f32, f32::max);
+        let worst = whole
+            .iter()
+            .zip(&tiled)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0f32, f32::max);
         assert!(worst < 1e-3, "tiled differs by {worst} px");
         assert!(whole.iter().all(|d| (3.0..=12.0).contains(d)));
         // Not constant: the test would pass trivially on a flat output.

@@ -94,7 +94,9 @@ pub enum Error {
         dtype: String,
     },
     /// A NaN or infinite value (or a negative running variance).
-    #[error("weights file {file}: tensor '{tensor}' has an invalid value (NaN, infinite or negative variance) at index {index}")]
+    #[error(
+        "weights file {file}: tensor '{tensor}' has an invalid value (NaN, infinite or negative variance) at index {index}"
+    )]
     NonFinite {
         /// File.
         file: String,

@@ -614,7 +614,11 @@ mod layer_tests {
                 let u = random(y.shape, 5);
                 let value = |l: &ConvBn, x: &Tensor| -> f64 {
                     let (y, _) = l.clone().forward_train(x, mode);
-                    y.data.iter().zip(&u.data).map(|(a, b)| f64::from(*a) * f64::from(*b)).sum()
+                    y.data
+                        .iter()
+                        .zip(&u.data)
+                        .map(|(a, b)| f64::from(*a) * f64::from(*b))
+                        .sum()
                 };
                 let (dx, grad) = layer.backward(&u, &cache, true);
                 let dx = dx.unwrap_or_else(|| Tensor::zeros([0; 4]));
@@ -624,14 +628,22 @@ mod layer_tests {
                     p.bn.bias[c] += h;
                     m.bn.bias[c] -= h;
                     let numeric = (value(&p, &x) - value(&m, &x)) / (2.0 * f64::from(h));
-                    assert!((numeric - f64::from(grad.bn_bias[c])).abs() < 1e-2 * (1.0 + numeric.abs()), "{mode:?} {kind:?} dβ[{c}] {} vs {numeric}", grad.bn_bias[c]);
+                    assert!(
+                        (numeric - f64::from(grad.bn_bias[c])).abs() < 1e-2 * (1.0 + numeric.abs()),
+                        "{mode:?} {kind:?} dβ[{c}] {} vs {numeric}",
+                        grad.bn_bias[c]
+                    );
                 }
                 for i in [0, 5, 17, 40] {
                     let (mut p, mut m) = (x.clone(), x.clone());
                     p.data[i] += h;
                     m.data[i] -= h;
                     let numeric = (value(&layer, &p) - value(&layer, &m)) / (2.0 * f64::from(h));
-                    assert!((numeric - f64::from(dx.data[i])).abs() < 1e-2 * (1.0 + numeric.abs()), "{mode:?} {kind:?} dx[{i}] {} vs {numeric}", dx.data[i]);
+                    assert!(
+                        (numeric - f64::from(dx.data[i])).abs() < 1e-2 * (1.0 + numeric.abs()),
+                        "{mode:?} {kind:?} dx[{i}] {} vs {numeric}",
+                        dx.data[i]
+                    );
                 }
             }
         }
@@ -660,19 +672,51 @@ mod mode_tests {
         let sizes = [512, 512, 512, 512, 512, 64, 64, 8, 8, 8, 64, 64, 512, 512, 512];
         for ((layer, fitted), n) in net.layers_mut().zip(stats.layers()).zip(sizes) {
             layer.bn.running_mean = fitted.bn.running_mean.clone();
-            layer.bn.running_var = fitted.bn.running_var.iter().map(|v| v * (n - 1) as f32 / n as f32).collect();
+            layer.bn.running_var = fitted
+                .bn
+                .running_var
+                .iter()
+                .map(|v| v * (n - 1) as f32 / n as f32)
+                .collect();
         }
-        let frozen = net.clone().forward_train_with(&inputs, BatchNormMode::Frozen).unwrap_or_else(|e| panic!("{e}"));
-        let worst = batch.disparity.iter().zip(&frozen.disparity).map(|(a, b)| (a - b).abs()).fold(0f32, f32::max);
+        let frozen = net
+            .clone()
+            .forward_train_with(&inputs, BatchNormMode::Frozen)
+            .unwrap_or_else(|e| panic!("{e}"));
+        let worst = batch
+            .disparity
+            .iter()
+            .zip(&frozen.disparity)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0f32, f32::max);
         assert!(worst < 1e-3, "forward differs by {worst}");
-        let (_, _, gb) = net.clone().loss_and_gradients_with(&inputs, &target, &mask, BatchNormMode::Batch).unwrap_or_else(|e| panic!("{e}"));
-        let (_, _, gf) = net.clone().loss_and_gradients_with(&inputs, &target, &mask, BatchNormMode::Frozen).unwrap_or_else(|e| panic!("{e}"));
+        let (_, _, gb) = net
+            .clone()
+            .loss_and_gradients_with(&inputs, &target, &mask, BatchNormMode::Batch)
+            .unwrap_or_else(|e| panic!("{e}"));
+        let (_, _, gf) = net
+            .clone()
+            .loss_and_gradients_with(&inputs, &target, &mask, BatchNormMode::Frozen)
+            .unwrap_or_else(|e| panic!("{e}"));
         for name in ["distill1.1.bias", "distill1.1.weight", "classify.weight"] {
-            let b = &gb.tensors.iter().find(|(n, _)| n == name).unwrap_or_else(|| panic!("{name}")).1;
-            let f = &gf.tensors.iter().find(|(n, _)| n == name).unwrap_or_else(|| panic!("{name}")).1;
+            let b = &gb
+                .tensors
+                .iter()
+                .find(|(n, _)| n == name)
+                .unwrap_or_else(|| panic!("{name}"))
+                .1;
+            let f = &gf
+                .tensors
+                .iter()
+                .find(|(n, _)| n == name)
+                .unwrap_or_else(|| panic!("{name}"))
+                .1;
             let scale = b.iter().fold(0f32, |m, v| m.max(v.abs()));
             let worst = b.iter().zip(f).map(|(x, y)| (x - y).abs()).fold(0f32, f32::max);
-            assert!(scale > 1e-4 && worst <= 1e-3 * scale, "{name}: worst {worst} of {scale}");
+            assert!(
+                scale > 1e-4 && worst <= 1e-3 * scale,
+                "{name}: worst {worst} of {scale}"
+            );
         }
     }
 }

@@ -75,7 +75,10 @@ pub fn recalibrate_batch_norm<'a>(
     net: &mut Network,
     examples: impl IntoIterator<Item = &'a Example>,
 ) -> Result<usize, Error> {
-    let saved: Vec<(i64, Option<f32>)> = net.layers().map(|l| (l.bn.num_batches_tracked, l.bn.momentum)).collect();
+    let saved: Vec<(i64, Option<f32>)> = net
+        .layers()
+        .map(|l| (l.bn.num_batches_tracked, l.bn.momentum))
+        .collect();
     for layer in net.layers_mut() {
         layer.bn.num_batches_tracked = 0;
         layer.bn.momentum = None;
@@ -90,7 +93,7 @@ pub fn recalibrate_batch_norm<'a>(
         passes += 1;
     }
     for (layer, (count, momentum)) in net.layers_mut().zip(saved) {
-        layer.bn.num_batches_tracked = count + layer.bn.num_batches_tracked;
+        layer.bn.num_batches_tracked += count;
         layer.bn.momentum = momentum;
     }
     outcome.map(|()| passes)
@@ -175,7 +178,12 @@ pub fn save_checkpoint(net: &mut Network, adam: &Adam, info: &WeightsInfo, path:
     })?;
     let mut owned: Vec<(String, Dtype, Vec<usize>, Vec<u8>)> = Vec::new();
     for (name, view) in model.tensors() {
-        owned.push((format!("model.{name}"), view.dtype(), view.shape().to_vec(), view.data().to_vec()));
+        owned.push((
+            format!("model.{name}"),
+            view.dtype(),
+            view.shape().to_vec(),
+            view.data().to_vec(),
+        ));
     }
     let names: Vec<String> = net.parameters_mut().into_iter().map(|(n, _)| n).collect();
     for (kind, moments) in [("adam_m", &adam.m), ("adam_v", &adam.v)] {
@@ -222,7 +230,12 @@ pub fn load_checkpoint(path: &Path, views: usize) -> Result<(Network, Adam, Weig
         file: file.clone(),
         reason: e.to_string(),
     })?;
-    let mut adam = Adam::new(&mut net, info.get("adam_learning_rate").and_then(|v| v.parse().ok()).unwrap_or(1e-3));
+    let mut adam = Adam::new(
+        &mut net,
+        info.get("adam_learning_rate")
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(1e-3),
+    );
     adam.step = info.get("adam_step").and_then(|v| v.parse().ok()).unwrap_or(0);
     let names: Vec<String> = net.parameters_mut().into_iter().map(|(n, _)| n).collect();
     for (kind, moments) in [("adam_m", &mut adam.m), ("adam_v", &mut adam.v)] {

@@ -65,7 +65,12 @@ pub fn load(path: &Path, views: Option<usize>) -> Result<(Network, WeightsInfo),
 /// Reads weights from safetensors bytes; only tensors whose names start with `prefix` are the
 /// model's (the prefix is stripped), so that test fixtures can hold more. `file` names the
 /// source in errors.
-pub fn from_bytes(bytes: &[u8], file: &str, prefix: &str, views: Option<usize>) -> Result<(Network, WeightsInfo), Error> {
+pub fn from_bytes(
+    bytes: &[u8],
+    file: &str,
+    prefix: &str,
+    views: Option<usize>,
+) -> Result<(Network, WeightsInfo), Error> {
     let format = |reason: String| Error::Format {
         file: file.to_owned(),
         reason,
@@ -125,9 +130,7 @@ pub fn from_bytes(bytes: &[u8], file: &str, prefix: &str, views: Option<usize>) 
         }
         if tracked {
             let count = match (view.dtype(), view.data()) {
-                (Dtype::I64, data) if data.len() == 8 => {
-                    i64::from_le_bytes(data.try_into().unwrap_or([0; 8]))
-                }
+                (Dtype::I64, data) if data.len() == 8 => i64::from_le_bytes(data.try_into().unwrap_or([0; 8])),
                 (dtype, _) => {
                     return Err(Error::TensorDtype {
                         file: file.to_owned(),
@@ -218,11 +221,26 @@ pub fn to_bytes(net: &Network, info: &WeightsInfo) -> Result<Vec<u8>, Error> {
     for layer in net.layers() {
         let n = &layer.name;
         let c = vec![layer.cout];
-        owned.push((format!("{n}.0.weight"), Dtype::F32, layer.weight_shape().to_vec(), floats(&layer.weight)));
+        owned.push((
+            format!("{n}.0.weight"),
+            Dtype::F32,
+            layer.weight_shape().to_vec(),
+            floats(&layer.weight),
+        ));
         owned.push((format!("{n}.1.weight"), Dtype::F32, c.clone(), floats(&layer.bn.weight)));
         owned.push((format!("{n}.1.bias"), Dtype::F32, c.clone(), floats(&layer.bn.bias)));
-        owned.push((format!("{n}.1.running_mean"), Dtype::F32, c.clone(), floats(&layer.bn.running_mean)));
-        owned.push((format!("{n}.1.running_var"), Dtype::F32, c, floats(&layer.bn.running_var)));
+        owned.push((
+            format!("{n}.1.running_mean"),
+            Dtype::F32,
+            c.clone(),
+            floats(&layer.bn.running_mean),
+        ));
+        owned.push((
+            format!("{n}.1.running_var"),
+            Dtype::F32,
+            c,
+            floats(&layer.bn.running_var),
+        ));
         owned.push((
             format!("{n}.1.num_batches_tracked"),
             Dtype::I64,
@@ -230,8 +248,18 @@ pub fn to_bytes(net: &Network, info: &WeightsInfo) -> Result<Vec<u8>, Error> {
             layer.bn.num_batches_tracked.to_le_bytes().to_vec(),
         ));
     }
-    owned.push(("classify.weight".to_owned(), Dtype::F32, vec![1, 4, 3, 3, 3], floats(&net.classify.weight)));
-    owned.push(("classify.bias".to_owned(), Dtype::F32, vec![1], floats(&net.classify.bias)));
+    owned.push((
+        "classify.weight".to_owned(),
+        Dtype::F32,
+        vec![1, 4, 3, 3, 3],
+        floats(&net.classify.weight),
+    ));
+    owned.push((
+        "classify.bias".to_owned(),
+        Dtype::F32,
+        vec![1],
+        floats(&net.classify.bias),
+    ));
     let mut views = Vec::new();
     for (name, dtype, shape, data) in &owned {
         let view = TensorView::new(*dtype, shape.clone(), data).map_err(|e| Error::Format {
@@ -282,7 +310,12 @@ mod tests {
         }
         let views: Vec<(String, TensorView<'_>)> = owned
             .iter()
-            .map(|(n, d, s, b)| (n.clone(), TensorView::new(*d, s.clone(), b).unwrap_or_else(|e| panic!("{e}"))))
+            .map(|(n, d, s, b)| {
+                (
+                    n.clone(),
+                    TensorView::new(*d, s.clone(), b).unwrap_or_else(|e| panic!("{e}")),
+                )
+            })
             .collect();
         safetensors::serialize(views, None).unwrap_or_else(|e| panic!("{e}"))
     }
@@ -296,7 +329,10 @@ mod tests {
 
         // Truncated.
         let error = from_bytes(&good[..good.len() / 2], "w.safetensors", "", None).err();
-        assert!(matches!(&error, Some(Error::Format { file, .. }) if file == "w.safetensors"), "{error:?}");
+        assert!(
+            matches!(&error, Some(Error::Format { file, .. }) if file == "w.safetensors"),
+            "{error:?}"
+        );
         assert!(from_bytes(b"not a file", "x", "", None).is_err());
         // Wrong variant.
         let error = from_bytes(&good, "w.safetensors", "", Some(4)).err();
@@ -310,15 +346,27 @@ mod tests {
         );
         // Missing tensor.
         let error = from_bytes(&edited(&good, "down1.1.running_var", None), "w", "", None).err();
-        assert!(matches!(&error, Some(Error::MissingTensor { tensor, .. }) if tensor == "down1.1.running_var"), "{error:?}");
+        assert!(
+            matches!(&error, Some(Error::MissingTensor { tensor, .. }) if tensor == "down1.1.running_var"),
+            "{error:?}"
+        );
         // Wrong shape.
         let wrong = Some((Dtype::F32, vec![4, 4, 3, 3], vec![0u8; 4 * 4 * 9 * 4]));
         let error = from_bytes(&edited(&good, "dconv1.0.weight", wrong), "w", "", None).err();
-        assert!(matches!(&error, Some(Error::TensorShape { tensor, .. }) if tensor == "dconv1.0.weight"), "{error:?}");
+        assert!(
+            matches!(&error, Some(Error::TensorShape { tensor, .. }) if tensor == "dconv1.0.weight"),
+            "{error:?}"
+        );
         // NaN.
         let mut nan = vec![0u8; 16];
         nan[4..8].copy_from_slice(&f32::NAN.to_le_bytes());
-        let error = from_bytes(&edited(&good, "up2.1.bias", Some((Dtype::F32, vec![4], nan))), "w", "", None).err();
+        let error = from_bytes(
+            &edited(&good, "up2.1.bias", Some((Dtype::F32, vec![4], nan))),
+            "w",
+            "",
+            None,
+        )
+        .err();
         assert_eq!(
             error,
             Some(Error::NonFinite {
@@ -328,14 +376,35 @@ mod tests {
             })
         );
         // Wrong type.
-        let error = from_bytes(&edited(&good, "up2.1.bias", Some((Dtype::I32, vec![4], vec![0; 16]))), "w", "", None).err();
-        assert!(matches!(&error, Some(Error::TensorDtype { tensor, .. }) if tensor == "up2.1.bias"), "{error:?}");
+        let error = from_bytes(
+            &edited(&good, "up2.1.bias", Some((Dtype::I32, vec![4], vec![0; 16]))),
+            "w",
+            "",
+            None,
+        )
+        .err();
+        assert!(
+            matches!(&error, Some(Error::TensorDtype { tensor, .. }) if tensor == "up2.1.bias"),
+            "{error:?}"
+        );
         // A tensor that is not the model's.
-        let error = from_bytes(&edited(&good, "extra", Some((Dtype::F32, vec![1], vec![0; 4]))), "w", "", None).err();
-        assert!(matches!(&error, Some(Error::UnexpectedTensor { tensor, .. }) if tensor == "extra"), "{error:?}");
+        let error = from_bytes(
+            &edited(&good, "extra", Some((Dtype::F32, vec![1], vec![0; 4]))),
+            "w",
+            "",
+            None,
+        )
+        .err();
+        assert!(
+            matches!(&error, Some(Error::UnexpectedTensor { tensor, .. }) if tensor == "extra"),
+            "{error:?}"
+        );
         // A missing file names it.
         let error = load(Path::new("/nonexistent/w.safetensors"), None).err();
-        assert!(matches!(&error, Some(Error::Read { file, .. }) if file == "/nonexistent/w.safetensors"), "{error:?}");
+        assert!(
+            matches!(&error, Some(Error::Read { file, .. }) if file == "/nonexistent/w.safetensors"),
+            "{error:?}"
+        );
         // The messages carry the evidence.
         let message = Error::NonFinite {
             file: "w".into(),
@@ -353,7 +422,10 @@ mod tests {
             let (net, info) = load(&path, Some(views)).unwrap_or_else(|e| panic!("{e}"));
             assert_eq!(net.views, views);
             assert_eq!(info.get("views"), Some(views.to_string().as_str()), "{file}");
-            assert!(info.get("made_by").is_some() && info.get("input_normalisation").is_some(), "{file}");
+            assert!(
+                info.get("made_by").is_some() && info.get("input_normalisation").is_some(),
+                "{file}"
+            );
         }
     }
 }

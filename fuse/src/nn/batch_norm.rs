@@ -126,7 +126,12 @@ impl BatchNorm {
             let g = grad.channel(c);
             let xhat = cache.normalised.channel(c);
             dbias.push(g.iter().map(|v| f64::from(*v)).sum::<f64>() as f32);
-            dweight.push(g.iter().zip(xhat).map(|(a, b)| f64::from(*a) * f64::from(*b)).sum::<f64>() as f32);
+            dweight.push(
+                g.iter()
+                    .zip(xhat)
+                    .map(|(a, b)| f64::from(*a) * f64::from(*b))
+                    .sum::<f64>() as f32,
+            );
             let scale = self.weight[c] * cache.inv_std[c];
             for (out, gv) in input_grad.data[c * n..(c + 1) * n].iter_mut().zip(g) {
                 *out = scale * gv;
@@ -214,7 +219,11 @@ mod tests {
         let loss = |bn: &BatchNorm, x: &Tensor| -> f64 {
             let mut copy = bn.clone();
             let (y, _) = copy.forward_train(x.clone());
-            y.data.iter().zip(&upstream.data).map(|(a, b)| f64::from(*a) * f64::from(*b)).sum()
+            y.data
+                .iter()
+                .zip(&upstream.data)
+                .map(|(a, b)| f64::from(*a) * f64::from(*b))
+                .sum()
         };
         let (_, cache) = bn.clone().forward_train(x.clone());
         let (dx, dparams) = bn.backward(&upstream, &cache);
@@ -224,7 +233,11 @@ mod tests {
             plus.data[i] += h;
             minus.data[i] -= h;
             let numeric = (loss(&bn, &plus) - loss(&bn, &minus)) / (2.0 * f64::from(h));
-            assert!((numeric - f64::from(dx.data[i])).abs() < 2e-3, "dx[{i}] {numeric} vs {}", dx.data[i]);
+            assert!(
+                (numeric - f64::from(dx.data[i])).abs() < 2e-3,
+                "dx[{i}] {numeric} vs {}",
+                dx.data[i]
+            );
         }
         for c in 0..2 {
             let (mut plus, mut minus) = (bn.clone(), bn.clone());

@@ -146,7 +146,10 @@ fn conv_k<const K: usize>(x: &Tensor, weight: &[f32], cout: usize, bias: Option<
             let channel = g * GROUP + o;
             let add = bias.map_or(0.0, |b| b[channel]);
             let at = out.index(channel, *z, 0, 0);
-            for (dst, v) in out.data[at..at + plane].iter_mut().zip(&values[o * plane..(o + 1) * plane]) {
+            for (dst, v) in out.data[at..at + plane]
+                .iter_mut()
+                .zip(&values[o * plane..(o + 1) * plane])
+            {
                 *dst = v + add;
             }
         }
@@ -218,8 +221,9 @@ fn weight_grad_k<const K: usize>(x: &Tensor, grad: &Tensor) -> Vec<f32> {
                                         let run = TAP_RUN.min(K - tw0);
                                         let mut v = [[f32x8::ZERO; TAP_RUN]; GROUP];
                                         for xb in (0..row).step_by(LANES) {
-                                            let xv: [f32x8; TAP_RUN] =
-                                                std::array::from_fn(|j| load(&xr[(xb + tw0 + j).min(row + K - 1 - LANES)..]));
+                                            let xv: [f32x8; TAP_RUN] = std::array::from_fn(|j| {
+                                                load(&xr[(xb + tw0 + j).min(row + K - 1 - LANES)..])
+                                            });
                                             for (o, v_o) in v.iter_mut().enumerate() {
                                                 let gv = load(&gr[o][xb..]);
                                                 for (a, xj) in v_o.iter_mut().zip(&xv) {
@@ -287,7 +291,9 @@ pub(crate) mod tests {
         let mut state = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
         (0..n)
             .map(|_| {
-                state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+                state = state
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
                 ((state >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
             })
             .collect()
@@ -296,10 +302,7 @@ pub(crate) mod tests {
     fn assert_close(got: &[f32], expected: &[f32], tolerance: f32, what: &str) {
         assert_eq!(got.len(), expected.len(), "{what}");
         for (i, (a, b)) in got.iter().zip(expected).enumerate() {
-            assert!(
-                (a - b).abs() <= tolerance * (1.0 + b.abs()),
-                "{what}[{i}]: {a} vs {b}"
-            );
+            assert!((a - b).abs() <= tolerance * (1.0 + b.abs()), "{what}[{i}]: {a} vs {b}");
         }
     }
 
@@ -319,7 +322,11 @@ pub(crate) mod tests {
             let weight = random_values(cout * shape[0] * k * k * k, 100 + seed as u64);
             let bias = random_values(cout, 200 + seed as u64);
             let mut expected = reference::conv3d(&x, &weight, cout, k, 1);
-            for (c, chunk) in expected.data.chunks_mut(expected.shape[1] * expected.shape[2] * expected.shape[3]).enumerate() {
+            for (c, chunk) in expected
+                .data
+                .chunks_mut(expected.shape[1] * expected.shape[2] * expected.shape[3])
+                .enumerate()
+            {
                 for v in chunk {
                     *v += bias[c];
                 }

@@ -12,7 +12,9 @@ pub fn soft_argmin(logits: &Tensor) -> (Vec<f32>, Tensor) {
     let mut probabilities = Tensor::zeros(logits.shape);
     let mut disparity = vec![0f32; plane];
     for (pixel, out) in disparity.iter_mut().enumerate() {
-        let max = (0..d).map(|z| logits.data[z * plane + pixel]).fold(f32::NEG_INFINITY, f32::max);
+        let max = (0..d)
+            .map(|z| logits.data[z * plane + pixel])
+            .fold(f32::NEG_INFINITY, f32::max);
         let mut sum = 0f64;
         for z in 0..d {
             let e = (logits.data[z * plane + pixel] - max).exp();
@@ -81,7 +83,10 @@ mod tests {
         let upstream = [0.3f32, -1.0, 0.5, 2.0, 0.1, -0.4];
         let value = |l: &Tensor| -> f64 {
             let (d, _) = soft_argmin(l);
-            d.iter().zip(&upstream).map(|(a, b)| f64::from(*a) * f64::from(*b)).sum()
+            d.iter()
+                .zip(&upstream)
+                .map(|(a, b)| f64::from(*a) * f64::from(*b))
+                .sum()
         };
         let (d, p) = soft_argmin(&logits);
         let g = soft_argmin_backward(&upstream, &d, &p);
@@ -90,7 +95,11 @@ mod tests {
             plus.data[i] += 1e-3;
             minus.data[i] -= 1e-3;
             let numeric = (value(&plus) - value(&minus)) / 2e-3;
-            assert!((numeric - f64::from(g.data[i])).abs() < 1e-3, "{i}: {numeric} vs {}", g.data[i]);
+            assert!(
+                (numeric - f64::from(g.data[i])).abs() < 1e-3,
+                "{i}: {numeric} vs {}",
+                g.data[i]
+            );
         }
         // A peaked softmax picks its disparity.
         let mut peaked = Tensor::zeros([1, 4, 1, 1]);

@@ -60,4 +60,3 @@ pub fn run(args: &CheckArgs) -> Result<Outcome> {
     }
     Ok(Outcome::Complete)
 }
-

@@ -128,4 +128,3 @@ pub fn run(args: &DemoArgs, quiet: bool) -> Result<Outcome> {
     )?;
     Ok(if layout_lost { Outcome::Incomplete } else { outcome })
 }
-

@@ -79,7 +79,8 @@ fn main() -> ExitCode {
 /// `--config` as JSON (a usage error when it is not).
 fn parse_overrides(text: Option<&str>) -> Result<Option<serde_json::Value>> {
     text.map(|t| {
-        serde_json::from_str::<serde_json::Value>(t).map_err(|e| UsageError(format!("--config is not JSON: {e}")).into())
+        serde_json::from_str::<serde_json::Value>(t)
+            .map_err(|e| UsageError(format!("--config is not JSON: {e}")).into())
     })
     .transpose()
 }

@@ -198,7 +198,9 @@ pub fn run(args: &RunArgs, quiet: bool) -> Result<Outcome> {
                 prepared.problem.neighbours.len()
             ));
             let result = prepared
-                .run(method.as_ref(), &|fraction| progress.set_position((fraction * 100.0) as u64))
+                .run(method.as_ref(), &|fraction| {
+                    progress.set_position((fraction * 100.0) as u64)
+                })
                 .with_context(|| format!("set {}: {}", set.index, method.name()))?;
             progress.finish_and_clear();
             let outputs = write_set_outputs(&args.out, set, method.name(), &result.disparity, result.regions)?;
@@ -245,7 +247,12 @@ pub fn run(args: &RunArgs, quiet: bool) -> Result<Outcome> {
                 alignment: alignment.clone(),
             };
             if let Some(result_log) = result_log.as_mut() {
-                result_log.write_set(set, method.name(), &result.disparity, &serde_json::to_value(&set_summary)?)?;
+                result_log.write_set(
+                    set,
+                    method.name(),
+                    &result.disparity,
+                    &serde_json::to_value(&set_summary)?,
+                )?;
             }
             summaries.push(set_summary);
         }

@@ -7,7 +7,7 @@ use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 use anyhow::{Context, Result};
 use clap::Args;
 use record::cli::{Outcome, UsageError, progress_bar};
-use replay::train::{TrainConfig, train, variant_name};
+use replay::train::{TrainConfig, TrainPaths, train, variant_name};
 use tracing::info;
 
 /// Arguments of `replay train`.
@@ -73,7 +73,12 @@ impl TrainArgs {
             .baseline_mm
             .split_once(',')
             .and_then(|(a, b)| Some((a.parse().ok()?, b.parse().ok()?)))
-            .ok_or_else(|| usage(format!("--baseline-mm {}: expected LOW,HIGH, e.g. 6,28", self.baseline_mm)))?;
+            .ok_or_else(|| {
+                usage(format!(
+                    "--baseline-mm {}: expected LOW,HIGH, e.g. 6,28",
+                    self.baseline_mm
+                ))
+            })?;
         let config = TrainConfig {
             views: self.views.parse().unwrap_or(2),
             steps: self.steps,
@@ -109,7 +114,9 @@ pub fn run(args: &TrainArgs, quiet: bool) -> Result<Outcome> {
     let _ = ctrlc::set_handler(move || {
         if presses.fetch_add(1, Ordering::SeqCst) == 0 {
             flag.store(true, Ordering::SeqCst);
-            eprintln!("\ninterrupt: saving a checkpoint and the weights so far (Ctrl-C again to abort; rerun to resume)");
+            eprintln!(
+                "\ninterrupt: saving a checkpoint and the weights so far (Ctrl-C again to abort; rerun to resume)"
+            );
         } else {
             std::process::exit(130);
         }
@@ -128,9 +135,11 @@ pub fn run(args: &TrainArgs, quiet: bool) -> Result<Outcome> {
     let step_bar = progress_bar(config.steps, quiet, "steps");
     let summary = train(
         &config,
-        &dir,
-        &args.dataset_dir,
-        &weights_out,
+        &TrainPaths {
+            dir: &dir,
+            dataset: &args.dataset_dir,
+            weights: &weights_out,
+        },
         &command,
         &stop,
         &mut |done, _| {
@@ -141,9 +150,9 @@ pub fn run(args: &TrainArgs, quiet: bool) -> Result<Outcome> {
                 dataset_bar.finish_and_clear();
             }
             step_bar.set_position(report.step);
-            let validation = report
-                .validation
-                .map_or_else(String::new, |(avg, bad1)| format!(" · val AvgErr {avg:.3} px Bad1 {bad1:.1} %"));
+            let validation = report.validation.map_or_else(String::new, |(avg, bad1)| {
+                format!(" · val AvgErr {avg:.3} px Bad1 {bad1:.1} %")
+            });
             step_bar.set_message(format!(
                 "loss {:.3} (mean {:.3}) · {:.2} s/step{validation}",
                 report.loss, report.mean_loss, report.seconds_per_step
@@ -163,5 +172,9 @@ pub fn run(args: &TrainArgs, quiet: bool) -> Result<Outcome> {
         dir.join("curves.csv").display(),
         dir.join("curves.rrd").display()
     );
-    Ok(if summary.interrupted { Outcome::Incomplete } else { Outcome::Complete })
+    Ok(if summary.interrupted {
+        Outcome::Incomplete
+    } else {
+        Outcome::Complete
+    })
 }
