@@ -676,37 +676,42 @@ fn random_color(rng: &mut SplitMix64) -> Rgb {
     [rng.range(0.05, 0.95), rng.range(0.05, 0.95), rng.range(0.05, 0.95)]
 }
 
-fn random_texture(rng: &mut SplitMix64) -> Texture {
-    match rng.below(10) {
+/// A texture drawn from the seed. Natural fractal noise (wood, stone, fabric, print) is the most
+/// likely, as in real scenes; periodic checkers and stripes and grid-aligned patches, whose
+/// repetition makes matching ambiguous along the baseline, are rarer. `natural` in 0..=10 weights
+/// the noise further (a table fills most of the view, so a periodic table would dominate the data).
+fn random_texture(rng: &mut SplitMix64, natural: u64) -> Texture {
+    let draw = rng.below(10 + natural);
+    match draw {
         0 | 1 => Texture::Solid { rgb: random_color(rng) },
-        2 | 3 => Texture::Checker {
+        2 => Texture::Checker {
             a: random_color(rng),
             b: random_color(rng),
             cell_m: rng.range(0.004, 0.05),
         },
-        4 | 5 => Texture::Stripes {
+        3 => Texture::Stripes {
             a: random_color(rng),
             b: random_color(rng),
             period_m: rng.range(0.004, 0.04),
             angle_deg: rng.range(0.0, 180.0),
         },
-        6 | 7 => Texture::Noise {
+        4 | 5 => Texture::Patches {
+            palette: (0..rng.range_usize(2, 6)).map(|_| random_color(rng)).collect(),
+            cell_m: rng.range(0.003, 0.03),
+            seed: rng.next_u64(),
+        },
+        _ => Texture::Noise {
             a: random_color(rng),
             b: random_color(rng),
             scale_m: rng.range(0.004, 0.08),
             anisotropy: if rng.below(3) == 0 { rng.range(2.0, 12.0) } else { 1.0 },
             seed: rng.next_u64(),
         },
-        _ => Texture::Patches {
-            palette: (0..rng.range_usize(2, 6)).map(|_| random_color(rng)).collect(),
-            cell_m: rng.range(0.003, 0.03),
-            seed: rng.next_u64(),
-        },
     }
 }
 
-fn random_material(rng: &mut SplitMix64, name: &str) -> Material {
-    let texture = random_texture(rng);
+fn random_material(rng: &mut SplitMix64, name: &str, natural: u64) -> Material {
+    let texture = random_texture(rng, natural);
     let textureless = matches!(texture, Texture::Solid { .. }) && rng.below(2) == 0;
     let material = match rng.below(10) {
         0..=5 => Material::matte(name, texture),
@@ -724,7 +729,7 @@ fn random_scene(seed: u64) -> Scene {
     let mut rng = SplitMix64::new(seed ^ 0x7261_6e64);
     let camera_height_m = rng.range(0.4, 1.1);
     let mut scene = Scene::empty(SceneKind::Random, seed, camera_height_m);
-    let table_material = random_material(&mut rng, "table");
+    let table_material = random_material(&mut rng, "table", 20);
     let table_material = scene.add_material(table_material);
     table(&mut scene, table_material);
     scene.add_room();
@@ -733,7 +738,7 @@ fn random_scene(seed: u64) -> Scene {
     let object_count = rng.range_usize(8, 30);
     let c = WORK_AREA_CENTER_M;
     for index in 0..object_count {
-        let material = random_material(&mut rng, &format!("material_{index}"));
+        let material = random_material(&mut rng, &format!("material_{index}"), 0);
         let material = scene.add_material(material);
         let x = c[0] + rng.range(-spread, spread);
         let y = c[1] + rng.range(-spread, spread);

@@ -250,6 +250,8 @@ impl TrainConfig {
             "disparities": self.disparities,
             "input": self.input,
             "steps_per_unit": fuse::mfusenet::input::STEPS_PER_UNIT,
+            // Bumped when `record`'s scene generator changes what a seed draws.
+            "scene_generator": 3,
         })
         .to_string();
         // FNV-1a.
@@ -418,17 +420,17 @@ pub fn validation_examples(samples: &[Sample], views: usize, disparities: usize)
         .collect()
 }
 
-/// AvgErr (px) and Bad1 (%) of the winner-take-all of the mean input volume (with parabola
-/// refinement): what the network's inputs say on their own.
-pub fn winner_take_all_reference(examples: &[Example]) -> (f64, f64) {
-    let (mut sum, mut bad, mut count) = (0f64, 0usize, 0usize);
-    for example in examples {
-        let [_, d, h, w] = example.inputs[0].shape;
-        let plane = h * w;
-        for pixel in 0..plane {
-            if !example.mask[pixel] {
-                continue;
-            }
+/// The errors (px) over the masked pixels of the winner-take-all of the mean input volume (with
+/// parabola refinement): what the network's inputs say on their own.
+pub fn winner_take_all_errors(example: &Example) -> Vec<f32> {
+    let Some(first) = example.inputs.first() else {
+        return Vec::new();
+    };
+    let [_, d, h, w] = first.shape;
+    let plane = h * w;
+    (0..plane)
+        .filter(|pixel| example.mask[*pixel])
+        .map(|pixel| {
             let cost = |z: usize| example.inputs.iter().map(|t| t.data[z * plane + pixel]).sum::<f32>();
             let best = (0..d).min_by(|a, b| cost(*a).total_cmp(&cost(*b))).unwrap_or(0);
             let mut estimate = best as f32;
@@ -439,14 +441,35 @@ pub fn winner_take_all_reference(examples: &[Example]) -> (f64, f64) {
                     estimate += 0.5 * (l - r) / denominator;
                 }
             }
-            let error = f64::from((estimate - example.target[pixel]).abs());
-            sum += error;
-            bad += usize::from(error > 1.0);
-            count += 1;
-        }
+            (estimate - example.target[pixel]).abs()
+        })
+        .collect()
+}
+
+/// AvgErr (px) and Bad1 (%) of [`winner_take_all_errors`] over the examples.
+pub fn winner_take_all_reference(examples: &[Example]) -> (f64, f64) {
+    let (mut sum, mut bad, mut count) = (0f64, 0usize, 0usize);
+    for error in examples.iter().flat_map(winner_take_all_errors) {
+        sum += f64::from(error);
+        bad += usize::from(error > 1.0);
+        count += 1;
     }
     let count = count.max(1) as f64;
     (sum / count, 100.0 * bad as f64 / count)
+}
+
+/// A crop is hopeless when the inputs are wrong by more than this (px) on more than
+/// [`HOPELESS_FRACTION`] of its labelled pixels: a periodic or blank surface filling the crop,
+/// where no local fusion can know the answer. Such crops teach the network to hedge, so
+/// training draws another (occlusions and reflections, wrong in one neighbour only, stay in).
+pub const HOPELESS_ERROR_PX: f32 = 3.0;
+/// See [`HOPELESS_ERROR_PX`].
+pub const HOPELESS_FRACTION: f32 = 0.4;
+
+fn hopeless(example: &Example) -> bool {
+    let errors = winner_take_all_errors(example);
+    let wrong = errors.iter().filter(|e| **e > HOPELESS_ERROR_PX).count();
+    wrong as f32 > HOPELESS_FRACTION * errors.len() as f32
 }
 
 /// AvgErr (px) and Bad1 (%) of the eval-mode network over the examples' masked pixels.
@@ -699,7 +722,7 @@ fn random_crop(config: &TrainConfig, samples: &[Sample], rng: &mut Rng) -> Examp
             (config.crop, config.crop),
             config.disparities,
         );
-        let enough = e.mask.iter().filter(|m| **m).count() * 2 > e.mask.len();
+        let enough = e.mask.iter().filter(|m| **m).count() * 2 > e.mask.len() && !hopeless(&e);
         example = Some(e);
         if enough {
             break;
@@ -784,4 +807,40 @@ fn write_curves(files: &RunFiles, history: &[CurveRow]) -> Result<(), TrainError
     series.sort_by(|a, b| a.0.cmp(b.0));
     viz::stream::write_curves(&files.curves_rrd(), "mfusenet_training", &series)
         .map_err(|e| file_error(&files.curves_rrd(), e.to_string()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use fuse::nn::Tensor;
+
+    /// Two views whose costs are |d − m| around a minimum `m` per pixel.
+    fn example(minimum: impl Fn(usize) -> f32, target: f32) -> Example {
+        let (d, h, w) = (16, 4, 5);
+        let mut volume = Tensor::zeros([1, d, h, w]);
+        for z in 0..d {
+            for p in 0..h * w {
+                volume.data[z * h * w + p] = (z as f32 - minimum(p)).abs();
+            }
+        }
+        Example {
+            inputs: vec![volume.clone(), volume],
+            target: vec![target; h * w],
+            mask: vec![true; h * w],
+        }
+    }
+
+    #[test]
+    fn inputs_that_agree_with_the_truth_are_not_hopeless() {
+        let right = example(|_| 6.0, 6.0);
+        assert!(winner_take_all_errors(&right).iter().all(|e| *e < 1e-6));
+        assert!(!hopeless(&right));
+        // Off by 5 px on 12 of 20 pixels (60 %): hopeless; on 4 of 20 (20 %): kept.
+        let mostly_wrong = example(|p| if p < 12 { 11.0 } else { 6.0 }, 6.0);
+        assert!(hopeless(&mostly_wrong));
+        let partly_wrong = example(|p| if p < 4 { 11.0 } else { 6.0 }, 6.0);
+        assert!(!hopeless(&partly_wrong));
+        let (avg, bad1) = winner_take_all_reference(&[partly_wrong]);
+        assert!((avg - 1.0).abs() < 1e-6 && (bad1 - 20.0).abs() < 1e-6, "{avg} {bad1}");
+    }
 }

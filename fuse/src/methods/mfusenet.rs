@@ -18,6 +18,7 @@ use crate::image::DisparityImage;
 use crate::mfusenet::infer::{DEFAULT_TILE_BUDGET_BYTES, infer};
 use crate::mfusenet::input::{InputSpec, input_volumes, ordered_neighbours, views_for};
 use crate::mfusenet::{Network, weights};
+use crate::postprocess::median3x3;
 use crate::volume::Problem;
 
 /// The shipped weights, per number of input volumes.
@@ -50,6 +51,11 @@ pub struct MFuseNetConfig {
     pub input: InputSpec,
     /// Memory budget of one tile's activations (MiB); larger images are cut into tiles.
     pub tile_budget_mib: usize,
+    /// Soft-argmin only over this many disparities either side of the most probable one
+    /// (`null` = over the whole range, as in the paper); see `mfusenet::infer::infer`.
+    pub window: Option<usize>,
+    /// A 3×3 median on the result (as block matching and SGM do).
+    pub median: bool,
 }
 
 impl Default for MFuseNetConfig {
@@ -58,6 +64,8 @@ impl Default for MFuseNetConfig {
             weights: None,
             input: InputSpec::default(),
             tile_budget_mib: DEFAULT_TILE_BUDGET_BYTES >> 20,
+            window: None,
+            median: false,
         }
     }
 }
@@ -133,13 +141,22 @@ impl Method for MFuseNet {
         // Cost volumes: about a tenth of the work; the network the rest.
         let volumes = input_volumes(problem, &neighbours, self.config.input, &|| {})?;
         progress(0.1);
-        let data = infer(net, &volumes, self.config.tile_budget_mib << 20, &|f| {
-            progress(0.1 + 0.9 * f)
-        })?;
-        Ok(DisparityImage {
+        let data = infer(
+            net,
+            &volumes,
+            self.config.tile_budget_mib << 20,
+            self.config.window,
+            &|f| progress(0.1 + 0.9 * f),
+        )?;
+        let disparity = DisparityImage {
             width: problem.reference.width,
             height: problem.reference.height,
             data,
+        };
+        Ok(if self.config.median {
+            median3x3(&disparity)
+        } else {
+            disparity
         })
     }
 }

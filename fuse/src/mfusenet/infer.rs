@@ -38,11 +38,15 @@ pub fn tile_side(views: usize, disparities: usize, budget_bytes: usize) -> usize
 
 /// Disparities (`min_disparity + Σ d·p(d)`, `[y][x]`) of the normalised per-neighbour volumes
 /// (bytes, [`super::input`]) with the network in eval mode, in tiles that fit `budget_bytes`;
-/// `progress` gets the fraction of tiles done.
+/// `progress` gets the fraction of tiles done. `window: Some(r)` takes the soft-argmin over the
+/// `2r + 1` disparities around each pixel's most probable one only (renormalised), so that a
+/// second mode of the distribution does not pull the estimate between the two; `None` is the
+/// paper's soft-argmin over the whole range.
 pub fn infer(
     net: &Network,
     volumes: &[CostVolume<u8>],
     budget_bytes: usize,
+    window: Option<usize>,
     progress: &dyn Fn(f32),
 ) -> Result<Vec<f32>, Error> {
     let Some(first) = volumes.first() else {
@@ -105,11 +109,19 @@ pub fn infer(
         for y in y0..y1.min(h) {
             for x in x0..x1.min(w) {
                 let at = (y - ry0) * rw + (x - rx0);
-                let max = (0..nd)
-                    .map(|d| logits.data[d * plane + at])
-                    .fold(f32::NEG_INFINITY, f32::max);
+                let (mode, max) =
+                    (0..nd)
+                        .map(|d| (d, logits.data[d * plane + at]))
+                        .fold(
+                            (0, f32::NEG_INFINITY),
+                            |best, (d, v)| if v > best.1 { (d, v) } else { best },
+                        );
+                let range = match window {
+                    Some(r) => mode.saturating_sub(r)..(mode + r + 1).min(nd),
+                    None => 0..nd,
+                };
                 let (mut sum, mut weighted) = (0f64, 0f64);
-                for d in 0..nd {
+                for d in range {
                     let e = f64::from((logits.data[d * plane + at] - max).exp());
                     sum += e;
                     weighted += d as f64 * e;
@@ -154,10 +166,10 @@ mod tests {
             },
         };
         let volumes = [volume(0), volume(1)];
-        let whole = infer(&net, &volumes, usize::MAX, &|_| {}).unwrap_or_else(|e| panic!("{e}"));
+        let whole = infer(&net, &volumes, usize::MAX, None, &|_| {}).unwrap_or_else(|e| panic!("{e}"));
         let budget = (16 + 2 * HALO).pow(2) * 12 * bytes_per_voxel(2);
         assert_eq!(tile_side(2, nd, budget), 16);
-        let tiled = infer(&net, &volumes, budget, &|_| {}).unwrap_or_else(|e| panic!("{e}"));
+        let tiled = infer(&net, &volumes, budget, None, &|_| {}).unwrap_or_else(|e| panic!("{e}"));
         let worst = whole
             .iter()
             .zip(&tiled)
