@@ -2,7 +2,8 @@
 # MFuseNet benchmarks (issue 9): prints the host's CPU, then
 #  1. three-view Middlebury third-size inference, cost volumes included (`replay` on each of the
 #     seven dev scenes, 32 disparities): seconds per scene and peak RSS;
-#  2. one training step on the default crop (64 × 64 × 32) for N = 1, 2, 4 (`replay train`, 30 steps);
+#  2. one training step on the shipped weights' crops (128 × 128 × 32 for N = 1, 2; 96 × 96 × 32 for
+#     N = 4; `replay train`, 20 steps);
 #  3. with --full: five-view 1920×1080 with 128 disparities (record + replay mfusenet): time and peak RSS.
 # PyTorch peer: the reference network on the same three-view shape takes 12.7–13.0 s on our AMD
 # EPYC hosts and 14.0 s on the Intel ones (issue 9); install torch into a venv to time it here.
@@ -28,9 +29,11 @@ else
 fi
 
 for views in 1 2 4; do
-    $R train --views "$views" --steps 30 --train-sets 4 --val-sets 1 --validate-every 1000 \
+    crop=128
+    [ "$views" = 4 ] && crop=96
+    $R train --views "$views" --steps 20 --crop "$crop" --train-sets 4 --val-sets 1 --validate-every 1000 \
         --dir "$T/train-$views" --dataset-dir "$T/dataset" -q
-    python3 -c "import json;d=json.load(open('$T/train-$views/training.json'));print(f\"training step N=$views, 64x64x32 crop: {d['train_seconds']/d['steps_done']:.3f} s\")"
+    python3 -c "import json;d=json.load(open('$T/train-$views/training.json'));print(f\"training step N=$views, ${crop}x${crop}x32 crop: {d['train_seconds']/d['steps_done']:.3f} s\")"
 done
 
 if [ "${1:-}" = "--full" ]; then

@@ -28,7 +28,7 @@ pub enum SceneKind {
     Toy,
     /// A mirror-like machined metal part and bolts on a brushed-metal table.
     Workpiece,
-    /// Varied geometry, textures, materials and depth ranges drawn from the seed.
+    /// Varied geometry (on a table tilted up to 25°), textures, materials and depth ranges drawn from the seed.
     Random,
 }
 
@@ -703,7 +703,9 @@ fn random_texture(rng: &mut SplitMix64, natural: u64) -> Texture {
         _ => Texture::Noise {
             a: random_color(rng),
             b: random_color(rng),
-            scale_m: rng.range(0.004, 0.08),
+            // The noise tile repeats every 8 scales: at least 8 cm, wider than any searched
+            // disparity range at these depths, so the repetition cannot fake a match.
+            scale_m: rng.range(0.01, 0.08),
             anisotropy: if rng.below(3) == 0 { rng.range(2.0, 12.0) } else { 1.0 },
             seed: rng.next_u64(),
         },
@@ -731,7 +733,22 @@ fn random_scene(seed: u64) -> Scene {
     let mut scene = Scene::empty(SceneKind::Random, seed, camera_height_m);
     let table_material = random_material(&mut rng, "table", 20);
     let table_material = scene.add_material(table_material);
-    table(&mut scene, table_material);
+    // Most tables are tilted (up to 25°, any direction, about the work-area centre): a surface
+    // slanted to the camera, whose disparity changes continuously across the view.
+    let tilt = if rng.below(10) < 7 {
+        rng.range(0.0, 25f64.to_radians())
+    } else {
+        0.0
+    };
+    let azimuth = rng.range(0.0, std::f64::consts::TAU);
+    scene.add(
+        "table",
+        Shape::Plane {
+            point: WORK_AREA_CENTER_M,
+            normal: [tilt.sin() * azimuth.cos(), tilt.sin() * azimuth.sin(), tilt.cos()],
+        },
+        table_material,
+    );
     scene.add_room();
     // Field of view at table height scales with the camera height; spread objects over it.
     let spread = 0.45 * camera_height_m;

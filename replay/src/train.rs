@@ -251,7 +251,7 @@ impl TrainConfig {
             "input": self.input,
             "steps_per_unit": fuse::mfusenet::input::STEPS_PER_UNIT,
             // Bumped when `record`'s scene generator changes what a seed draws.
-            "scene_generator": 3,
+            "scene_generator": 5,
         })
         .to_string();
         // FNV-1a.
@@ -679,6 +679,10 @@ pub fn train(
         "per neighbour: census 7x7 block-summed, SGM 8 paths; (S - min_d S) / (8 P2), steps of 1/128, max 255 steps; tensor = byte / 128",
     );
     info.set("input_spec", serde_json::to_string(&config.input).unwrap_or_default());
+    info.set(
+        "input_steps_per_unit",
+        fuse::mfusenet::input::STEPS_PER_UNIT.to_string(),
+    );
     info.set("made_by", command);
     info.set("steps", adam.step.to_string());
     if let Some((avg, bad1)) = last_validation {

@@ -115,6 +115,18 @@ pub enum Error {
         /// Views of the file.
         got: usize,
     },
+    /// The file was trained on inputs normalised otherwise than ours.
+    #[error(
+        "weights file {file} was trained on inputs in steps of 1/{got} (metadata input_steps_per_unit), these inputs are in steps of 1/{expected}"
+    )]
+    Normalisation {
+        /// File.
+        file: String,
+        /// Steps per unit of our inputs.
+        expected: f32,
+        /// Steps per unit in the file's metadata.
+        got: String,
+    },
 }
 
 #[cfg(test)]

@@ -80,6 +80,16 @@ pub fn from_bytes(
     let info = WeightsInfo {
         entries: metadata.metadata().clone().unwrap_or_default().into_iter().collect(),
     };
+    // Files exported from PyTorch carry no metadata; ours record the input normalisation.
+    if let Some(steps) = info.get("input_steps_per_unit")
+        && steps.parse::<f32>().ok() != Some(super::input::STEPS_PER_UNIT)
+    {
+        return Err(Error::Normalisation {
+            file: file.to_owned(),
+            expected: super::input::STEPS_PER_UNIT,
+            got: steps.to_owned(),
+        });
+    }
     let concat_name = format!("{prefix}concat.0.weight");
     let concat = tensors.tensor(&concat_name).map_err(|_| Error::MissingTensor {
         file: file.to_owned(),
@@ -399,6 +409,18 @@ mod tests {
             matches!(&error, Some(Error::UnexpectedTensor { tensor, .. }) if tensor == "extra"),
             "{error:?}"
         );
+        // Trained on inputs normalised otherwise (the metadata says so).
+        let mut info = WeightsInfo::default();
+        info.set("input_steps_per_unit", "32");
+        let other = to_bytes(&net, &info).unwrap_or_else(|e| panic!("{e}"));
+        let error = from_bytes(&other, "w", "", None).err();
+        assert!(
+            matches!(&error, Some(Error::Normalisation { got, .. }) if got == "32"),
+            "{error:?}"
+        );
+        info.set("input_steps_per_unit", super::super::input::STEPS_PER_UNIT.to_string());
+        let ours = to_bytes(&net, &info).unwrap_or_else(|e| panic!("{e}"));
+        assert!(from_bytes(&ours, "w", "", None).is_ok());
         // A missing file names it.
         let error = load(Path::new("/nonexistent/w.safetensors"), None).err();
         assert!(
