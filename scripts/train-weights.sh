@@ -13,15 +13,29 @@ mkdir -p train
 # A copy, so that rebuilding the workspace does not touch a running training.
 cp target/release/replay train/replay-bin
 variants=${*:-2 1 4}
+common=(--train-sets 100 --val-sets 6)
 for views in $variants; do
     case $views in
-        1) name=mfusenet-stereo steps=1000 crop=128 ;;
-        2) name=mfusenet-3view steps=1600 crop=128 ;;
-        4) name=mfusenet-5view steps=1000 crop=96 ;;
+        1) name=mfusenet-stereo steps=1000 crop=128 tune=600 ;;
+        2) name=mfusenet-3view steps=1600 crop=128 tune=600 ;;
+        4) name=mfusenet-5view steps=700 crop=96 tune=0 ;;
         *) echo "unknown variant $views (1, 2 or 4)" >&2; exit 2 ;;
     esac
-    train/replay-bin train --views "$views" --steps "$steps" --crop "$crop" --train-sets 100 --val-sets 6 \
-        --dir "train/$name"
-    cp "train/$name/$name.safetensors" fuse/weights/
-    echo "$name: $(python3 -c "import json;d=json.load(open('train/$name/training.json'));print(f\"{d['steps_done']} steps, {d['train_seconds']/60:.1f} min, validation AvgErr {d['val_avg_err_px']:.3f} px, Bad1 {d['val_bad1_percent']:.2f} %\")")"
+    # Stage 1: from a random initialisation, baselines uniform in 6-28 mm.
+    train/replay-bin train --views "$views" --steps "$steps" --crop "$crop" "${common[@]}" \
+        --baseline-mm 6,28 --baseline-draw uniform --dir "train/$name"
+    out="train/$name/$name.safetensors"
+    if [ "$tune" -gt 0 ]; then
+        # Stage 2: fine-tuned at half the learning rate on captures whose baselines are drawn
+        # log-uniformly from 3-30 mm (small disparities, as in far backgrounds, as common as large).
+        train/replay-bin train --views "$views" --steps "$tune" --crop "$crop" "${common[@]}" \
+            --baseline-mm 3,30 --baseline-draw log-uniform --learning-rate 0.00025 \
+            --init-weights "$out" --dir "train/$name-ft"
+        out="train/$name-ft/$name.safetensors"
+        dir="train/$name-ft"
+    else
+        dir="train/$name"
+    fi
+    cp "$out" fuse/weights/
+    echo "$name: $(python3 -c "import json;d=json.load(open('$dir/training.json'));print(f\"{d['steps_done']} steps, {d['train_seconds']/60:.1f} min, validation AvgErr {d['val_avg_err_px']:.3f} px, Bad1 {d['val_bad1_percent']:.2f} %\")")"
 done

@@ -102,8 +102,11 @@ pub struct TrainConfig {
     pub val_sets: usize,
     /// Image size of the captures (px).
     pub resolution: [u32; 2],
-    /// Baselines drawn uniformly from this range (mm).
+    /// Baselines drawn from this range (mm), see `baseline_draw`.
     pub baseline_mm: [f64; 2],
+    /// How baselines are drawn from `baseline_mm`.
+    #[serde(default)]
+    pub baseline_draw: BaselineDraw,
     /// Scene families, used in turn.
     pub scenes: Vec<SceneKind>,
     /// Samples per pixel of the renderer.
@@ -114,6 +117,10 @@ pub struct TrainConfig {
     pub checkpoint_every: u64,
     /// Steps between validations.
     pub validate_every: u64,
+    /// Start from these weights (safetensors, the variant's) instead of a random initialisation
+    /// (their BatchNorm statistics are kept): fine-tuning.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub init_weights: Option<PathBuf>,
 }
 
 impl Default for TrainConfig {
@@ -128,7 +135,8 @@ impl Default for TrainConfig {
             train_sets: 40,
             val_sets: 6,
             resolution: [448, 336],
-            baseline_mm: [6.0, 28.0],
+            baseline_mm: [3.0, 30.0],
+            baseline_draw: BaselineDraw::LogUniform,
             scenes: vec![
                 SceneKind::Random,
                 SceneKind::Random,
@@ -139,8 +147,21 @@ impl Default for TrainConfig {
             input: InputSpec::default(),
             checkpoint_every: 100,
             validate_every: 250,
+            init_weights: None,
         }
     }
+}
+
+/// How the baselines of the training captures are drawn.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum BaselineDraw {
+    /// Uniform in millimetres.
+    #[default]
+    Uniform,
+    /// Uniform in log-baseline: as many captures at 3–6 mm as at 15–30 mm, so that small
+    /// disparities (far backgrounds, the low end of the searched range) are as common as large.
+    LogUniform,
 }
 
 /// One sample of the cache: the four per-neighbour volumes (left, right, top, bottom) and the
@@ -245,6 +266,7 @@ impl TrainConfig {
             "seed": self.seed,
             "resolution": self.resolution,
             "baseline_mm": self.baseline_mm,
+            "baseline_draw": self.baseline_draw,
             "scenes": self.scenes,
             "samples_per_pixel": self.samples_per_pixel,
             "disparities": self.disparities,
@@ -268,7 +290,12 @@ impl TrainConfig {
         let unit = rng.unit();
         SimulationConfig {
             rig: RigKind::FiveView,
-            baseline_mm: self.baseline_mm[0] + (self.baseline_mm[1] - self.baseline_mm[0]) * unit,
+            baseline_mm: match self.baseline_draw {
+                BaselineDraw::Uniform => self.baseline_mm[0] + (self.baseline_mm[1] - self.baseline_mm[0]) * unit,
+                BaselineDraw::LogUniform => {
+                    self.baseline_mm[0] * (self.baseline_mm[1] / self.baseline_mm[0]).powf(unit)
+                }
+            },
             captures: 1,
             scene: self.scenes[index % self.scenes.len()],
             seed,
@@ -594,8 +621,14 @@ pub fn train(
             (net, adam, history, seconds)
         }
         _ => {
-            let mut net = Network::init(config.views, config.seed);
-            recalibrate_batch_norm(&mut net, &calibration)?;
+            let mut net = match &config.init_weights {
+                Some(path) => weights::load(path, Some(config.views))?.0,
+                None => {
+                    let mut net = Network::init(config.views, config.seed);
+                    recalibrate_batch_norm(&mut net, &calibration)?;
+                    net
+                }
+            };
             let adam = Adam::new(&mut net, config.learning_rate);
             (net, adam, Vec::new(), 0.0)
         }

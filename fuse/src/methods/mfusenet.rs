@@ -15,7 +15,7 @@ use serde::{Deserialize, Serialize};
 use super::{Family, Method, MethodEntry, Progress, apply_overrides};
 use crate::FuseError;
 use crate::image::DisparityImage;
-use crate::mfusenet::infer::{DEFAULT_TILE_BUDGET_BYTES, infer};
+use crate::mfusenet::infer::{DEFAULT_TILE_BUDGET_BYTES, Estimate, infer};
 use crate::mfusenet::input::{InputSpec, input_volumes, ordered_neighbours, views_for};
 use crate::mfusenet::{Network, weights};
 use crate::postprocess::median3x3;
@@ -54,6 +54,9 @@ pub struct MFuseNetConfig {
     /// Soft-argmin only over this many disparities either side of the most probable one
     /// (`null` = over the whole range, as in the paper); see `mfusenet::infer::infer`.
     pub window: Option<usize>,
+    /// Sub-pixel from the inputs: the integer nearest the network's estimate, refined by a
+    /// parabola through the summed input costs (see `mfusenet::infer::Estimate`).
+    pub refine: bool,
     /// A 3×3 median on the result (as block matching and SGM do).
     pub median: bool,
 }
@@ -65,6 +68,7 @@ impl Default for MFuseNetConfig {
             input: InputSpec::default(),
             tile_budget_mib: DEFAULT_TILE_BUDGET_BYTES >> 20,
             window: None,
+            refine: false,
             median: false,
         }
     }
@@ -145,7 +149,10 @@ impl Method for MFuseNet {
             net,
             &volumes,
             self.config.tile_budget_mib << 20,
-            self.config.window,
+            Estimate {
+                window: self.config.window,
+                refine: self.config.refine,
+            },
             &|f| progress(0.1 + 0.9 * f),
         )?;
         let disparity = DisparityImage {

@@ -38,15 +38,16 @@ pub fn tile_side(views: usize, disparities: usize, budget_bytes: usize) -> usize
 
 /// Disparities (`min_disparity + Σ d·p(d)`, `[y][x]`) of the normalised per-neighbour volumes
 /// (bytes, [`super::input`]) with the network in eval mode, in tiles that fit `budget_bytes`;
-/// `progress` gets the fraction of tiles done. `window: Some(r)` takes the soft-argmin over the
-/// `2r + 1` disparities around each pixel's most probable one only (renormalised), so that a
-/// second mode of the distribution does not pull the estimate between the two; `None` is the
-/// paper's soft-argmin over the whole range.
+/// `progress` gets the fraction of tiles done. `estimate.window: Some(r)` takes the soft-argmin
+/// over the `2r + 1` disparities around each pixel's most probable one only (renormalised), so
+/// that a second mode of the distribution does not pull the estimate between the two; `None` is
+/// the paper's soft-argmin over the whole range. `estimate.refine` takes the sub-pixel part from
+/// the inputs instead (see [`Estimate`]).
 pub fn infer(
     net: &Network,
     volumes: &[CostVolume<u8>],
     budget_bytes: usize,
-    window: Option<usize>,
+    estimate: Estimate,
     progress: &dyn Fn(f32),
 ) -> Result<Vec<f32>, Error> {
     let Some(first) = volumes.first() else {
@@ -109,24 +110,13 @@ pub fn infer(
         for y in y0..y1.min(h) {
             for x in x0..x1.min(w) {
                 let at = (y - ry0) * rw + (x - rx0);
-                let (mode, max) =
-                    (0..nd)
-                        .map(|d| (d, logits.data[d * plane + at]))
-                        .fold(
-                            (0, f32::NEG_INFINITY),
-                            |best, (d, v)| if v > best.1 { (d, v) } else { best },
-                        );
-                let range = match window {
-                    Some(r) => mode.saturating_sub(r)..(mode + r + 1).min(nd),
-                    None => 0..nd,
-                };
-                let (mut sum, mut weighted) = (0f64, 0f64);
-                for d in range {
-                    let e = f64::from((logits.data[d * plane + at] - max).exp());
-                    sum += e;
-                    weighted += d as f64 * e;
+                let column = |d: usize| logits.data[d * plane + at];
+                let mut value = expected_disparity(column, nd, estimate.window);
+                if estimate.refine {
+                    let cost = |d: usize| volumes.iter().map(|v| f64::from(v.costs(x, y)[d])).sum::<f64>();
+                    value = refined(value, cost, nd);
                 }
-                disparity[y * w + x] = (first.min_disparity as f64 + weighted / sum) as f32;
+                disparity[y * w + x] = (first.min_disparity as f64 + value) as f32;
             }
         }
         progress((done + 1) as f32 / tiles.len() as f32);
@@ -134,10 +124,77 @@ pub fn infer(
     Ok(disparity)
 }
 
+/// How a pixel's disparity is read from the network's distribution.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Estimate {
+    /// Soft-argmin over `2r + 1` disparities around the most probable one (`None`: all, the paper).
+    pub window: Option<usize>,
+    /// Keep the integer disparity nearest the network's estimate, and take the sub-pixel offset
+    /// from a parabola through the summed input costs there (where they have a minimum), as
+    /// the classical methods do.
+    pub refine: bool,
+}
+
+/// `estimate` moved to the vertex of the parabola through `cost` at the nearest integer
+/// disparity and its two neighbours, when that integer is a local minimum of `cost`.
+pub fn refined(estimate: f64, cost: impl Fn(usize) -> f64, nd: usize) -> f64 {
+    let d = estimate.round().clamp(0.0, nd.saturating_sub(1) as f64) as usize;
+    if d == 0 || d + 1 >= nd {
+        return estimate;
+    }
+    let (l, c, r) = (cost(d - 1), cost(d), cost(d + 1));
+    let denominator = l - 2.0 * c + r;
+    if c > l || c > r || denominator <= 0.0 {
+        return estimate;
+    }
+    d as f64 + (0.5 * (l - r) / denominator).clamp(-0.5, 0.5)
+}
+
+/// The soft-argmin `Σ d·softmax(logit)_d` of one pixel's `nd` logits, over the whole range or,
+/// with `window: Some(r)`, over the `2r + 1` disparities around the most probable one.
+pub fn expected_disparity(logit: impl Fn(usize) -> f32, nd: usize, window: Option<usize>) -> f64 {
+    let (mode, max) =
+        (0..nd).map(|d| (d, logit(d))).fold(
+            (0, f32::NEG_INFINITY),
+            |best, (d, v)| if v > best.1 { (d, v) } else { best },
+        );
+    let range = match window {
+        Some(r) => mode.saturating_sub(r)..(mode + r + 1).min(nd),
+        None => 0..nd,
+    };
+    let (mut sum, mut weighted) = (0f64, 0f64);
+    for d in range {
+        let e = f64::from((logit(d) - max).exp());
+        sum += e;
+        weighted += d as f64 * e;
+    }
+    weighted / sum
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::volume::VolumeSource;
+
+    #[test]
+    fn a_window_keeps_a_second_mode_from_pulling_the_estimate() {
+        // Two modes: 70 % around 5 (symmetric), 30 % at 20.
+        let p = |d: usize| match d {
+            4 | 6 => 0.15f32,
+            5 => 0.4,
+            20 => 0.3,
+            _ => 1e-9,
+        };
+        let logit = |d: usize| p(d).ln();
+        let whole = expected_disparity(logit, 32, None);
+        assert!((whole - (0.7 * 5.0 + 0.3 * 20.0)).abs() < 1e-4, "{whole}");
+        let windowed = expected_disparity(logit, 32, Some(3));
+        assert!((windowed - 5.0).abs() < 1e-4, "{windowed}");
+        // A window over the whole range is the soft-argmin; at the edges it is cut.
+        assert!((expected_disparity(logit, 32, Some(40)) - whole).abs() < 1e-9);
+        let edge = expected_disparity(|d| if d < 2 { 0.0 } else { -30.0 }, 32, Some(1));
+        assert!((edge - 0.5).abs() < 1e-6, "{edge}");
+    }
 
     #[test]
     fn tiled_inference_equals_the_whole_image() {
@@ -166,10 +223,10 @@ mod tests {
             },
         };
         let volumes = [volume(0), volume(1)];
-        let whole = infer(&net, &volumes, usize::MAX, None, &|_| {}).unwrap_or_else(|e| panic!("{e}"));
+        let whole = infer(&net, &volumes, usize::MAX, Estimate::default(), &|_| {}).unwrap_or_else(|e| panic!("{e}"));
         let budget = (16 + 2 * HALO).pow(2) * 12 * bytes_per_voxel(2);
         assert_eq!(tile_side(2, nd, budget), 16);
-        let tiled = infer(&net, &volumes, budget, None, &|_| {}).unwrap_or_else(|e| panic!("{e}"));
+        let tiled = infer(&net, &volumes, budget, Estimate::default(), &|_| {}).unwrap_or_else(|e| panic!("{e}"));
         let worst = whole
             .iter()
             .zip(&tiled)

@@ -7,7 +7,7 @@ use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 use anyhow::{Context, Result};
 use clap::Args;
 use record::cli::{Outcome, UsageError, progress_bar};
-use replay::train::{TrainConfig, TrainPaths, train, variant_name};
+use replay::train::{BaselineDraw, TrainConfig, TrainPaths, train, variant_name};
 use tracing::info;
 
 /// Arguments of `replay train`.
@@ -50,9 +50,16 @@ pub struct TrainArgs {
     /// Capture resolution, WxH.
     #[arg(long, default_value = "448x336")]
     resolution: String,
-    /// Baselines drawn from LOW,HIGH (mm).
-    #[arg(long, default_value = "6,28")]
+    /// Baselines drawn from LOW,HIGH (mm), see --baseline-draw.
+    #[arg(long, default_value = "3,30")]
     baseline_mm: String,
+    /// How baselines are drawn from --baseline-mm.
+    #[arg(long, value_enum, default_value_t = BaselineDraw::LogUniform)]
+    baseline_draw: BaselineDraw,
+    /// Start from these weights (the variant's safetensors, e.g. fuse/weights/mfusenet-3view.safetensors)
+    /// instead of a random initialisation: fine-tuning.
+    #[arg(long, value_name = "FILE")]
+    init_weights: Option<PathBuf>,
     /// Steps between validations.
     #[arg(long, default_value_t = TrainConfig::default().validate_every)]
     validate_every: u64,
@@ -75,7 +82,7 @@ impl TrainArgs {
             .and_then(|(a, b)| Some((a.parse().ok()?, b.parse().ok()?)))
             .ok_or_else(|| {
                 usage(format!(
-                    "--baseline-mm {}: expected LOW,HIGH, e.g. 6,28",
+                    "--baseline-mm {}: expected LOW,HIGH, e.g. 3,30",
                     self.baseline_mm
                 ))
             })?;
@@ -90,8 +97,10 @@ impl TrainArgs {
             val_sets: self.val_sets,
             resolution: [w, h],
             baseline_mm: [lo, hi],
+            baseline_draw: self.baseline_draw,
             checkpoint_every: self.checkpoint_every.max(1),
             validate_every: self.validate_every.max(1),
+            init_weights: self.init_weights.clone(),
             ..TrainConfig::default()
         };
         config.validate().map_err(|e| usage(e.to_string()))?;
