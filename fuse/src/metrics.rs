@@ -22,6 +22,10 @@ pub struct Metrics {
     pub pixels: usize,
     /// Of those, pixels the method left without an estimate.
     pub missing: usize,
+    /// Mean signed error (estimate − truth, px) of the pixels within 2 px: a sub-pixel bias
+    /// that AvgErr cannot tell from noise.
+    #[serde(default)]
+    pub bias: f64,
 }
 
 /// Compares `estimate` with `ground_truth` over the pixels where `mask` (if any) is true and the
@@ -36,6 +40,7 @@ pub fn evaluate(
     let mut missing = 0usize;
     let (mut sum_abs, mut sum_sq) = (0.0f64, 0.0f64);
     let mut bad = [0usize; 3];
+    let (mut sum_inlier, mut inliers) = (0.0f64, 0usize);
     for (i, (&e, &g)) in estimate.iter().zip(ground_truth).enumerate() {
         if !(g.is_finite() && g > 0.0) || mask.is_some_and(|m| !m[i]) {
             continue;
@@ -46,6 +51,10 @@ pub fn evaluate(
             missing += 1;
             missing_error_px
         };
+        if error <= 2.0 {
+            sum_inlier += f64::from(e - g);
+            inliers += 1;
+        }
         n += 1;
         sum_abs += error;
         sum_sq += error * error;
@@ -65,6 +74,7 @@ pub fn evaluate(
             bad_2: percent(bad[2]),
             pixels: n,
             missing,
+            bias: if inliers > 0 { sum_inlier / inliers as f64 } else { 0.0 },
         }
     })
 }
@@ -80,6 +90,7 @@ pub fn average(scenes: &[Metrics]) -> Option<Metrics> {
         bad_2: scenes.iter().map(|m| m.bad_2).sum::<f64>() / n,
         pixels: scenes.iter().map(|m| m.pixels).sum(),
         missing: scenes.iter().map(|m| m.missing).sum(),
+        bias: scenes.iter().map(|m| m.bias).sum::<f64>() / n,
     })
 }
 
@@ -97,6 +108,7 @@ mod tests {
         assert!((m.bad_0_5 - 75.0).abs() < 1e-9);
         assert!((m.bad_1 - 50.0).abs() < 1e-9);
         assert!((m.bad_2 - 25.0).abs() < 1e-9);
+        assert!((m.bias - (0.0 + 0.6 + 1.5) / 3.0).abs() < 1e-6, "{}", m.bias);
         let rms = ((0.36f64 + 2.25 + 9.0) / 4.0).sqrt();
         assert!((m.rms - rms).abs() < 1e-5);
         let missing = evaluate(&[f32::INFINITY], &[5.0], None, 32.0).unwrap_or_else(|| panic!("no pixels"));

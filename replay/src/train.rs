@@ -499,23 +499,65 @@ fn hopeless(example: &Example) -> bool {
     wrong as f32 > HOPELESS_FRACTION * errors.len() as f32
 }
 
-/// AvgErr (px) and Bad1 (%) of the eval-mode network over the examples' masked pixels.
+/// AvgErr (px) and Bad1 (%) of the eval-mode network over the examples' masked pixels, with
+/// the paper's soft-argmin.
 pub fn validate(net: &Network, examples: &[Example]) -> Result<(f64, f64), TrainError> {
-    let (mut sum, mut bad, mut count) = (0f64, 0usize, 0usize);
+    Ok(validate_estimates(net, examples)?.soft_argmin)
+}
+
+/// Validation figures `(AvgErr px, Bad1 %)` of both ways to read the network's output.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Validation {
+    /// The paper's soft-argmin over the whole range.
+    pub soft_argmin: (f64, f64),
+    /// The integer nearest the soft-argmin, refined by a parabola through the summed inputs
+    /// (`fuse::mfusenet::infer::Estimate::refine`).
+    pub refined: (f64, f64),
+}
+
+impl Validation {
+    /// Whether the refined estimate has the lower AvgErr (what the weights' metadata
+    /// `estimate` then asks inference to use).
+    pub fn refine_is_better(&self) -> bool {
+        self.refined.0 < self.soft_argmin.0
+    }
+}
+
+/// [`validate`] for both estimates.
+pub fn validate_estimates(net: &Network, examples: &[Example]) -> Result<Validation, TrainError> {
+    let mut sums = [(0f64, 0usize); 2];
+    let mut count = 0usize;
     for example in examples {
         let logits = net.logits(&example.inputs)?;
         let (disparity, _) = soft_argmin(&logits);
-        for ((d, t), m) in disparity.iter().zip(&example.target).zip(&example.mask) {
-            if *m {
-                let error = f64::from((d - t).abs());
-                sum += error;
-                bad += usize::from(error > 1.0);
-                count += 1;
+        let [_, depth, h, w] = logits.shape;
+        let plane = h * w;
+        for (pixel, ((d, t), m)) in disparity.iter().zip(&example.target).zip(&example.mask).enumerate() {
+            if !*m {
+                continue;
             }
+            let cost = |z: usize| {
+                example
+                    .inputs
+                    .iter()
+                    .map(|v| f64::from(v.data[z * plane + pixel]))
+                    .sum::<f64>()
+            };
+            let refined = fuse::mfusenet::infer::refined(f64::from(*d), cost, depth);
+            for (sum, value) in sums.iter_mut().zip([f64::from(*d), refined]) {
+                let error = (value - f64::from(*t)).abs();
+                sum.0 += error;
+                sum.1 += usize::from(error > 1.0);
+            }
+            count += 1;
         }
     }
     let count = count.max(1) as f64;
-    Ok((sum / count, 100.0 * bad as f64 / count))
+    let figures = |(sum, bad): (f64, usize)| (sum / count, 100.0 * bad as f64 / count);
+    Ok(Validation {
+        soft_argmin: figures(sums[0]),
+        refined: figures(sums[1]),
+    })
 }
 
 /// Where a run keeps its files.
@@ -722,6 +764,19 @@ pub fn train(
         info.set("val_avg_err_px", format!("{avg:.4}"));
         info.set("val_bad1_percent", format!("{bad1:.3}"));
     }
+    // How inference should read this network: whichever estimate validates better.
+    let estimates = validate_estimates(&net, &val_examples)?;
+    let (avg, bad1) = estimates.refined;
+    info.set("val_refined_avg_err_px", format!("{avg:.4}"));
+    info.set("val_refined_bad1_percent", format!("{bad1:.3}"));
+    info.set(
+        "estimate",
+        if estimates.refine_is_better() {
+            "refine"
+        } else {
+            "soft-argmin"
+        },
+    );
     weights::save(&net, &info, weights_out)?;
     let summary = TrainSummary {
         config: config.clone(),

@@ -55,8 +55,10 @@ pub struct MFuseNetConfig {
     /// (`null` = over the whole range, as in the paper); see `mfusenet::infer::infer`.
     pub window: Option<usize>,
     /// Sub-pixel from the inputs: the integer nearest the network's estimate, refined by a
-    /// parabola through the summed input costs (see `mfusenet::infer::Estimate`).
-    pub refine: bool,
+    /// parabola through the summed input costs (see `mfusenet::infer::Estimate`); `null` = as
+    /// the weights file's metadata `estimate` says (`refine` or `soft-argmin`, the paper's and
+    /// the default when the file does not say).
+    pub refine: Option<bool>,
     /// A 3×3 median on the result (as block matching and SGM do).
     pub median: bool,
 }
@@ -68,7 +70,7 @@ impl Default for MFuseNetConfig {
             input: InputSpec::default(),
             tile_budget_mib: DEFAULT_TILE_BUDGET_BYTES >> 20,
             window: None,
-            refine: false,
+            refine: None,
             median: false,
         }
     }
@@ -78,8 +80,9 @@ impl Default for MFuseNetConfig {
 pub struct MFuseNet {
     name: &'static str,
     config: MFuseNetConfig,
-    /// `(views, network)`: the shipped three, or the one from `weights`.
-    networks: Vec<(usize, Network)>,
+    /// `(views, network, refine)`: the shipped three, or the one from `weights`, each with the
+    /// estimate its metadata asks for.
+    networks: Vec<(usize, Network, bool)>,
     /// Only the stereo network and neighbour.
     stereo: bool,
 }
@@ -90,15 +93,18 @@ impl MFuseNet {
     pub fn new(name: &'static str, config: MFuseNetConfig, stereo: bool) -> Result<Self, FuseError> {
         let networks = match &config.weights {
             Some(path) => {
-                let (net, _) = weights::load(Path::new(path), stereo.then_some(1))?;
-                vec![(net.views, net)]
+                let (net, info) = weights::load(Path::new(path), stereo.then_some(1))?;
+                let refine = weights::refine_recommended(&info, path)?;
+                vec![(net.views, net, refine)]
             }
             None => SHIPPED
                 .iter()
                 .filter(|(views, ..)| !stereo || *views == 1)
                 .map(|(views, file, bytes)| {
-                    let (net, _) = weights::from_bytes(bytes, &format!("(shipped) {file}"), "", Some(*views))?;
-                    Ok((*views, net))
+                    let file = format!("(shipped) {file}");
+                    let (net, info) = weights::from_bytes(bytes, &file, "", Some(*views))?;
+                    let refine = weights::refine_recommended(&info, &file)?;
+                    Ok((*views, net, refine))
                 })
                 .collect::<Result<_, FuseError>>()?,
         };
@@ -110,17 +116,17 @@ impl MFuseNet {
         })
     }
 
-    /// The network for a problem and how many volumes it takes.
-    fn network_for(&self, problem: &Problem) -> Result<&Network, FuseError> {
+    /// The network for a problem and whether its metadata asks for the refined estimate.
+    fn network_for(&self, problem: &Problem) -> Result<(&Network, bool), FuseError> {
         let views = match (&self.config.weights, self.stereo) {
             (_, true) => 1,
-            (Some(_), false) => self.networks.first().map_or(1, |(v, _)| *v),
+            (Some(_), false) => self.networks.first().map_or(1, |(v, ..)| *v),
             (None, false) => views_for(problem),
         };
         self.networks
             .iter()
-            .find(|(v, _)| *v == views)
-            .map(|(_, net)| net)
+            .find(|(v, ..)| *v == views)
+            .map(|(_, net, refine)| (net, *refine))
             .ok_or(FuseError::Config {
                 field: "weights",
                 value: String::new(),
@@ -140,7 +146,20 @@ impl Method for MFuseNet {
 
     fn run(&self, problem: &Problem, progress: Progress<'_>) -> Result<DisparityImage, FuseError> {
         problem.validate()?;
-        let net = self.network_for(problem)?;
+        let requested = (problem.min_disparity, problem.num_disparities);
+        let widened;
+        let problem = match widened_range(requested) {
+            Some((min_disparity, num_disparities)) => {
+                widened = Problem {
+                    min_disparity,
+                    num_disparities,
+                    ..problem.clone()
+                };
+                &widened
+            }
+            None => problem,
+        };
+        let (net, refine) = self.network_for(problem)?;
         let neighbours = ordered_neighbours(problem, net.views)?;
         // Cost volumes: about a tenth of the work; the network the rest.
         let volumes = input_volumes(problem, &neighbours, self.config.input, &|| {})?;
@@ -151,14 +170,16 @@ impl Method for MFuseNet {
             self.config.tile_budget_mib << 20,
             Estimate {
                 window: self.config.window,
-                refine: self.config.refine,
+                refine: self.config.refine.unwrap_or(refine),
             },
             &|f| progress(0.1 + 0.9 * f),
         )?;
+        // Back into the requested range when it was widened.
+        let (low, high) = (requested.0 as f32, (requested.0 + requested.1 - 1) as f32);
         let disparity = DisparityImage {
             width: problem.reference.width,
             height: problem.reference.height,
-            data,
+            data: data.into_iter().map(|d| d.clamp(low, high)).collect(),
         };
         Ok(if self.config.median {
             median3x3(&disparity)
@@ -166,6 +187,23 @@ impl Method for MFuseNet {
             disparity
         })
     }
+}
+
+/// The fewest disparities the networks see: the depth the shipped weights were trained on. A
+/// narrower search range gives the network a volume shape it never saw (the demo's 16
+/// disparities: Bad1 16 % against 2 % over 32), so the costs are computed over this many
+/// around the requested range, and the result clamped back into it.
+pub const MIN_NETWORK_DISPARITIES: usize = 32;
+
+/// The range `(min, count)` searched for a requested `(min, count)` narrower than
+/// [`MIN_NETWORK_DISPARITIES`]: widened evenly on both sides, never below 0; `None` when wide
+/// enough.
+pub fn widened_range((min_disparity, num_disparities): (usize, usize)) -> Option<(usize, usize)> {
+    let extra = MIN_NETWORK_DISPARITIES
+        .checked_sub(num_disparities)
+        .filter(|e| *e > 0)?;
+    let below = (extra / 2).min(min_disparity);
+    Some((min_disparity - below, MIN_NETWORK_DISPARITIES))
 }
 
 fn build(
@@ -192,3 +230,18 @@ pub const ENTRIES: &[MethodEntry] = &[
         build: |o| build("mfusenet", false, o),
     },
 ];
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn narrow_ranges_are_widened_evenly_and_never_below_zero() {
+        assert_eq!(widened_range((24, 16)), Some((16, 32)));
+        assert_eq!(widened_range((3, 16)), Some((0, 32)));
+        assert_eq!(widened_range((0, 8)), Some((0, 32)));
+        assert_eq!(widened_range((10, 31)), Some((10, 32)));
+        assert_eq!(widened_range((0, 32)), None);
+        assert_eq!(widened_range((5, 64)), None);
+    }
+}

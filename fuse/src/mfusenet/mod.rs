@@ -127,6 +127,14 @@ pub enum Error {
         /// Steps per unit in the file's metadata.
         got: String,
     },
+    /// The metadata's `estimate` is neither `soft-argmin` nor `refine`.
+    #[error("weights file {file}: metadata estimate = {value:?}, expected \"soft-argmin\" or \"refine\"")]
+    Estimate {
+        /// File.
+        file: String,
+        /// The metadata's value.
+        value: String,
+    },
 }
 
 #[cfg(test)]

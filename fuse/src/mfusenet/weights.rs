@@ -33,6 +33,21 @@ impl WeightsInfo {
     }
 }
 
+/// Whether the file's metadata asks for the refined estimate (`estimate = "refine"`: the
+/// integer from the network, the sub-pixel offset from the inputs; see
+/// `infer::Estimate::refine`) rather than the paper's soft-argmin (`"soft-argmin"`, or no entry,
+/// as in files exported from PyTorch). Any other value is an error naming the file.
+pub fn refine_recommended(info: &WeightsInfo, file: &str) -> Result<bool, Error> {
+    match info.get("estimate") {
+        None | Some("soft-argmin") => Ok(false),
+        Some("refine") => Ok(true),
+        Some(other) => Err(Error::Estimate {
+            file: file.to_owned(),
+            value: other.to_owned(),
+        }),
+    }
+}
+
 /// Every tensor of the reference `state_dict` for `views` inputs, with its shape, in the
 /// reference's order.
 pub fn state_dict_shapes(views: usize) -> Vec<(String, Vec<usize>)> {
@@ -90,6 +105,7 @@ pub fn from_bytes(
             got: steps.to_owned(),
         });
     }
+    refine_recommended(&info, file)?;
     let concat_name = format!("{prefix}concat.0.weight");
     let concat = tensors.tensor(&concat_name).map_err(|_| Error::MissingTensor {
         file: file.to_owned(),
@@ -421,6 +437,19 @@ mod tests {
         info.set("input_steps_per_unit", super::super::input::STEPS_PER_UNIT.to_string());
         let ours = to_bytes(&net, &info).unwrap_or_else(|e| panic!("{e}"));
         assert!(from_bytes(&ours, "w", "", None).is_ok());
+        // The estimate the file asks for: the paper's unless it says `refine`; nonsense is an error.
+        let (_, read) = from_bytes(&ours, "w", "", None).unwrap_or_else(|e| panic!("{e}"));
+        assert!(!refine_recommended(&read, "w").unwrap_or(true));
+        info.set("estimate", "refine");
+        let refining = to_bytes(&net, &info).unwrap_or_else(|e| panic!("{e}"));
+        let (_, read) = from_bytes(&refining, "w", "", None).unwrap_or_else(|e| panic!("{e}"));
+        assert!(refine_recommended(&read, "w").unwrap_or(false));
+        info.set("estimate", "median");
+        let error = from_bytes(&to_bytes(&net, &info).unwrap_or_else(|e| panic!("{e}")), "w", "", None).err();
+        assert!(
+            matches!(&error, Some(Error::Estimate { value, .. }) if value == "median"),
+            "{error:?}"
+        );
         // A missing file names it.
         let error = load(Path::new("/nonexistent/w.safetensors"), None).err();
         assert!(
