@@ -73,9 +73,11 @@ def check(n_views, path):
             problems.append(f"{name}: negative variance")
     with safe_open(path, framework="numpy") as f:
         metadata = f.metadata() or {}
-    for key in ("variant", "views", "input_order", "input_normalisation", "made_by", "steps"):
+    for key in ("variant", "views", "input_order", "input_normalisation", "input_steps_per_unit", "estimate", "made_by", "steps"):
         if key not in metadata:
             problems.append(f"metadata has no '{key}'")
+    if metadata.get("estimate") not in (None, "soft-argmin", "refine"):
+        problems.append(f"metadata estimate = {metadata.get('estimate')!r}, expected soft-argmin or refine")
     if metadata.get("views") != str(n_views):
         problems.append(f"metadata views = {metadata.get('views')}, expected {n_views}")
     parameters = trainable(expected)
