@@ -18,6 +18,7 @@ use fuse::mfusenet::train::{
     Adam, Example, clip_gradients, crop, load_checkpoint, recalibrate_batch_norm, save_checkpoint,
 };
 use fuse::mfusenet::{Network, WeightsInfo, weights};
+use fuse::nn::Tensor;
 use fuse::nn::regression::soft_argmin;
 use fuse::volume::{CostVolume, VolumeSource};
 use record::capture::{Simulation, SimulationConfig};
@@ -121,6 +122,12 @@ pub struct TrainConfig {
     /// (their BatchNorm statistics are kept): fine-tuning.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub init_weights: Option<PathBuf>,
+    /// Disparity-shift augmentation: each crop drops its first `s` slices, `s` drawn from
+    /// 0, 4, …, this (a multiple of 4), so that answers fall in the first slices of the range
+    /// as often as elsewhere (without it a truth one slice above the range start was answered
+    /// several pixels off). 0 = off.
+    #[serde(default)]
+    pub disparity_shift: usize,
 }
 
 impl Default for TrainConfig {
@@ -137,6 +144,7 @@ impl Default for TrainConfig {
             resolution: [448, 336],
             baseline_mm: [3.0, 30.0],
             baseline_draw: BaselineDraw::LogUniform,
+            disparity_shift: 0,
             scenes: vec![
                 SceneKind::Random,
                 SceneKind::Random,
@@ -245,6 +253,13 @@ impl TrainConfig {
                 "crop",
                 self.crop.to_string(),
                 "a multiple of 4, ≥ 16, within the resolution",
+            );
+        }
+        if !self.disparity_shift.is_multiple_of(4) || self.disparity_shift + 8 > self.disparities {
+            return bad(
+                "disparity_shift",
+                self.disparity_shift.to_string(),
+                "a multiple of 4 leaving at least 8 disparities",
             );
         }
         if self.disparities < 4 || !self.disparities.is_multiple_of(4) {
@@ -807,13 +822,16 @@ fn random_crop(config: &TrainConfig, samples: &[Sample], rng: &mut Rng) -> Examp
         let s = &samples[rng.below(samples.len())];
         let (w, h) = (s.volumes[0].width, s.volumes[0].height);
         let (y0, x0) = (rng.below(h - config.crop + 1), rng.below(w - config.crop + 1));
-        let e = crop(
+        let mut e = crop(
             &s.for_views(config.views),
             &s.truth,
             (y0, x0),
             (config.crop, config.crop),
             config.disparities,
         );
+        if config.disparity_shift > 0 {
+            e = shifted(e, 4 * rng.below(config.disparity_shift / 4 + 1));
+        }
         let enough = e.mask.iter().filter(|m| **m).count() * 2 > e.mask.len() && !hopeless(&e);
         example = Some(e);
         if enough {
@@ -825,6 +843,35 @@ fn random_crop(config: &TrainConfig, samples: &[Sample], rng: &mut Rng) -> Examp
         target: Vec::new(),
         mask: Vec::new(),
     })
+}
+
+/// `example` without its first `slices` disparity slices: targets move down by as many, and
+/// pixels whose truth falls below the new range no longer count.
+pub fn shifted(example: Example, slices: usize) -> Example {
+    if slices == 0 {
+        return example;
+    }
+    let inputs = example
+        .inputs
+        .into_iter()
+        .map(|t| {
+            let [n, d, h, w] = t.shape;
+            let kept = d.saturating_sub(slices);
+            Tensor {
+                shape: [n, kept, h, w],
+                data: t.data[slices * h * w..].to_vec(),
+            }
+        })
+        .collect();
+    let offset = slices as f32;
+    let mask = example
+        .mask
+        .iter()
+        .zip(&example.target)
+        .map(|(m, t)| *m && *t >= offset)
+        .collect();
+    let target = example.target.iter().map(|t| (t - offset).max(0.0)).collect();
+    Example { inputs, target, mask }
 }
 
 /// The registry name of a variant.
@@ -934,5 +981,21 @@ mod tests {
         assert!(!hopeless(&partly_wrong));
         let (avg, bad1) = winner_take_all_reference(&[partly_wrong]);
         assert!((avg - 1.0).abs() < 1e-6 && (bad1 - 20.0).abs() < 1e-6, "{avg} {bad1}");
+    }
+
+    #[test]
+    fn a_shifted_crop_keeps_its_minimum_on_its_target() {
+        // Minima at 6 (first 10 pixels) and 2 (the rest); dropping 4 slices moves the first to
+        // slice 2 and leaves the second below the range, no longer counted.
+        let mut original = example(|p| if p < 10 { 6.0 } else { 2.0 }, 0.0);
+        original.target = (0..20).map(|p| if p < 10 { 6.0 } else { 2.0 }).collect();
+        let shifted = shifted(original.clone(), 4);
+        assert_eq!(shifted.inputs[0].shape, [1, 12, 4, 5]);
+        assert_eq!(shifted.inputs[1].data, original.inputs[1].data[4 * 20..]);
+        assert!(shifted.target[..10].iter().all(|t| (*t - 2.0).abs() < 1e-6));
+        assert!(shifted.mask[..10].iter().all(|m| *m) && shifted.mask[10..].iter().all(|m| !*m));
+        let errors = winner_take_all_errors(&shifted);
+        assert!(errors.iter().all(|e| *e < 1e-6), "{errors:?}");
+        assert_eq!(super::shifted(original.clone(), 0), original);
     }
 }

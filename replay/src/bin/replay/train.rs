@@ -60,6 +60,11 @@ pub struct TrainArgs {
     /// instead of a random initialisation: fine-tuning.
     #[arg(long, value_name = "FILE")]
     init_weights: Option<PathBuf>,
+    /// Disparity-shift augmentation: drop the first 0, 4, …, N slices of each crop's volumes
+    /// (targets shifted alike), so that answers near the range's start are as common as
+    /// elsewhere; a multiple of 4, 0 = off.
+    #[arg(long, value_name = "N", default_value_t = 0)]
+    disparity_shift: usize,
     /// Steps between validations.
     #[arg(long, default_value_t = TrainConfig::default().validate_every)]
     validate_every: u64,
@@ -101,6 +106,7 @@ impl TrainArgs {
             checkpoint_every: self.checkpoint_every.max(1),
             validate_every: self.validate_every.max(1),
             init_weights: self.init_weights.clone(),
+            disparity_shift: self.disparity_shift,
             ..TrainConfig::default()
         };
         config.validate().map_err(|e| usage(e.to_string()))?;
