@@ -2,7 +2,7 @@
 # Remakes the shipped MFuseNet weights (fuse/weights/*.safetensors) exactly as recorded in
 # fuse/weights/README.md: the three variants trained by `replay train` on simulated captures,
 # one after the other, in stages (each run resumes from its checkpoint when restarted), then
-# copied into fuse/weights/. Runs in train/ (git-ignored); about two and a half hours on a
+# copied into fuse/weights/. Runs in train/ (git-ignored); about three hours on a
 # quiet 2-vCPU host for all three.
 #
 #   scripts/train-weights.sh            # all three
@@ -22,10 +22,10 @@ first() { # views name steps crop
 # Later stages: from the previous stage's weights at half the learning rate, on captures whose
 # baselines are drawn log-uniformly from 3-30 mm (small disparities, as in far backgrounds, as
 # common as large ones).
-tune() { # views name steps crop from-dir to-dir
+tune() { # views name steps crop from-dir to-dir [more options]
     train/replay-bin train --views "$1" --steps "$3" --crop "$4" "${common[@]}" \
         --baseline-mm 3,30 --baseline-draw log-uniform --learning-rate 0.00025 \
-        --init-weights "train/$5/$2.safetensors" --dir "train/$6"
+        --init-weights "train/$5/$2.safetensors" --dir "train/$6" "${@:7}"
 }
 ship() { # name dir
     cp "train/$2/$1.safetensors" fuse/weights/
@@ -41,7 +41,9 @@ for views in ${*:-2 1 4}; do
         2)
             first 2 mfusenet-3view 1600 128
             tune 2 mfusenet-3view 600 128 mfusenet-3view mfusenet-3view-ft
-            ship mfusenet-3view mfusenet-3view-ft
+            # Stage 3: answers in the first slices of the range (crops drop 0-12 slices).
+            tune 2 mfusenet-3view 1000 128 mfusenet-3view-ft mfusenet-3view-shift --disparity-shift 12 --validate-every 200
+            ship mfusenet-3view mfusenet-3view-shift
             ;;
         4)
             first 4 mfusenet-5view 700 96
