@@ -514,12 +514,6 @@ fn hopeless(example: &Example) -> bool {
     wrong as f32 > HOPELESS_FRACTION * errors.len() as f32
 }
 
-/// AvgErr (px) and Bad1 (%) of the eval-mode network over the examples' masked pixels, with
-/// the paper's soft-argmin.
-pub fn validate(net: &Network, examples: &[Example]) -> Result<(f64, f64), TrainError> {
-    Ok(validate_estimates(net, examples)?.soft_argmin)
-}
-
 /// Validation figures `(AvgErr px, Bad1 %)` of both ways to read the network's output.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Validation {
@@ -538,7 +532,8 @@ impl Validation {
     }
 }
 
-/// [`validate`] for both estimates.
+/// AvgErr (px) and Bad1 (%) of the eval-mode network over the examples' masked pixels, for
+/// both estimates.
 pub fn validate_estimates(net: &Network, examples: &[Example]) -> Result<Validation, TrainError> {
     let mut sums = [(0f64, 0usize); 2];
     let mut count = 0usize;
@@ -694,6 +689,8 @@ pub fn train(
     let session_start_step = adam.step;
     let mut recent: Vec<f32> = history.iter().rev().take(50).map(|r: &CurveRow| r.loss).collect();
     let mut last_validation = history.iter().rev().find_map(|r| r.val_avg_err.zip(r.val_bad1));
+    // The last validation with both estimates and its step, reused for the metadata.
+    let mut last_estimates: Option<(u64, Validation)> = None;
     let info_for = |seconds: f64| {
         let mut info = WeightsInfo::default();
         info.set("train_config", serde_json::to_string(config).unwrap_or_default());
@@ -728,7 +725,9 @@ pub fn train(
             val_bad1: None,
         };
         if done % config.validate_every == 0 || done == config.steps {
-            let (avg, bad1) = validate(&net, &val_examples)?;
+            let estimates = validate_estimates(&net, &val_examples)?;
+            last_estimates = Some((done, estimates));
+            let (avg, bad1) = estimates.soft_argmin;
             row.val_avg_err = Some(avg);
             row.val_bad1 = Some(bad1);
             last_validation = Some((avg, bad1));
@@ -779,8 +778,12 @@ pub fn train(
         info.set("val_avg_err_px", format!("{avg:.4}"));
         info.set("val_bad1_percent", format!("{bad1:.3}"));
     }
-    // How inference should read this network: whichever estimate validates better.
-    let estimates = validate_estimates(&net, &val_examples)?;
+    // How inference should read this network: whichever estimate validates better (the last
+    // step's validation when it had one, e.g. not after an interruption or a resumed finished run).
+    let estimates = match last_estimates {
+        Some((step, estimates)) if step == adam.step => estimates,
+        _ => validate_estimates(&net, &val_examples)?,
+    };
     let (avg, bad1) = estimates.refined;
     info.set("val_refined_avg_err_px", format!("{avg:.4}"));
     info.set("val_refined_bad1_percent", format!("{bad1:.3}"));
@@ -859,7 +862,7 @@ pub fn shifted(example: Example, slices: usize) -> Example {
             let kept = d.saturating_sub(slices);
             Tensor {
                 shape: [n, kept, h, w],
-                data: t.data[slices * h * w..].to_vec(),
+                data: t.data.get(slices * h * w..).unwrap_or_default().to_vec(),
             }
         })
         .collect();
