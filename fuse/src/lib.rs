@@ -18,8 +18,10 @@
 
 pub mod cost;
 pub mod fusion;
+pub mod graph_cuts;
 pub mod image;
 pub mod lines;
+pub mod maxflow;
 pub mod methods;
 pub mod metrics;
 pub mod mfusenet;

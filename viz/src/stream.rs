@@ -405,7 +405,8 @@ impl Viewer {
     /// A method's result for the centre view at the current capture time: its depth as a
     /// `DepthImage` under the centre pinhole (back-projected to a point cloud in 3D; failed
     /// matches far behind the scene are left out, see [`drop_far_outliers`]), and, with ground
-    /// truth, the absolute disparity error as a colour map (0 … `error_scale_px`).
+    /// truth, the absolute disparity error as a colour map (0 … `error_scale_px`); pixels without
+    /// an estimate, when there are any, as a mask (`results/<method>/no_estimate`).
     pub fn log_result(
         &self,
         method: &str,
@@ -427,6 +428,22 @@ impl Viewer {
             .collect();
         drop_far_outliers(&mut depth);
         self.log_depth(&format!("world/camera/{REFERENCE_ROLE}/{method}"), &depth, size)?;
+        // Pixels without an estimate (graph cuts' occlusions, …) as a segmentation mask: class 1.
+        let missing: Vec<u8> = disparity_px.iter().map(|d| u8::from(!d.is_finite())).collect();
+        if missing.contains(&1) {
+            let entity = format!("results/{method}/no_estimate");
+            self.log_static(
+                &entity,
+                &rerun::AnnotationContext::new([(1, "no estimate (occluded)", rerun::Rgba32::from_rgb(255, 0, 255))]),
+            )?;
+            self.log(
+                &entity,
+                &rerun::SegmentationImage::new(
+                    missing,
+                    rerun::components::ImageFormat::segmentation(size, rerun::datatypes::ChannelDatatype::U8),
+                ),
+            )?;
+        }
         if let Some(truth) = ground_truth_disparity_px {
             // |error| in steps of 1/64 px (u8, capped), colour-mapped over 0 … error_scale_px by
             // the viewer: a quarter of the bytes of an RGB image. 0 also marks "no ground truth".

@@ -3,6 +3,7 @@
 //! [`registry`].
 
 pub mod block_matching;
+pub mod graph_cuts;
 pub mod mfusenet;
 pub mod sgm;
 
@@ -40,6 +41,8 @@ pub enum Family {
     Sgm,
     /// MFuseNet, the learned fusion.
     MFuseNet,
+    /// Graph cuts (Kolmogorov–Zabih with occlusion and uniqueness, α-expansion).
+    GraphCuts,
 }
 
 impl Family {
@@ -49,6 +52,7 @@ impl Family {
             Family::BlockMatching => "bm-stereo",
             Family::Sgm => "sgm-stereo",
             Family::MFuseNet => "mfusenet-stereo",
+            Family::GraphCuts => "gc-stereo",
         }
     }
 }
@@ -70,6 +74,7 @@ pub fn registry() -> Vec<&'static MethodEntry> {
     let mut entries = Vec::new();
     entries.extend(block_matching::ENTRIES);
     entries.extend(sgm::ENTRIES);
+    entries.extend(graph_cuts::ENTRIES);
     entries.extend(mfusenet::ENTRIES);
     entries
 }
@@ -162,6 +167,7 @@ mod tests {
         assert!(build("bm-heuristic", Some(&overrides)).is_err());
         assert_eq!(stereo_baseline_of("sgm-heuristic"), Some("sgm-stereo"));
         assert_eq!(stereo_baseline_of("mfusenet"), Some("mfusenet-stereo"));
+        assert_eq!(stereo_baseline_of("gc-min"), Some("gc-stereo"));
         assert_eq!(stereo_baseline_of("bm-stereo"), None);
         assert_eq!(stereo_baseline_of("nope"), None);
     }

@@ -1,0 +1,831 @@
+//! Multiscopic graph cuts: Kolmogorov and Zabih's stereo energy with occlusions and uniqueness
+//! (ICCV 2001, as documented by Kolmogorov, Monasse and Tan, IPOL 2014, "KZ2"), extended to several
+//! neighbour views as the MFuseNet paper does (section III-C), minimised by α-expansion with one
+//! exact minimum cut ([`crate::maxflow`]) per move.
+//!
+//! An *assignment* `(p, d)` matches reference pixel `p` with the pixel `q_k = p − offset_k·d` of
+//! every neighbour `k` the fusion uses. A configuration makes some assignments active: at most one
+//! per reference pixel and, towards every neighbour, at most one per neighbour pixel (uniqueness);
+//! a reference pixel without an active assignment is occluded. The energy, in integer units of a
+//! quarter of a data-cost unit ([`UNITS_PER_COST`]):
+//!
+//! - data: for each active assignment, the neighbours' Birchfield–Tomasi costs (the 4-neighbour
+//!   half-pixel variant, per channel `min(d, 30)`, squared for L2, averaged over the channels)
+//!   fused by the rule (stereo, mean, min, heuristic) — neighbours whose `q_k` leaves the image
+//!   are left out, and an assignment with none left is not allowed;
+//! - occlusion: `K` for every occluded reference pixel (counted as `D − K` per active assignment
+//!   plus the constant `K · pixels`);
+//! - smoothness: for 4-neighbouring reference pixels `p1, p2` and a disparity `d` where exactly one
+//!   of `(p1, d)`, `(p2, d)` is active (both allowed): `λ1` when the two pixels differ by less
+//!   than θ in every channel in the reference and in every neighbour (at `q_k`), `λ2` otherwise;
+//! - uniqueness: infinite.
+//!
+//! An α-expansion lets every active assignment of a disparity other than α stay or go and every
+//! allowed `(p, α)` come: two binary variables per pixel, whose energy is submodular once the
+//! first kind is read "0 = stays active" and the second "1 = becomes active" (IPOL article,
+//! section 3). Its minimum cut is the best such move, so the energy never increases.
+
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use crate::FuseError;
+use crate::cost::{INVALID_COST, PixelCost, PreparedView};
+use crate::fusion::{Fusion, fuse_values};
+use crate::image::{DisparityImage, Image};
+use crate::maxflow::{BinaryEnergy, Capacity};
+use crate::volume::Problem;
+
+/// Energy units per data-cost unit (so that K, λ1, λ2 may be quarters).
+pub const UNITS_PER_COST: f32 = 4.0;
+/// Per-channel Birchfield–Tomasi distances are truncated here before squaring (the IPOL
+/// program's `CUTOFF`).
+pub const BT_TRUNCATION: u16 = 30;
+
+/// The data cost's norm.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum DataNorm {
+    /// Truncated Birchfield–Tomasi distance.
+    L1,
+    /// Its square (the IPOL program's default).
+    L2,
+}
+
+/// The parameters of the energy (in data-cost units).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct EnergyParams {
+    /// Occlusion penalty K.
+    pub occlusion: f32,
+    /// Smoothness penalty where the colours agree (λ1).
+    pub lambda_similar: f32,
+    /// Smoothness penalty across a colour edge (λ2).
+    pub lambda_edge: f32,
+    /// Colour difference below which two neighbouring pixels are similar (θ).
+    pub edge_threshold: u8,
+    /// Data norm.
+    pub norm: DataNorm,
+    /// Where uniqueness is enforced.
+    pub uniqueness: Uniqueness,
+}
+
+/// Which neighbour views an assignment must match uniquely.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Uniqueness {
+    /// The views whose costs the fused data term uses (min: the smallest; heuristic: the two or
+    /// three averaged; mean: all): a pixel occluded in one view but matched in another keeps its
+    /// match without taking the occluder's pixel in the first.
+    UsedViews,
+    /// Every view the correspondence falls inside.
+    AllViews,
+}
+
+/// The views (bit k = view k) whose costs `fusion` uses for `values` ([`INVALID_COST`] = none).
+pub fn used_views(fusion: Fusion, values: &[u16]) -> u8 {
+    let valid = |v: u16| v != INVALID_COST;
+    let mask_where = |keep: &dyn Fn(u16) -> bool| {
+        values
+            .iter()
+            .enumerate()
+            .filter(|(_, v)| valid(**v) && keep(**v))
+            .fold(0u8, |m, (k, _)| m | 1 << k)
+    };
+    let mut sorted: Vec<u16> = values.iter().copied().filter(|v| valid(*v)).collect();
+    sorted.sort_unstable();
+    match (fusion, sorted.as_slice()) {
+        (_, []) => 0,
+        (Fusion::Stereo, _) => u8::from(values.first().is_some_and(|v| valid(*v))),
+        (Fusion::Mean, _) => mask_where(&|_| true),
+        (Fusion::Min, [c1, ..]) | (Fusion::Heuristic, [c1] | [c1, _]) => mask_where(&|v| v == *c1),
+        (Fusion::Heuristic, [_, c2, c3, ..]) => {
+            let limit = if u32::from(*c3) > 3 * u32::from(*c2) { *c2 } else { *c3 };
+            mask_where(&|v| v <= limit)
+        }
+    }
+}
+
+const OCCLUDED: u16 = u16::MAX;
+const NO_OWNER: u32 = u32::MAX;
+/// The assignment has disparity α before the move and stays active.
+const VAR_ALPHA: u32 = u32::MAX;
+/// No such assignment (occluded pixel, or α not allowed at this pixel).
+const VAR_ABSENT: u32 = u32::MAX - 1;
+/// (p, α) is allowed but stays inactive: its data cost exceeds everything activating it could
+/// save, so no optimal move activates it and it needs no variable.
+const VAR_INACTIVE: u32 = u32::MAX - 2;
+
+#[inline]
+fn is_var(v: u32) -> bool {
+    v < VAR_INACTIVE
+}
+
+/// One neighbour as the energy sees it.
+struct View {
+    width: usize,
+    height: usize,
+    /// Image shift per label: `q = (x − shift.0, y − shift.1)`.
+    shifts: Vec<(i32, i32)>,
+    /// Largest channel difference between each pixel and its right / lower neighbour.
+    edges: [Vec<u8>; 2],
+    /// Reference pixel matched to each pixel (or [`NO_OWNER`]).
+    owner: Vec<u32>,
+}
+
+impl View {
+    #[inline]
+    fn target(&self, x: usize, y: usize, label: usize) -> Option<usize> {
+        let (sx, sy) = self.shifts[label];
+        let qx = x as i64 - i64::from(sx);
+        let qy = y as i64 - i64::from(sy);
+        (qx >= 0 && qy >= 0 && (qx as usize) < self.width && (qy as usize) < self.height)
+            .then(|| qy as usize * self.width + qx as usize)
+    }
+}
+
+/// What one α-expansion did.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Expansion {
+    /// The label expanded.
+    pub label: usize,
+    /// Energy before.
+    pub energy_before: i64,
+    /// Energy of the best move (the minimum cut's value plus the constants).
+    pub energy_after: i64,
+    /// Whether the move was taken (it lowered the energy).
+    pub accepted: bool,
+}
+
+/// Largest channel difference between each pixel and its right (0) / lower (1) neighbour.
+fn edge_maps(image: &Image) -> [Vec<u8>; 2] {
+    let (w, h, c) = (image.width, image.height, image.channels);
+    let diff = |a: usize, b: usize| {
+        (0..c)
+            .map(|k| image.data[a * c + k].abs_diff(image.data[b * c + k]))
+            .max()
+            .unwrap_or(0)
+    };
+    let mut right = vec![0u8; w * h];
+    let mut down = vec![0u8; w * h];
+    for y in 0..h {
+        for x in 0..w {
+            let p = y * w + x;
+            if x + 1 < w {
+                right[p] = diff(p, p + 1);
+            }
+            if y + 1 < h {
+                down[p] = diff(p, p + w);
+            }
+        }
+    }
+    [right, down]
+}
+
+/// The per-neighbour data cost of the IPOL program: per channel, the Birchfield–Tomasi distance
+/// (each pixel's value against the other's half-pixel interval, the smaller of the two) truncated
+/// at [`BT_TRUNCATION`], squared for L2, averaged over the channels (rounded down).
+#[inline]
+fn bt_cost(reference: &PreparedView, neighbour: &PreparedView, p: usize, q: usize, norm: DataNorm) -> u16 {
+    let c = reference.image().channels;
+    let (rmin, rmax) = reference.bt_bounds();
+    let (nmin, nmax) = neighbour.bt_bounds();
+    let (ri, ni) = (&reference.image().data, &neighbour.image().data);
+    let mut sum = 0u16;
+    for k in 0..c {
+        let (a, b) = (p * c + k, q * c + k);
+        // Distance of v to the interval [lo, hi].
+        let interval = |v: u8, lo: u8, hi: u8| lo.saturating_sub(v).max(v.saturating_sub(hi));
+        let d = u16::from(interval(ri[a], nmin[b], nmax[b]).min(interval(ni[b], rmin[a], rmax[a]))).min(BT_TRUNCATION);
+        sum += match norm {
+            DataNorm::L1 => d,
+            DataNorm::L2 => d * d,
+        };
+    }
+    sum / c as u16
+}
+
+/// Kolmogorov–Zabih's energy over a multiscopic problem and its current configuration.
+pub struct KzEnergy {
+    width: usize,
+    height: usize,
+    min_disparity: usize,
+    labels: usize,
+    /// Fused data cost per (label, pixel), [`INVALID_COST`] where the assignment is not allowed.
+    data: Vec<u16>,
+    /// The views each (label, pixel) assignment matches (bit k = view k): those whose costs the
+    /// fused data term uses, where uniqueness is enforced.
+    used: Vec<u8>,
+    ref_edges: [Vec<u8>; 2],
+    views: Vec<View>,
+    /// Label of each reference pixel's active assignment, or [`OCCLUDED`].
+    disparity: Vec<u16>,
+    occlusion: i64,
+    lambda_similar: i64,
+    lambda_edge: i64,
+    edge_threshold: u8,
+    /// Energy of the current configuration without the constant `K · pixels`.
+    energy: i64,
+    graph: BinaryEnergy,
+    vars_current: Vec<u32>,
+    vars_alpha: Vec<u32>,
+}
+
+impl KzEnergy {
+    /// Prepares the energy of `problem` for the neighbours `fusion` uses; every pixel starts
+    /// occluded.
+    pub fn new(problem: &Problem, fusion: Fusion, params: EnergyParams) -> Result<Self, FuseError> {
+        problem.validate()?;
+        for (field, value) in [
+            ("occlusion_k", params.occlusion),
+            ("lambda1", params.lambda_similar),
+            ("lambda2", params.lambda_edge),
+        ] {
+            if !(value.is_finite() && (0.0..=1.0e6).contains(&value)) {
+                return Err(FuseError::Config {
+                    field,
+                    value: value.to_string(),
+                    reason: "must be a number in 0..=1e6",
+                });
+            }
+        }
+        let (w, h) = (problem.reference.width, problem.reference.height);
+        let labels = problem.num_disparities;
+        let reference = PreparedView::new(problem.reference.clone(), PixelCost::BirchfieldTomasi);
+        let neighbours = problem.neighbours_for(fusion);
+        let prepared: Vec<PreparedView> = neighbours
+            .iter()
+            .map(|n| PreparedView::new(n.image.clone(), PixelCost::BirchfieldTomasi))
+            .collect();
+        let views: Vec<View> = neighbours
+            .iter()
+            .map(|n| View {
+                width: w,
+                height: h,
+                shifts: (0..labels)
+                    .map(|l| {
+                        let d = (problem.min_disparity + l) as f32 * n.baseline_ratio;
+                        (
+                            (n.offset[0] as f32 * d).round() as i32,
+                            (n.offset[1] as f32 * d).round() as i32,
+                        )
+                    })
+                    .collect(),
+                edges: edge_maps(&n.image),
+                owner: vec![NO_OWNER; w * h],
+            })
+            .collect();
+        // Per pixel and label: the fused cost and which views it uses; laid out label-major
+        // afterwards, as an expansion reads one label's slice.
+        let mut pixel_major = vec![(INVALID_COST, 0u8); w * h * labels];
+        let strict = params.uniqueness == Uniqueness::AllViews;
+        pixel_major.par_chunks_mut(w * labels).enumerate().for_each(|(y, row)| {
+            let mut values = Vec::with_capacity(views.len());
+            for x in 0..w {
+                let p = y * w + x;
+                for l in 0..labels {
+                    values.clear();
+                    for (view, neighbour) in views.iter().zip(&prepared) {
+                        values.push(
+                            view.target(x, y, l)
+                                .map_or(INVALID_COST, |q| bt_cost(&reference, neighbour, p, q, params.norm)),
+                        );
+                    }
+                    let fused = fuse_values(fusion, &values);
+                    let used = if strict {
+                        values
+                            .iter()
+                            .enumerate()
+                            .filter(|(_, v)| **v != INVALID_COST)
+                            .fold(0u8, |m, (k, _)| m | 1 << k)
+                    } else {
+                        used_views(fusion, &values)
+                    };
+                    row[x * labels + l] = (fused, used);
+                }
+            }
+        });
+        let n = w * h;
+        let mut data = vec![INVALID_COST; n * labels];
+        let mut used = vec![0u8; n * labels];
+        for (p, costs) in pixel_major.chunks_exact(labels).enumerate() {
+            for (l, &(cost, mask)) in costs.iter().enumerate() {
+                data[l * n + p] = cost;
+                used[l * n + p] = mask;
+            }
+        }
+        drop(pixel_major);
+        let units = |v: f32| (v * UNITS_PER_COST).round() as i64;
+        let mut energy = Self {
+            width: w,
+            height: h,
+            min_disparity: problem.min_disparity,
+            labels,
+            data,
+            used,
+            ref_edges: edge_maps(&problem.reference),
+            views,
+            disparity: vec![OCCLUDED; w * h],
+            occlusion: units(params.occlusion),
+            lambda_similar: units(params.lambda_similar),
+            lambda_edge: units(params.lambda_edge),
+            edge_threshold: params.edge_threshold,
+            energy: 0,
+            graph: BinaryEnergy::new(),
+            vars_current: vec![VAR_ABSENT; w * h],
+            vars_alpha: vec![VAR_ABSENT; w * h],
+        };
+        energy.energy = energy.compute_energy();
+        Ok(energy)
+    }
+
+    /// Number of labels (disparities).
+    pub fn labels(&self) -> usize {
+        self.labels
+    }
+
+    /// The current energy (in [`UNITS_PER_COST`] units, including `K` per occluded pixel).
+    pub fn energy(&self) -> i64 {
+        self.energy + self.occlusion * (self.width * self.height) as i64
+    }
+
+    /// The energy of the current configuration computed from scratch (as [`KzEnergy::energy`]).
+    pub fn recompute_energy(&self) -> i64 {
+        self.compute_energy() + self.occlusion * (self.width * self.height) as i64
+    }
+
+    /// Reference pixels without an active assignment.
+    pub fn occluded_pixels(&self) -> usize {
+        self.disparity.iter().filter(|l| **l == OCCLUDED).count()
+    }
+
+    /// The disparity of every reference pixel (`f32::INFINITY` = occluded).
+    pub fn disparity(&self) -> DisparityImage {
+        DisparityImage {
+            width: self.width,
+            height: self.height,
+            data: self
+                .disparity
+                .iter()
+                .map(|&l| {
+                    if l == OCCLUDED {
+                        f32::INFINITY
+                    } else {
+                        (self.min_disparity + usize::from(l)) as f32
+                    }
+                })
+                .collect(),
+        }
+    }
+
+    #[inline]
+    fn cost(&self, p: usize, label: usize) -> u16 {
+        self.data[label * self.width * self.height + p]
+    }
+
+    #[inline]
+    fn uses(&self, p: usize, label: usize, view: usize) -> bool {
+        self.used[label * self.width * self.height + p] & (1 << view) != 0
+    }
+
+    #[inline]
+    fn allowed(&self, p: usize, label: usize) -> bool {
+        self.cost(p, label) != INVALID_COST
+    }
+
+    /// `D − K` of an allowed assignment.
+    #[inline]
+    fn data_occlusion(&self, p: usize, label: usize) -> i64 {
+        i64::from(self.cost(p, label)) * UNITS_PER_COST as i64 - self.occlusion
+    }
+
+    /// Smoothness penalty between `(p, label)` and `(p + step, label)`, `direction` 0 = right,
+    /// 1 = down.
+    #[inline]
+    fn smoothness(&self, p: usize, direction: usize, label: usize) -> i64 {
+        let mut largest = self.ref_edges[direction][p];
+        let (x, y) = (p % self.width, p / self.width);
+        for view in &self.views {
+            let (sx, sy) = view.shifts[label];
+            let (qx, qy) = (x as i64 - i64::from(sx), y as i64 - i64::from(sy));
+            let (ex, ey) = if direction == 0 { (qx + 1, qy) } else { (qx, qy + 1) };
+            let inside = |a: i64, b: i64| a >= 0 && b >= 0 && (a as usize) < view.width && (b as usize) < view.height;
+            if inside(qx, qy) && inside(ex, ey) {
+                largest = largest.max(view.edges[direction][qy as usize * view.width + qx as usize]);
+            }
+        }
+        if largest < self.edge_threshold {
+            self.lambda_similar
+        } else {
+            self.lambda_edge
+        }
+    }
+
+    /// Neighbour pixel `p + step` in `direction` (0 = right, 1 = down), if inside.
+    #[inline]
+    fn next(&self, p: usize, direction: usize) -> Option<usize> {
+        if direction == 0 {
+            (p % self.width + 1 < self.width).then_some(p + 1)
+        } else {
+            (p + self.width < self.width * self.height).then_some(p + self.width)
+        }
+    }
+
+    fn compute_energy(&self) -> i64 {
+        let mut e = 0i64;
+        for p1 in 0..self.width * self.height {
+            let l1 = self.disparity[p1];
+            if l1 != OCCLUDED {
+                e += self.data_occlusion(p1, usize::from(l1));
+            }
+            for direction in 0..2 {
+                let Some(p2) = self.next(p1, direction) else {
+                    continue;
+                };
+                let l2 = self.disparity[p2];
+                if l1 == l2 {
+                    continue;
+                }
+                if l1 != OCCLUDED && self.allowed(p2, usize::from(l1)) {
+                    e += self.smoothness(p1, direction, usize::from(l1));
+                }
+                if l2 != OCCLUDED && self.allowed(p1, usize::from(l2)) {
+                    e += self.smoothness(p1, direction, usize::from(l2));
+                }
+            }
+        }
+        e
+    }
+
+    /// The best α-expansion move for `label`, taken when it lowers the energy.
+    pub fn expand(&mut self, label: usize) -> Expansion {
+        let alpha = label as u16;
+        let n = self.width * self.height;
+        let mut graph = std::mem::take(&mut self.graph);
+        graph.reset();
+        graph.reserve(2 * n, (4 + self.views.len()) * n);
+        // Activating (p, α) saves at most the smoothness penalties with its four neighbours; a
+        // larger `D − K` makes it a constant 0 (setting it to 0 keeps every constraint and
+        // lowers the energy), which keeps the graph small.
+        let most_saved = 4 * self.lambda_similar.max(self.lambda_edge);
+        // Nodes: data and occlusion.
+        for p in 0..n {
+            let l = self.disparity[p];
+            if l == alpha {
+                self.vars_current[p] = VAR_ALPHA;
+                self.vars_alpha[p] = VAR_ALPHA;
+                graph.add_constant(self.data_occlusion(p, label));
+                continue;
+            }
+            // Current assignment: 0 = stays active; new α assignment: 1 = becomes active.
+            self.vars_current[p] = if l != OCCLUDED {
+                graph.add_variable(self.data_occlusion(p, usize::from(l)), 0)
+            } else {
+                VAR_ABSENT
+            };
+            self.vars_alpha[p] = if !self.allowed(p, label) {
+                VAR_ABSENT
+            } else if self.data_occlusion(p, label) > most_saved {
+                VAR_INACTIVE
+            } else {
+                graph.add_variable(0, self.data_occlusion(p, label))
+            };
+        }
+        // Smoothness.
+        for p1 in 0..n {
+            for direction in 0..2 {
+                if let Some(p2) = self.next(p1, direction) {
+                    self.build_smoothness(&mut graph, p1, p2, direction, label);
+                }
+            }
+        }
+        // Uniqueness in the reference: (p, d) and (p, α) not both active.
+        for p in 0..n {
+            let (o, a) = (self.vars_current[p], self.vars_alpha[p]);
+            if is_var(o) && is_var(a) {
+                graph.forbid_01(o, a);
+            }
+        }
+        // Uniqueness in every neighbour view (p, α) matches: the pixel it reaches there is not
+        // matched by another active assignment.
+        for (k, view) in self.views.iter().enumerate() {
+            for p in 0..n {
+                let a = self.vars_alpha[p];
+                if !is_var(a) || !self.uses(p, label, k) {
+                    continue;
+                }
+                let Some(q) = view.target(p % self.width, p / self.width, label) else {
+                    continue;
+                };
+                let owner = view.owner[q];
+                if owner != NO_OWNER && owner as usize != p {
+                    let o = self.vars_current[owner as usize];
+                    if is_var(o) {
+                        graph.forbid_01(o, a);
+                    }
+                }
+            }
+        }
+        let energy_before = self.energy;
+        let energy_after = graph.minimize();
+        let accepted = energy_after < energy_before;
+        if accepted {
+            self.apply(&graph, label);
+            self.energy = energy_after;
+        }
+        self.graph = graph;
+        let constant = self.occlusion * n as i64;
+        Expansion {
+            label,
+            energy_before: energy_before + constant,
+            energy_after: energy_after + constant,
+            accepted,
+        }
+    }
+
+    fn build_smoothness(&self, graph: &mut BinaryEnergy, p1: usize, p2: usize, direction: usize, label: usize) {
+        let (l1, l2) = (self.disparity[p1], self.disparity[p2]);
+        let (o1, a1) = (self.vars_current[p1], self.vars_alpha[p1]);
+        let (o2, a2) = (self.vars_current[p2], self.vars_alpha[p2]);
+        // Disparity α.
+        if a1 != VAR_ABSENT && a2 != VAR_ABSENT && !(a1 == VAR_INACTIVE && a2 == VAR_INACTIVE) {
+            let v = self.smoothness(p1, direction, label);
+            match (a1, a2) {
+                (VAR_ALPHA, VAR_ALPHA) => {}
+                (VAR_ALPHA, VAR_INACTIVE) | (VAR_INACTIVE, VAR_ALPHA) => graph.add_constant(v),
+                (VAR_ALPHA, x) | (x, VAR_ALPHA) => graph.add_unary(x, v, 0),
+                (VAR_INACTIVE, x) | (x, VAR_INACTIVE) => graph.add_unary(x, 0, v),
+                (x, y) => graph.add_potts(x, y, v),
+            }
+        }
+        // The same current disparity d ≠ α on both pixels: both stay or both go.
+        if l1 == l2 && is_var(o1) && is_var(o2) {
+            let v = self.smoothness(p1, direction, usize::from(l1));
+            graph.add_potts(o1, o2, v);
+        }
+        // Different disparities: an active (p1, d1) next to the inactive (p2, d1), and vice versa.
+        if l1 != l2 && is_var(o1) && self.allowed(p2, usize::from(l1)) {
+            graph.add_unary(o1, self.smoothness(p1, direction, usize::from(l1)), 0);
+        }
+        if l1 != l2 && is_var(o2) && self.allowed(p1, usize::from(l2)) {
+            graph.add_unary(o2, self.smoothness(p1, direction, usize::from(l2)), 0);
+        }
+    }
+
+    fn apply(&mut self, graph: &BinaryEnergy, label: usize) {
+        let n = self.width * self.height;
+        for p in 0..n {
+            let o = self.vars_current[p];
+            if is_var(o) && graph.value(o) == 1 {
+                let l = usize::from(self.disparity[p]);
+                self.set_owner(p, l, false);
+                self.disparity[p] = OCCLUDED;
+            }
+        }
+        for p in 0..n {
+            let a = self.vars_alpha[p];
+            if is_var(a) && graph.value(a) == 1 {
+                self.set_owner(p, label, true);
+                self.disparity[p] = label as u16;
+            }
+        }
+    }
+
+    /// Marks (or clears) `p` as the match of its assignment's pixels in the views it uses.
+    fn set_owner(&mut self, p: usize, label: usize, active: bool) {
+        let (x, y) = (p % self.width, p / self.width);
+        let mask = self.used[label * self.width * self.height + p];
+        for (k, view) in self.views.iter_mut().enumerate() {
+            if mask & (1 << k) != 0
+                && let Some(q) = view.target(x, y, label)
+            {
+                view.owner[q] = if active { p as u32 } else { NO_OWNER };
+            }
+        }
+    }
+
+    /// Whether every neighbour pixel is matched at most once (checked from scratch).
+    pub fn is_unique(&self) -> bool {
+        let n = self.width * self.height;
+        self.views.iter().enumerate().all(|(k, view)| {
+            let mut seen = vec![false; n];
+            (0..n).all(|p| {
+                let l = self.disparity[p];
+                if l == OCCLUDED || !self.uses(p, usize::from(l), k) {
+                    return true;
+                }
+                view.target(p % self.width, p / self.width, usize::from(l))
+                    .is_none_or(|q| !std::mem::replace(&mut seen[q], true))
+            })
+        })
+    }
+
+    /// The IPOL program's automatic K: the mean over pixels (with every label allowed) of the
+    /// k-th smallest data cost, k = max(3, (labels + 2) / 4), in data-cost units.
+    pub fn automatic_occlusion(&self) -> f32 {
+        let k = ((self.labels + 2) / 4).max(3).min(self.labels);
+        let (mut sum, mut count) = (0f64, 0usize);
+        let mut costs = Vec::with_capacity(self.labels);
+        for p in 0..self.width * self.height {
+            costs.clear();
+            costs.extend((0..self.labels).map(|l| self.cost(p, l)));
+            if costs.contains(&INVALID_COST) {
+                continue;
+            }
+            costs.select_nth_unstable(k - 1);
+            sum += f64::from(costs[k - 1]);
+            count += 1;
+        }
+        if count == 0 { 0.0 } else { (sum / count as f64) as f32 }
+    }
+
+    /// Replaces the occlusion and smoothness penalties (data-cost units) and recomputes the
+    /// energy.
+    pub fn set_penalties(&mut self, occlusion: f32, lambda_similar: f32, lambda_edge: f32) {
+        let units = |v: f32| (v * UNITS_PER_COST).round() as i64;
+        self.occlusion = units(occlusion);
+        self.lambda_similar = units(lambda_similar);
+        self.lambda_edge = units(lambda_edge);
+        self.energy = self.compute_energy();
+    }
+}
+
+/// `Capacity` and the energy agree (both `i64`).
+const _: () = assert!(size_of::<Capacity>() == size_of::<i64>());
+
+/// A random permutation of `0..n` from `seed` (Fisher–Yates on a 64-bit LCG).
+pub fn label_order(n: usize, seed: u64) -> Vec<usize> {
+    let mut order: Vec<usize> = (0..n).collect();
+    let mut state = seed ^ 0x9E37_79B9_7F4A_7C15;
+    for i in (1..n).rev() {
+        state = state
+            .wrapping_mul(6_364_136_223_846_793_005)
+            .wrapping_add(1_442_695_040_888_963_407);
+        let j = ((state >> 33) % (i as u64 + 1)) as usize;
+        order.swap(i, j);
+    }
+    order
+}
+
+/// Statistics of an α-expansion run.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RunStats {
+    /// Energy after each expansion, starting with the initial one.
+    pub energies: Vec<i64>,
+    /// Expansions tried.
+    pub expansions: usize,
+    /// Rounds over the labels started.
+    pub rounds: usize,
+}
+
+/// Runs α-expansion rounds over the labels in `order` until a whole round lowers nothing (or
+/// `max_rounds`); `on_expansion` sees every move.
+pub fn expand_until_converged(
+    energy: &mut KzEnergy,
+    order: &[usize],
+    max_rounds: usize,
+    on_expansion: &mut dyn FnMut(&Expansion, usize),
+) -> RunStats {
+    let labels = energy.labels();
+    let mut done = vec![false; labels];
+    let mut remaining = labels;
+    let mut stats = RunStats {
+        energies: vec![energy.energy()],
+        expansions: 0,
+        rounds: 0,
+    };
+    for round in 0..max_rounds {
+        if remaining == 0 {
+            break;
+        }
+        stats.rounds = round + 1;
+        for &label in order {
+            if done[label] {
+                continue;
+            }
+            let expansion = energy.expand(label);
+            stats.expansions += 1;
+            stats.energies.push(energy.energy());
+            on_expansion(&expansion, round);
+            if expansion.accepted {
+                done.fill(false);
+                remaining = labels;
+            }
+            done[label] = true;
+            remaining -= 1;
+        }
+    }
+    stats
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::volume::Neighbour;
+
+    /// A textured fronto-parallel plane at disparity `d` seen from the left and right.
+    fn plane_problem(d: usize) -> Problem {
+        let (w, h) = (48usize, 24usize);
+        let texture = |x: i64, y: i64| (((x * 37 + y * 11) ^ (x * y)) % 97 * 2 + 20) as u8;
+        let view = |shift: i64| {
+            let mut data = Vec::with_capacity(w * h);
+            for y in 0..h as i64 {
+                for x in 0..w as i64 {
+                    data.push(texture(x + shift, y));
+                }
+            }
+            Image::gray(w, h, data).unwrap_or_else(|e| panic!("{e}"))
+        };
+        let d = d as i64;
+        Problem {
+            reference: view(0),
+            neighbours: vec![
+                Neighbour {
+                    role: "left".into(),
+                    image: view(-d),
+                    offset: [-1, 0],
+                    baseline_ratio: 1.0,
+                },
+                Neighbour {
+                    role: "right".into(),
+                    image: view(d),
+                    offset: [1, 0],
+                    baseline_ratio: 1.0,
+                },
+            ],
+            min_disparity: 0,
+            num_disparities: 8,
+        }
+    }
+
+    fn params() -> EnergyParams {
+        EnergyParams {
+            occlusion: 10.0,
+            lambda_similar: 9.0,
+            lambda_edge: 3.0,
+            edge_threshold: 8,
+            norm: DataNorm::L2,
+            uniqueness: Uniqueness::UsedViews,
+        }
+    }
+
+    #[test]
+    fn a_fronto_parallel_plane_gets_its_disparity_and_the_energy_never_rises() {
+        for fusion in [Fusion::Stereo, Fusion::Min, Fusion::Mean, Fusion::Heuristic] {
+            let problem = plane_problem(3);
+            let mut energy = KzEnergy::new(&problem, fusion, params()).unwrap_or_else(|e| panic!("{e}"));
+            let mut checked = 0;
+            let stats = expand_until_converged(&mut energy, &label_order(8, 1), 10, &mut |e, _| {
+                assert!(e.energy_after <= e.energy_before || !e.accepted);
+                checked += 1;
+            });
+            assert!(checked > 0);
+            assert!(stats.energies.windows(2).all(|w| w[1] <= w[0]), "{:?}", stats.energies);
+            assert_eq!(energy.energy(), energy.recompute_energy());
+            assert!(energy.is_unique());
+            let disparity = energy.disparity();
+            let (w, h) = (disparity.width, disparity.height);
+            // Away from the borders that leave a view, every pixel is matched at 3.
+            for y in 0..h {
+                for x in 4..w - 4 {
+                    assert_eq!(disparity.data[y * w + x], 3.0, "{fusion:?} ({x}, {y})");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn every_accepted_cut_equals_the_energy_it_claims() {
+        let problem = plane_problem(2);
+        let mut energy = KzEnergy::new(&problem, Fusion::Heuristic, params()).unwrap_or_else(|e| panic!("{e}"));
+        for label in label_order(8, 7).into_iter().chain(0..8) {
+            let e = energy.expand(label);
+            if e.accepted {
+                assert_eq!(e.energy_after, energy.recompute_energy(), "label {label}");
+            } else {
+                assert_eq!(e.energy_before, energy.recompute_energy(), "label {label}");
+            }
+        }
+    }
+
+    #[test]
+    fn uniqueness_binds_the_views_the_fused_cost_uses() {
+        const X: u16 = INVALID_COST;
+        assert_eq!(used_views(Fusion::Min, &[5, 3, 3, X]), 0b0110);
+        assert_eq!(used_views(Fusion::Mean, &[5, X, 3]), 0b101);
+        assert_eq!(used_views(Fusion::Stereo, &[5, 1]), 0b01);
+        assert_eq!(used_views(Fusion::Heuristic, &[9, 2]), 0b10);
+        // c3 = 40 > 3·c2 = 30: the two smallest; else the three.
+        assert_eq!(used_views(Fusion::Heuristic, &[40, 10, 100, 8]), 0b1010);
+        assert_eq!(used_views(Fusion::Heuristic, &[20, 10, 100, 9]), 0b1011);
+        assert_eq!(used_views(Fusion::Heuristic, &[X, X]), 0);
+    }
+
+    #[test]
+    fn label_order_is_a_seeded_permutation() {
+        let a = label_order(32, 5);
+        let mut sorted = a.clone();
+        sorted.sort_unstable();
+        assert_eq!(sorted, (0..32).collect::<Vec<_>>());
+        assert_eq!(a, label_order(32, 5));
+        assert_ne!(a, label_order(32, 6));
+    }
+}
