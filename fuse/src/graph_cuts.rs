@@ -80,6 +80,9 @@ pub enum Uniqueness {
     AllViews,
 }
 
+/// Most neighbour views graph cuts take (one bit each in the uniqueness masks).
+pub const MAX_VIEWS: usize = 8;
+
 /// The views (bit k = view k) whose costs `fusion` uses for `values` ([`INVALID_COST`] = none).
 pub fn used_views(fusion: Fusion, values: &[u16]) -> u8 {
     let valid = |v: u16| v != INVALID_COST;
@@ -90,9 +93,17 @@ pub fn used_views(fusion: Fusion, values: &[u16]) -> u8 {
             .filter(|(_, v)| valid(**v) && keep(**v))
             .fold(0u8, |m, (k, _)| m | 1 << k)
     };
-    let mut sorted: Vec<u16> = values.iter().copied().filter(|v| valid(*v)).collect();
+    let mut buffer = [INVALID_COST; MAX_VIEWS];
+    let mut count = 0;
+    for &v in values.iter().take(MAX_VIEWS) {
+        if valid(v) {
+            buffer[count] = v;
+            count += 1;
+        }
+    }
+    let sorted = &mut buffer[..count];
     sorted.sort_unstable();
-    match (fusion, sorted.as_slice()) {
+    match (fusion, &*sorted) {
         (_, []) => 0,
         (Fusion::Stereo, _) => u8::from(values.first().is_some_and(|v| valid(*v))),
         (Fusion::Mean, _) => mask_where(&|_| true),
@@ -249,6 +260,13 @@ impl KzEnergy {
         }
         let (w, h) = (problem.reference.width, problem.reference.height);
         let labels = problem.num_disparities;
+        if problem.neighbours.len() > MAX_VIEWS {
+            return Err(FuseError::Config {
+                field: "neighbours",
+                value: problem.neighbours.len().to_string(),
+                reason: "graph cuts take at most 8 neighbour views",
+            });
+        }
         let reference = PreparedView::new(problem.reference.clone(), PixelCost::BirchfieldTomasi);
         let neighbours = problem.neighbours_for(fusion);
         let prepared: Vec<PreparedView> = neighbours
@@ -273,15 +291,19 @@ impl KzEnergy {
                 owner: vec![NO_OWNER; w * h],
             })
             .collect();
-        // Per pixel and label: the fused cost and which views it uses; laid out label-major
-        // afterwards, as an expansion reads one label's slice.
-        let mut pixel_major = vec![(INVALID_COST, 0u8); w * h * labels];
+        // Per label and pixel (label-major, as an expansion reads one label's slice): the fused
+        // cost and the views it uses.
+        let n = w * h;
         let strict = params.uniqueness == Uniqueness::AllViews;
-        pixel_major.par_chunks_mut(w * labels).enumerate().for_each(|(y, row)| {
-            let mut values = Vec::with_capacity(views.len());
-            for x in 0..w {
-                let p = y * w + x;
-                for l in 0..labels {
+        let mut data = vec![INVALID_COST; n * labels];
+        let mut used = vec![0u8; n * labels];
+        data.par_chunks_mut(n)
+            .zip(used.par_chunks_mut(n))
+            .enumerate()
+            .for_each(|(l, (costs, masks))| {
+                let mut values = Vec::with_capacity(views.len());
+                for p in 0..n {
+                    let (x, y) = (p % w, p / w);
                     values.clear();
                     for (view, neighbour) in views.iter().zip(&prepared) {
                         values.push(
@@ -289,8 +311,8 @@ impl KzEnergy {
                                 .map_or(INVALID_COST, |q| bt_cost(&reference, neighbour, p, q, params.norm)),
                         );
                     }
-                    let fused = fuse_values(fusion, &values);
-                    let used = if strict {
+                    costs[p] = fuse_values(fusion, &values);
+                    masks[p] = if strict {
                         values
                             .iter()
                             .enumerate()
@@ -299,20 +321,8 @@ impl KzEnergy {
                     } else {
                         used_views(fusion, &values)
                     };
-                    row[x * labels + l] = (fused, used);
                 }
-            }
-        });
-        let n = w * h;
-        let mut data = vec![INVALID_COST; n * labels];
-        let mut used = vec![0u8; n * labels];
-        for (p, costs) in pixel_major.chunks_exact(labels).enumerate() {
-            for (l, &(cost, mask)) in costs.iter().enumerate() {
-                data[l * n + p] = cost;
-                used[l * n + p] = mask;
-            }
-        }
-        drop(pixel_major);
+            });
         let units = |v: f32| (v * UNITS_PER_COST).round() as i64;
         let mut energy = Self {
             width: w,
@@ -717,12 +727,12 @@ pub fn expand_until_converged(
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::volume::Neighbour;
 
     /// A textured fronto-parallel plane at disparity `d` seen from the left and right.
-    fn plane_problem(d: usize) -> Problem {
+    pub(crate) fn plane_problem(d: usize) -> Problem {
         let (w, h) = (48usize, 24usize);
         let texture = |x: i64, y: i64| (((x * 37 + y * 11) ^ (x * y)) % 97 * 2 + 20) as u8;
         let view = |shift: i64| {

@@ -1,6 +1,6 @@
 //! `fuse`: the multiscopic depth algorithms — cost volumes between the reference view and each
 //! neighbour, their fusion (mean, min, the paper's heuristic, MFuseNet), and the optimisers
-//! (winner-take-all, SGM).
+//! (winner-take-all, SGM, graph cuts).
 //!
 //! This crate is the leaf of the workspace: plain buffers in, disparity out. No log formats, no
 //! command line, no viewer (see ARCHITECTURE.md).
@@ -11,6 +11,9 @@
 //!   normalised) for the methods that need one (SGM, MFuseNet).
 //! - [`methods`]: every method behind the [`methods::Method`] trait, listed in
 //!   [`methods::registry`] with its family.
+//! - [`maxflow`]: Boykov–Kolmogorov max-flow and the binary energies it minimises;
+//!   [`graph_cuts`]: Kolmogorov–Zabih's energy with occlusion and uniqueness over several views,
+//!   minimised by α-expansion.
 //! - [`nn`]: the 3D convolutions, BatchNorm and soft-argmin MFuseNet is made of (forward and
 //!   backward, fast kernels checked against plain loops); [`mfusenet`]: the network, its
 //!   safetensors weights, its inputs, tiled inference and the training pieces.

@@ -198,3 +198,69 @@ fn replay_writes_result_files_and_a_result_log_other_tools_read() {
         "{metadata:?}"
     );
 }
+
+#[test]
+fn graph_cuts_leave_occlusions_unmatched_and_five_views_beat_stereo() {
+    let dir = temp_dir();
+    let log = record_log(
+        dir.path(),
+        "metal.mcap",
+        &["--scene", "workpiece", "--resolution", "320x240", "--captures", "1"],
+    );
+    let log_arg = log.to_str().unwrap_or_default();
+    // Without filling, pixels left without a match have no estimate (+inf in the PFM).
+    let out = dir.path().join("results");
+    let output = replay(&[
+        log_arg,
+        "--rectify",
+        "--method",
+        "gc-heuristic",
+        "--out",
+        out.to_str().unwrap_or_default(),
+        "-q",
+    ]);
+    assert_success(&output, "replay --method gc-heuristic");
+    let set_dir = std::fs::read_dir(&out)
+        .unwrap_or_else(|e| panic!("{}: {e}", out.display()))
+        .filter_map(Result::ok)
+        .find(|e| e.path().is_dir())
+        .map(|e| e.path())
+        .unwrap_or_else(|| panic!("no set folder in {}", out.display()));
+    let (w, h, disparity) =
+        viz::files::read_pfm(&set_dir.join("gc-heuristic_disparity.pfm")).unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!((w, h), (320, 240));
+    let occluded = disparity.iter().filter(|d| !d.is_finite()).count();
+    println!("gc-heuristic: {occluded} of {} pixels occluded", w * h);
+    assert!(occluded > 0 && occluded < w * h / 5, "{occluded} occluded pixels");
+    assert!(
+        disparity
+            .iter()
+            .filter(|d| d.is_finite())
+            .all(|d| *d >= 0.0 && *d < 32.0)
+    );
+
+    let fill = r#"{"fill_occlusions": true}"#;
+    let five = eval_json(&[
+        log_arg,
+        "--rectify",
+        "--methods",
+        "gc-stereo,gc-heuristic",
+        "--config",
+        fill,
+    ]);
+    assert_eq!(metric(&five, "gc-heuristic", "mean", "missing"), 0.0, "filled");
+    let (stereo, multi) = (
+        metric(&five, "gc-stereo", "mean", "avg_err"),
+        metric(&five, "gc-heuristic", "mean", "avg_err"),
+    );
+    let (stereo_occluded, multi_occluded) = (
+        metric(&five, "gc-stereo", "occluded", "avg_err"),
+        metric(&five, "gc-heuristic", "occluded", "avg_err"),
+    );
+    println!("gc AvgErr stereo {stereo:.3} five-view {multi:.3}; occluded {stereo_occluded:.3} -> {multi_occluded:.3}");
+    assert!(
+        multi < stereo,
+        "five-view gc-heuristic {multi} is not better than gc-stereo {stereo}"
+    );
+    assert!(multi_occluded < stereo_occluded);
+}

@@ -234,6 +234,74 @@ pub const ENTRIES: &[MethodEntry] = &[
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::graph_cuts::tests::plane_problem;
+
+    #[test]
+    fn every_variant_finds_the_plane_and_marks_or_fills_the_border() {
+        let problem = plane_problem(3);
+        let (w, h) = (problem.reference.width, problem.reference.height);
+        for name in ["gc-stereo", "gc-mean", "gc-min", "gc-heuristic"] {
+            let method = super::super::build(name, None).unwrap_or_else(|e| panic!("{e}"));
+            let d = method.run(&problem, &|_| {}).unwrap_or_else(|e| panic!("{e}"));
+            // Away from the borders every pixel is matched at 3.
+            for y in 0..h {
+                for x in 4..w - 4 {
+                    assert_eq!(d.data[y * w + x], 3.0, "{name} ({x}, {y})");
+                }
+            }
+            let filled = super::super::build(name, Some(&serde_json::json!({"fill_occlusions": true})))
+                .and_then(|m| m.run(&problem, &|_| {}))
+                .unwrap_or_else(|e| panic!("{e}"));
+            assert!(
+                filled.data.iter().all(|v| v.is_finite()),
+                "{name}: occlusions left after filling"
+            );
+        }
+        // Stereo against the right view cannot match the columns whose correspondence leaves it.
+        let stereo = super::super::build("gc-stereo", None)
+            .and_then(|m| m.run(&problem, &|_| {}))
+            .unwrap_or_else(|e| panic!("{e}"));
+        assert!(
+            stereo.data[..3].iter().all(|v| !v.is_finite()),
+            "{:?}",
+            &stereo.data[..4]
+        );
+    }
+
+    #[test]
+    fn options_upsampling_and_automatic_k_run() {
+        let problem = plane_problem(2);
+        let w = problem.reference.width;
+        let overrides = serde_json::json!({"upsample": true, "automatic_k": true, "fill_occlusions": true, "seed": 9});
+        let method = super::super::build("gc-mean", Some(&overrides)).unwrap_or_else(|e| panic!("{e}"));
+        let d = method.run(&problem, &|_| {}).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!((d.width, d.height), (w, problem.reference.height));
+        assert_eq!(d.data[10 * w + 20], 2.0);
+        let energy = KzEnergy::new(
+            &problem,
+            Fusion::Mean,
+            EnergyParams {
+                occlusion: 10.0,
+                lambda_similar: 9.0,
+                lambda_edge: 3.0,
+                edge_threshold: 8,
+                norm: DataNorm::L2,
+                uniqueness: Uniqueness::UsedViews,
+            },
+        )
+        .unwrap_or_else(|e| panic!("{e}"));
+        let k = energy.automatic_occlusion();
+        assert!(k.is_finite() && k > 0.0, "{k}");
+        let zero_rounds = super::super::build("gc-min", Some(&serde_json::json!({"max_rounds": 0})))
+            .and_then(|m| m.run(&problem, &|_| {}));
+        assert!(matches!(
+            zero_rounds,
+            Err(FuseError::Config {
+                field: "max_rounds",
+                ..
+            })
+        ));
+    }
 
     #[test]
     fn upsampling_keeps_the_pixels_and_interpolates_between() {

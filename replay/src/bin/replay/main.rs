@@ -24,6 +24,7 @@ use record::cli::{Outcome, UsageError, exit_code, init_logging, parse_args};
     replay demo                                         record a five-view capture and replay it (start here)\n  \
     replay capture.mcap --method mfusenet --out results  the learned fusion (shipped weights)\n  \
     replay capture.mcap --method all --rerun spawn       every method, shown in the Rerun viewer\n  \
+    replay capture.mcap --method gc-heuristic --config '{\"fill_occlusions\": true}'   graph cuts, occlusions filled\n  \
     replay --list-methods\n  \
     replay eval ../shared/data/middlebury2006-third-dev --methods sgm-stereo,sgm-heuristic,mfusenet-stereo,mfusenet\n  \
     replay train --views 2                               train the three-view network on simulated captures")]
