@@ -21,7 +21,7 @@ echo "host: $(lscpu | sed -n 's/^Model name: *//p') ($(nproc) vCPUs)"
 run() { # log [replay options]
     /usr/bin/time -f "%e %M" -o "$T/time" $R "$1" --method gc-heuristic "${@:2}" --out "$T/out" -q
     read -r wall rss < "$T/time"
-    method=$(python3 -c "import json;d=json.load(open('$T/out/summary.json'));print(sum(s['seconds'] for s in d['sets']))")
+    method=$(python3 -c "import json;d=json.load(open('$T/out/summary.json'));print('%.2f' % sum(s['seconds'] for s in d['sets']))")
     echo "$method $wall $((rss / 1024))"
 }
 
