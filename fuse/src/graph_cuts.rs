@@ -17,7 +17,8 @@
 //!   plus the constant `K · pixels`);
 //! - smoothness: for 4-neighbouring reference pixels `p1, p2` and a disparity `d` where exactly one
 //!   of `(p1, d)`, `(p2, d)` is active (both allowed): `λ1` when the two pixels differ by less
-//!   than θ in every channel in the reference and in every neighbour (at `q_k`), `λ2` otherwise;
+//!   than θ in every channel in the reference and in every neighbour view that both assignments
+//!   are matched in (at `q_k`), `λ2` otherwise;
 //! - uniqueness: infinite.
 //!
 //! An α-expansion lets every active assignment of a disparity other than α stay or go and every
@@ -413,7 +414,15 @@ impl KzEnergy {
     fn smoothness(&self, p: usize, direction: usize, label: usize) -> i64 {
         let mut largest = self.ref_edges[direction][p];
         let (x, y) = (p % self.width, p / self.width);
-        for view in &self.views {
+        // Only the views in which both assignments are matched: one that sees an occluder at
+        // either pixel says nothing about whether the two lie on one surface.
+        let n = self.width * self.height;
+        let other = if direction == 0 { p + 1 } else { p + self.width };
+        let seen = self.used[label * n + p] & self.used[label * n + other];
+        for (k, view) in self.views.iter().enumerate() {
+            if seen & (1 << k) == 0 {
+                continue;
+            }
             let (sx, sy) = view.shifts[label];
             let (qx, qy) = (x as i64 - i64::from(sx), y as i64 - i64::from(sy));
             let (ex, ey) = if direction == 0 { (qx + 1, qy) } else { (qx, qy + 1) };
