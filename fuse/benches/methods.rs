@@ -1,7 +1,7 @@
 //! Criterion benchmarks of the methods on a synthetic five-view problem (a textured slanted
 //! plane, 640×360, 64 disparities), read as ratios within one run: fused methods against their
 //! stereo baseline, SGM against block matching. The absolute figures against OpenCV come from
-//! `scripts/bench-replay.py`.
+//! `scripts/bench-replay.py` (graph cuts: `scripts/bench-gc.sh`).
 
 #![allow(missing_docs)]
 
@@ -96,5 +96,46 @@ fn mfusenet(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, methods, mfusenet);
+/// Graph cuts on a 160×120 slanted plane with 32 disparities: stereo against three and five
+/// views (the cuts dominate), and the max-flow alone on a 4-connected grid with random terminals.
+fn graph_cuts(c: &mut Criterion) {
+    let five = problem(160, 120, 32);
+    let three = Problem {
+        neighbours: five.neighbours.iter().take(2).cloned().collect(),
+        ..five.clone()
+    };
+    let mut group = c.benchmark_group("graph_cuts_160x120x32");
+    group.sample_size(10);
+    for (name, problem) in [("gc-stereo", &three), ("gc-heuristic", &three), ("gc-heuristic-five", &five)] {
+        let method =
+            fuse::methods::build(name.trim_end_matches("-five"), None).unwrap_or_else(|e| panic!("{e}"));
+        group.bench_function(name, |b| b.iter(|| black_box(method.run(problem, &|_| {}))));
+    }
+    group.bench_function("maxflow_grid_256x256", |b| {
+        b.iter(|| {
+            let mut graph = fuse::maxflow::Graph::new();
+            let side = 256u32;
+            for i in 0..side * side {
+                let node = graph.add_node();
+                let t = i64::from((i * 7919) % 41) - 20;
+                graph.add_terminal_weights(node, t.max(0), (-t).max(0));
+            }
+            for y in 0..side {
+                for x in 0..side {
+                    let i = y * side + x;
+                    if x + 1 < side {
+                        graph.add_edge(i, i + 1, 6, 6);
+                    }
+                    if y + 1 < side {
+                        graph.add_edge(i, i + side, 6, 6);
+                    }
+                }
+            }
+            black_box(graph.max_flow())
+        })
+    });
+    group.finish();
+}
+
+criterion_group!(benches, methods, mfusenet, graph_cuts);
 criterion_main!(benches);
