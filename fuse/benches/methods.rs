@@ -106,9 +106,12 @@ fn graph_cuts(c: &mut Criterion) {
     };
     let mut group = c.benchmark_group("graph_cuts_160x120x32");
     group.sample_size(10);
-    for (name, problem) in [("gc-stereo", &three), ("gc-heuristic", &three), ("gc-heuristic-five", &five)] {
-        let method =
-            fuse::methods::build(name.trim_end_matches("-five"), None).unwrap_or_else(|e| panic!("{e}"));
+    for (name, problem) in [
+        ("gc-stereo", &three),
+        ("gc-heuristic", &three),
+        ("gc-heuristic-five", &five),
+    ] {
+        let method = fuse::methods::build(name.trim_end_matches("-five"), None).unwrap_or_else(|e| panic!("{e}"));
         group.bench_function(name, |b| b.iter(|| black_box(method.run(problem, &|_| {}))));
     }
     group.bench_function("maxflow_grid_256x256", |b| {
