@@ -33,7 +33,7 @@ use crate::FuseError;
 use crate::cost::{INVALID_COST, PixelCost, PreparedView};
 use crate::fusion::{Fusion, fuse_values};
 use crate::image::{DisparityImage, Image};
-use crate::maxflow::{BinaryEnergy, Capacity};
+use crate::maxflow::BinaryEnergy;
 use crate::volume::Problem;
 
 /// Energy units per data-cost unit (so that K, λ1, λ2 may be quarters).
@@ -67,6 +67,21 @@ pub struct EnergyParams {
     pub norm: DataNorm,
     /// Where uniqueness is enforced.
     pub uniqueness: Uniqueness,
+}
+
+impl Default for EnergyParams {
+    /// The paper's K = 10, λ1 = 9, λ2 = 3, θ = 8 with the IPOL program's squared cost; uniqueness
+    /// in the views the fused cost uses.
+    fn default() -> Self {
+        Self {
+            occlusion: 10.0,
+            lambda_similar: 9.0,
+            lambda_edge: 3.0,
+            edge_threshold: 8,
+            norm: DataNorm::L2,
+            uniqueness: Uniqueness::UsedViews,
+        }
+    }
 }
 
 /// Which neighbour views an assignment must match uniquely.
@@ -423,12 +438,9 @@ impl KzEnergy {
             if seen & (1 << k) == 0 {
                 continue;
             }
-            let (sx, sy) = view.shifts[label];
-            let (qx, qy) = (x as i64 - i64::from(sx), y as i64 - i64::from(sy));
-            let (ex, ey) = if direction == 0 { (qx + 1, qy) } else { (qx, qy + 1) };
-            let inside = |a: i64, b: i64| a >= 0 && b >= 0 && (a as usize) < view.width && (b as usize) < view.height;
-            if inside(qx, qy) && inside(ex, ey) {
-                largest = largest.max(view.edges[direction][qy as usize * view.width + qx as usize]);
+            // A view an assignment is matched in holds its pixel, so both pixels are inside.
+            if let Some(q) = view.target(x, y, label) {
+                largest = largest.max(view.edges[direction][q]);
             }
         }
         if largest < self.edge_threshold {
@@ -667,9 +679,6 @@ impl KzEnergy {
     }
 }
 
-/// `Capacity` and the energy agree (both `i64`).
-const _: () = assert!(size_of::<Capacity>() == size_of::<i64>());
-
 /// A random permutation of `0..n` from `seed` (Fisher–Yates on a 64-bit LCG).
 pub fn label_order(n: usize, seed: u64) -> Vec<usize> {
     let mut order: Vec<usize> = (0..n).collect();
@@ -684,46 +693,30 @@ pub fn label_order(n: usize, seed: u64) -> Vec<usize> {
     order
 }
 
-/// Statistics of an α-expansion run.
-#[derive(Debug, Clone, PartialEq)]
-pub struct RunStats {
-    /// Energy after each expansion, starting with the initial one.
-    pub energies: Vec<i64>,
-    /// Expansions tried.
-    pub expansions: usize,
-    /// Rounds over the labels started.
-    pub rounds: usize,
-}
-
 /// Runs α-expansion rounds over the labels in `order` until a whole round lowers nothing (or
-/// `max_rounds`); `on_expansion` sees every move.
+/// `max_rounds`); `on_expansion` sees every move. Returns the energy before the first move and
+/// after each.
 pub fn expand_until_converged(
     energy: &mut KzEnergy,
     order: &[usize],
     max_rounds: usize,
-    on_expansion: &mut dyn FnMut(&Expansion, usize),
-) -> RunStats {
+    on_expansion: &mut dyn FnMut(&Expansion),
+) -> Vec<i64> {
     let labels = energy.labels();
     let mut done = vec![false; labels];
     let mut remaining = labels;
-    let mut stats = RunStats {
-        energies: vec![energy.energy()],
-        expansions: 0,
-        rounds: 0,
-    };
-    for round in 0..max_rounds {
+    let mut energies = vec![energy.energy()];
+    for _ in 0..max_rounds {
         if remaining == 0 {
             break;
         }
-        stats.rounds = round + 1;
         for &label in order {
             if done[label] {
                 continue;
             }
             let expansion = energy.expand(label);
-            stats.expansions += 1;
-            stats.energies.push(energy.energy());
-            on_expansion(&expansion, round);
+            energies.push(energy.energy());
+            on_expansion(&expansion);
             if expansion.accepted {
                 done.fill(false);
                 remaining = labels;
@@ -732,7 +725,7 @@ pub fn expand_until_converged(
             remaining -= 1;
         }
     }
-    stats
+    energies
 }
 
 #[cfg(test)]
@@ -775,29 +768,18 @@ pub(crate) mod tests {
         }
     }
 
-    fn params() -> EnergyParams {
-        EnergyParams {
-            occlusion: 10.0,
-            lambda_similar: 9.0,
-            lambda_edge: 3.0,
-            edge_threshold: 8,
-            norm: DataNorm::L2,
-            uniqueness: Uniqueness::UsedViews,
-        }
-    }
-
     #[test]
     fn a_fronto_parallel_plane_gets_its_disparity_and_the_energy_never_rises() {
         for fusion in [Fusion::Stereo, Fusion::Min, Fusion::Mean, Fusion::Heuristic] {
             let problem = plane_problem(3);
-            let mut energy = KzEnergy::new(&problem, fusion, params()).unwrap_or_else(|e| panic!("{e}"));
+            let mut energy = KzEnergy::new(&problem, fusion, EnergyParams::default()).unwrap_or_else(|e| panic!("{e}"));
             let mut checked = 0;
-            let stats = expand_until_converged(&mut energy, &label_order(8, 1), 10, &mut |e, _| {
+            let energies = expand_until_converged(&mut energy, &label_order(8, 1), 10, &mut |e| {
                 assert!(e.energy_after <= e.energy_before || !e.accepted);
                 checked += 1;
             });
             assert!(checked > 0);
-            assert!(stats.energies.windows(2).all(|w| w[1] <= w[0]), "{:?}", stats.energies);
+            assert!(energies.windows(2).all(|w| w[1] <= w[0]), "{energies:?}");
             assert_eq!(energy.energy(), energy.recompute_energy());
             assert!(energy.is_unique());
             let disparity = energy.disparity();
@@ -814,7 +796,8 @@ pub(crate) mod tests {
     #[test]
     fn every_accepted_cut_equals_the_energy_it_claims() {
         let problem = plane_problem(2);
-        let mut energy = KzEnergy::new(&problem, Fusion::Heuristic, params()).unwrap_or_else(|e| panic!("{e}"));
+        let mut energy =
+            KzEnergy::new(&problem, Fusion::Heuristic, EnergyParams::default()).unwrap_or_else(|e| panic!("{e}"));
         for label in label_order(8, 7).into_iter().chain(0..8) {
             let e = energy.expand(label);
             if e.accepted {

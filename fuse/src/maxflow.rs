@@ -131,16 +131,6 @@ impl Graph {
         self.edges.reserve(edges);
     }
 
-    /// Nodes so far.
-    pub fn node_count(&self) -> usize {
-        self.nodes.len()
-    }
-
-    /// Edges (arc pairs) so far.
-    pub fn edge_count(&self) -> usize {
-        self.edges.len()
-    }
-
     /// Adds a node without terminal capacities; returns its index.
     pub fn add_node(&mut self) -> u32 {
         self.nodes.push(Node {
@@ -657,11 +647,6 @@ impl BinaryEnergy {
     /// Reserves room for variables and pairwise terms.
     pub fn reserve(&mut self, variables: usize, pairwise: usize) {
         self.graph.reserve(variables, pairwise);
-    }
-
-    /// Variables so far.
-    pub fn variable_count(&self) -> usize {
-        self.graph.node_count()
     }
 
     /// Adds a variable with unary costs `e0` (value 0) and `e1` (value 1).

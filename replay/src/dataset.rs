@@ -32,7 +32,7 @@ pub fn read_dataset(dir: &Path) -> Result<Vec<ViewSet>, ReplayError> {
 mod tests {
     use super::*;
     use fuse::fusion::Fusion;
-    use fuse::graph_cuts::{DataNorm, EnergyParams, KzEnergy, Uniqueness, label_order};
+    use fuse::graph_cuts::{EnergyParams, KzEnergy, Uniqueness, label_order};
 
     /// A `width × height` window of an RGB image at `(x0, y0)`.
     fn crop(image: &fuse::Image, x0: usize, y0: usize, width: usize, height: usize) -> fuse::Image {
@@ -68,12 +68,8 @@ mod tests {
             (Fusion::Mean, Uniqueness::AllViews),
         ] {
             let params = EnergyParams {
-                occlusion: 10.0,
-                lambda_similar: 9.0,
-                lambda_edge: 3.0,
-                edge_threshold: 8,
-                norm: DataNorm::L2,
                 uniqueness,
+                ..EnergyParams::default()
             };
             let mut energy = KzEnergy::new(&problem, fusion, params).unwrap_or_else(|e| panic!("{e}"));
             let mut accepted = 0;

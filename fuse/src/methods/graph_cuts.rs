@@ -50,15 +50,16 @@ pub struct GraphCutsConfig {
 
 impl Default for GraphCutsConfig {
     fn default() -> Self {
+        let energy = EnergyParams::default();
         Self {
             fusion: Fusion::Heuristic,
-            occlusion_k: 10.0,
+            occlusion_k: energy.occlusion,
             automatic_k: false,
-            lambda1: 9.0,
-            lambda2: 3.0,
-            edge_threshold: 8,
-            data_norm: DataNorm::L2,
-            uniqueness: Uniqueness::UsedViews,
+            lambda1: energy.lambda_similar,
+            lambda2: energy.lambda_edge,
+            edge_threshold: energy.edge_threshold,
+            data_norm: energy.norm,
+            uniqueness: energy.uniqueness,
             upsample: false,
             seed: 1,
             max_rounds: 2,
@@ -83,13 +84,6 @@ impl Method for GraphCuts {
     }
 
     fn run(&self, problem: &Problem, progress: Progress<'_>) -> Result<DisparityImage, FuseError> {
-        if self.config.max_rounds == 0 {
-            return Err(FuseError::Config {
-                field: "max_rounds",
-                value: "0".into(),
-                reason: "at least one round",
-            });
-        }
         let upsampled;
         let solved = if self.config.upsample {
             upsampled = upsample_problem(problem)?;
@@ -120,7 +114,7 @@ impl Method for GraphCuts {
         // Progress: rounds are at most `max_rounds` but usually end after two or three.
         let expected = (labels * c.max_rounds.min(3)) as f32;
         let mut done = 0usize;
-        expand_until_converged(&mut energy, &order, c.max_rounds, &mut |_, _| {
+        expand_until_converged(&mut energy, &order, c.max_rounds, &mut |_| {
             done += 1;
             progress(0.05 + 0.9 * (done as f32 / expected).min(1.0));
         });
@@ -200,6 +194,13 @@ fn build(
         },
         overrides,
     )?;
+    if config.max_rounds == 0 {
+        return Err(FuseError::Config {
+            field: "max_rounds",
+            value: "0".into(),
+            reason: "at least one round",
+        });
+    }
     Ok(Box::new(GraphCuts { name, config }))
 }
 
@@ -277,19 +278,7 @@ mod tests {
         let d = method.run(&problem, &|_| {}).unwrap_or_else(|e| panic!("{e}"));
         assert_eq!((d.width, d.height), (w, problem.reference.height));
         assert_eq!(d.data[10 * w + 20], 2.0);
-        let energy = KzEnergy::new(
-            &problem,
-            Fusion::Mean,
-            EnergyParams {
-                occlusion: 10.0,
-                lambda_similar: 9.0,
-                lambda_edge: 3.0,
-                edge_threshold: 8,
-                norm: DataNorm::L2,
-                uniqueness: Uniqueness::UsedViews,
-            },
-        )
-        .unwrap_or_else(|e| panic!("{e}"));
+        let energy = KzEnergy::new(&problem, Fusion::Mean, EnergyParams::default()).unwrap_or_else(|e| panic!("{e}"));
         let k = energy.automatic_occlusion();
         assert!(k.is_finite() && k > 0.0, "{k}");
         let zero_rounds = super::super::build("gc-min", Some(&serde_json::json!({"max_rounds": 0})))
