@@ -92,6 +92,42 @@ impl RigKind {
     }
 }
 
+/// The role name of a view at a grid offset (in baselines, x right, y down): `center`, `left`,
+/// `right`, `top`, `bottom`, the diagonals `top-left` …, a multiple of one of these with the
+/// multiple appended (`left2`, `right3`, `top-right2`), and `grid{x:+}{y:+}` (e.g. `grid+2-1`) for
+/// any other offset. Roles name the topics (`/camera/<role>/…`) and `--neighbours`.
+pub fn role_for_offset(offset: [i32; 2]) -> String {
+    let [x, y] = offset;
+    if x == 0 && y == 0 {
+        return REFERENCE_ROLE.to_owned();
+    }
+    let multiple = if x == 0 || y == 0 || x.abs() == y.abs() {
+        x.abs().max(y.abs())
+    } else {
+        return format!("grid{x:+}{y:+}");
+    };
+    let vertical = match y.signum() {
+        -1 => "top",
+        1 => "bottom",
+        _ => "",
+    };
+    let horizontal = match x.signum() {
+        -1 => "left",
+        1 => "right",
+        _ => "",
+    };
+    let direction = match (vertical.is_empty(), horizontal.is_empty()) {
+        (true, _) => horizontal.to_owned(),
+        (_, true) => vertical.to_owned(),
+        _ => format!("{vertical}-{horizontal}"),
+    };
+    if multiple == 1 {
+        direction
+    } else {
+        format!("{direction}{multiple}")
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -110,5 +146,19 @@ mod tests {
         }
         assert_eq!(RigKind::Grid3x3.file_order()[0].role, "top-left");
         assert_eq!(RigKind::ThreeView.file_order()[1].role, "center");
+    }
+
+    #[test]
+    fn roles_follow_the_offsets() {
+        for rig in [RigKind::FiveView, RigKind::ThreeView, RigKind::Stereo, RigKind::Grid3x3] {
+            for slot in rig.capture_order() {
+                assert_eq!(role_for_offset(slot.grid_offset), slot.role, "{slot:?}");
+            }
+        }
+        assert_eq!(role_for_offset([-2, 0]), "left2");
+        assert_eq!(role_for_offset([3, 0]), "right3");
+        assert_eq!(role_for_offset([0, -2]), "top2");
+        assert_eq!(role_for_offset([2, 2]), "bottom-right2");
+        assert_eq!(role_for_offset([2, -1]), "grid+2-1");
     }
 }

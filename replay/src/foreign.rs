@@ -42,17 +42,54 @@ pub fn is_foreign_input(schema: &str) -> bool {
 struct TfBuffer {
     /// child → (time, parent, parent_from_child), sorted by time.
     edges: HashMap<String, Vec<(u64, String, Isometry3<f64>)>>,
+    /// The first transform whose rotation is not one (reported when the poses are needed).
+    invalid: Option<ReplayError>,
 }
 
+/// Norm below which a quaternion is not a rotation (the protobuf default is all zeros).
+const MIN_QUATERNION_NORM: f64 = 1e-6;
+
 impl TfBuffer {
-    fn add(&mut self, time: u64, message: &FrameTransforms) {
+    /// Adds the transforms of one message. A transform without a rotation field is a pure
+    /// translation (identity rotation); a rotation that is zero or not finite is kept out and
+    /// remembered as an error naming the topic and frames.
+    fn add(&mut self, topic: &str, time: u64, message: &FrameTransforms) {
         for t in &message.transforms {
             let translation = t.translation.unwrap_or_default();
-            let rotation = t.rotation.unwrap_or_default();
-            let pose = Isometry3::from_parts(
-                Translation3::new(translation.x, translation.y, translation.z),
-                UnitQuaternion::from_quaternion(Quaternion::new(rotation.w, rotation.x, rotation.y, rotation.z)),
-            );
+            let rotation = match t.rotation {
+                None => UnitQuaternion::identity(),
+                Some(q) => {
+                    let quaternion = Quaternion::new(q.w, q.x, q.y, q.z);
+                    let norm = quaternion.norm();
+                    if !(norm.is_finite() && norm > MIN_QUATERNION_NORM) {
+                        self.invalid.get_or_insert(ReplayError::BadTransform {
+                            topic: topic.to_owned(),
+                            parent_frame: t.parent_frame_id.clone(),
+                            child_frame: t.child_frame_id.clone(),
+                            log_time: time,
+                            rotation_xyzw: [q.x, q.y, q.z, q.w],
+                        });
+                        continue;
+                    }
+                    UnitQuaternion::from_quaternion(quaternion)
+                }
+            };
+            if ![translation.x, translation.y, translation.z]
+                .iter()
+                .all(|v| v.is_finite())
+            {
+                self.invalid.get_or_insert(ReplayError::BadField {
+                    set: 0,
+                    topic: topic.to_owned(),
+                    field: "translation",
+                    value: format!(
+                        "{} → {} at log time {time}: ({}, {}, {})",
+                        t.parent_frame_id, t.child_frame_id, translation.x, translation.y, translation.z
+                    ),
+                });
+                continue;
+            }
+            let pose = Isometry3::from_parts(Translation3::new(translation.x, translation.y, translation.z), rotation);
             let stamp = t.timestamp.map_or(time, |s| s.total_nanos());
             self.edges
                 .entry(t.child_frame_id.clone())
@@ -108,7 +145,7 @@ impl ForeignMessages {
         match schema {
             TRANSFORMS_SCHEMA => {
                 if let Ok(message) = <FrameTransforms as prost::Message>::decode(data) {
-                    self.tf.add(time, &message);
+                    self.tf.add(topic, time, &message);
                 }
                 false
             }
@@ -131,6 +168,9 @@ impl ForeignMessages {
 
     /// Infers the view sets.
     pub fn infer_sets(mut self, payloads: &HashMap<(String, u64), Vec<u8>>) -> Result<Vec<ViewSet>, ReplayError> {
+        if let Some(error) = self.tf.invalid.take() {
+            return Err(error);
+        }
         self.tf.sort();
         let payload = |key: &(String, u64)| payloads.get(key).map(Vec::as_slice).unwrap_or_default();
         // Calibrations by frame id (the latest wins).
@@ -239,21 +279,6 @@ impl ForeignMessages {
     }
 }
 
-fn role_of(offset: [i32; 2]) -> String {
-    match offset {
-        [0, 0] => "center".into(),
-        [-1, 0] => "left".into(),
-        [1, 0] => "right".into(),
-        [0, -1] => "top".into(),
-        [0, 1] => "bottom".into(),
-        [-1, -1] => "top-left".into(),
-        [1, -1] => "top-right".into(),
-        [-1, 1] => "bottom-left".into(),
-        [1, 1] => "bottom-right".into(),
-        [x, y] => format!("grid{x:+}{y:+}"),
-    }
-}
-
 fn assemble(index: u32, mut views: Vec<View>) -> Result<ViewSet, ReplayError> {
     // The medoid is the reference.
     let centre_index = (0..views.len())
@@ -294,7 +319,7 @@ fn assemble(index: u32, mut views: Vec<View>) -> Result<ViewSet, ReplayError> {
             continue;
         }
         view.offset = offset;
-        view.role = role_of(offset);
+        view.role = record::rig::role_for_offset(offset);
         if neighbours.iter().any(|n: &View| n.offset == offset) {
             continue;
         }
@@ -317,4 +342,52 @@ fn assemble(index: u32, mut views: Vec<View>) -> Result<ViewSet, ReplayError> {
         ground_truth_depth_m: None,
         surface_class: None,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use foxglove::messages::{FrameTransform, Quaternion as QuaternionMessage, Vector3};
+
+    use super::*;
+
+    fn transform(child: &str, rotation: Option<QuaternionMessage>) -> FrameTransforms {
+        FrameTransforms {
+            transforms: vec![FrameTransform {
+                timestamp: None,
+                parent_frame_id: "world".into(),
+                child_frame_id: child.into(),
+                translation: Some(Vector3 { x: 0.1, y: 0.0, z: 0.5 }),
+                rotation,
+            }],
+        }
+    }
+
+    #[test]
+    fn a_missing_rotation_is_identity_and_a_zero_quaternion_is_an_error() {
+        let mut tf = TfBuffer::default();
+        tf.add("/tf", 10, &transform("camera", None));
+        tf.sort();
+        let pose = tf.root_from("camera", 10).unwrap_or_else(|| panic!("no pose"));
+        assert_eq!(pose.rotation, UnitQuaternion::identity());
+        assert!((pose.translation.vector - nalgebra::Vector3::new(0.1, 0.0, 0.5)).norm() < 1e-12);
+        assert!(tf.invalid.is_none());
+
+        let zero = QuaternionMessage {
+            x: 0.0,
+            y: 0.0,
+            z: 0.0,
+            w: 0.0,
+        };
+        let mut messages = ForeignMessages::default();
+        let bytes = prost::Message::encode_to_vec(&transform("camera_left", Some(zero)));
+        messages.add("/tf", TRANSFORMS_SCHEMA, 20, &bytes);
+        let error = match messages.infer_sets(&HashMap::new()) {
+            Err(e) => e.to_string(),
+            Ok(sets) => panic!("a zero quaternion was accepted ({} sets)", sets.len()),
+        };
+        assert!(
+            error.contains("/tf") && error.contains("world → camera_left") && error.contains("not a rotation"),
+            "{error}"
+        );
+    }
 }

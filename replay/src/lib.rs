@@ -106,6 +106,22 @@ pub enum ReplayError {
         /// The value, as text.
         value: String,
     },
+    /// A `/tf` transform whose rotation is not a rotation (zero or not finite).
+    #[error(
+        "topic {topic}: transform {parent_frame} → {child_frame} at log time {log_time} has rotation (x, y, z, w) = {rotation_xyzw:?}, which is not a rotation (a zero or non-finite quaternion; leave the field out for no rotation)"
+    )]
+    BadTransform {
+        /// Topic.
+        topic: String,
+        /// Parent frame id.
+        parent_frame: String,
+        /// Child frame id.
+        child_frame: String,
+        /// Log time (ns).
+        log_time: u64,
+        /// The quaternion as logged.
+        rotation_xyzw: [f64; 4],
+    },
     /// A view's size differs from the reference.
     #[error(
         "set {set} view '{role}' ({topic}) is {width}x{height}, the reference is {reference_width}x{reference_height}"

@@ -30,7 +30,12 @@ fn statuses(json: &serde_json::Value) -> Vec<(String, String)> {
 fn clean_capture_passes() {
     let (code, json) = check(&[], "clean.mcap");
     assert_eq!(code, Some(0), "{json}");
-    assert!(statuses(&json).iter().all(|(_, s)| s == "ok"), "{json}");
+    let statuses = statuses(&json);
+    let mut roles: Vec<&str> = statuses.iter().map(|(role, _)| role.as_str()).collect();
+    roles.sort_unstable();
+    // The default five-view rig: one status per neighbour (an empty list must not pass).
+    assert_eq!(roles, ["bottom", "left", "right", "top"], "{json}");
+    assert!(statuses.iter().all(|(_, s)| s == "ok"), "{json}");
 }
 
 #[test]
@@ -40,6 +45,7 @@ fn injected_roll_and_out_of_plane_offset_are_flagged_on_their_view_only() {
         "misaligned.mcap",
     );
     assert_eq!(code, Some(3), "{json}");
+    assert_eq!(statuses(&json).len(), 4, "{json}");
     for (role, status) in statuses(&json) {
         match role.as_str() {
             "left" | "top" => assert_eq!(status, "fail", "{role}: {json}"),

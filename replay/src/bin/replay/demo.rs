@@ -15,7 +15,8 @@ const DEMO_METHODS: &str = "bm-stereo,bm-mean,bm-min,bm-heuristic,sgm-stereo,sgm
 /// Arguments of `replay demo`.
 #[derive(Debug, Args)]
 pub struct DemoArgs {
-    /// Output folder (the log goes to OUT/capture.mcap, results beside it).
+    /// Output folder (the log goes to OUT/capture.mcap, results beside it). The demo writes a
+    /// `.gitignore` (`*`) into it, so that its ≈ 400 MB never show up as work in a repository.
     #[arg(long, default_value = "demo")]
     out: PathBuf,
     /// Methods (comma-separated, or `all`); the results of each are written and shown. The
@@ -54,6 +55,20 @@ pub fn working_disparity_range(sim: &record::capture::Simulation) -> (usize, usi
     (first, (last - first).div_ceil(16).max(1) * 16)
 }
 
+/// Writes `DIR/.gitignore` ignoring everything in `DIR` (as Cargo does for `target/`), unless the
+/// folder already has one: the demo's outputs are results, never work to commit.
+fn ignore_in_git(dir: &std::path::Path) -> Result<()> {
+    let path = dir.join(".gitignore");
+    if !path.exists() {
+        std::fs::write(
+            &path,
+            "# Written by `replay demo`: its outputs are results, not sources.\n*\n",
+        )
+        .with_context(|| format!("writing {}", path.display()))?;
+    }
+    Ok(())
+}
+
 /// Runs `replay demo`.
 pub fn run(args: &DemoArgs, quiet: bool) -> Result<Outcome> {
     let (width, height) = args
@@ -70,6 +85,7 @@ pub fn run(args: &DemoArgs, quiet: bool) -> Result<Outcome> {
         ..record::capture::SimulationConfig::default()
     };
     std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
+    ignore_in_git(&args.out)?;
     let log = args.out.join("capture.mcap");
     let mut sim = record::capture::Simulation::new(config.clone()).map_err(|e| UsageError(e.to_string()))?;
     let (min_disparity, num_disparities) = working_disparity_range(&sim);
@@ -108,6 +124,11 @@ pub fn run(args: &DemoArgs, quiet: bool) -> Result<Outcome> {
     }
     // The capture's own layout, for `rerun demo/capture.mcap demo/capture.rbl`.
     let layout_lost = log_layout.is_some_and(|layout| !record::cli::write_log_layout(&log, &layout));
+    info!(
+        "outputs go to {} (git-ignored through {})",
+        args.out.display(),
+        args.out.join(".gitignore").display()
+    );
     let outcome = crate::run::run(
         &RunArgs {
             log: Some(log),

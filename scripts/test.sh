@@ -1,0 +1,54 @@
+#!/usr/bin/env bash
+# The README's test command: installs what the tests need when it is missing, then runs the
+# format check, clippy (warnings are errors) and every test of the workspace.
+#
+#   scripts/test.sh              everything (what CI runs through .ci/run)
+#   scripts/test.sh -- ARGS      passes ARGS to `cargo test --workspace` (e.g. `-- five_views`)
+#
+# Set-up it does (each step skipped when already done):
+#   - Debian's mesa-vulkan-drivers: software Vulkan for the headless Rerun viewer screenshots
+#     (apt-get as root, or through `sudo -n`); without it the two viewer tests fail with
+#     "Failed to get render context", so a missing package stops the script here with that reason;
+#   - ./.venv with the Python reference clients (mcap, safetensors, numpy, rerun-sdk) from
+#     tests/python/requirements.txt.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+echo "== software Vulkan for the headless Rerun viewer (Debian's mesa-vulkan-drivers)"
+if command -v dpkg >/dev/null 2>&1 && ! dpkg -s mesa-vulkan-drivers >/dev/null 2>&1; then
+    if [ "$(id -u)" = 0 ]; then
+        as_root=()
+    elif command -v sudo >/dev/null 2>&1 && sudo -n true 2>/dev/null; then
+        as_root=(sudo -n)
+    else
+        echo "mesa-vulkan-drivers is missing and cannot be installed here (not root, no password-less sudo):" >&2
+        echo "  run 'sudo apt-get install mesa-vulkan-drivers' once, then this script again" >&2
+        exit 1
+    fi
+    "${as_root[@]}" apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive "${as_root[@]}" apt-get install -y -qq mesa-vulkan-drivers >/dev/null
+elif ! command -v dpkg >/dev/null 2>&1; then
+    echo "not a Debian system: make sure a Vulkan driver (e.g. Mesa's lavapipe) is installed for the viewer tests" >&2
+fi
+
+echo "== Python reference clients in ./.venv"
+if [ ! -x .venv/bin/python ]; then
+    python3 -m venv .venv
+fi
+.venv/bin/python -m pip install --quiet --disable-pip-version-check -r tests/python/requirements.txt
+
+echo "== toolchain"
+cargo --version
+rustc --version
+
+echo "== cargo fmt --all --check"
+cargo fmt --all --check
+
+echo "== cargo clippy --workspace --all-targets -- -D warnings"
+cargo clippy --workspace --all-targets -- -D warnings
+
+echo "== cargo test --workspace"
+if [ "${1:-}" = "--" ]; then
+    shift
+fi
+cargo test --workspace "$@"
