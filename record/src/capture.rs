@@ -368,7 +368,7 @@ impl Simulation {
         Ok(Some(CapturedSet {
             index: set,
             name: format!("{}-{}", self.config.scene_name(), set),
-            rig: self.config.rig,
+            rig: self.config.rig.name().to_owned(),
             baseline_m,
             motion,
             views,

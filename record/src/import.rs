@@ -1,63 +1,358 @@
 //! Import of real image sets into the same log format, so that real data goes through exactly the
 //! same replay path as simulated captures.
 //!
-//! A directory holds either the view files of one set directly, or one sub-directory per set
-//! (the Middlebury layout: `scene/view0.png …`). Views are listed in the layout's file order
-//! (see [`RigKind::file_order`]); ground truth for the reference view is a disparity PNG whose
-//! value divided by `ground_truth_scale` is the disparity in pixels between the reference and a
-//! direct neighbour (0 = unknown). It is stored as depth `z = f·b/d`, so replay recovers the
-//! disparity exactly from the logged focal length and baseline.
+//! **Views** are files with a grid offset in baselines (`FILE@DX` on a horizontal line,
+//! `FILE@DX:DY` on a grid; x right, y down): `view0@-1,view1@0,view2@1` is Middlebury's three-view
+//! set, `scene1.row3.col1.ppm@-2 … col5.ppm@2` Tsukuba's five views in a row. The view at `0` is the
+//! reference; a view at a multiple of the baseline keeps that multiple in the log (its capture
+//! event's `grid_offset`, its pose) and every method samples its costs at `multiple × d`. Role
+//! names follow the offsets ([`crate::rig::role_for_offset`]: `left`, `right2`, `top-left`, …).
+//! The named layouts stay as shorthands ([`RigKind::file_order`]).
+//!
+//! **Images** are read by the `image` crate: PNG (8 and 16 bit), PPM/PGM, JPEG, TIFF, BMP; grey
+//! images become RGB, 16-bit ones are scaled to 8 bits.
+//!
+//! **Ground truth** is the disparity of the reference to a *direct* neighbour (one baseline),
+//! `stored value ÷ ground_truth_scale`:
+//! - PNG, TIFF, BMP (8 or 16 bit, first channel) and PGM/PPM (raw values, any maxval up to
+//!   65535): 0 = unknown (Middlebury 2006 `disp1.png` ÷ 12 at third size, Tsukuba
+//!   `truedisp.row3.col3.pgm` ÷ 16, KITTI-style 16-bit PNG ÷ 256);
+//! - PFM (float disparity, Middlebury 2014 `disp0.pfm`, ETH3D): `inf`/NaN = unknown; the scale
+//!   defaults to 1 like every format's.
+//!
+//! A disparity of 0 (infinitely far) is unknown too. It is stored as depth `z = f·b/(d + doffs)`,
+//! so replay recovers the disparity exactly from the logged focal length, baseline and principal
+//! points.
+//!
+//! **Calibration**: focal length, principal point, baseline and `doffs` (the principal points'
+//! difference between adjacent views, Middlebury 2014) come from a Middlebury 2014 `calib.txt`
+//! in the set folder when there is one, else from the options (`focal_px` or a horizontal field of
+//! view, `principal_point_px` or the image centre, `baseline_mm`, `doffs_px`). A neighbour at
+//! offset `(dx, dy)` gets the principal point `(cx + dx·doffs, cy + dy·doffs)`.
+//!
+//! **Self-describing folders**: a [`DESCRIPTION_FILE`] (`multiscopic.toml`) beside the images,
+//! or at the top of a folder of sets (one sub-folder per set), holds the same settings as the
+//! options, so that `record import DIR` and `replay eval DIR` need no flags:
+//!
+//! ```toml
+//! views = ["scene1.row3.col1.ppm@-2", "scene1.row3.col2.ppm@-1", "scene1.row3.col3.ppm@0",
+//!          "scene1.row3.col4.ppm@1", "scene1.row3.col5.ppm@2"]
+//! ground_truth = "truedisp.row3.col3.pgm"
+//! ground_truth_scale = 16
+//! baseline_mm = 100
+//! focal_px = 615
+//! ```
+//!
+//! Options given on the command line override the file; without either, the Middlebury 2006
+//! third-size three-view setting of the paper is assumed ([`ImportConfig::default`]).
 
 use std::path::{Path, PathBuf};
+use std::str::FromStr;
 
 use nalgebra::Isometry3;
 use serde::{Deserialize, Serialize};
 
 use crate::camera::PinholeCamera;
 use crate::capture::SIM_EPOCH_NANOS;
-use crate::rig::{REFERENCE_ROLE, RigKind};
+use crate::rig::{REFERENCE_ROLE, RigKind, role_for_offset};
 use crate::{CapturedSet, CapturedView};
 
 /// Time between imported sets in the log (s).
 const SET_SPACING_SECS: u64 = 10;
 /// Time between imported views of a set (ms).
 const VIEW_SPACING_MS: u64 = 500;
+/// The file a dataset folder describes itself with.
+pub const DESCRIPTION_FILE: &str = "multiscopic.toml";
+/// A Middlebury 2014 calibration file, read when present in a set folder.
+pub const CALIBRATION_FILE: &str = "calib.txt";
+/// Focal length of the Middlebury 2006 scenes at third size (3740 px at full size).
+pub const MIDDLEBURY_2006_THIRD_FOCAL_PX: f64 = 3740.0 / 3.0;
+/// Most views per set (a 5 × 5 grid).
+pub const MAX_VIEWS: usize = 25;
 
-/// What to import and how to interpret it.
+/// One view file and its grid offset in baselines (`FILE@DX` or `FILE@DX:DY`).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(try_from = "String", into = "String")]
+pub struct ViewFile {
+    /// File name in the set folder (`.png` is appended when there is no extension).
+    pub file: String,
+    /// Offset `[dx, dy]` in baselines along the reference camera's x (right) and y (down).
+    pub offset: [i32; 2],
+}
+
+impl FromStr for ViewFile {
+    type Err = ImportError;
+
+    fn from_str(spec: &str) -> Result<Self, Self::Err> {
+        let bad = |reason: &'static str| ImportError::BadViewSpec {
+            spec: spec.to_owned(),
+            reason,
+        };
+        let (file, offset) = spec
+            .rsplit_once('@')
+            .ok_or_else(|| bad("expected FILE@DX or FILE@DX:DY, e.g. view0@-1 or im5@1:-1"))?;
+        if file.is_empty() {
+            return Err(bad("the file name is empty"));
+        }
+        let number = |s: &str| {
+            s.trim()
+                .parse::<i32>()
+                .ok()
+                .filter(|v| v.abs() <= 64)
+                .ok_or_else(|| bad("an offset is not an integer in -64..=64 (baselines)"))
+        };
+        let offset = match offset.split_once(':') {
+            Some((dx, dy)) => [number(dx)?, number(dy)?],
+            None => [number(offset)?, 0],
+        };
+        Ok(Self {
+            file: file.to_owned(),
+            offset,
+        })
+    }
+}
+
+impl TryFrom<String> for ViewFile {
+    type Error = ImportError;
+
+    fn try_from(spec: String) -> Result<Self, Self::Error> {
+        spec.parse()
+    }
+}
+
+impl From<ViewFile> for String {
+    fn from(view: ViewFile) -> Self {
+        view.to_string()
+    }
+}
+
+impl std::fmt::Display for ViewFile {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self.offset {
+            [dx, 0] => write!(f, "{}@{dx}", self.file),
+            [dx, dy] => write!(f, "{}@{dx}:{dy}", self.file),
+        }
+    }
+}
+
+/// The views of a named layout, given its files in the layout's file order.
+pub fn layout_views(layout: RigKind, files: &[String]) -> Result<Vec<ViewFile>, ImportError> {
+    let slots = layout.file_order();
+    if files.len() != slots.len() {
+        return Err(ImportError::ViewCount {
+            layout: layout.name(),
+            expected: slots.len(),
+            given: files.len(),
+        });
+    }
+    Ok(slots
+        .iter()
+        .zip(files)
+        .map(|(slot, file)| ViewFile {
+            file: file.clone(),
+            offset: slot.grid_offset,
+        })
+        .collect())
+}
+
+fn default_scale() -> f64 {
+    1.0
+}
+
+fn default_fov() -> f64 {
+    crate::camera::DEFAULT_HORIZONTAL_FOV_DEG
+}
+
+/// What to import and how to interpret it; also the schema of [`DESCRIPTION_FILE`] (every field
+/// but `views` optional there).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct ImportConfig {
-    /// Layout of the views.
-    pub layout: RigKind,
-    /// View file names in the layout's file order (`.png` is appended when there is no extension).
-    pub views: Vec<String>,
+    /// View files with their grid offsets; the one at `[0, 0]` is the reference.
+    pub views: Vec<ViewFile>,
     /// Ground-truth disparity file of the reference view, if any.
+    #[serde(default)]
     pub ground_truth: Option<String>,
     /// Stored value ÷ scale = disparity (pixels) between the reference and a direct neighbour.
+    #[serde(default = "default_scale")]
     pub ground_truth_scale: f64,
-    /// Baseline between the reference and a direct neighbour (mm).
-    pub baseline_mm: f64,
-    /// Focal length (pixels); when absent it follows from `horizontal_fov_deg`.
+    /// Baseline between the reference and a direct neighbour (mm); required unless the set
+    /// folder has a `calib.txt`.
+    #[serde(default)]
+    pub baseline_mm: Option<f64>,
+    /// Focal length (pixels); when absent (and no `calib.txt`) it follows from
+    /// `horizontal_fov_deg`.
+    #[serde(default)]
     pub focal_px: Option<f64>,
-    /// Horizontal field of view used when no focal length is given (deg).
+    /// Principal point of the reference `[cx, cy]` (pixels); default: the image centre.
+    #[serde(default)]
+    pub principal_point_px: Option<[f64; 2]>,
+    /// Principal-point offset between adjacent views (pixels, Middlebury 2014's `doffs`):
+    /// depth `z = f·b / (d + doffs)`.
+    #[serde(default)]
+    pub doffs_px: f64,
+    /// Horizontal field of view used when no focal length is known (deg).
+    #[serde(default = "default_fov")]
     pub horizontal_fov_deg: f64,
-    /// Only these set directories (names), all when empty.
+    /// Calibration file in each set folder (Middlebury 2014 format); default: `calib.txt` when
+    /// present. A named file that is missing is an error.
+    #[serde(default)]
+    pub calibration: Option<String>,
+    /// Only these set folders (names), all when empty.
+    #[serde(default)]
     pub sets: Vec<String>,
 }
 
 impl Default for ImportConfig {
-    /// The Middlebury 2006 three-view setting of the paper: left view0, centre view1, right
-    /// view2, ground truth disp1.png ÷ 12 at third size, 40 mm between adjacent views.
+    /// The Middlebury 2006 three-view setting of the paper at third size: left view0, centre
+    /// view1, right view2, ground truth disp1.png ÷ 12, 40 mm between adjacent views, focal length
+    /// 3740/3 px.
     fn default() -> Self {
         Self {
-            layout: RigKind::ThreeView,
-            views: vec!["view0".into(), "view1".into(), "view2".into()],
+            views: ["view0@-1", "view1@0", "view2@1"]
+                .iter()
+                .filter_map(|s| s.parse().ok())
+                .collect(),
             ground_truth: Some("disp1".into()),
             ground_truth_scale: 12.0,
-            baseline_mm: 40.0,
-            focal_px: None,
+            baseline_mm: Some(40.0),
+            focal_px: Some(MIDDLEBURY_2006_THIRD_FOCAL_PX),
+            principal_point_px: None,
+            doffs_px: 0.0,
             horizontal_fov_deg: crate::camera::DEFAULT_HORIZONTAL_FOV_DEG,
+            calibration: None,
             sets: Vec::new(),
         }
+    }
+}
+
+/// Settings given on the command line; each one given replaces the description file's (or the
+/// default's). Shared by `record import` and `replay eval`.
+#[derive(Debug, Clone, Default, clap::Args)]
+pub struct ImportOverrides {
+    /// Views with their offsets in baselines: FILE@DX on a line, FILE@DX:DY on a grid; the view at
+    /// 0 is the reference (e.g. view0@-1,view1@0,view2@1,view3@2). Without offsets, the files of
+    /// --layout in its order.
+    #[arg(long, value_delimiter = ',', value_name = "FILE@DX[:DY]")]
+    pub views: Vec<String>,
+    /// Named layout for --views given without offsets (three-view: left,center,right; five-view:
+    /// center,left,right,top,bottom; line5: the five from left to right; grid3x3: row-major).
+    #[arg(long, value_enum)]
+    pub layout: Option<RigKind>,
+    /// Ground-truth disparity of the reference: PNG/TIFF/BMP (8 or 16 bit) or PGM (0 = unknown),
+    /// or PFM (inf = unknown).
+    #[arg(long, value_name = "FILE")]
+    pub ground_truth: Option<String>,
+    /// Import without ground truth.
+    #[arg(long, conflicts_with = "ground_truth")]
+    pub no_ground_truth: bool,
+    /// Stored ground-truth value ÷ scale = disparity (px) to a direct neighbour (default 1; 12 for
+    /// the built-in Middlebury 2006 setting).
+    #[arg(long, value_name = "SCALE")]
+    pub ground_truth_scale: Option<f64>,
+    /// Baseline between the reference and a direct neighbour (mm).
+    #[arg(long, value_name = "MM")]
+    pub baseline_mm: Option<f64>,
+    /// Focal length (pixels); Middlebury 2006 third size: 1246.67.
+    #[arg(long, value_name = "PX")]
+    pub focal_px: Option<f64>,
+    /// Principal point of the reference, CX,CY (pixels); default: the image centre.
+    #[arg(long, value_delimiter = ',', num_args = 2, value_name = "CX,CY")]
+    pub principal_point_px: Vec<f64>,
+    /// Principal-point offset between adjacent views (px, Middlebury 2014 doffs).
+    #[arg(long, value_name = "PX", allow_hyphen_values = true)]
+    pub doffs_px: Option<f64>,
+    /// Horizontal field of view used when no focal length is known (degrees).
+    #[arg(long, value_name = "DEG")]
+    pub fov_deg: Option<f64>,
+    /// Calibration file in each set folder (Middlebury 2014 calib.txt format; default: calib.txt
+    /// when present).
+    #[arg(long, value_name = "FILE")]
+    pub calibration: Option<String>,
+    /// Only these set folders (comma-separated names).
+    #[arg(long, value_delimiter = ',')]
+    pub sets: Vec<String>,
+}
+
+impl ImportOverrides {
+    /// Whether any setting was given.
+    pub fn is_empty(&self) -> bool {
+        self.views.is_empty()
+            && self.layout.is_none()
+            && self.ground_truth.is_none()
+            && !self.no_ground_truth
+            && self.ground_truth_scale.is_none()
+            && self.baseline_mm.is_none()
+            && self.focal_px.is_none()
+            && self.principal_point_px.is_empty()
+            && self.doffs_px.is_none()
+            && self.fov_deg.is_none()
+            && self.calibration.is_none()
+            && self.sets.is_empty()
+    }
+
+    /// `base` with the given settings replaced.
+    pub fn apply(&self, base: &ImportConfig) -> Result<ImportConfig, ImportError> {
+        let mut config = base.clone();
+        if !self.views.is_empty() {
+            let with_offsets = self.views.iter().filter(|v| v.contains('@')).count();
+            config.views = if with_offsets == self.views.len() {
+                self.views.iter().map(|v| v.parse()).collect::<Result<_, _>>()?
+            } else if with_offsets == 0 {
+                let layout = self.layout.ok_or_else(|| ImportError::BadViewSpec {
+                    spec: self.views.join(","),
+                    reason: "views without offsets need --layout (or give each as FILE@DX)",
+                })?;
+                layout_views(layout, &self.views)?
+            } else {
+                return Err(ImportError::BadViewSpec {
+                    spec: self.views.join(","),
+                    reason: "give every view an offset (FILE@DX) or none (with --layout)",
+                });
+            };
+        } else if let Some(layout) = self.layout {
+            // A layout alone: the base's files in order.
+            let files: Vec<String> = base.views.iter().map(|v| v.file.clone()).collect();
+            config.views = layout_views(layout, &files)?;
+        }
+        if let Some(file) = &self.ground_truth {
+            config.ground_truth = Some(file.clone());
+            if self.ground_truth_scale.is_none() && base.ground_truth.as_deref() != Some(file.as_str()) {
+                config.ground_truth_scale = 1.0;
+            }
+        }
+        if self.no_ground_truth {
+            config.ground_truth = None;
+        }
+        if let Some(scale) = self.ground_truth_scale {
+            config.ground_truth_scale = scale;
+        }
+        if let Some(b) = self.baseline_mm {
+            config.baseline_mm = Some(b);
+        }
+        if let Some(f) = self.focal_px {
+            config.focal_px = Some(f);
+        }
+        if let [cx, cy] = self.principal_point_px[..] {
+            config.principal_point_px = Some([cx, cy]);
+        }
+        if let Some(d) = self.doffs_px {
+            config.doffs_px = d;
+        }
+        if let Some(fov) = self.fov_deg {
+            config.horizontal_fov_deg = fov;
+            if self.focal_px.is_none() {
+                config.focal_px = None;
+            }
+        }
+        if let Some(file) = &self.calibration {
+            config.calibration = Some(file.clone());
+        }
+        if !self.sets.is_empty() {
+            config.sets = self.sets.clone();
+        }
+        config.validate()?;
+        Ok(config)
     }
 }
 
@@ -65,12 +360,22 @@ impl Default for ImportConfig {
 #[derive(Debug, thiserror::Error)]
 pub enum ImportError {
     /// The directory holds neither view files nor set directories with them.
-    #[error("'{dir}' holds no image set: expected {expected} in it or in its sub-directories")]
+    #[error(
+        "'{dir}' holds no image set: expected {expected} in it or in its sub-directories (or a {DESCRIPTION_FILE})"
+    )]
     NoSets {
         /// Directory searched.
         dir: PathBuf,
         /// Files looked for.
         expected: String,
+    },
+    /// A view specification does not parse.
+    #[error("view '{spec}': {reason}")]
+    BadViewSpec {
+        /// The text given.
+        spec: String,
+        /// What is wrong.
+        reason: &'static str,
     },
     /// The layout needs a different number of views.
     #[error("layout {layout} has {expected} views, but {given} view files were named")]
@@ -82,6 +387,28 @@ pub enum ImportError {
         /// Names given.
         given: usize,
     },
+    /// Two views at one grid offset.
+    #[error("views '{first}' and '{second}' are both at offset {offset:?}: each offset may be used once")]
+    DuplicateOffset {
+        /// Offset.
+        offset: [i32; 2],
+        /// First file.
+        first: String,
+        /// Second file.
+        second: String,
+    },
+    /// No view at offset 0.
+    #[error("no reference view: none of {views} is at offset 0 (FILE@0)")]
+    NoReference {
+        /// The views given.
+        views: String,
+    },
+    /// A set needs a neighbour.
+    #[error("only one view ({view}): a set needs the reference and at least one neighbour")]
+    NoNeighbour {
+        /// The view given.
+        view: String,
+    },
     /// A file is missing or unreadable.
     #[error("cannot read '{path}'")]
     Read {
@@ -91,11 +418,21 @@ pub enum ImportError {
         #[source]
         source: std::io::Error,
     },
-    /// A file is not a PNG this importer understands.
-    #[error("cannot decode '{path}' as PNG: {reason}")]
+    /// A file is not an image (or ground truth) this importer understands.
+    #[error("cannot decode '{path}': {reason}")]
     Decode {
         /// File.
         path: PathBuf,
+        /// Cause.
+        reason: String,
+    },
+    /// A description or calibration file does not parse.
+    #[error("'{path}' is not a valid {what}: {reason}")]
+    BadFile {
+        /// File.
+        path: PathBuf,
+        /// What the file should be.
+        what: &'static str,
         /// Cause.
         reason: String,
     },
@@ -113,6 +450,12 @@ pub enum ImportError {
         /// Reference height.
         expected_height: u32,
     },
+    /// No baseline is known.
+    #[error("no baseline for the set in '{dir}': give baseline_mm (--baseline-mm) or a calib.txt")]
+    NoBaseline {
+        /// Set folder.
+        dir: PathBuf,
+    },
     /// A numeric option is out of range.
     #[error("invalid import option {field} = {value}: {reason}")]
     InvalidOption {
@@ -125,59 +468,18 @@ pub enum ImportError {
     },
 }
 
-/// A decoded 8-bit image.
-struct Image8 {
-    width: u32,
-    height: u32,
-    channels: usize,
-    data: Vec<u8>,
-}
-
-fn read_png(path: &Path) -> Result<Image8, ImportError> {
-    let file = std::fs::File::open(path).map_err(|source| ImportError::Read {
-        path: path.to_path_buf(),
-        source,
-    })?;
-    let decode = |reason: String| ImportError::Decode {
-        path: path.to_path_buf(),
-        reason,
-    };
-    let mut decoder = png::Decoder::new(std::io::BufReader::new(file));
-    decoder.set_transformations(png::Transformations::EXPAND | png::Transformations::STRIP_16);
-    let mut reader = decoder.read_info().map_err(|e| decode(e.to_string()))?;
-    let size = reader
-        .output_buffer_size()
-        .ok_or_else(|| decode("image too large".into()))?;
-    let mut data = vec![0; size];
-    let info = reader.next_frame(&mut data).map_err(|e| decode(e.to_string()))?;
-    data.truncate(info.buffer_size());
-    let channels = match info.color_type {
-        png::ColorType::Grayscale => 1,
-        png::ColorType::GrayscaleAlpha => 2,
-        png::ColorType::Rgb => 3,
-        png::ColorType::Rgba => 4,
-        png::ColorType::Indexed => return Err(decode("indexed colour after expansion".into())),
-    };
-    Ok(Image8 {
-        width: info.width,
-        height: info.height,
-        channels,
-        data,
-    })
-}
-
-impl Image8 {
-    fn to_rgb(&self) -> Vec<u8> {
-        match self.channels {
-            3 => self.data.clone(),
-            4 => self.data.chunks_exact(4).flat_map(|p| [p[0], p[1], p[2]]).collect(),
-            2 => self.data.chunks_exact(2).flat_map(|p| [p[0]; 3]).collect(),
-            _ => self.data.iter().flat_map(|v| [*v; 3]).collect(),
-        }
-    }
-
-    fn first_channel(&self) -> Vec<u8> {
-        self.data.chunks_exact(self.channels).map(|p| p[0]).collect()
+impl ImportError {
+    /// Whether the error is in the settings (command line or description) rather than the files.
+    pub fn is_usage(&self) -> bool {
+        matches!(
+            self,
+            Self::BadViewSpec { .. }
+                | Self::ViewCount { .. }
+                | Self::DuplicateOffset { .. }
+                | Self::NoReference { .. }
+                | Self::NoNeighbour { .. }
+                | Self::InvalidOption { .. }
+        )
     }
 }
 
@@ -189,11 +491,138 @@ fn file_name(name: &str) -> String {
     }
 }
 
-/// The set directories under `dir` (sorted), or `dir` itself when it holds the views.
-pub fn find_set_dirs(dir: &Path, config: &ImportConfig) -> Result<Vec<PathBuf>, ImportError> {
-    let holds_views = |d: &Path| config.views.iter().all(|v| d.join(file_name(v)).is_file());
-    if holds_views(dir) {
-        return Ok(vec![dir.to_path_buf()]);
+impl ImportConfig {
+    /// Checks the views (one reference, offsets used once, at least one neighbour) and the
+    /// numbers.
+    pub fn validate(&self) -> Result<(), ImportError> {
+        let list = || {
+            self.views
+                .iter()
+                .map(ToString::to_string)
+                .collect::<Vec<_>>()
+                .join(", ")
+        };
+        if self.views.len() > MAX_VIEWS {
+            return Err(ImportError::BadViewSpec {
+                spec: list(),
+                reason: "more than 25 views",
+            });
+        }
+        for (i, a) in self.views.iter().enumerate() {
+            if let Some(b) = self.views[..i].iter().find(|b| b.offset == a.offset) {
+                return Err(ImportError::DuplicateOffset {
+                    offset: a.offset,
+                    first: b.file.clone(),
+                    second: a.file.clone(),
+                });
+            }
+        }
+        if !self.views.iter().any(|v| v.offset == [0, 0]) {
+            return Err(ImportError::NoReference { views: list() });
+        }
+        if self.views.len() < 2 {
+            return Err(ImportError::NoNeighbour { view: list() });
+        }
+        let positive = |field, value: f64| {
+            if value.is_finite() && value > 0.0 {
+                Ok(())
+            } else {
+                Err(ImportError::InvalidOption {
+                    field,
+                    value,
+                    reason: "must be a positive number",
+                })
+            }
+        };
+        positive("ground_truth_scale", self.ground_truth_scale)?;
+        positive("horizontal_fov_deg", self.horizontal_fov_deg)?;
+        if self.horizontal_fov_deg >= 180.0 {
+            return Err(ImportError::InvalidOption {
+                field: "horizontal_fov_deg",
+                value: self.horizontal_fov_deg,
+                reason: "must be below 180",
+            });
+        }
+        if let Some(b) = self.baseline_mm {
+            positive("baseline_mm", b)?;
+        }
+        if let Some(f) = self.focal_px {
+            positive("focal_px", f)?;
+        }
+        if !self.doffs_px.is_finite() {
+            return Err(ImportError::InvalidOption {
+                field: "doffs_px",
+                value: self.doffs_px,
+                reason: "must be a finite number",
+            });
+        }
+        if let Some([cx, cy]) = self.principal_point_px
+            && !(cx.is_finite() && cy.is_finite())
+        {
+            return Err(ImportError::InvalidOption {
+                field: "principal_point_px",
+                value: if cx.is_finite() { cy } else { cx },
+                reason: "must be finite",
+            });
+        }
+        Ok(())
+    }
+
+    /// The layout name of these offsets: a named rig when they are one (`three-view`, `line5`,
+    /// …), else `custom`.
+    pub fn rig_name(&self) -> &'static str {
+        let mut offsets: Vec<[i32; 2]> = self.views.iter().map(|v| v.offset).collect();
+        offsets.sort_unstable();
+        RigKind::ALL
+            .iter()
+            .find(|rig| {
+                let mut named: Vec<[i32; 2]> = rig.capture_order().iter().map(|s| s.grid_offset).collect();
+                named.sort_unstable();
+                named == offsets
+            })
+            .map_or("custom", |rig| rig.name())
+    }
+}
+
+/// Reads a description file.
+pub fn read_description(path: &Path) -> Result<ImportConfig, ImportError> {
+    let text = std::fs::read_to_string(path).map_err(|source| ImportError::Read {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    let config: ImportConfig = toml::from_str(&text).map_err(|e| ImportError::BadFile {
+        path: path.to_path_buf(),
+        what: "dataset description (TOML)",
+        reason: e.to_string(),
+    })?;
+    config.validate().map_err(|e| ImportError::BadFile {
+        path: path.to_path_buf(),
+        what: "dataset description",
+        reason: e.to_string(),
+    })?;
+    Ok(config)
+}
+
+/// The sets of a folder with their settings: the folder itself when it holds a set (a
+/// description file or one of its view files), else each sub-folder that does (sorted, filtered
+/// by `sets`). Settings: the command line's over the nearest description file over the
+/// Middlebury 2006 default.
+pub fn plan_import(dir: &Path, overrides: &ImportOverrides) -> Result<Vec<(PathBuf, ImportConfig)>, ImportError> {
+    if !dir.is_dir() {
+        return Err(ImportError::Read {
+            path: dir.to_path_buf(),
+            source: std::io::Error::new(std::io::ErrorKind::NotFound, "not a directory"),
+        });
+    }
+    let description = |d: &Path| {
+        let path = d.join(DESCRIPTION_FILE);
+        path.is_file().then(|| read_description(&path)).transpose()
+    };
+    let top = description(dir)?;
+    let top_config = overrides.apply(top.as_ref().unwrap_or(&ImportConfig::default()))?;
+    let holds_set = |d: &Path, config: &ImportConfig| config.views.iter().any(|v| d.join(file_name(&v.file)).is_file());
+    if holds_set(dir, &top_config) {
+        return Ok(vec![(dir.to_path_buf(), top_config)]);
     }
     let entries = std::fs::read_dir(dir).map_err(|source| ImportError::Read {
         path: dir.to_path_buf(),
@@ -202,106 +631,345 @@ pub fn find_set_dirs(dir: &Path, config: &ImportConfig) -> Result<Vec<PathBuf>, 
     let mut dirs: Vec<PathBuf> = entries
         .filter_map(Result::ok)
         .map(|e| e.path())
-        .filter(|p| p.is_dir() && holds_views(p))
-        .filter(|p| {
-            config.sets.is_empty()
-                || p.file_name()
-                    .is_some_and(|n| config.sets.iter().any(|s| s.as_str() == n.to_string_lossy()))
-        })
+        .filter(|p| p.is_dir())
         .collect();
     dirs.sort();
-    if dirs.is_empty() {
+    let mut sets = Vec::new();
+    for sub in dirs {
+        let own = description(&sub)?;
+        let config = match (&own, &top) {
+            (Some(own), _) => overrides.apply(own)?,
+            _ => top_config.clone(),
+        };
+        let selected = config.sets.is_empty()
+            || sub
+                .file_name()
+                .is_some_and(|n| config.sets.iter().any(|s| s.as_str() == n.to_string_lossy()));
+        if selected && (own.is_some() || holds_set(&sub, &config)) {
+            sets.push((sub, config));
+        }
+    }
+    if sets.is_empty() {
         return Err(ImportError::NoSets {
             dir: dir.to_path_buf(),
-            expected: config.views.iter().map(|v| file_name(v)).collect::<Vec<_>>().join(", "),
+            expected: top_config
+                .views
+                .iter()
+                .map(|v| file_name(&v.file))
+                .collect::<Vec<_>>()
+                .join(", "),
         });
     }
-    Ok(dirs)
+    Ok(sets)
 }
 
-fn validate(config: &ImportConfig) -> Result<(), ImportError> {
-    let expected = config.layout.file_order().len();
-    if config.views.len() != expected {
-        return Err(ImportError::ViewCount {
-            layout: config.layout.name(),
-            expected,
-            given: config.views.len(),
-        });
-    }
-    let positive = |field, value: f64| {
-        if value.is_finite() && value > 0.0 {
-            Ok(())
-        } else {
-            Err(ImportError::InvalidOption {
-                field,
-                value,
-                reason: "must be a positive number",
-            })
-        }
+/// A Middlebury 2014 `calib.txt`: `cam0=[f 0 cx; 0 f cy; 0 0 1]`, `doffs`, `baseline` (mm),
+/// `width`, `height`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Calibration {
+    /// Focal length (px).
+    pub focal_px: f64,
+    /// Principal point of the reference (px).
+    pub principal_point_px: [f64; 2],
+    /// Principal-point offset between adjacent views (px).
+    pub doffs_px: f64,
+    /// Baseline between adjacent views (mm).
+    pub baseline_mm: f64,
+    /// Image size, when the file gives it.
+    pub size: Option<(u32, u32)>,
+}
+
+/// Parses a Middlebury 2014 `calib.txt`.
+pub fn read_calibration(path: &Path) -> Result<Calibration, ImportError> {
+    let text = std::fs::read_to_string(path).map_err(|source| ImportError::Read {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    let bad = |reason: String| ImportError::BadFile {
+        path: path.to_path_buf(),
+        what: "Middlebury calib.txt",
+        reason,
     };
-    positive("baseline_mm", config.baseline_mm)?;
-    positive("ground_truth_scale", config.ground_truth_scale)?;
-    positive("horizontal_fov_deg", config.horizontal_fov_deg)?;
-    if let Some(f) = config.focal_px {
-        positive("focal_px", f)?;
+    let mut fields = std::collections::HashMap::new();
+    for line in text.lines().map(str::trim).filter(|l| !l.is_empty()) {
+        let (key, value) = line
+            .split_once('=')
+            .ok_or_else(|| bad(format!("line '{line}' is not KEY=VALUE")))?;
+        fields.insert(key.trim().to_owned(), value.trim().to_owned());
     }
-    Ok(())
+    let number = |key: &str| -> Result<f64, ImportError> {
+        let value = fields.get(key).ok_or_else(|| bad(format!("no '{key}='")))?;
+        value
+            .parse::<f64>()
+            .ok()
+            .filter(|v| v.is_finite())
+            .ok_or_else(|| bad(format!("{key}={value} is not a number")))
+    };
+    let cam0 = fields.get("cam0").ok_or_else(|| bad("no 'cam0='".into()))?;
+    let k: Vec<f64> = cam0
+        .trim_matches(|c| c == '[' || c == ']')
+        .split(|c: char| c == ';' || c.is_whitespace())
+        .filter(|s| !s.is_empty())
+        .map(|s| {
+            s.parse::<f64>()
+                .map_err(|_| bad(format!("cam0 entry '{s}' is not a number")))
+        })
+        .collect::<Result<_, _>>()?;
+    if k.len() != 9 || !k[0].is_finite() || k[0] <= 0.0 {
+        return Err(bad(format!("cam0 = {cam0} is not a 3×3 camera matrix with f > 0")));
+    }
+    let size = match (number("width"), number("height")) {
+        (Ok(w), Ok(h)) if w >= 1.0 && h >= 1.0 => Some((w as u32, h as u32)),
+        _ => None,
+    };
+    let baseline_mm = number("baseline")?;
+    if baseline_mm <= 0.0 {
+        return Err(bad(format!("baseline={baseline_mm} is not positive")));
+    }
+    Ok(Calibration {
+        focal_px: k[0],
+        principal_point_px: [k[2], k[5]],
+        doffs_px: number("doffs").unwrap_or(0.0),
+        baseline_mm,
+        size,
+    })
 }
 
-/// Reads one set directory.
+/// Reads a view image as 8-bit RGB (grey replicated, 16 bit scaled).
+fn read_rgb(path: &Path) -> Result<(u32, u32, Vec<u8>), ImportError> {
+    let decoded = decode(path)?;
+    let rgb = decoded.to_rgb8();
+    Ok((rgb.width(), rgb.height(), rgb.into_raw()))
+}
+
+fn decode(path: &Path) -> Result<image::DynamicImage, ImportError> {
+    let reader = image::ImageReader::open(path)
+        .map_err(|source| ImportError::Read {
+            path: path.to_path_buf(),
+            source,
+        })?
+        .with_guessed_format()
+        .map_err(|source| ImportError::Read {
+            path: path.to_path_buf(),
+            source,
+        })?;
+    reader.decode().map_err(|e| ImportError::Decode {
+        path: path.to_path_buf(),
+        reason: e.to_string(),
+    })
+}
+
+fn first_channel<T: Copy + Into<f64>>(raw: &[T], channels: usize) -> Vec<f64> {
+    raw.chunks_exact(channels).map(|p| p[0].into()).collect()
+}
+
+/// Reads a ground-truth file as raw values (see the module docs for the formats); unknown =
+/// `NaN`.
+fn read_ground_truth(path: &Path) -> Result<(u32, u32, Vec<f64>), ImportError> {
+    let extension = path
+        .extension()
+        .map(|e| e.to_string_lossy().to_ascii_lowercase())
+        .unwrap_or_default();
+    let unknown_if_zero = |v: f64| if v == 0.0 { f64::NAN } else { v };
+    match extension.as_str() {
+        "pfm" => {
+            let (w, h, data) = viz::files::read_pfm(path).map_err(|e| ImportError::Decode {
+                path: path.to_path_buf(),
+                reason: format!("not a single-channel PFM ({e})"),
+            })?;
+            let values = data
+                .iter()
+                .map(|v| if v.is_finite() { f64::from(*v) } else { f64::NAN })
+                .collect();
+            Ok((w as u32, h as u32, values))
+        }
+        "pgm" | "ppm" | "pnm" => {
+            let (w, h, values) = read_pnm_raw(path)?;
+            Ok((w, h, values.into_iter().map(unknown_if_zero).collect()))
+        }
+        _ => {
+            use image::DynamicImage as D;
+            let decoded = decode(path)?;
+            let (w, h) = (decoded.width(), decoded.height());
+            let values = match &decoded {
+                D::ImageLuma8(b) => first_channel(b.as_raw(), 1),
+                D::ImageLumaA8(b) => first_channel(b.as_raw(), 2),
+                D::ImageRgb8(b) => first_channel(b.as_raw(), 3),
+                D::ImageRgba8(b) => first_channel(b.as_raw(), 4),
+                D::ImageLuma16(b) => first_channel(b.as_raw(), 1),
+                D::ImageLumaA16(b) => first_channel(b.as_raw(), 2),
+                D::ImageRgb16(b) => first_channel(b.as_raw(), 3),
+                D::ImageRgba16(b) => first_channel(b.as_raw(), 4),
+                D::ImageRgb32F(b) => first_channel(b.as_raw(), 3),
+                D::ImageRgba32F(b) => first_channel(b.as_raw(), 4),
+                other => {
+                    return Err(ImportError::Decode {
+                        path: path.to_path_buf(),
+                        reason: format!(
+                            "{:?} is not a ground-truth format (8/16-bit grey or RGB)",
+                            other.color()
+                        ),
+                    });
+                }
+            };
+            Ok((w, h, values.into_iter().map(unknown_if_zero).collect()))
+        }
+    }
+}
+
+/// Raw sample values of a binary (P5/P6) or ASCII (P2/P3) PGM/PPM, first channel, without
+/// scaling to the maxval.
+fn read_pnm_raw(path: &Path) -> Result<(u32, u32, Vec<f64>), ImportError> {
+    let bytes = std::fs::read(path).map_err(|source| ImportError::Read {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    let bad = |reason: &str| ImportError::Decode {
+        path: path.to_path_buf(),
+        reason: reason.to_owned(),
+    };
+    // Header: magic, width, height, maxval, separated by whitespace and `#` comments.
+    let mut tokens = Vec::new();
+    let mut i = 0;
+    while tokens.len() < 4 && i < bytes.len() {
+        if bytes[i] == b'#' {
+            while i < bytes.len() && bytes[i] != b'\n' {
+                i += 1;
+            }
+        } else if bytes[i].is_ascii_whitespace() {
+            i += 1;
+        } else {
+            let start = i;
+            while i < bytes.len() && !bytes[i].is_ascii_whitespace() {
+                i += 1;
+            }
+            tokens.push(String::from_utf8_lossy(&bytes[start..i]).into_owned());
+        }
+    }
+    // Exactly one whitespace byte ends the header of a binary file.
+    let body = &bytes[(i + 1).min(bytes.len())..];
+    let [magic, w, h, maxval] = tokens.as_slice() else {
+        return Err(bad("truncated PNM header"));
+    };
+    let channels = match magic.as_str() {
+        "P2" | "P5" => 1,
+        "P3" | "P6" => 3,
+        _ => return Err(bad("not a PGM/PPM (P2, P3, P5 or P6)")),
+    };
+    let parse = |s: &str| s.parse::<u32>().ok().filter(|v| *v > 0);
+    let (w, h, maxval) = match (parse(w), parse(h), parse(maxval)) {
+        (Some(w), Some(h), Some(m)) if m <= 65535 => (w, h, m),
+        _ => return Err(bad("bad PNM width, height or maxval")),
+    };
+    let samples = w as usize * h as usize * channels;
+    let values: Vec<f64> = if matches!(magic.as_str(), "P2" | "P3") {
+        let text = String::from_utf8_lossy(&bytes[i..]);
+        text.split_ascii_whitespace()
+            .take(samples)
+            .map(|s| s.parse::<f64>().map_err(|_| bad("bad ASCII PNM sample")))
+            .collect::<Result<_, _>>()?
+    } else if maxval > 255 {
+        body.chunks_exact(2)
+            .take(samples)
+            .map(|b| f64::from(u16::from_be_bytes([b[0], b[1]])))
+            .collect()
+    } else {
+        body.iter().take(samples).map(|v| f64::from(*v)).collect()
+    };
+    if values.len() < samples {
+        return Err(bad("truncated PNM data"));
+    }
+    Ok((w, h, first_channel(&values, channels)))
+}
+
+/// Reads one set folder.
 pub fn import_set(dir: &Path, index: u32, config: &ImportConfig) -> Result<CapturedSet, ImportError> {
-    validate(config)?;
-    let slots = config.layout.file_order();
-    let baseline_m = config.baseline_mm / 1000.0;
+    config.validate()?;
     let images = config
         .views
         .iter()
-        .map(|name| {
-            let path = dir.join(file_name(name));
-            read_png(&path).map(|image| (path, image))
+        .map(|view| {
+            let path = dir.join(file_name(&view.file));
+            read_rgb(&path).map(|image| (path, image))
         })
         .collect::<Result<Vec<_>, _>>()?;
-    let reference_position = slots.iter().position(|s| s.role == REFERENCE_ROLE).unwrap_or(0);
-    let (width, height) = (images[reference_position].1.width, images[reference_position].1.height);
-    for (path, image) in &images {
-        if (image.width, image.height) != (width, height) {
+    let reference_position = config.views.iter().position(|v| v.offset == [0, 0]).unwrap_or(0);
+    let (width, height) = (images[reference_position].1.0, images[reference_position].1.1);
+    for (path, (w, h, _)) in &images {
+        if (*w, *h) != (width, height) {
             return Err(ImportError::SizeMismatch {
                 path: path.clone(),
-                width: image.width,
-                height: image.height,
+                width: *w,
+                height: *h,
                 expected_width: width,
                 expected_height: height,
             });
         }
     }
-    let mut camera = PinholeCamera::from_horizontal_fov(width, height, config.horizontal_fov_deg);
-    if let Some(f) = config.focal_px {
-        camera.fx = f;
-        camera.fy = f;
+    let calibration_path = match &config.calibration {
+        Some(name) => Some(dir.join(name)),
+        None => Some(dir.join(CALIBRATION_FILE)).filter(|p| p.is_file()),
+    };
+    let calibration = calibration_path.as_deref().map(read_calibration).transpose()?;
+    if let (Some(c), Some(path)) = (&calibration, &calibration_path)
+        && let Some((w, h)) = c.size
+        && (w, h) != (width, height)
+    {
+        return Err(ImportError::SizeMismatch {
+            path: path.clone(),
+            width: w,
+            height: h,
+            expected_width: width,
+            expected_height: height,
+        });
     }
+    let mut camera = PinholeCamera::from_horizontal_fov(width, height, config.horizontal_fov_deg);
+    let (baseline_mm, doffs) = match &calibration {
+        Some(c) => {
+            camera.fx = c.focal_px;
+            camera.fy = c.focal_px;
+            [camera.cx, camera.cy] = c.principal_point_px;
+            (c.baseline_mm, c.doffs_px)
+        }
+        None => {
+            if let Some(f) = config.focal_px {
+                camera.fx = f;
+                camera.fy = f;
+            }
+            if let Some([cx, cy]) = config.principal_point_px {
+                camera.cx = cx;
+                camera.cy = cy;
+            }
+            let baseline = config
+                .baseline_mm
+                .ok_or_else(|| ImportError::NoBaseline { dir: dir.to_path_buf() })?;
+            (baseline, config.doffs_px)
+        }
+    };
+    let baseline_m = baseline_mm / 1000.0;
     let depth = match &config.ground_truth {
         Some(name) => {
             let path = dir.join(file_name(name));
-            let image = read_png(&path)?;
-            if (image.width, image.height) != (width, height) {
+            let (w, h, values) = read_ground_truth(&path)?;
+            if (w, h) != (width, height) {
                 return Err(ImportError::SizeMismatch {
                     path,
-                    width: image.width,
-                    height: image.height,
+                    width: w,
+                    height: h,
                     expected_width: width,
                     expected_height: height,
                 });
             }
             let focal_times_baseline = camera.fx * baseline_m;
             Some(
-                image
-                    .first_channel()
+                values
                     .into_iter()
                     .map(|v| {
-                        if v == 0 {
-                            0.0
+                        let d = v / config.ground_truth_scale + doffs;
+                        if d.is_finite() && d > 0.0 && v.is_finite() && v != 0.0 {
+                            (focal_times_baseline / d) as f32
                         } else {
-                            (focal_times_baseline / (f64::from(v) / config.ground_truth_scale)) as f32
+                            0.0
                         }
                     })
                     .collect::<Vec<f32>>(),
@@ -310,25 +978,25 @@ pub fn import_set(dir: &Path, index: u32, config: &ImportConfig) -> Result<Captu
         None => None,
     };
     let set_time = SIM_EPOCH_NANOS + u64::from(index) * SET_SPACING_SECS * 1_000_000_000;
-    let mut views: Vec<CapturedView> = slots
+    let mut views: Vec<CapturedView> = config
+        .views
         .iter()
-        .zip(&images)
+        .zip(images)
         .enumerate()
-        .map(|(i, (slot, (_, image)))| {
-            let offset = Isometry3::translation(
-                f64::from(slot.grid_offset[0]) * baseline_m,
-                f64::from(slot.grid_offset[1]) * baseline_m,
-                0.0,
-            );
+        .map(|(i, (view, (_, (_, _, rgb))))| {
+            let [dx, dy] = view.offset.map(f64::from);
+            let mut view_camera = camera;
+            view_camera.cx += dx * doffs;
+            view_camera.cy += dy * doffs;
             CapturedView {
-                role: slot.role.to_owned(),
-                grid_offset: slot.grid_offset,
-                camera,
+                role: role_for_offset(view.offset),
+                grid_offset: view.offset,
+                camera: view_camera,
                 capture_time_nanos: set_time + i as u64 * VIEW_SPACING_MS * 1_000_000,
-                rgb: image.to_rgb(),
+                rgb,
                 depth_m: None,
                 surface_class: None,
-                world_from_camera: offset,
+                world_from_camera: Isometry3::translation(dx * baseline_m, dy * baseline_m, 0.0),
                 world_from_camera_true: None,
                 commanded_world_from_camera: None,
                 joints: None,
@@ -345,15 +1013,122 @@ pub fn import_set(dir: &Path, index: u32, config: &ImportConfig) -> Result<Captu
     for (view, time) in views.iter_mut().zip(times) {
         view.capture_time_nanos = time;
     }
+    debug_assert_eq!(views[0].role, REFERENCE_ROLE);
     Ok(CapturedSet {
         index,
         name: dir
             .file_name()
             .map(|n| n.to_string_lossy().into_owned())
             .unwrap_or_else(|| format!("set-{index}")),
-        rig: config.layout,
+        rig: config.rig_name().to_owned(),
         baseline_m,
         motion: Vec::new(),
         views,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn view_specs_parse_and_print() {
+        let v: ViewFile = "scene1.row3.col1.ppm@-2".parse().unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(v.file, "scene1.row3.col1.ppm");
+        assert_eq!(v.offset, [-2, 0]);
+        assert_eq!(v.to_string(), "scene1.row3.col1.ppm@-2");
+        let g: ViewFile = "a@b.png@1:-1".parse().unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!((g.file.as_str(), g.offset), ("a@b.png", [1, -1]));
+        assert_eq!(g.to_string(), "a@b.png@1:-1");
+        for bad in ["view0", "@1", "v@x", "v@1:", "v@100"] {
+            assert!(bad.parse::<ViewFile>().is_err(), "{bad}");
+        }
+    }
+
+    #[test]
+    fn settings_are_checked() {
+        let with = |views: &[&str]| ImportConfig {
+            views: views
+                .iter()
+                .map(|v| v.parse().unwrap_or_else(|e| panic!("{e}")))
+                .collect(),
+            ..ImportConfig::default()
+        };
+        assert!(matches!(
+            with(&["a@-1", "b@1"]).validate(),
+            Err(ImportError::NoReference { .. })
+        ));
+        assert!(matches!(
+            with(&["a@0", "b@1", "c@1"]).validate(),
+            Err(ImportError::DuplicateOffset { offset: [1, 0], .. })
+        ));
+        assert!(matches!(
+            with(&["a@0"]).validate(),
+            Err(ImportError::NoNeighbour { .. })
+        ));
+        assert_eq!(with(&["a@-1", "b@0", "c@1"]).rig_name(), "three-view");
+        assert_eq!(with(&["a@-2", "b@-1", "c@0", "d@1", "e@2"]).rig_name(), "line5");
+        assert_eq!(with(&["a@-1", "b@0", "c@1", "d@2"]).rig_name(), "custom");
+    }
+
+    #[test]
+    fn descriptions_parse_with_defaults_and_reject_unknown_fields() {
+        let config: ImportConfig =
+            toml::from_str("views = [\"l.png@-1\", \"c.png@0\"]\nground_truth = \"gt.pfm\"\nbaseline_mm = 10\n")
+                .unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(config.ground_truth_scale, 1.0);
+        assert_eq!(config.focal_px, None);
+        assert_eq!(config.views[0].offset, [-1, 0]);
+        assert!(toml::from_str::<ImportConfig>("views = [\"c@0\", \"r@1\"]\nbaseline = 3\n").is_err());
+        assert!(toml::from_str::<ImportConfig>("views = [\"c\"]\n").is_err());
+    }
+
+    #[test]
+    fn overrides_replace_what_they_name() {
+        let base = ImportConfig::default();
+        let overrides = ImportOverrides {
+            views: vec!["im0.png@0".into(), "im1.png@1".into()],
+            ground_truth: Some("disp0.pfm".into()),
+            ..ImportOverrides::default()
+        };
+        let config = overrides.apply(&base).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(config.views.len(), 2);
+        // A new ground-truth file does not inherit the Middlebury 2006 scale.
+        assert_eq!(config.ground_truth_scale, 1.0);
+        assert_eq!(config.baseline_mm, Some(40.0));
+        let layout = ImportOverrides {
+            views: vec!["c".into(), "l".into(), "r".into(), "t".into(), "b".into()],
+            layout: Some(RigKind::FiveView),
+            ..ImportOverrides::default()
+        };
+        let config = layout.apply(&base).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(config.views[3].offset, [0, -1]);
+        let mixed = ImportOverrides {
+            views: vec!["c@0".into(), "r".into()],
+            ..ImportOverrides::default()
+        };
+        assert!(mixed.apply(&base).is_err_and(|e| e.is_usage()));
+    }
+
+    #[test]
+    fn middlebury_2014_calibration_parses() {
+        let dir = std::env::temp_dir().join(format!("calib-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap_or_else(|e| panic!("{e}"));
+        let path = dir.join("calib.txt");
+        std::fs::write(
+            &path,
+            "cam0=[3997.684 0 1176.728; 0 3997.684 1011.728; 0 0 1]\ncam1=[3997.684 0 1307.839; 0 3997.684 1011.728; 0 0 1]\ndoffs=131.111\nbaseline=193.001\nwidth=2964\nheight=1988\nndisp=280\n",
+        )
+        .unwrap_or_else(|e| panic!("{e}"));
+        let c = read_calibration(&path).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(c.focal_px, 3997.684);
+        assert_eq!(c.principal_point_px, [1176.728, 1011.728]);
+        assert_eq!(
+            (c.doffs_px, c.baseline_mm, c.size),
+            (131.111, 193.001, Some((2964, 1988)))
+        );
+        std::fs::write(&path, "cam0=[1 2 3]\nbaseline=1\n").unwrap_or_else(|e| panic!("{e}"));
+        assert!(read_calibration(&path).is_err_and(|e| e.to_string().contains("calib.txt")));
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 }

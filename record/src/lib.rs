@@ -26,7 +26,6 @@ use nalgebra::Isometry3;
 use serde::{Deserialize, Serialize};
 
 use crate::camera::PinholeCamera;
-use crate::rig::RigKind;
 use crate::ur10::Joints;
 
 /// The tool version written into every log's metadata.
@@ -91,8 +90,8 @@ pub struct CapturedSet {
     pub index: u32,
     /// Name (scene and station, or the imported scene folder).
     pub name: String,
-    /// Layout.
-    pub rig: RigKind,
+    /// Layout name (a [`rig::RigKind`] name, or `custom` for an imported set of other offsets).
+    pub rig: String,
     /// Baseline between the reference and each direct neighbour (m).
     pub baseline_m: f64,
     /// Arm motion before and between the captures (empty for imports).

@@ -111,13 +111,15 @@ pub struct CaptureEvent {
     pub set_index: u32,
     /// Set name.
     pub set_name: String,
-    /// Rig layout name (`five-view`, `three-view`, `stereo`, `grid3x3`).
+    /// Rig layout name (`five-view`, `three-view`, `stereo`, `grid3x3`, `line5`, or `custom` for
+    /// an imported set of other offsets).
     pub rig: String,
     /// Number of views in the set.
     pub views_in_set: u32,
     /// Role of this view.
     pub role: String,
-    /// Offset in baselines along the reference camera's x and y axes.
+    /// Offset in baselines along the reference camera's x and y axes; a view at a multiple of
+    /// the baseline (e.g. `[2, 0]`) has its disparity at that multiple of the direct neighbours'.
     pub grid_offset: [i32; 2],
     /// Commanded baseline between the reference and each direct neighbour (m).
     pub baseline_m: f64,
@@ -162,7 +164,7 @@ pub fn capture_event_json_schema() -> serde_json::Value {
         "properties": {
             "set_index": {"type": "integer", "minimum": 0},
             "set_name": {"type": "string"},
-            "rig": {"type": "string", "enum": ["five-view", "three-view", "stereo", "grid3x3"]},
+            "rig": {"type": "string", "description": "five-view, three-view, stereo, grid3x3, line5, or custom (imported sets; the offsets are in grid_offset)"},
             "views_in_set": {"type": "integer", "minimum": 1},
             "role": {"type": "string"},
             "grid_offset": {"type": "array", "items": {"type": "integer"}, "minItems": 2, "maxItems": 2},
@@ -674,7 +676,7 @@ impl<W: Write + Seek> LogWriter<W> {
         let event = CaptureEvent {
             set_index: set.index,
             set_name: set.name.clone(),
-            rig: set.rig.name().to_owned(),
+            rig: set.rig.clone(),
             views_in_set: set.views.len() as u32,
             role: view.role.clone(),
             grid_offset: view.grid_offset,

@@ -10,13 +10,13 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 use std::time::Instant;
 
-use anyhow::{Context, Result, bail};
+use anyhow::{Context, Result};
 use clap::{Args, Parser, Subcommand};
 use record::capture::{
     CameraAxis, ErrorInjection, Simulation, SimulationConfig, SimulationError, ViewExposure, ViewPoseError,
 };
 use record::cli::{Outcome, UsageError, exit_code, init_logging, parse_args, progress_bar, write_log_layout};
-use record::import::{ImportConfig, find_set_dirs, import_set};
+use record::import::{ImportError, ImportOverrides, import_set, plan_import};
 use record::live::{LiveCapture, log_layout};
 use record::log::{LogOptions, METADATA_NAME, OutputFile};
 use record::rig::RigKind;
@@ -143,7 +143,8 @@ struct SimulateArgs {
     /// `connect [URL]` (default rerun+http://127.0.0.1:9876/proxy).
     #[arg(long, num_args = 1..=2, value_names = ["MODE", "ARG"])]
     rerun: Vec<String>,
-    /// View layout: five-view (centre, left, right, top, bottom), three-view, stereo, grid3x3.
+    /// View layout: five-view (centre, left, right, top, bottom), three-view, stereo, grid3x3,
+    /// line5 (five in a row at −2 … 2 baselines).
     #[arg(long, value_enum, default_value = "five-view")]
     rig: RigKind,
     /// Distance between the centre view and each direct neighbour (mm).
@@ -207,39 +208,29 @@ struct SimulateArgs {
 }
 
 #[derive(Debug, Args)]
+#[command(
+    after_help = "View files carry their offset in baselines (FILE@DX on a line, FILE@DX:DY on a grid; the \
+view at 0 is the reference). Images: PNG (8/16 bit), PPM/PGM, JPEG, TIFF, BMP. Ground truth: PNG/PGM/TIFF \
+(0 = unknown) or PFM (inf = unknown), value ÷ --ground-truth-scale = disparity to a direct neighbour. A \
+calib.txt (Middlebury 2014) in a set folder gives focal length, principal point, baseline and doffs. A \
+multiscopic.toml beside the images (or above the set folders) holds the same settings; flags override it. \
+Without either: Middlebury 2006 third size, view0@-1,view1@0,view2@1, disp1 ÷ 12, 40 mm, f = 1246.67 px.\n\n\
+Examples:\n  \
+record import ../shared/data/middlebury2006-third-dev -o middlebury.mcap\n  \
+record import middlebury/Aloe --views view0@-1,view1@0,view2@1,view3@2,view4@3 -o aloe5.mcap\n  \
+record import tsukuba --views scene1.row3.col1.ppm@-2,scene1.row3.col2.ppm@-1,scene1.row3.col3.ppm@0,\\\n    \
+scene1.row3.col4.ppm@1,scene1.row3.col5.ppm@2 --ground-truth truedisp.row3.col3.pgm --ground-truth-scale 16 \\\n    \
+--focal-px 615 --baseline-mm 100 -o tsukuba.mcap\n  \
+record import middlebury2014/Adirondack --views im0.png@0,im1.png@1 --ground-truth disp0.pfm -o adirondack.mcap"
+)]
 struct ImportArgs {
-    /// Directory with the view files, or with one sub-directory per set (Middlebury layout).
+    /// Folder with the view files of one set, or with one sub-folder per set (Middlebury layout).
     dir: PathBuf,
     /// Output log.
     #[arg(short, long, default_value = "import.mcap")]
     output: PathBuf,
-    /// View layout.
-    #[arg(long, value_enum, default_value = "three-view")]
-    layout: RigKind,
-    /// View files in the layout's order (three-view: left,center,right; five-view: center,left,right,top,bottom).
-    #[arg(long, value_delimiter = ',', default_value = "view0,view1,view2")]
-    views: Vec<String>,
-    /// Ground-truth disparity PNG of the centre view.
-    #[arg(long, default_value = "disp1")]
-    ground_truth: String,
-    /// Import without ground truth.
-    #[arg(long)]
-    no_ground_truth: bool,
-    /// Stored ground-truth value ÷ scale = disparity (px) to a direct neighbour.
-    #[arg(long, default_value = "12", value_parser = parse_non_negative)]
-    ground_truth_scale: f64,
-    /// Baseline between the centre and a direct neighbour (mm).
-    #[arg(long, default_value = "40", value_parser = parse_positive_mm)]
-    baseline_mm: f64,
-    /// Focal length (pixels); Middlebury 2006 third size: 1246.67. Default: from --fov-deg.
-    #[arg(long, value_parser = parse_non_negative)]
-    focal_px: Option<f64>,
-    /// Horizontal field of view used when --focal-px is not given (degrees).
-    #[arg(long, default_value = "60")]
-    fov_deg: f64,
-    /// Only these set directories (comma-separated names).
-    #[arg(long, value_delimiter = ',')]
-    sets: Vec<String>,
+    #[command(flatten)]
+    settings: ImportOverrides,
     /// Do not write the viewer layout beside the log (`<log stem>.rbl`, opened with
     /// `rerun LOG.mcap LOG.rbl`).
     #[arg(long)]
@@ -432,54 +423,64 @@ fn report(path: &Path, sets: u32, started: Instant) {
 
 fn run_import(args: &ImportArgs) -> Result<Outcome> {
     let started = Instant::now();
-    if args.ground_truth_scale <= 0.0 {
-        bail!(UsageError(format!(
-            "--ground-truth-scale {} must be positive",
-            args.ground_truth_scale
-        )));
-    }
-    let config = ImportConfig {
-        layout: args.layout,
-        views: args.views.clone(),
-        ground_truth: (!args.no_ground_truth).then(|| args.ground_truth.clone()),
-        ground_truth_scale: args.ground_truth_scale,
-        baseline_mm: args.baseline_mm,
-        focal_px: args.focal_px,
-        horizontal_fov_deg: args.fov_deg,
-        sets: args.sets.clone(),
+    let usage = |e: ImportError| {
+        if e.is_usage() {
+            anyhow::Error::new(UsageError(e.to_string()))
+        } else {
+            anyhow::Error::new(e)
+        }
     };
-    let expected = config.layout.file_order().len();
-    if config.views.len() != expected {
-        bail!(UsageError(format!(
-            "--layout {} needs {expected} --views, got {}: {}",
-            config.layout.name(),
-            config.views.len(),
-            config.views.join(",")
-        )));
-    }
-    let dirs = find_set_dirs(&args.dir, &config)?;
-    let (output, writer) = OutputFile::create(&args.output).context("cannot start the output log")?;
-    let mut log = LogOptions::new().create(writer)?;
-    let bar = progress_bar(dirs.len() as u64, false, "sets");
-    let mut layout_of_log = None;
-    for (index, dir) in dirs.iter().enumerate() {
-        let set = import_set(dir, index as u32, &config)?;
-        layout_of_log.get_or_insert_with(|| log_layout(&set));
-        bar.set_message(set.name.clone());
-        log.write_set(&set, None)?;
+    let plan = plan_import(&args.dir, &args.settings).map_err(usage)?;
+    // Every set is read before the log is started: a bad file stops the import with nothing
+    // written.
+    let bar = progress_bar(plan.len() as u64, false, "sets");
+    let mut sets = Vec::with_capacity(plan.len());
+    for (index, (dir, config)) in plan.iter().enumerate() {
+        bar.set_message(dir.display().to_string());
+        let set = import_set(dir, index as u32, config)
+            .map_err(usage)
+            .with_context(|| format!("importing {}", dir.display()))?;
+        info!(
+            "{}: {} views ({}), {}x{}, baseline {} mm, f {:.2} px{}",
+            set.name,
+            set.views.len(),
+            set.views
+                .iter()
+                .map(|v| format!("{} {:?}", v.role, v.grid_offset))
+                .collect::<Vec<_>>()
+                .join(", "),
+            set.views[0].camera.width,
+            set.views[0].camera.height,
+            set.baseline_m * 1000.0,
+            set.views[0].camera.fx,
+            if set.views[0].depth_m.is_some() {
+                ", ground truth"
+            } else {
+                ""
+            }
+        );
+        sets.push(set);
         bar.inc(1);
     }
     bar.finish_and_clear();
+    let (output, writer) = OutputFile::create(&args.output).context("cannot start the output log")?;
+    let mut log = LogOptions::new().create(writer)?;
+    let mut layout_of_log = None;
+    for set in &sets {
+        layout_of_log.get_or_insert_with(|| log_layout(set));
+        log.write_set(set, None)?;
+    }
     let mut metadata = BTreeMap::new();
     metadata.insert("tool".to_owned(), "record import".to_owned());
     metadata.insert("tool_version".to_owned(), TOOL_VERSION.to_owned());
     metadata.insert("source".to_owned(), format!("import:{}", args.dir.display()));
-    metadata.insert("config".to_owned(), serde_json::to_string(&config)?);
-    metadata.insert("completed_sets".to_owned(), dirs.len().to_string());
+    let configs: Vec<_> = plan.iter().map(|(_, config)| config).collect();
+    metadata.insert("config".to_owned(), serde_json::to_string(&configs)?);
+    metadata.insert("completed_sets".to_owned(), sets.len().to_string());
     log.write_metadata(METADATA_NAME, metadata)?;
     let writer = log.finish()?;
     let path = output.commit(writer)?;
-    report(&path, dirs.len() as u32, started);
+    report(&path, sets.len() as u32, started);
     if !args.no_blueprint
         && let Some(layout) = &layout_of_log
         && !write_log_layout(&path, layout)

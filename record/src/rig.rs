@@ -20,6 +20,11 @@ pub enum RigKind {
     #[value(name = "grid3x3")]
     #[serde(rename = "grid3x3")]
     Grid3x3,
+    /// Five views on a horizontal line at −2 … 2 baselines (Tsukuba's row of five): the centre,
+    /// `left`, `right` and, at twice the baseline, `left2` and `right2`.
+    #[value(name = "line5")]
+    #[serde(rename = "line5")]
+    Line5,
 }
 
 /// One view position of a rig.
@@ -39,6 +44,15 @@ const fn slot(role: &'static str, dx: i32, dy: i32) -> ViewSlot {
 }
 
 impl RigKind {
+    /// Every layout.
+    pub const ALL: [Self; 5] = [
+        Self::FiveView,
+        Self::ThreeView,
+        Self::Stereo,
+        Self::Grid3x3,
+        Self::Line5,
+    ];
+
     /// Views in capture order; the reference (`center`) comes first so that the neighbours are
     /// planned from where the reference camera actually was.
     pub fn capture_order(self) -> Vec<ViewSlot> {
@@ -63,15 +77,27 @@ impl RigKind {
                 slot("bottom-left", -1, 1),
                 slot("left", -1, 0),
             ],
+            Self::Line5 => vec![
+                slot("center", 0, 0),
+                slot("left2", -2, 0),
+                slot("left", -1, 0),
+                slot("right", 1, 0),
+                slot("right2", 2, 0),
+            ],
         }
     }
 
     /// Views in the layout's documented file order (what `record import --views` lists):
     /// five-view: center, left, right, top, bottom; three-view: left, center, right; stereo:
-    /// center, right; grid3x3: row-major from top-left.
+    /// center, right; grid3x3: row-major from top-left; line5: left to right.
     pub fn file_order(self) -> Vec<ViewSlot> {
         match self {
             Self::ThreeView => vec![slot("left", -1, 0), slot("center", 0, 0), slot("right", 1, 0)],
+            Self::Line5 => {
+                let mut slots = self.capture_order();
+                slots.sort_by_key(|s| s.grid_offset[0]);
+                slots
+            }
             Self::Grid3x3 => {
                 let mut slots = self.capture_order();
                 slots.sort_by_key(|s| (s.grid_offset[1], s.grid_offset[0]));
@@ -88,6 +114,7 @@ impl RigKind {
             Self::ThreeView => "three-view",
             Self::Stereo => "stereo",
             Self::Grid3x3 => "grid3x3",
+            Self::Line5 => "line5",
         }
     }
 }
@@ -134,7 +161,7 @@ mod tests {
 
     #[test]
     fn every_rig_has_one_reference_first_and_unique_roles() {
-        for rig in [RigKind::FiveView, RigKind::ThreeView, RigKind::Stereo, RigKind::Grid3x3] {
+        for rig in RigKind::ALL {
             let order = rig.capture_order();
             assert_eq!(order[0].role, REFERENCE_ROLE);
             assert_eq!(order[0].grid_offset, [0, 0]);
@@ -150,7 +177,7 @@ mod tests {
 
     #[test]
     fn roles_follow_the_offsets() {
-        for rig in [RigKind::FiveView, RigKind::ThreeView, RigKind::Stereo, RigKind::Grid3x3] {
+        for rig in RigKind::ALL {
             for slot in rig.capture_order() {
                 assert_eq!(role_for_offset(slot.grid_offset), slot.role, "{slot:?}");
             }

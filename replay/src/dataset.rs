@@ -3,29 +3,28 @@
 
 use std::path::Path;
 
-use record::import::{ImportConfig, find_set_dirs, import_set};
+use record::import::{ImportOverrides, import_set, plan_import};
 
 use crate::ReplayError;
 use crate::viewset::ViewSet;
 
-/// Focal length of the Middlebury 2006 scenes at third size (3740 px / 3).
-pub const MIDDLEBURY_THIRD_FOCAL_PX: f64 = 3740.0 / 3.0;
-
-/// Reads every set of a dataset folder with the importer's defaults (the paper's three-view
-/// Middlebury setting: view0, view1 (reference), view2; ground truth disp1 ÷ 12).
-pub fn read_dataset(dir: &Path) -> Result<Vec<ViewSet>, ReplayError> {
-    let config = ImportConfig {
-        focal_px: Some(MIDDLEBURY_THIRD_FOCAL_PX),
-        ..ImportConfig::default()
-    };
-    find_set_dirs(dir, &config)?
+/// Reads every set of a dataset folder as `record import` would: the settings given (`overrides`,
+/// e.g. `--views`) over the folder's `multiscopic.toml` over the paper's three-view Middlebury
+/// 2006 setting (view0, view1 (reference), view2; ground truth disp1 ÷ 12).
+pub fn read_dataset_with(dir: &Path, overrides: &ImportOverrides) -> Result<Vec<ViewSet>, ReplayError> {
+    plan_import(dir, overrides)?
         .iter()
         .enumerate()
-        .map(|(index, set_dir)| {
-            let captured = import_set(set_dir, index as u32, &config)?;
+        .map(|(index, (set_dir, config))| {
+            let captured = import_set(set_dir, index as u32, config)?;
             ViewSet::from_captured(&captured)
         })
         .collect()
+}
+
+/// [`read_dataset_with`] without command-line settings.
+pub fn read_dataset(dir: &Path) -> Result<Vec<ViewSet>, ReplayError> {
+    read_dataset_with(dir, &ImportOverrides::default())
 }
 
 #[cfg(test)]

@@ -726,7 +726,7 @@ mod tests {
         CapturedSet {
             index,
             name: format!("s{index}"),
-            rig: RigKind::ThreeView,
+            rig: RigKind::ThreeView.name().to_owned(),
             baseline_m: 0.02,
             motion: Vec::new(),
             views: vec![

@@ -49,11 +49,10 @@ pub fn write_set_outputs(
     let disparity_path = set_dir.join(format!("{method}_disparity.pfm"));
     viz::files::write_pfm(&disparity_path, w, h, &disparity.data)?;
     files.push(disparity_path);
-    let fb = set.reference.camera.fx * set.baseline_m;
     let depth: Vec<f32> = disparity
         .data
         .iter()
-        .map(|d| fuse::depth_from_disparity(fb, 1.0, f64::from(*d)).map_or(f32::INFINITY, |z| z as f32))
+        .map(|d| set.depth_m(*d).map_or(f32::INFINITY, |z| z as f32))
         .collect();
     let depth_pfm = set_dir.join(format!("{method}_depth_m.pfm"));
     viz::files::write_pfm(&depth_pfm, w, h, &depth)?;
@@ -73,10 +72,13 @@ pub fn write_set_outputs(
         )?);
     }
     let ply = set_dir.join(format!("{method}_points.ply"));
+    // The PLY writer takes z = f·b/d: hand it d + doffs (0 unless the set's calibration has one).
+    let doffs = set.disparity_offset_px() as f32;
+    let shifted: Vec<f32> = disparity.data.iter().map(|d| d + doffs).collect();
     viz::files::write_ply_points(
         &ply,
         (w, h),
-        &disparity.data,
+        &shifted,
         &set.reference.rgb,
         [
             set.reference.camera.fx,
@@ -215,11 +217,10 @@ impl ResultLog {
     ) -> Result<(), record::log::LogError> {
         let time = set.reference.capture_time_nanos;
         let (w, h) = (disparity.width, disparity.height);
-        let fb = set.reference.camera.fx * set.baseline_m;
         let depth: Vec<f32> = disparity
             .data
             .iter()
-            .map(|d| fuse::depth_from_disparity(fb, 1.0, f64::from(*d)).map_or(0.0, |z| z as f32))
+            .map(|d| set.depth_m(*d).map_or(0.0, |z| z as f32))
             .collect();
         self.writer.write_message(
             &result_disparity_topic(method),

@@ -262,6 +262,7 @@ pub fn log_result(
         [disparity.width as u32, disparity.height as u32],
         &disparity.data,
         set.reference.camera.fx * set.baseline_m,
+        set.disparity_offset_px(),
         truth.as_deref(),
         ERROR_SCALE_PX,
     )?;

@@ -77,7 +77,7 @@ impl ViewSet {
         Ok(Self {
             index: set.index,
             name: set.name.clone(),
-            rig: set.rig.name().to_owned(),
+            rig: set.rig.clone(),
             baseline_m: set.baseline_m,
             reference: view_from_captured(reference),
             neighbours: set
@@ -107,13 +107,51 @@ impl ViewSet {
         (self.width() / 15).div_ceil(16).clamp(1, 16) * 16
     }
 
-    /// Ground-truth disparity `f·b/z` of the reference to a direct neighbour (0 = unknown).
+    /// Principal-point offset between the reference and a direct neighbour (px; Middlebury 2014's
+    /// `doffs`) from the logged intrinsics: `(c_n − c_ref) / offset` along the first neighbour
+    /// on an axis (x preferred); 0 for simulated sets. A pixel disparity `d` (what the methods
+    /// estimate) is at depth `z = f·b / (d + doffs)`.
+    pub fn disparity_offset_px(&self) -> f64 {
+        let along = |axis: usize| {
+            self.neighbours
+                .iter()
+                .find(|n| n.offset[axis] != 0 && n.offset[1 - axis] == 0)
+                .map(|n| {
+                    let (c_n, c_ref) = if axis == 0 {
+                        (n.camera.cx, self.reference.camera.cx)
+                    } else {
+                        (n.camera.cy, self.reference.camera.cy)
+                    };
+                    (c_n - c_ref) / f64::from(n.offset[axis])
+                })
+        };
+        along(0).or_else(|| along(1)).filter(|d| d.is_finite()).unwrap_or(0.0)
+    }
+
+    /// Depth (m) of a pixel disparity to a direct neighbour, `f·b / (d + doffs)`; `None` when not
+    /// finite and positive.
+    pub fn depth_m(&self, disparity_px: f32) -> Option<f64> {
+        fuse::depth_from_disparity(
+            self.reference.camera.fx * self.baseline_m,
+            1.0,
+            f64::from(disparity_px) + self.disparity_offset_px(),
+        )
+    }
+
+    /// Ground-truth pixel disparity `f·b/z − doffs` of the reference to a direct neighbour (0 =
+    /// unknown).
     pub fn ground_truth_disparity(&self) -> Option<Vec<f32>> {
         let fb = self.reference.camera.fx * self.baseline_m;
+        let doffs = self.disparity_offset_px();
         self.ground_truth_depth_m.as_ref().map(|depth| {
             depth
                 .iter()
-                .map(|z| fuse::disparity_from_depth(fb, 1.0, f64::from(*z)).map_or(0.0, |d| d as f32))
+                .map(|z| {
+                    fuse::disparity_from_depth(fb, 1.0, f64::from(*z))
+                        .map(|d| d - doffs)
+                        .filter(|d| *d > 0.0)
+                        .map_or(0.0, |d| d as f32)
+                })
                 .collect()
         })
     }

@@ -33,7 +33,7 @@ fn three_view_set() -> CapturedSet {
     CapturedSet {
         index: 0,
         name: "crafted".into(),
-        rig: RigKind::ThreeView,
+        rig: RigKind::ThreeView.name().to_owned(),
         baseline_m: 0.02,
         motion: Vec::new(),
         views: vec![

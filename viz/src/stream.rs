@@ -406,21 +406,26 @@ impl Viewer {
     /// `DepthImage` under the centre pinhole (back-projected to a point cloud in 3D; failed
     /// matches far behind the scene are left out, see [`drop_far_outliers`]), and, with ground
     /// truth, the absolute disparity error as a colour map (0 … `error_scale_px`); pixels without
-    /// an estimate, when there are any, as a mask (`results/<method>/no_estimate`).
+    /// an estimate, when there are any, as a mask (`results/<method>/no_estimate`). Depth is
+    /// `z = f·b / (d + doffs)` (`disparity_offset_px`: the principal points' offset between
+    /// adjacent views, 0 unless the set's calibration says otherwise).
+    #[allow(clippy::too_many_arguments)]
     pub fn log_result(
         &self,
         method: &str,
         size: [u32; 2],
         disparity_px: &[f32],
         focal_baseline_px_m: f64,
+        disparity_offset_px: f64,
         ground_truth_disparity_px: Option<&[f32]>,
         error_scale_px: f32,
     ) -> Result<(), VizError> {
         let mut depth: Vec<f32> = disparity_px
             .iter()
             .map(|d| {
-                if d.is_finite() && *d > 0.0 {
-                    (focal_baseline_px_m / f64::from(*d)) as f32
+                let d = f64::from(*d) + disparity_offset_px;
+                if d.is_finite() && d > 0.0 {
+                    (focal_baseline_px_m / d) as f32
                 } else {
                     0.0
                 }

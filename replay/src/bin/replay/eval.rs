@@ -52,15 +52,22 @@ pub struct EvalArgs {
     /// MFuseNet weights (safetensors) instead of the shipped ones.
     #[arg(long, value_name = "FILE")]
     weights: Option<PathBuf>,
+    /// How dataset folders are read (as `record import`; logs ignore these).
+    #[command(flatten, next_help_heading = "Dataset folders")]
+    dataset: record::import::ImportOverrides,
 }
 
-fn read_inputs(inputs: &[PathBuf]) -> Result<Vec<ViewSet>> {
+fn read_inputs(inputs: &[PathBuf], dataset: &record::import::ImportOverrides) -> Result<Vec<ViewSet>> {
     let mut sets = Vec::new();
     for input in inputs {
         if input.is_dir() {
-            sets.extend(
-                replay::dataset::read_dataset(input).with_context(|| format!("reading dataset {}", input.display()))?,
-            );
+            match replay::dataset::read_dataset_with(input, dataset) {
+                Ok(read) => sets.extend(read),
+                Err(replay::ReplayError::Import(e)) if e.is_usage() => {
+                    return Err(UsageError(format!("{}: {e}", input.display())).into());
+                }
+                Err(e) => return Err(anyhow::Error::new(e).context(format!("reading dataset {}", input.display()))),
+            }
         } else {
             let contents = read_log_file(input).with_context(|| format!("reading {}", input.display()))?;
             let name = input
@@ -84,7 +91,7 @@ pub fn run(args: &EvalArgs) -> Result<Outcome> {
         }
     }
     let overrides = crate::parse_overrides(args.config.as_deref())?;
-    let sets = read_inputs(&args.inputs)?;
+    let sets = read_inputs(&args.inputs, &args.dataset)?;
     let with_truth = sets.iter().filter(|s| s.ground_truth_depth_m.is_some()).count();
     if with_truth == 0 {
         anyhow::bail!("none of the {} view sets has ground truth", sets.len());
