@@ -168,7 +168,8 @@ fn every_image_format_round_trips_through_the_log() {
     let (w, h) = (24u32, 16u32);
     // (extension, how the views are written, the 8-bit RGB the log must hold)
     type Writer = fn(&Path, u32, u32, &[u8]);
-    let cases: [(&str, Writer, fn(&[u8]) -> Vec<u8>); 8] = [
+    type Expected = fn(&[u8]) -> Vec<u8>;
+    let cases: [(&str, Writer, Expected); 8] = [
         ("png", |p, w, h, rgb| save(p, w, h, C::Rgb8, rgb), |rgb| rgb.to_vec()),
         (
             "png",
