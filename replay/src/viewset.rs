@@ -179,23 +179,33 @@ impl ViewSet {
     }
 
     /// Metrics of a disparity estimate against the ground truth, overall and in the regions
-    /// occluded in at least one of this set's neighbours and on specular surfaces.
+    /// occluded in at least one of this set's direct neighbours and on specular surfaces.
     pub fn region_metrics(&self, estimate: &[f32], missing_error_px: f64) -> Option<crate::regions::RegionMetrics> {
         self.region_metrics_with(estimate, missing_error_px, self.occlusion_mask()?.as_slice())
     }
 
-    /// Pixels occluded in at least one neighbour, from the ground truth (forward warps, one per
-    /// neighbour, in parallel); `None` without ground truth. Compute once per set and hand it to
-    /// [`Self::region_metrics_with`] when several estimates are evaluated.
+    /// Pixels occluded in at least one *direct* neighbour (one baseline away, diagonals
+    /// included), from the ground truth (forward warps, one per neighbour, in parallel); `None`
+    /// without ground truth. Views at a multiple of the baseline are left out so that a set and
+    /// its subsets with more or fewer far views are measured on the same region. Compute once per
+    /// set and hand it to [`Self::region_metrics_with`] when several estimates are evaluated.
     pub fn occlusion_mask(&self) -> Option<Vec<bool>> {
         use rayon::prelude::*;
         let truth = self.ground_truth_disparity()?;
         let (w, h) = (self.width(), self.height());
-        let masks: Vec<Vec<bool>> = self
+        let direct: Vec<&View> = self
             .neighbours
-            .par_iter()
-            .map(|n| crate::regions::occluded_in(&truth, w, h, n.offset))
+            .iter()
+            .filter(|n| n.offset[0].abs().max(n.offset[1].abs()) == 1)
             .collect();
+        let masks: Vec<Vec<bool>> = if direct.is_empty() {
+            self.neighbours.iter().collect::<Vec<_>>()
+        } else {
+            direct
+        }
+        .par_iter()
+        .map(|n| crate::regions::occluded_in(&truth, w, h, n.offset))
+        .collect();
         let mut occluded = vec![false; w * h];
         for mask in &masks {
             for (o, hidden) in occluded.iter_mut().zip(mask) {

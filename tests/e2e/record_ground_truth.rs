@@ -111,11 +111,21 @@ fn warp_error(
 #[test]
 fn warping_side_views_with_ground_truth_reproduces_the_centre() {
     let dir = temp_dir();
-    for scene in ["toy", "workpiece"] {
+    // The line rig's outer views sit at twice the baseline: their ground truth warps at 2·d.
+    for (scene, rig) in [("toy", "five-view"), ("workpiece", "five-view"), ("toy", "line5")] {
         let path = record_log(
             dir.path(),
-            &format!("{scene}.mcap"),
-            &["--scene", scene, "--resolution", "320x180", "--repeatability-mm", "0"],
+            &format!("{scene}-{rig}.mcap"),
+            &[
+                "--scene",
+                scene,
+                "--rig",
+                rig,
+                "--resolution",
+                "320x180",
+                "--repeatability-mm",
+                "0",
+            ],
         );
         let log = Log::read(&path);
         let events = log.events();
@@ -131,12 +141,17 @@ fn warping_side_views_with_ground_truth_reproduces_the_centre() {
         )
         .unwrap_or_else(|e| panic!("{e}"));
         let focal_px = calibration.k[0];
+        let mut offsets: Vec<[i32; 2]> = events.iter().map(|e| e.grid_offset).collect();
+        offsets.sort_unstable();
+        if rig == "line5" {
+            assert_eq!(offsets, [[-2, 0], [-1, 0], [0, 0], [1, 0], [2, 0]]);
+        }
         for event in events.iter().filter(|e| e.role != "center") {
             let side = load(&log, &event.role, event.capture_time_nanos);
             let (error, count) = warp_error(&center, &side, event.grid_offset, focal_px, event.baseline_m, 0.0);
             let (shifted_error, _) = warp_error(&center, &side, event.grid_offset, focal_px, event.baseline_m, 2.0);
             println!(
-                "{scene} {}: mean |Δ| {error:.2} levels over {count} pixels (with a 2 px disparity error: {shifted_error:.2})",
+                "{scene} {rig} {}: mean |Δ| {error:.2} levels over {count} pixels (with a 2 px disparity error: {shifted_error:.2})",
                 event.role
             );
             assert!(
