@@ -257,8 +257,8 @@ pub struct ImportOverrides {
     #[arg(long, value_name = "PX")]
     pub focal_px: Option<f64>,
     /// Principal point of the reference, CX,CY (pixels); default: the image centre.
-    #[arg(long, value_delimiter = ',', num_args = 2, value_name = "CX,CY")]
-    pub principal_point_px: Vec<f64>,
+    #[arg(long, value_parser = parse_pair, value_name = "CX,CY", allow_hyphen_values = true)]
+    pub principal_point_px: Option<[f64; 2]>,
     /// Principal-point offset between adjacent views (px, Middlebury 2014 doffs).
     #[arg(long, value_name = "PX", allow_hyphen_values = true)]
     pub doffs_px: Option<f64>,
@@ -274,6 +274,18 @@ pub struct ImportOverrides {
     pub sets: Vec<String>,
 }
 
+fn parse_pair(text: &str) -> Result<[f64; 2], String> {
+    let (a, b) = text.split_once(',').ok_or_else(|| format!("'{text}' is not CX,CY"))?;
+    let number = |s: &str| {
+        s.trim()
+            .parse::<f64>()
+            .ok()
+            .filter(|v| v.is_finite())
+            .ok_or_else(|| format!("'{s}' in '{text}' is not a number"))
+    };
+    Ok([number(a)?, number(b)?])
+}
+
 impl ImportOverrides {
     /// Whether any setting was given.
     pub fn is_empty(&self) -> bool {
@@ -284,7 +296,7 @@ impl ImportOverrides {
             && self.ground_truth_scale.is_none()
             && self.baseline_mm.is_none()
             && self.focal_px.is_none()
-            && self.principal_point_px.is_empty()
+            && self.principal_point_px.is_none()
             && self.doffs_px.is_none()
             && self.fov_deg.is_none()
             && self.calibration.is_none()
@@ -333,8 +345,8 @@ impl ImportOverrides {
         if let Some(f) = self.focal_px {
             config.focal_px = Some(f);
         }
-        if let [cx, cy] = self.principal_point_px[..] {
-            config.principal_point_px = Some([cx, cy]);
+        if let Some(point) = self.principal_point_px {
+            config.principal_point_px = Some(point);
         }
         if let Some(d) = self.doffs_px {
             config.doffs_px = d;
