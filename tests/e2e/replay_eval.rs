@@ -264,3 +264,47 @@ fn graph_cuts_leave_occlusions_unmatched_and_five_views_beat_stereo() {
     );
     assert!(multi_occluded < stereo_occluded);
 }
+
+#[test]
+fn a_line_of_five_runs_through_every_method_against_its_three_view_subset() {
+    let dir = temp_dir();
+    let log = record_log(
+        dir.path(),
+        "line5.mcap",
+        &["--rig", "line5", "--resolution", "320x180", "--seed", "3"],
+    );
+    let log = log.to_str().unwrap_or_default();
+    let methods: Vec<&str> = fuse::methods::registry().iter().map(|e| e.name).collect();
+    let methods = methods.join(",");
+    let line = eval_json(&[log, "--rectify", "--methods", &methods]);
+    let three = eval_json(&[log, "--rectify", "--neighbours", "left,right", "--methods", &methods]);
+    for entry in fuse::methods::registry() {
+        let m = entry.name;
+        let (l, t) = (
+            metric(&line, m, "mean", "avg_err"),
+            metric(&three, m, "mean", "avg_err"),
+        );
+        let (lo, to) = (
+            metric(&line, m, "occluded", "avg_err"),
+            metric(&three, m, "occluded", "avg_err"),
+        );
+        println!("{m}: AvgErr line of five {l:.3} (occluded {lo:.3}), three-view subset {t:.3} (occluded {to:.3})");
+        assert!(l.is_finite() && t.is_finite(), "{m}: no result");
+        let uses_far_views = !m.ends_with("-stereo") && !m.starts_with("mfusenet");
+        if uses_far_views {
+            // The outer views change the fused costs …
+            assert_ne!(l, t, "{m}: the views at ±2 baselines were not used");
+            // … and a multiscopic method on five views still beats its family's stereo.
+            if let Some(stereo) = fuse::methods::stereo_baseline_of(m) {
+                let s = metric(&line, stereo, "occluded", "avg_err");
+                assert!(
+                    lo < s,
+                    "{m}: occluded AvgErr {lo} on five views is not below {stereo}'s {s}"
+                );
+            }
+        } else {
+            // Stereo methods and MFuseNet's fixed inputs use the direct neighbours only.
+            assert_eq!(l, t, "{m}: a method without far-view inputs changed with them");
+        }
+    }
+}

@@ -171,4 +171,68 @@ mod tests {
         assert_eq!(stereo_baseline_of("bm-stereo"), None);
         assert_eq!(stereo_baseline_of("nope"), None);
     }
+
+    /// A textured fronto-parallel plane at disparity `d` seen from a line of five: views at
+    /// −2, −1, +1 and +2 baselines, shifted by `offset · d`.
+    fn line_of_five(d: i64) -> Problem {
+        let (w, h) = (64usize, 32usize);
+        let texture = |x: i64, y: i64| (((x * 37 + y * 11) ^ (x * y)) % 97 * 2 + 20) as u8;
+        let view = |shift: i64| {
+            let data = (0..h as i64)
+                .flat_map(|y| (0..w as i64).map(move |x| texture(x + shift, y)))
+                .collect();
+            crate::Image::gray(w, h, data).unwrap_or_else(|e| panic!("{e}"))
+        };
+        Problem {
+            reference: view(0),
+            neighbours: [("left2", -2), ("left", -1), ("right", 1), ("right2", 2)]
+                .into_iter()
+                .map(|(role, k)| crate::Neighbour {
+                    role: role.into(),
+                    image: view(k * d),
+                    offset: [k as i32, 0],
+                    baseline_ratio: 1.0,
+                })
+                .collect(),
+            min_disparity: 0,
+            num_disparities: 16,
+        }
+    }
+
+    #[test]
+    fn every_method_recovers_a_plane_seen_from_views_at_twice_the_baseline() {
+        let d = 5;
+        let problem = line_of_five(d);
+        // Only the views at ±2: their costs must be sampled at 2·d.
+        let far_only = Problem {
+            neighbours: problem
+                .neighbours
+                .iter()
+                .filter(|n| n.offset[0].abs() == 2)
+                .cloned()
+                .collect(),
+            ..problem.clone()
+        };
+        for entry in registry() {
+            for (what, p) in [("line of five", &problem), ("±2 only", &far_only)] {
+                let method = build(entry.name, None).unwrap_or_else(|e| panic!("{}: {e}", entry.name));
+                let disparity = method
+                    .run(p, &|_| {})
+                    .unwrap_or_else(|e| panic!("{} on {what}: {e}", entry.name));
+                let (w, h) = (disparity.width, disparity.height);
+                // Away from the borders (2·d px leave the outer views), nearly every pixel at d.
+                let interior: Vec<f32> = (4..h - 4)
+                    .flat_map(|y| (12..w - 12).map(move |x| (x, y)))
+                    .map(|(x, y)| disparity.data[y * w + x])
+                    .collect();
+                let close = interior.iter().filter(|v| (**v - d as f32).abs() < 0.5).count();
+                assert!(
+                    close * 10 >= interior.len() * 9,
+                    "{} on {what}: {close} of {} interior pixels at d = {d}",
+                    entry.name,
+                    interior.len()
+                );
+            }
+        }
+    }
 }
