@@ -308,3 +308,35 @@ fn a_line_of_five_runs_through_every_method_against_its_three_view_subset() {
         }
     }
 }
+
+#[test]
+fn the_demo_writes_where_git_ignores_it() {
+    let dir = temp_dir();
+    let out = dir.path().join("demo");
+    let output = replay(&[
+        "demo",
+        "--out",
+        out.to_str().unwrap_or_default(),
+        "--resolution",
+        "160x96",
+        "--method",
+        "bm-heuristic",
+        "-q",
+    ]);
+    assert_success(&output, "replay demo");
+    assert!(out.join("capture.mcap").is_file() && out.join("results/summary.json").is_file());
+    let ignore = std::fs::read_to_string(out.join(".gitignore")).unwrap_or_default();
+    assert!(
+        ignore.lines().any(|l| l.trim() == "*"),
+        "the demo folder does not ignore its contents: {ignore:?}"
+    );
+    // git agrees, when it is installed: nothing of the demo shows as new work.
+    let git = |args: &[&str]| std::process::Command::new("git").current_dir(dir.path()).args(args).output();
+    if git(&["init", "-q"]).is_ok_and(|o| o.status.success()) {
+        let status = git(&["status", "--porcelain", "--untracked-files=all"]).unwrap_or_else(|e| panic!("{e}"));
+        let listed = String::from_utf8_lossy(&status.stdout);
+        assert!(!listed.contains("demo/"), "git status lists the demo's outputs:\n{listed}");
+    } else {
+        println!("git not available: checked the .gitignore only");
+    }
+}
