@@ -331,11 +331,19 @@ fn the_demo_writes_where_git_ignores_it() {
         "the demo folder does not ignore its contents: {ignore:?}"
     );
     // git agrees, when it is installed: nothing of the demo shows as new work.
-    let git = |args: &[&str]| std::process::Command::new("git").current_dir(dir.path()).args(args).output();
+    let git = |args: &[&str]| {
+        std::process::Command::new("git")
+            .current_dir(dir.path())
+            .args(args)
+            .output()
+    };
     if git(&["init", "-q"]).is_ok_and(|o| o.status.success()) {
         let status = git(&["status", "--porcelain", "--untracked-files=all"]).unwrap_or_else(|e| panic!("{e}"));
         let listed = String::from_utf8_lossy(&status.stdout);
-        assert!(!listed.contains("demo/"), "git status lists the demo's outputs:\n{listed}");
+        assert!(
+            !listed.contains("demo/"),
+            "git status lists the demo's outputs:\n{listed}"
+        );
     } else {
         println!("git not available: checked the .gitignore only");
     }
