@@ -16,7 +16,10 @@ pub enum Fusion {
     /// `c_min`: the smallest cost.
     Min,
     /// `c_heu`: sort, keep the three smallest; if `c³ > 3·c²` average the two smallest, else the
-    /// three. With two valid costs it is the minimum; with one, that cost.
+    /// three. With two valid costs it is the minimum; with one, that cost. Views on one side of
+    /// the reference along one ray (`[1, 0]` and `[2, 0]` of a line) are hidden by the same
+    /// occluders, so they count as one cost: their minimum ([`direction_groups`]); on the paper's
+    /// rigs (one view per direction) this changes nothing.
     Heuristic,
 }
 
@@ -166,6 +169,42 @@ pub fn fuse_rows(fusion: Fusion, rows: &[&[u16]], out: &mut [u16], max_cost: u32
     }
 }
 
+/// Neighbours grouped by the direction of their offset from the reference (`[2, 0]` joins
+/// `[1, 0]`, `[-2, 0]` does not): views on one side of the reference along one ray are hidden
+/// from the same occluders, so the occlusion-aware rules (min, heuristic) should count *sides*,
+/// not views. Groups keep the neighbours' order (by their first member).
+pub fn direction_groups(offsets: &[[i32; 2]]) -> Vec<Vec<usize>> {
+    fn gcd(a: i32, b: i32) -> i32 {
+        if b == 0 { a.abs() } else { gcd(b, a % b) }
+    }
+    let direction = |[x, y]: [i32; 2]| {
+        let g = gcd(x, y).max(1);
+        [x / g, y / g]
+    };
+    let mut groups: Vec<([i32; 2], Vec<usize>)> = Vec::new();
+    for (i, offset) in offsets.iter().enumerate() {
+        let dir = direction(*offset);
+        match groups.iter_mut().find(|(d, _)| *d == dir) {
+            Some((_, members)) => members.push(i),
+            None => groups.push((dir, vec![i])),
+        }
+    }
+    groups.into_iter().map(|(_, members)| members).collect()
+}
+
+/// The heuristic over sides: the minimum of each side's views ([`direction_groups`]), then the
+/// paper's rule across the sides. Identical to [`fuse_values`] when no two views share a side
+/// (the paper's rigs).
+pub fn fuse_heuristic_by_side(values: &[u16], sides: &[Vec<usize>], scratch: &mut Vec<u16>) -> u16 {
+    scratch.clear();
+    scratch.extend(
+        sides
+            .iter()
+            .map(|members| members.iter().map(|k| values[*k]).min().unwrap_or(INVALID_COST)),
+    );
+    fuse_values(Fusion::Heuristic, scratch)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -219,6 +258,34 @@ mod tests {
     #[test]
     fn mean_and_min_skip_invalid_costs() {
         assert_eq!(fuse_values(Fusion::Mean, &[10, X, 20]), 15);
+        // Sides: [1, 0] and [2, 0] share one, [-2, 0], [0, 1] and the diagonal have their own.
+        let sides = direction_groups(&[[1, 0], [-2, 0], [2, 0], [0, 1], [2, 2], [1, 1]]);
+        assert_eq!(sides, vec![vec![0, 2], vec![1], vec![3], vec![4, 5]]);
+        let mut scratch = Vec::new();
+        // Right side min(50, 8) = 8, left 9, bottom 100, diagonal min(30, 40) = 30: heuristic of
+        // 8, 9, 30: 30 > 3·9, so the mean of the two smallest, 8.5 → 9 (over the six views
+        // themselves it would be 8, 9, 30 too, but a right side of 8 and 50 now counts once).
+        assert_eq!(
+            fuse_heuristic_by_side(&[50, 9, 8, 100, 30, 40], &sides, &mut scratch),
+            9
+        );
+        assert_eq!(
+            fuse_heuristic_by_side(&[50, 9, 8, 100, 20, 40], &sides, &mut scratch),
+            12
+        );
+        assert_eq!(fuse_values(Fusion::Heuristic, &[50, 9, 8, 100, 20, 40]), 12);
+        // Two low costs from one side no longer outvote the others: sides 9, 100, 100, 30 → the
+        // mean of 9 and 30 (100 > 3·30) = 19.5 → 20; over the views 9, 10, 30 → 16.
+        assert_eq!(
+            fuse_heuristic_by_side(&[10, 100, 9, 100, 30, 100], &sides, &mut scratch),
+            20
+        );
+        assert_eq!(fuse_values(Fusion::Heuristic, &[10, 100, 9, 100, 30, 100]), 16);
+        let singles = direction_groups(&[[-1, 0], [1, 0], [0, -1], [0, 1]]);
+        assert_eq!(
+            fuse_heuristic_by_side(&[40, 10, 100, 8], &singles, &mut scratch),
+            fuse_values(Fusion::Heuristic, &[40, 10, 100, 8])
+        );
         assert_eq!(fuse_values(Fusion::Min, &[10, X, 4]), 4);
         let a = [1u16, X, 9];
         let b = [5u16, 3, X];

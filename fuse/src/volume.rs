@@ -237,6 +237,8 @@ const MIN_BAND_ROWS: usize = 32;
 pub struct BandScratch {
     neighbours: Vec<NeighbourScratch>,
     fused: Vec<u16>,
+    /// One combined row per side with several views (see [`crate::fusion::direction_groups`]).
+    sides: Vec<Vec<u16>>,
 }
 
 /// One neighbour's tile buffers.
@@ -276,6 +278,9 @@ pub struct PreparedProblem {
     disparities: usize,
     spec: CostSpec,
     fusion: Fusion,
+    /// The neighbours by side for the heuristic (whose sides count once, by their minimum); one
+    /// group per neighbour otherwise or when no two share a side.
+    sides: Vec<Vec<usize>>,
 }
 
 impl PreparedProblem {
@@ -287,7 +292,14 @@ impl PreparedProblem {
             || PreparedView::new(problem.reference.clone(), spec.pixel),
             || Self::prepare_neighbours(problem, spec, fusion),
         );
+        let offsets: Vec<[i32; 2]> = neighbours.iter().map(|n| n.offset).collect();
+        let sides = if fusion == Fusion::Heuristic {
+            crate::fusion::direction_groups(&offsets)
+        } else {
+            (0..offsets.len()).map(|i| vec![i]).collect()
+        };
         Ok(Self {
+            sides,
             reference,
             neighbours,
             width: problem.reference.width,
@@ -390,7 +402,11 @@ impl PreparedProblem {
         let (w, nd, r) = (self.width, self.disparities, self.spec.block_radius);
         let window = 2 * r + 1;
         let tile = tile_columns(nd);
-        let BandScratch { neighbours, fused } = buffers;
+        let BandScratch {
+            neighbours,
+            fused,
+            sides,
+        } = buffers;
         neighbours.resize_with(self.neighbours.len(), NeighbourScratch::default);
         for scratch in neighbours.iter_mut() {
             scratch.rows.resize_with(window, Vec::new);
@@ -450,8 +466,24 @@ impl PreparedProblem {
                     neighbour.valid.mark(aggregated, (x_start, y));
                 }
                 fused.resize(cells, 0);
-                let sources: Vec<&[u16]> = neighbours.iter().map(|n| n.aggregated.as_slice()).collect();
-                fuse_rows(self.fusion, &sources, fused, self.spec.max_cost());
+                if self.sides.len() < self.neighbours.len() {
+                    // Several views on one side: the side's minimum, then the rule across sides.
+                    sides.resize_with(self.sides.len(), Vec::new);
+                    for (side, members) in sides.iter_mut().zip(&self.sides) {
+                        side.clear();
+                        side.extend_from_slice(&neighbours[members[0]].aggregated[..cells]);
+                        for k in &members[1..] {
+                            for (o, v) in side.iter_mut().zip(&neighbours[*k].aggregated[..cells]) {
+                                *o = (*o).min(*v);
+                            }
+                        }
+                    }
+                    let sources: Vec<&[u16]> = sides.iter().map(Vec::as_slice).collect();
+                    fuse_rows(self.fusion, &sources, fused, self.spec.max_cost());
+                } else {
+                    let sources: Vec<&[u16]> = neighbours.iter().map(|n| n.aggregated.as_slice()).collect();
+                    fuse_rows(self.fusion, &sources, fused, self.spec.max_cost());
+                }
                 sink(y, x_start, fused);
             }
         }
@@ -587,10 +619,17 @@ mod tests {
                 out
             })
             .collect();
+        let offsets: Vec<[i32; 2]> = problem.neighbours_for(fusion).iter().map(|n| n.offset).collect();
+        let sides = crate::fusion::direction_groups(&offsets);
+        let mut scratch = Vec::new();
         (0..w * h * nd)
             .map(|i| {
                 let values: Vec<u16> = per_neighbour.iter().map(|v| v[i]).collect();
-                fuse_values(fusion, &values)
+                if fusion == Fusion::Heuristic {
+                    crate::fusion::fuse_heuristic_by_side(&values, &sides, &mut scratch)
+                } else {
+                    fuse_values(fusion, &values)
+                }
             })
             .collect()
     }
@@ -612,6 +651,8 @@ mod tests {
                 neighbour("right", [1, 0], 2, 1.07),
                 neighbour("top", [0, -1], 3, 1.0),
                 neighbour("top-right", [1, -1], 4, 0.95),
+                // Twice the baseline on the right's side: the heuristic takes the side's minimum.
+                neighbour("right2", [2, 0], 5, 1.0),
             ],
             min_disparity: 1,
             num_disparities: nd,
