@@ -794,6 +794,34 @@ pub(crate) mod tests {
     }
 
     #[test]
+    fn a_line_of_five_gets_the_plane_with_every_view_at_its_multiple() {
+        // The plane at d = 3 with views at ±2 baselines too (shifted by 6).
+        let mut problem = plane_problem(3);
+        let outer = plane_problem(6);
+        for (k, n) in outer.neighbours.into_iter().enumerate() {
+            problem.neighbours.push(Neighbour {
+                role: if k == 0 { "left2" } else { "right2" }.into(),
+                offset: [n.offset[0] * 2, 0],
+                ..n
+            });
+        }
+        for fusion in [Fusion::Min, Fusion::Heuristic] {
+            let mut energy = KzEnergy::new(&problem, fusion, EnergyParams::default()).unwrap_or_else(|e| panic!("{e}"));
+            let energies = expand_until_converged(&mut energy, &label_order(8, 2), 10, &mut |_| {});
+            assert!(energies.windows(2).all(|w| w[1] <= w[0]), "{energies:?}");
+            assert_eq!(energy.energy(), energy.recompute_energy());
+            assert!(energy.is_unique());
+            let disparity = energy.disparity();
+            let w = disparity.width;
+            for y in 0..disparity.height {
+                for x in 7..w - 7 {
+                    assert_eq!(disparity.data[y * w + x], 3.0, "{fusion:?} ({x}, {y})");
+                }
+            }
+        }
+    }
+
+    #[test]
     fn every_accepted_cut_equals_the_energy_it_claims() {
         let problem = plane_problem(2);
         let mut energy =
