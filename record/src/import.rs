@@ -287,22 +287,6 @@ fn parse_pair(text: &str) -> Result<[f64; 2], String> {
 }
 
 impl ImportOverrides {
-    /// Whether any setting was given.
-    pub fn is_empty(&self) -> bool {
-        self.views.is_empty()
-            && self.layout.is_none()
-            && self.ground_truth.is_none()
-            && !self.no_ground_truth
-            && self.ground_truth_scale.is_none()
-            && self.baseline_mm.is_none()
-            && self.focal_px.is_none()
-            && self.principal_point_px.is_none()
-            && self.doffs_px.is_none()
-            && self.fov_deg.is_none()
-            && self.calibration.is_none()
-            && self.sets.is_empty()
-    }
-
     /// `base` with the given settings replaced.
     pub fn apply(&self, base: &ImportConfig) -> Result<ImportConfig, ImportError> {
         let mut config = base.clone();

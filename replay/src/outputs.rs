@@ -49,10 +49,11 @@ pub fn write_set_outputs(
     let disparity_path = set_dir.join(format!("{method}_disparity.pfm"));
     viz::files::write_pfm(&disparity_path, w, h, &disparity.data)?;
     files.push(disparity_path);
+    let depth_m = set.disparity_to_depth_m();
     let depth: Vec<f32> = disparity
         .data
         .iter()
-        .map(|d| set.depth_m(*d).map_or(f32::INFINITY, |z| z as f32))
+        .map(|d| depth_m(*d).map_or(f32::INFINITY, |z| z as f32))
         .collect();
     let depth_pfm = set_dir.join(format!("{method}_depth_m.pfm"));
     viz::files::write_pfm(&depth_pfm, w, h, &depth)?;
@@ -217,10 +218,11 @@ impl ResultLog {
     ) -> Result<(), record::log::LogError> {
         let time = set.reference.capture_time_nanos;
         let (w, h) = (disparity.width, disparity.height);
+        let depth_m = set.disparity_to_depth_m();
         let depth: Vec<f32> = disparity
             .data
             .iter()
-            .map(|d| set.depth_m(*d).map_or(0.0, |z| z as f32))
+            .map(|d| depth_m(*d).map_or(0.0, |z| z as f32))
             .collect();
         self.writer.write_message(
             &result_disparity_topic(method),

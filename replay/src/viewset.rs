@@ -128,14 +128,12 @@ impl ViewSet {
         along(0).or_else(|| along(1)).filter(|d| d.is_finite()).unwrap_or(0.0)
     }
 
-    /// Depth (m) of a pixel disparity to a direct neighbour, `f·b / (d + doffs)`; `None` when not
-    /// finite and positive.
-    pub fn depth_m(&self, disparity_px: f32) -> Option<f64> {
-        fuse::depth_from_disparity(
-            self.reference.camera.fx * self.baseline_m,
-            1.0,
-            f64::from(disparity_px) + self.disparity_offset_px(),
-        )
+    /// Depth (m) of a pixel disparity to a direct neighbour, `f·b / (d + doffs)` (`None` when not
+    /// finite and positive), with `f·b` and doffs worked out once for a whole image.
+    pub fn disparity_to_depth_m(&self) -> impl Fn(f32) -> Option<f64> + use<> {
+        let fb = self.reference.camera.fx * self.baseline_m;
+        let doffs = self.disparity_offset_px();
+        move |disparity_px| fuse::depth_from_disparity(fb, 1.0, f64::from(disparity_px) + doffs)
     }
 
     /// Ground-truth pixel disparity `f·b/z − doffs` of the reference to a direct neighbour (0 =

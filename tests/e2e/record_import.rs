@@ -452,7 +452,7 @@ fn a_described_folder_with_a_middlebury_2014_calibration_needs_no_flags() {
     let truth = set.ground_truth_disparity().unwrap_or_default();
     assert_eq!(truth[0], 0.0, "inf in the PFM is unknown");
     assert!(truth[1..].iter().all(|d| (d - 10.0).abs() < 1e-4));
-    assert!((set.depth_m(10.0).unwrap_or_default() - 200.0 / 15.0).abs() < 1e-9);
+    assert!((set.disparity_to_depth_m()(10.0).unwrap_or_default() - 200.0 / 15.0).abs() < 1e-9);
     // replay eval reads the same folder without flags.
     let output = multiscopic_tests::replay(&[
         "eval",
