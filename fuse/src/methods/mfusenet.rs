@@ -16,7 +16,7 @@ use super::{Family, Method, MethodEntry, Progress, apply_overrides};
 use crate::FuseError;
 use crate::image::DisparityImage;
 use crate::mfusenet::infer::{DEFAULT_TILE_BUDGET_BYTES, Estimate, infer};
-use crate::mfusenet::input::{InputSpec, input_volumes, ordered_neighbours, views_for};
+use crate::mfusenet::input::{InputSpec, input_volumes_below, ordered_neighbours, views_for};
 use crate::mfusenet::{Network, weights};
 use crate::postprocess::median3x3;
 use crate::volume::Problem;
@@ -61,6 +61,11 @@ pub struct MFuseNetConfig {
     pub refine: Option<bool>,
     /// A 3×3 median on the result (as block matching and SGM do).
     pub median: bool,
+    /// The network sees this many disparities under the searched range as well (negative ones
+    /// included), so that answers at the range's start are not in its first slices, where it
+    /// fails; the estimate is read from the searched range only (see `input_volumes_below`).
+    /// `null` = as the weights file's metadata `context_below` says (0 when it says nothing).
+    pub room_below: Option<usize>,
 }
 
 impl Default for MFuseNetConfig {
@@ -72,7 +77,29 @@ impl Default for MFuseNetConfig {
             window: None,
             refine: None,
             median: false,
+            room_below: None,
         }
+    }
+}
+
+/// A network and how its weights file asks for it to be run.
+struct Loaded {
+    views: usize,
+    net: Network,
+    /// Metadata `estimate = "refine"`.
+    refine: bool,
+    /// Metadata `context_below`.
+    context_below: usize,
+}
+
+impl Loaded {
+    fn new(net: Network, info: &weights::WeightsInfo, file: &str) -> Result<Self, FuseError> {
+        Ok(Self {
+            views: net.views,
+            refine: weights::refine_recommended(info, file)?,
+            context_below: weights::context_below_recommended(info, file)?,
+            net,
+        })
     }
 }
 
@@ -80,9 +107,9 @@ impl Default for MFuseNetConfig {
 pub struct MFuseNet {
     name: &'static str,
     config: MFuseNetConfig,
-    /// `(views, network, refine)`: the shipped three, or the one from `weights`, each with the
-    /// estimate its metadata asks for.
-    networks: Vec<(usize, Network, bool)>,
+    /// The shipped three networks, or the one from `weights`, each with how its metadata asks
+    /// for it to be read.
+    networks: Vec<Loaded>,
     /// Only the stereo network and neighbour.
     stereo: bool,
 }
@@ -94,8 +121,7 @@ impl MFuseNet {
         let networks = match &config.weights {
             Some(path) => {
                 let (net, info) = weights::load(Path::new(path), stereo.then_some(1))?;
-                let refine = weights::refine_recommended(&info, path)?;
-                vec![(net.views, net, refine)]
+                vec![Loaded::new(net, &info, path)?]
             }
             None => SHIPPED
                 .iter()
@@ -103,8 +129,7 @@ impl MFuseNet {
                 .map(|(views, file, bytes)| {
                     let file = format!("(shipped) {file}");
                     let (net, info) = weights::from_bytes(bytes, &file, "", Some(*views))?;
-                    let refine = weights::refine_recommended(&info, &file)?;
-                    Ok((*views, net, refine))
+                    Loaded::new(net, &info, &file)
                 })
                 .collect::<Result<_, FuseError>>()?,
         };
@@ -116,17 +141,16 @@ impl MFuseNet {
         })
     }
 
-    /// The network for a problem and whether its metadata asks for the refined estimate.
-    fn network_for(&self, problem: &Problem) -> Result<(&Network, bool), FuseError> {
+    /// The network for a problem.
+    fn network_for(&self, problem: &Problem) -> Result<&Loaded, FuseError> {
         let views = match (&self.config.weights, self.stereo) {
             (_, true) => 1,
-            (Some(_), false) => self.networks.first().map_or(1, |(v, ..)| *v),
+            (Some(_), false) => self.networks.first().map_or(1, |n| n.views),
             (None, false) => views_for(problem),
         };
         self.networks
             .iter()
-            .find(|(v, ..)| *v == views)
-            .map(|(_, net, refine)| (net, *refine))
+            .find(|n| n.views == views)
             .ok_or(FuseError::Config {
                 field: "weights",
                 value: String::new(),
@@ -159,10 +183,20 @@ impl Method for MFuseNet {
             }
             None => problem,
         };
-        let (net, refine) = self.network_for(problem)?;
+        let loaded = self.network_for(problem)?;
+        let net = &loaded.net;
         let neighbours = ordered_neighbours(problem, net.views)?;
+        let room_below = self.config.room_below.unwrap_or(loaded.context_below);
+        if room_below > weights::MAX_CONTEXT_BELOW {
+            return Err(FuseError::Config {
+                field: "room_below",
+                value: room_below.to_string(),
+                reason: "at most 16 disparities of context below the range",
+            });
+        }
         // Cost volumes: about a tenth of the work; the network the rest.
-        let volumes = input_volumes(problem, &neighbours, self.config.input, &|| {})?;
+        let (volumes, first) = input_volumes_below(problem, &neighbours, self.config.input, room_below, &|| {})?;
+        let origin = first as f32 - volumes.first().map_or(0, |v| v.min_disparity) as f32;
         progress(0.1);
         let data = infer(
             net,
@@ -170,7 +204,8 @@ impl Method for MFuseNet {
             self.config.tile_budget_mib << 20,
             Estimate {
                 window: self.config.window,
-                refine: self.config.refine.unwrap_or(refine),
+                refine: self.config.refine.unwrap_or(loaded.refine),
+                context_below: usize::try_from(problem.min_disparity as i64 - first).unwrap_or(0),
             },
             &|f| progress(0.1 + 0.9 * f),
         )?;
@@ -179,7 +214,7 @@ impl Method for MFuseNet {
         let disparity = DisparityImage {
             width: problem.reference.width,
             height: problem.reference.height,
-            data: data.into_iter().map(|d| d.clamp(low, high)).collect(),
+            data: data.into_iter().map(|d| (d + origin).clamp(low, high)).collect(),
         };
         Ok(if self.config.median {
             median3x3(&disparity)

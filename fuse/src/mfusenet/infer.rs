@@ -41,7 +41,8 @@ pub fn tile_side(views: usize, disparities: usize, budget_bytes: usize) -> usize
 /// `progress` gets the fraction of tiles done. `estimate.window: Some(r)` takes the soft-argmin
 /// over the `2r + 1` disparities around each pixel's most probable one only (renormalised), so
 /// that a second mode of the distribution does not pull the estimate between the two; `None` is
-/// the paper's soft-argmin over the whole range. `estimate.refine` takes the sub-pixel part from
+/// the paper's soft-argmin over the whole range; `estimate.context_below` slices at the start are
+/// left out of it. `estimate.refine` takes the sub-pixel part from
 /// the inputs instead (see [`Estimate`]).
 pub fn infer(
     net: &Network,
@@ -69,6 +70,13 @@ pub fn infer(
                 shape: [1, v.disparities, v.height, v.width],
             });
         }
+    }
+    let skip = estimate.context_below;
+    if skip >= nd {
+        return Err(Error::ContextBelow {
+            context_below: skip,
+            disparities: nd,
+        });
     }
     let (dp, hp, wp) = (round4(nd), round4(h), round4(w));
     let whole = dp * hp * wp * bytes_per_voxel(net.views) <= budget_bytes;
@@ -110,13 +118,13 @@ pub fn infer(
         for y in y0..y1.min(h) {
             for x in x0..x1.min(w) {
                 let at = (y - ry0) * rw + (x - rx0);
-                let column = |d: usize| logits.data[d * plane + at];
-                let mut value = expected_disparity(column, nd, estimate.window);
+                let column = |d: usize| logits.data[(d + skip) * plane + at];
+                let mut value = expected_disparity(column, nd - skip, estimate.window);
                 if estimate.refine {
-                    let cost = |d: usize| volumes.iter().map(|v| f64::from(v.costs(x, y)[d])).sum::<f64>();
-                    value = refined(value, cost, nd);
+                    let cost = |d: usize| volumes.iter().map(|v| f64::from(v.costs(x, y)[d + skip])).sum::<f64>();
+                    value = refined(value, cost, nd - skip);
                 }
-                disparity[y * w + x] = (first.min_disparity as f64 + value) as f32;
+                disparity[y * w + x] = (first.min_disparity as f64 + (skip as f64 + value)) as f32;
             }
         }
         progress((done + 1) as f32 / tiles.len() as f32);
@@ -129,6 +137,9 @@ pub fn infer(
 pub struct Estimate {
     /// Soft-argmin over `2r + 1` disparities around the most probable one (`None`: all, the paper).
     pub window: Option<usize>,
+    /// The volumes' first this many slices are context for the network only: the estimate is
+    /// read from the slices after them (the searched range), never from them.
+    pub context_below: usize,
     /// Keep the integer disparity nearest the network's estimate, and take the sub-pixel offset
     /// from a parabola through the summed input costs there (where they have a minimum), as
     /// the classical methods do.
@@ -237,5 +248,36 @@ mod tests {
         // Not constant: the test would pass trivially on a flat output.
         let spread = whole.iter().fold(0f32, |m, d| m.max(*d)) - whole.iter().fold(f32::MAX, |m, d| m.min(*d));
         assert!(spread > 0.1, "spread {spread}");
+        // Slices kept as context are never the answer: with 5 of them, every estimate is ≥ 3 + 5
+        // (the whole-range estimates are not).
+        let lowest = whole.iter().fold(f32::MAX, |m, d| m.min(*d));
+        assert!(lowest < 7.5, "lowest {lowest}");
+        let context = Estimate {
+            context_below: 5,
+            ..Estimate::default()
+        };
+        let read = infer(&net, &volumes, usize::MAX, context, &|_| {}).unwrap_or_else(|e| panic!("{e}"));
+        assert!(read.iter().all(|d| (8.0..=12.0).contains(d)));
+        let error = infer(
+            &net,
+            &volumes,
+            usize::MAX,
+            Estimate {
+                context_below: nd,
+                ..context
+            },
+            &|_| {},
+        )
+        .err();
+        assert!(
+            matches!(
+                error,
+                Some(Error::ContextBelow {
+                    context_below: 10,
+                    disparities: 10
+                })
+            ),
+            "{error:?}"
+        );
     }
 }

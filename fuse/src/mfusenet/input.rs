@@ -11,6 +11,10 @@
 //! correspondence leaves the neighbour image enter SGM as its largest cost, so every pixel has a
 //! full curve and no value is missing.
 //!
+//! Context below the range: [`input_volumes_below`] starts the volumes a few disparities under
+//! the searched range (negative disparities from each neighbour mirrored), for networks whose
+//! weights ask for it (`context_below`); the estimate is read from the searched range only.
+//!
 //! Order of the volumes (fixed; the weights depend on it): N = 1, the stereo neighbour (`right`
 //! when present); N = 2, the two horizontal neighbours (offsets −1 then +1 along x) or, lacking
 //! them, the two vertical ones; N = 4, left, right, top, bottom (offsets `[−1, 0]`, `[1, 0]`,
@@ -115,6 +119,78 @@ pub fn input_volumes(
     Ok(out)
 }
 
+/// [`input_volumes`] over a range that starts `below` disparities under the problem's: the
+/// networks answer badly when the truth lies in the first slices of their range (Middlebury's
+/// far backgrounds at 1–2 px searched from 0: Bowling1), so inference gives them room. Costs
+/// under 0 come from each neighbour mirrored (the cost of `−d` towards offset `o` is that of `d`
+/// towards `−o`), and SGM aggregates each neighbour over the whole extended range. Returns the
+/// volumes (whose `min_disparity` is 0 when the range starts under 0) and the disparity of
+/// their first slice.
+pub fn input_volumes_below(
+    problem: &Problem,
+    neighbours: &[&Neighbour],
+    spec: InputSpec,
+    below: usize,
+    on_band: &(dyn Fn() + Sync),
+) -> Result<(Vec<CostVolume<u8>>, i64), FuseError> {
+    let first = problem.min_disparity as i64 - below as i64;
+    let negative = usize::try_from(-first).unwrap_or(0);
+    if negative == 0 {
+        let extended = Problem {
+            min_disparity: problem.min_disparity - below,
+            num_disparities: problem.num_disparities + below,
+            ..problem.clone()
+        };
+        return Ok((input_volumes(&extended, neighbours, spec, on_band)?, first));
+    }
+    let cost = CostSpec {
+        pixel: spec.cost,
+        block_radius: spec.block_radius,
+    };
+    let shift = quantisation_shift(cost.max_cost());
+    let (p1, p2) = (quantise_penalty(spec.p1, shift), quantise_penalty(spec.p2, shift));
+    let non_negative = Problem {
+        min_disparity: 0,
+        num_disparities: problem.min_disparity + problem.num_disparities,
+        ..problem.clone()
+    };
+    let mirrored_range = Problem {
+        min_disparity: 1,
+        num_disparities: negative,
+        ..problem.clone()
+    };
+    let mut out = Vec::with_capacity(neighbours.len());
+    for n in neighbours {
+        let upper = neighbour_volumes(&non_negative, &[*n], cost, shift, on_band)?.remove(0);
+        let mirror = Neighbour {
+            offset: [-n.offset[0], -n.offset[1]],
+            ..(*n).clone()
+        };
+        let lower = neighbour_volumes(&mirrored_range, &[&mirror], cost, shift, on_band)?.remove(0);
+        let disparities = negative + upper.disparities;
+        let mut data = Vec::with_capacity(upper.width * upper.height * disparities);
+        for (low, high) in lower
+            .data
+            .chunks_exact(negative)
+            .zip(upper.data.chunks_exact(upper.disparities))
+        {
+            data.extend(low.iter().rev());
+            data.extend_from_slice(high);
+        }
+        let volume = CostVolume {
+            disparities,
+            data,
+            min_disparity: 0,
+            ..upper
+        };
+        drop(lower);
+        let sums = aggregate_volume(&volume, p1, p2);
+        drop(volume);
+        out.push(normalise(&sums, p2));
+    }
+    Ok((out, first))
+}
+
 /// `(S − min_d S) / (8 · P2)` in steps of 1/[`STEPS_PER_UNIT`], capped at 255 steps.
 pub fn normalise(sums: &CostVolume<u16>, p2: u16) -> CostVolume<u8> {
     let scale = STEPS_PER_UNIT / (8.0 * f32::from(p2.max(1)));
@@ -136,5 +212,105 @@ pub fn normalise(sums: &CostVolume<u16>, p2: u16) -> CostVolume<u8> {
         data,
         max_cost: 255,
         source: sums.source.clone(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::image::Image;
+
+    /// A textured fronto-parallel plane at (signed) disparity `d` seen from the left and right.
+    fn plane(d: i64, min_disparity: usize, num_disparities: usize) -> Problem {
+        let (w, h) = (64usize, 32usize);
+        let texture = |x: i64, y: i64| (((x * 37 + y * 11) ^ (x * y)) % 97 * 2 + 20) as u8;
+        let view = |shift: i64| {
+            let data = (0..h as i64)
+                .flat_map(|y| (0..w as i64).map(move |x| texture(x + shift, y)))
+                .collect();
+            Image::gray(w, h, data).unwrap_or_else(|e| panic!("{e}"))
+        };
+        let neighbour = |role: &str, offset: i32| Neighbour {
+            role: role.into(),
+            image: view(i64::from(offset) * d),
+            offset: [offset, 0],
+            baseline_ratio: 1.0,
+        };
+        Problem {
+            reference: view(0),
+            neighbours: vec![neighbour("left", -1), neighbour("right", 1)],
+            min_disparity,
+            num_disparities,
+        }
+    }
+
+    /// The same plane seen from the top and bottom (the views transposed).
+    fn vertical(problem: &Problem) -> Problem {
+        let transpose = |image: &Image| {
+            let (w, h) = (image.width, image.height);
+            let data = (0..w)
+                .flat_map(|x| (0..h).map(move |y| image.data[y * w + x]))
+                .collect();
+            Image::gray(h, w, data).unwrap_or_else(|e| panic!("{e}"))
+        };
+        Problem {
+            reference: transpose(&problem.reference),
+            neighbours: problem
+                .neighbours
+                .iter()
+                .map(|n| Neighbour {
+                    role: if n.offset[0] < 0 { "top" } else { "bottom" }.into(),
+                    image: transpose(&n.image),
+                    offset: [0, n.offset[0]],
+                    baseline_ratio: 1.0,
+                })
+                .collect(),
+            ..problem.clone()
+        }
+    }
+
+    fn volumes_below(problem: &Problem, below: usize) -> (Vec<CostVolume<u8>>, i64) {
+        let neighbours: Vec<&Neighbour> = problem.neighbours.iter().collect();
+        input_volumes_below(problem, &neighbours, InputSpec::default(), below, &|| {}).unwrap_or_else(|e| panic!("{e}"))
+    }
+
+    #[test]
+    fn room_above_zero_is_the_wider_range() {
+        let problem = plane(9, 8, 16);
+        let (volumes, first) = volumes_below(&problem, 4);
+        assert_eq!(first, 4);
+        let wider = Problem {
+            min_disparity: 4,
+            num_disparities: 20,
+            ..problem.clone()
+        };
+        let neighbours: Vec<&Neighbour> = wider.neighbours.iter().collect();
+        let expected =
+            input_volumes(&wider, &neighbours, InputSpec::default(), &|| {}).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(volumes, expected);
+    }
+
+    #[test]
+    fn room_under_zero_finds_negative_disparities_in_both_directions() {
+        // Searched from 0 with 4 below: slices are −4 … 11, the plane at −2 is slice 2.
+        for (d, slice) in [(-2i64, 2usize), (0, 4), (3, 7)] {
+            let (mut volumes, first) = volumes_below(&plane(d, 0, 12), 4);
+            assert_eq!(first, -4);
+            volumes.extend(volumes_below(&vertical(&plane(d, 0, 12)), 4).0);
+            for v in &volumes {
+                assert_eq!((v.disparities, v.min_disparity), (16, 0));
+                let (mut right, mut total) = (0, 0);
+                let (mx, my) = if v.width > v.height { (12, 4) } else { (4, 12) };
+                for y in my..v.height - my {
+                    for x in mx..v.width - mx {
+                        let costs = v.costs(x, y);
+                        let best = (0..costs.len()).min_by_key(|&i| costs[i]).unwrap_or(usize::MAX);
+                        right += usize::from(best == slice);
+                        total += 1;
+                    }
+                }
+                assert!(right * 100 >= total * 95, "d {d} {:?}: {right} of {total}", v.source);
+            }
+        }
     }
 }

@@ -31,6 +31,28 @@ pub enum Error {
         /// The shape given.
         shape: [usize; 4],
     },
+    /// A metadata entry inference reads has a bad value.
+    #[error("weights file {file}: metadata {key} = {value:?}, expected {expected}")]
+    Metadata {
+        /// File.
+        file: String,
+        /// The metadata key.
+        key: &'static str,
+        /// Its value.
+        value: String,
+        /// What it should be.
+        expected: &'static str,
+    },
+    /// The slices kept out of the estimate leave none to read it from.
+    #[error(
+        "{context_below} context slices below the searched range leave none of the volume's {disparities} disparities"
+    )]
+    ContextBelow {
+        /// Slices left out of the estimate.
+        context_below: usize,
+        /// Slices in the volumes.
+        disparities: usize,
+    },
     /// A weights file cannot be read.
     #[error("cannot read weights file {file}: {reason}")]
     Read {

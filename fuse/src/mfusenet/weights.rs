@@ -48,6 +48,29 @@ pub fn refine_recommended(info: &WeightsInfo, file: &str) -> Result<bool, Error>
     }
 }
 
+/// Context slices below the searched range the file's metadata asks inference to give the
+/// network (`context_below`, see `crate::methods::mfusenet::MFuseNetConfig::room_below`); no
+/// entry (files exported from PyTorch, networks trained without `--disparity-shift`) = 0. A value
+/// that is not a multiple of 4 up to [`MAX_CONTEXT_BELOW`] is an error naming the file.
+pub fn context_below_recommended(info: &WeightsInfo, file: &str) -> Result<usize, Error> {
+    let Some(value) = info.get("context_below") else {
+        return Ok(0);
+    };
+    value
+        .parse::<usize>()
+        .ok()
+        .filter(|n| n.is_multiple_of(4) && *n <= MAX_CONTEXT_BELOW)
+        .ok_or_else(|| Error::Metadata {
+            file: file.to_owned(),
+            key: "context_below",
+            value: value.to_owned(),
+            expected: "a multiple of 4 from 0 to 16",
+        })
+}
+
+/// Most context slices below the range a weights file may ask for.
+pub const MAX_CONTEXT_BELOW: usize = 16;
+
 /// Every tensor of the reference `state_dict` for `views` inputs, with its shape, in the
 /// reference's order.
 pub fn state_dict_shapes(views: usize) -> Vec<(String, Vec<usize>)> {
@@ -106,6 +129,7 @@ pub fn from_bytes(
         });
     }
     refine_recommended(&info, file)?;
+    context_below_recommended(&info, file)?;
     let concat_name = format!("{prefix}concat.0.weight");
     let concat = tensors.tensor(&concat_name).map_err(|_| Error::MissingTensor {
         file: file.to_owned(),
@@ -450,6 +474,30 @@ mod tests {
             matches!(&error, Some(Error::Estimate { value, .. }) if value == "median"),
             "{error:?}"
         );
+        // Context below the range: none unless the file says; a multiple of 4 up to 16.
+        assert_eq!(context_below_recommended(&read, "w").ok(), Some(0));
+        info.set("estimate", "refine");
+        for (value, expected) in [
+            ("4", Some(4)),
+            ("16", Some(16)),
+            ("3", None),
+            ("20", None),
+            ("four", None),
+        ] {
+            info.set("context_below", value);
+            let result = from_bytes(&to_bytes(&net, &info).unwrap_or_else(|e| panic!("{e}")), "w", "", None);
+            match expected {
+                Some(n) => {
+                    let (_, read) = result.unwrap_or_else(|e| panic!("{e}"));
+                    assert_eq!(context_below_recommended(&read, "w").ok(), Some(n));
+                }
+                None => assert!(
+                    matches!(&result, Err(Error::Metadata { key: "context_below", value: v, file, .. }) if v == value && file == "w"),
+                    "{value}: {:?}",
+                    result.err()
+                ),
+            }
+        }
         // A missing file names it.
         let error = load(Path::new("/nonexistent/w.safetensors"), None).err();
         assert!(
@@ -477,6 +525,9 @@ mod tests {
                 info.get("made_by").is_some() && info.get("input_normalisation").is_some(),
                 "{file}"
             );
+            // Only the three-view network was trained with shifted crops (context below its range).
+            let context = context_below_recommended(&info, file).unwrap_or_else(|e| panic!("{e}"));
+            assert_eq!(context, if views == 2 { 4 } else { 0 }, "{file}");
         }
     }
 }

@@ -62,7 +62,8 @@ pub struct TrainArgs {
     init_weights: Option<PathBuf>,
     /// Disparity-shift augmentation: drop the first 0, 4, …, N slices of each crop's volumes
     /// (targets shifted alike), so that answers near the range's start are as common as
-    /// elsewhere; a multiple of 4, 0 = off.
+    /// elsewhere; a multiple of 4, 0 = off. The weights then ask inference for 4 disparities of
+    /// context below the searched range (metadata `context_below`).
     #[arg(long, value_name = "N", default_value_t = 0)]
     disparity_shift: usize,
     /// Steps between validations.
