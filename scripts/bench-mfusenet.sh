@@ -5,8 +5,10 @@
 #  2. one training step on the shipped weights' crops (128 × 128 × 32 for N = 1, 2; 96 × 96 × 32 for
 #     N = 4; `replay train`, 20 steps);
 #  3. with --full: five-view 1920×1080 with 128 disparities (record + replay mfusenet): time and peak RSS.
-# PyTorch peer: the reference network on the same three-view shape takes 12.7–13.0 s on our AMD
-# EPYC hosts and 14.0 s on the Intel ones (issue 9); install torch into a venv to time it here.
+#  4. the PyTorch peer (`scripts/bench-pytorch.py`: the reference network, same shapes, this host)
+#     when TORCH_PYTHON names a Python with torch and safetensors (e.g. `python3 -m venv
+#     .venv-torch && .venv-torch/bin/pip install torch safetensors`, ≈ 3 GB), else the issue's
+#     figures stand: 12.7–13.0 s on our AMD EPYC hosts, 14.0 s on the Intel ones.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 cargo build --release -q -p record -p replay
@@ -35,6 +37,23 @@ for views in 1 2 4; do
         --dir "$T/train-$views" --dataset-dir "$T/dataset" -q
     python3 -c "import json;d=json.load(open('$T/train-$views/training.json'));print(f\"training step N=$views, ${crop}x${crop}x32 crop: {d['train_seconds']/d['steps_done']:.3f} s\")"
 done
+
+if [ -n "${TORCH_PYTHON:-}" ]; then
+    "$TORCH_PYTHON" scripts/bench-pytorch.py --weights fuse/weights/mfusenet-3view.safetensors > "$T/torch.json"
+    python3 - "$T/torch.json" <<'PY'
+import json, sys
+d = json.load(open(sys.argv[1]))
+i = d["inference"]
+print(f"pytorch {d['torch']} ({d['threads']} threads), reference network with the shipped three-view weights, "
+      f"N={i['views']} {i['shape'][1]}x{i['shape'][2]}x{i['shape'][3]}: {i['seconds']:.2f} s "
+      f"(runs {', '.join(f'{s:.2f}' for s in i['all_seconds'])}), network only, peak RSS {d['peak_rss_mb']:.0f} MB")
+for k, v in d["train_step"].items():
+    print(f"pytorch training step {k}, {v['crop'][1]}x{v['crop'][2]}x{v['crop'][0]} crop: {v['seconds']:.3f} s")
+print("parameters (N=1, 2, 4):", ", ".join(str(v) for v in d["parameters"].values()))
+PY
+else
+    echo "skipped the PyTorch peer: set TORCH_PYTHON to a Python with torch and safetensors"
+fi
 
 if [ "${1:-}" = "--full" ]; then
     target/release/record --rig five-view -o "$T/hd.mcap" -q --no-blueprint

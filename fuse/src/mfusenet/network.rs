@@ -21,7 +21,8 @@ use super::Error;
 use crate::nn::Tensor;
 use crate::nn::batch_norm::{BatchNorm, BatchNormCache};
 use crate::nn::conv::{
-    conv3d_same, conv3d_same_input_grad, conv3d_same_weight_grad, transposed_as_conv, transposed_weight_grad,
+    Epilogue, conv3d_same, conv3d_same_input_grad, conv3d_same_weight_grad, conv3d_with, transposed_as_conv,
+    transposed_weight_grad,
 };
 use crate::nn::regression::{smooth_l1, soft_argmin, soft_argmin_backward};
 
@@ -154,12 +155,22 @@ impl ConvBn {
     /// Eval mode: `ReLU(BN(conv(x)))` with the BatchNorm folded into the convolution.
     pub fn forward_eval(&self, x: &Tensor) -> Tensor {
         let (weight, bias) = self.bn.fold_into(&self.conv_weight());
-        let z = match self.kind {
-            ConvKind::Up => conv3d_same(&self.conv_input(x), &weight, self.cout, self.k, Some(&bias)),
+        // The ReLU and the stride-2 sampling as the outputs are written (only the kept planes and
+        // rows computed).
+        let epilogue = |stride| Epilogue { stride, relu: true };
+        match self.kind {
+            ConvKind::Up => conv3d_with(
+                &self.conv_input(x),
+                &weight,
+                self.cout,
+                self.k,
+                Some(&bias),
+                epilogue(1),
+            ),
+            ConvKind::Down => conv3d_with(x, &weight, self.cout, self.k, Some(&bias), epilogue(2)),
             // No copy of the input: the convolution pads its own.
-            _ => conv3d_same(x, &weight, self.cout, self.k, Some(&bias)),
-        };
-        self.sample(z).relu()
+            ConvKind::Same => conv3d_with(x, &weight, self.cout, self.k, Some(&bias), epilogue(1)),
+        }
     }
 
     /// Train mode: `ReLU(BN(conv(x)))` with batch statistics (running statistics updated) or
