@@ -17,8 +17,8 @@ use clap::{Parser, Subcommand};
 use record::cli::{Outcome, UsageError, exit_code, init_logging, parse_args};
 
 /// mimalloc keeps the network's large, short-lived tensors' pages between layers (glibc maps and
-/// unmaps every allocation over 32 MB, and the page faults and zeroing took ~15 % of an MFuseNet
-/// run).
+/// unmaps every allocation over 32 MB and faults and zeroes it again): MFuseNet 5 % faster on a
+/// Middlebury scene, for 80 MB more peak RSS.
 #[global_allocator]
 static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
