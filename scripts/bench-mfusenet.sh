@@ -7,8 +7,9 @@
 #  3. with --full: five-view 1920×1080 with 128 disparities (record + replay mfusenet): time and peak RSS.
 #  4. the PyTorch peer (`scripts/bench-pytorch.py`: the reference network, same shapes, this host)
 #     when TORCH_PYTHON names a Python with torch and safetensors (e.g. `python3 -m venv
-#     .venv-torch && .venv-torch/bin/pip install torch safetensors`, ≈ 3 GB), else the issue's
-#     figures stand: 12.7–13.0 s on our AMD EPYC hosts, 14.0 s on the Intel ones.
+#     .venv-torch && .venv-torch/bin/pip install torch safetensors`: about a minute, 5.4 GB with
+#     its CUDA libraries); else the issue's figures stand (12.7–13.0 s on AMD EPYC hosts, 14.0 s on
+#     Intel; PyTorch 2.15 measured 9.3 s on the AMD host of the README's table).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 cargo build --release -q -p record -p replay

@@ -12,7 +12,7 @@ that every name and shape fits). It times, on this host and with this host's thr
      `replay train` uses (128 × 128 × 32 for N = 1, 2; 96 × 96 × 32 for N = 4).
 
 Needs `torch` (and `safetensors` for `--weights`) in the Python that runs it; the test venv does
-not have them (torch is ≈ 3 GB with its CUDA libraries): `python3 -m venv .venv-torch &&
+not have them (torch is 5.4 GB installed, with its CUDA libraries): `python3 -m venv .venv-torch &&
 .venv-torch/bin/pip install torch safetensors`, then `TORCH_PYTHON=.venv-torch/bin/python
 scripts/bench-mfusenet.sh`.
 """
