@@ -735,17 +735,7 @@ pub(crate) mod tests {
 
     /// A textured fronto-parallel plane at disparity `d` seen from the left and right.
     pub(crate) fn plane_problem(d: usize) -> Problem {
-        let (w, h) = (48usize, 24usize);
-        let texture = |x: i64, y: i64| (((x * 37 + y * 11) ^ (x * y)) % 97 * 2 + 20) as u8;
-        let view = |shift: i64| {
-            let mut data = Vec::with_capacity(w * h);
-            for y in 0..h as i64 {
-                for x in 0..w as i64 {
-                    data.push(texture(x + shift, y));
-                }
-            }
-            Image::gray(w, h, data).unwrap_or_else(|e| panic!("{e}"))
-        };
+        let view = |shift: i64| crate::image::textured_view(48, 24, shift);
         let d = d as i64;
         Problem {
             reference: view(0),

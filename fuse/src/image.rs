@@ -121,6 +121,18 @@ impl DisparityImage {
     }
 }
 
+/// A grey test view of a non-repeating texture, its pixel `(x, y)` the texture's `(x + shift, y)`:
+/// a fronto-parallel plane at disparity `d` seen from the neighbour at offset `o` along x is
+/// `textured_view(w, h, o · d)`, the reference `textured_view(w, h, 0)`.
+#[cfg(test)]
+pub(crate) fn textured_view(width: usize, height: usize, shift: i64) -> Image {
+    let texture = |x: i64, y: i64| (((x * 37 + y * 11) ^ (x * y)) % 97 * 2 + 20) as u8;
+    let data = (0..height as i64)
+        .flat_map(|y| (0..width as i64).map(move |x| texture(x + shift, y)))
+        .collect();
+    Image::gray(width, height, data).unwrap_or_else(|e| panic!("{e}"))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -175,14 +175,7 @@ mod tests {
     /// A textured fronto-parallel plane at disparity `d` seen from a line of five: views at
     /// −2, −1, +1 and +2 baselines, shifted by `offset · d`.
     fn line_of_five(d: i64) -> Problem {
-        let (w, h) = (64usize, 32usize);
-        let texture = |x: i64, y: i64| (((x * 37 + y * 11) ^ (x * y)) % 97 * 2 + 20) as u8;
-        let view = |shift: i64| {
-            let data = (0..h as i64)
-                .flat_map(|y| (0..w as i64).map(move |x| texture(x + shift, y)))
-                .collect();
-            crate::Image::gray(w, h, data).unwrap_or_else(|e| panic!("{e}"))
-        };
+        let view = |shift: i64| crate::image::textured_view(64, 32, shift);
         Problem {
             reference: view(0),
             neighbours: [("left2", -2), ("left", -1), ("right", 1), ("right2", 2)]

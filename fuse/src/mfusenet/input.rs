@@ -222,14 +222,7 @@ mod tests {
 
     /// A textured fronto-parallel plane at (signed) disparity `d` seen from the left and right.
     fn plane(d: i64, min_disparity: usize, num_disparities: usize) -> Problem {
-        let (w, h) = (64usize, 32usize);
-        let texture = |x: i64, y: i64| (((x * 37 + y * 11) ^ (x * y)) % 97 * 2 + 20) as u8;
-        let view = |shift: i64| {
-            let data = (0..h as i64)
-                .flat_map(|y| (0..w as i64).map(move |x| texture(x + shift, y)))
-                .collect();
-            Image::gray(w, h, data).unwrap_or_else(|e| panic!("{e}"))
-        };
+        let view = |shift: i64| crate::image::textured_view(64, 32, shift);
         let neighbour = |role: &str, offset: i32| Neighbour {
             role: role.into(),
             image: view(i64::from(offset) * d),

@@ -58,7 +58,7 @@ impl Padded {
         let tiles = w.div_ceil(step).max(1);
         let mut data = vec![0f32; tiles * c * depth * height * row];
         // One (tile, channel) block per task.
-        data.par_chunks_mut(depth * height * row)
+        data.par_chunks_mut((depth * height * row).max(1))
             .enumerate()
             .for_each(|(block, dst)| {
                 let (t, cc) = (block / c, block % c);
