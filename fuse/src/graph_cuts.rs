@@ -402,6 +402,46 @@ impl KzEnergy {
         }
     }
 
+    /// The disparity with a sub-pixel offset: for every matched pixel whose label `d` has both
+    /// neighbours in the range, the fused costs at `d − 1`, `d`, `d + 1` summed over the pixels of
+    /// the `(2·radius + 1)²` window whose own label is within one of `d` (the same surface), and a
+    /// parabola through the three sums; the offset is clamped to ±0.5 (occluded = `f32::INFINITY`).
+    pub fn subpixel_disparity(&self, radius: usize) -> DisparityImage {
+        let (w, h) = (self.width, self.height);
+        let mut out = self.disparity();
+        out.data.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+            for (x, value) in row.iter_mut().enumerate() {
+                let l = self.disparity[y * w + x];
+                if l == OCCLUDED || l == 0 || usize::from(l) + 1 >= self.labels {
+                    continue;
+                }
+                let l = usize::from(l);
+                let mut sums = [0f64; 3];
+                for qy in y.saturating_sub(radius)..(y + radius + 1).min(h) {
+                    for qx in x.saturating_sub(radius)..(x + radius + 1).min(w) {
+                        let q = qy * w + qx;
+                        let lq = self.disparity[q];
+                        if lq == OCCLUDED || usize::from(lq).abs_diff(l) > 1 {
+                            continue;
+                        }
+                        let c = [self.cost(q, l - 1), self.cost(q, l), self.cost(q, l + 1)];
+                        if c.contains(&INVALID_COST) {
+                            continue;
+                        }
+                        for (s, v) in sums.iter_mut().zip(c) {
+                            *s += f64::from(v);
+                        }
+                    }
+                }
+                let curvature = sums[0] - 2.0 * sums[1] + sums[2];
+                if curvature > 0.0 {
+                    *value += (0.5 * (sums[0] - sums[2]) / curvature).clamp(-0.5, 0.5) as f32;
+                }
+            }
+        });
+        out
+    }
+
     #[inline]
     fn cost(&self, p: usize, label: usize) -> u16 {
         self.data[label * self.width * self.height + p]

@@ -46,6 +46,11 @@ pub struct GraphCutsConfig {
     pub max_rounds: usize,
     /// Fill occluded pixels with the smaller neighbouring valid disparity on the row.
     pub fill_occlusions: bool,
+    /// Sub-pixel disparities: a parabola through the fused costs at `d − 1`, `d`, `d + 1`
+    /// summed over this radius's window (pixels of the same surface only, see
+    /// [`KzEnergy::subpixel_disparity`]); `0` = integer disparities, as the paper and the IPOL
+    /// program give.
+    pub subpixel_radius: usize,
 }
 
 impl Default for GraphCutsConfig {
@@ -64,9 +69,14 @@ impl Default for GraphCutsConfig {
             seed: 1,
             max_rounds: 2,
             fill_occlusions: false,
+            subpixel_radius: DEFAULT_SUBPIXEL_RADIUS,
         }
     }
 }
+
+/// Window radius of the sub-pixel readout: 13 × 13 pixels. On `middlebury2006-third-dev` the
+/// error fell with every radius tried (1, 2, 3, 4, 6), most below 3 and little beyond 4.
+pub const DEFAULT_SUBPIXEL_RADIUS: usize = 6;
 
 /// Graph cuts with one fusion.
 pub struct GraphCuts {
@@ -118,7 +128,11 @@ impl Method for GraphCuts {
             done += 1;
             progress(0.05 + 0.9 * (done as f32 / expected).min(1.0));
         });
-        let mut disparity = energy.disparity();
+        let mut disparity = if c.subpixel_radius > 0 {
+            energy.subpixel_disparity(c.subpixel_radius)
+        } else {
+            energy.disparity()
+        };
         if c.upsample {
             disparity = downsample_disparity(&disparity, problem.reference.width, problem.reference.height);
         }
@@ -236,6 +250,7 @@ pub const ENTRIES: &[MethodEntry] = &[
 mod tests {
     use super::*;
     use crate::graph_cuts::tests::plane_problem;
+    use crate::image::textured_view;
 
     #[test]
     fn every_variant_finds_the_plane_and_marks_or_fills_the_border() {
@@ -244,10 +259,12 @@ mod tests {
         for name in ["gc-stereo", "gc-mean", "gc-min", "gc-heuristic"] {
             let method = super::super::build(name, None).unwrap_or_else(|e| panic!("{e}"));
             let d = method.run(&problem, &|_| {}).unwrap_or_else(|e| panic!("{e}"));
-            // Away from the borders every pixel is matched at 3.
+            // Away from the borders every pixel is matched at 3 (the sub-pixel readout within
+            // 0.15 of it: the texture is a hash, not a smooth signal).
             for y in 0..h {
                 for x in 4..w - 4 {
-                    assert_eq!(d.data[y * w + x], 3.0, "{name} ({x}, {y})");
+                    let v = d.data[y * w + x];
+                    assert!((v - 3.0).abs() < 0.15, "{name} ({x}, {y}): {v}");
                 }
             }
             let filled = super::super::build(name, Some(&serde_json::json!({"fill_occlusions": true})))
@@ -304,5 +321,35 @@ mod tests {
             data: vec![4.0, 0.0, 6.0, 0.0, 0.0, 0.0, 8.0, 0.0, 3.0],
         };
         assert_eq!(downsample_disparity(&d, 2, 2).data, vec![2.0, 3.0, 4.0, 1.5]);
+    }
+    #[test]
+    fn a_plane_between_two_integers_gets_its_half_pixel() {
+        // The plane at d = 3.5: each neighbour the mean of the views at 3 and 4.
+        let mut problem = plane_problem(3);
+        let (w, h) = (problem.reference.width, problem.reference.height);
+        for (neighbour, sign) in problem.neighbours.iter_mut().zip([-1i64, 1]) {
+            let (a, b) = (textured_view(w, h, 3 * sign), textured_view(w, h, 4 * sign));
+            let data = a
+                .data
+                .iter()
+                .zip(&b.data)
+                .map(|(x, y)| ((u16::from(*x) + u16::from(*y) + 1) / 2) as u8)
+                .collect();
+            neighbour.image = Image::gray(w, h, data).unwrap_or_else(|e| panic!("{e}"));
+        }
+        let error = |overrides: serde_json::Value| {
+            let d = super::super::build("gc-min", Some(&overrides))
+                .and_then(|m| m.run(&problem, &|_| {}))
+                .unwrap_or_else(|e| panic!("{e}"));
+            let interior: Vec<f32> = (2..h - 2)
+                .flat_map(|y| (8..w - 8).map(move |x| (y, x)))
+                .map(|(y, x)| d.data[y * w + x])
+                .collect();
+            interior.iter().map(|v| (v - 3.5).abs()).sum::<f32>() / interior.len() as f32
+        };
+        let integer = error(serde_json::json!({"subpixel_radius": 0}));
+        let subpixel = error(serde_json::json!({}));
+        assert!((integer - 0.5).abs() < 0.05, "integer labels are 3 or 4: {integer}");
+        assert!(subpixel < 0.15, "sub-pixel error {subpixel} (integer {integer})");
     }
 }
