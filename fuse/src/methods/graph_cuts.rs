@@ -333,7 +333,7 @@ mod tests {
                 .data
                 .iter()
                 .zip(&b.data)
-                .map(|(x, y)| ((u16::from(*x) + u16::from(*y) + 1) / 2) as u8)
+                .map(|(x, y)| (u16::from(*x) + u16::from(*y)).div_ceil(2) as u8)
                 .collect();
             neighbour.image = Image::gray(w, h, data).unwrap_or_else(|e| panic!("{e}"));
         }
