@@ -47,8 +47,9 @@ pub struct MFuseNetConfig {
     /// A safetensors weights file (the reference `state_dict`'s names); `null` = the shipped
     /// weights of the variant the set needs.
     pub weights: Option<String>,
-    /// How each neighbour's input volume is made (must match the training).
-    pub input: InputSpec,
+    /// How each neighbour's input volume is made (must match the training); `null` = as the
+    /// weights file's metadata `input_spec` says (our default inputs when it says nothing).
+    pub input: Option<InputSpec>,
     /// Memory budget of one tile's activations (MiB); larger images are cut into tiles.
     pub tile_budget_mib: usize,
     /// Soft-argmin only over this many disparities either side of the most probable one
@@ -72,7 +73,7 @@ impl Default for MFuseNetConfig {
     fn default() -> Self {
         Self {
             weights: None,
-            input: InputSpec::default(),
+            input: None,
             tile_budget_mib: DEFAULT_TILE_BUDGET_BYTES >> 20,
             window: None,
             refine: None,
@@ -90,6 +91,8 @@ struct Loaded {
     refine: bool,
     /// Metadata `context_below`.
     context_below: usize,
+    /// Metadata `input_spec`.
+    input: InputSpec,
 }
 
 impl Loaded {
@@ -98,6 +101,7 @@ impl Loaded {
             views: net.views,
             refine: weights::refine_recommended(info, file)?,
             context_below: weights::context_below_recommended(info, file)?,
+            input: weights::input_spec_recommended(info, file)?,
             net,
         })
     }
@@ -195,7 +199,13 @@ impl Method for MFuseNet {
             });
         }
         // Cost volumes: about a tenth of the work; the network the rest.
-        let (volumes, first) = input_volumes_below(problem, &neighbours, self.config.input, room_below, &|| {})?;
+        let (volumes, first) = input_volumes_below(
+            problem,
+            &neighbours,
+            self.config.input.unwrap_or(loaded.input),
+            room_below,
+            &|| {},
+        )?;
         let origin = first as f32 - volumes.first().map_or(0, |v| v.min_disparity) as f32;
         progress(0.1);
         let data = infer(

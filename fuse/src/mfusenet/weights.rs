@@ -68,6 +68,21 @@ pub fn context_below_recommended(info: &WeightsInfo, file: &str) -> Result<usize
         })
 }
 
+/// How the file's inputs were made (metadata `input_spec`, the JSON of
+/// [`super::input::InputSpec`], as `replay train` writes it); no entry (files exported from
+/// PyTorch) = our default inputs. A value that does not parse is an error naming the file.
+pub fn input_spec_recommended(info: &WeightsInfo, file: &str) -> Result<super::input::InputSpec, Error> {
+    let Some(value) = info.get("input_spec") else {
+        return Ok(super::input::InputSpec::default());
+    };
+    serde_json::from_str(value).map_err(|_| Error::Metadata {
+        file: file.to_owned(),
+        key: "input_spec",
+        value: value.to_owned(),
+        expected: "an input spec: {\"cost\": …, \"block_radius\": …, \"p1\": …, \"p2\": …}",
+    })
+}
+
 /// Most context slices below the range a weights file may ask for.
 pub const MAX_CONTEXT_BELOW: usize = 16;
 
@@ -130,6 +145,7 @@ pub fn from_bytes(
     }
     refine_recommended(&info, file)?;
     context_below_recommended(&info, file)?;
+    input_spec_recommended(&info, file)?;
     let concat_name = format!("{prefix}concat.0.weight");
     let concat = tensors.tensor(&concat_name).map_err(|_| Error::MissingTensor {
         file: file.to_owned(),
@@ -341,6 +357,7 @@ pub fn save(net: &Network, info: &WeightsInfo, path: &Path) -> Result<(), Error>
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::mfusenet::input::InputSpec;
 
     fn saved(net: &Network) -> Vec<u8> {
         to_bytes(net, &WeightsInfo::default()).unwrap_or_else(|e| panic!("{e}"))
@@ -498,6 +515,26 @@ mod tests {
                 ),
             }
         }
+        // Inputs: ours unless the file says; what it says is read back; nonsense is an error.
+        info.set("context_below", "0");
+        let (_, read) = from_bytes(&to_bytes(&net, &info).unwrap_or_else(|e| panic!("{e}")), "w", "", None)
+            .unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(input_spec_recommended(&read, "w").ok(), Some(InputSpec::default()));
+        let sharper = InputSpec {
+            block_radius: 2,
+            ..InputSpec::default()
+        };
+        info.set("input_spec", serde_json::to_string(&sharper).unwrap_or_default());
+        let (_, read) = from_bytes(&to_bytes(&net, &info).unwrap_or_else(|e| panic!("{e}")), "w", "", None)
+            .unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(input_spec_recommended(&read, "w").ok(), Some(sharper));
+        info.set("input_spec", "{\"block_radius\": \"wide\"}");
+        let result = from_bytes(&to_bytes(&net, &info).unwrap_or_else(|e| panic!("{e}")), "w", "", None);
+        assert!(
+            matches!(&result, Err(Error::Metadata { key: "input_spec", file, .. }) if file == "w"),
+            "{:?}",
+            result.err()
+        );
         // A missing file names it.
         let error = load(Path::new("/nonexistent/w.safetensors"), None).err();
         assert!(

@@ -6,6 +6,7 @@ use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 
 use anyhow::{Context, Result};
 use clap::Args;
+use fuse::mfusenet::input::InputSpec;
 use record::cli::{Outcome, UsageError, progress_bar};
 use replay::train::{BaselineDraw, TrainConfig, TrainPaths, train, variant_name};
 use tracing::info;
@@ -66,6 +67,10 @@ pub struct TrainArgs {
     /// context below the searched range (metadata `context_below`).
     #[arg(long, value_name = "N", default_value_t = 0)]
     disparity_shift: usize,
+    /// Block radius of the inputs' aggregation before SGM (the inputs' `block_radius`; the
+    /// weights' metadata `input_spec` records it and inference reads it from there).
+    #[arg(long, value_name = "R", default_value_t = TrainConfig::default().input.block_radius)]
+    input_block_radius: usize,
     /// Steps between validations.
     #[arg(long, default_value_t = TrainConfig::default().validate_every)]
     validate_every: u64,
@@ -108,6 +113,10 @@ impl TrainArgs {
             validate_every: self.validate_every.max(1),
             init_weights: self.init_weights.clone(),
             disparity_shift: self.disparity_shift,
+            input: InputSpec {
+                block_radius: self.input_block_radius,
+                ..InputSpec::default()
+            },
             ..TrainConfig::default()
         };
         config.validate().map_err(|e| usage(e.to_string()))?;
