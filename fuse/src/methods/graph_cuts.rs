@@ -77,6 +77,8 @@ impl Default for GraphCutsConfig {
 /// Window radius of the sub-pixel readout: 13 × 13 pixels. On `middlebury2006-third-dev` the
 /// error fell with every radius tried (1, 2, 3, 4, 6), most below 3 and little beyond 4.
 pub const DEFAULT_SUBPIXEL_RADIUS: usize = 6;
+/// Largest window radius of the sub-pixel readout (its work grows with the window's area).
+pub const MAX_SUBPIXEL_RADIUS: usize = 32;
 
 /// Graph cuts with one fusion.
 pub struct GraphCuts {
@@ -208,6 +210,13 @@ fn build(
         },
         overrides,
     )?;
+    if config.subpixel_radius > MAX_SUBPIXEL_RADIUS {
+        return Err(FuseError::Config {
+            field: "subpixel_radius",
+            value: config.subpixel_radius.to_string(),
+            reason: "at most 32 (a 65 × 65 window; 0 = integer labels)",
+        });
+    }
     if config.max_rounds == 0 {
         return Err(FuseError::Config {
             field: "max_rounds",
@@ -304,6 +313,15 @@ mod tests {
             zero_rounds,
             Err(FuseError::Config {
                 field: "max_rounds",
+                ..
+            })
+        ));
+        let wide = super::super::build("gc-min", Some(&serde_json::json!({"subpixel_radius": 33})))
+            .and_then(|m| m.run(&problem, &|_| {}));
+        assert!(matches!(
+            wide,
+            Err(FuseError::Config {
+                field: "subpixel_radius",
                 ..
             })
         ));
