@@ -128,6 +128,17 @@ pub struct TrainConfig {
     /// several pixels off). 0 = off.
     #[serde(default)]
     pub disparity_shift: usize,
+    /// Re-estimate the BatchNorm statistics on the calibration crops at the start (also of a
+    /// fine-tuning) and every this many steps, so that they keep normalising while the weights
+    /// move; 0 = only at a random initialisation, then frozen. Without it the activations of
+    /// the shipped three- and five-view networks grew about tenfold per layer (logits ≈ 10⁵, a
+    /// saturated softmax with no gradient for the sub-pixel part).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub recalibrate_every: u64,
+}
+
+fn is_zero(n: &u64) -> bool {
+    *n == 0
 }
 
 impl Default for TrainConfig {
@@ -145,6 +156,7 @@ impl Default for TrainConfig {
             baseline_mm: [3.0, 30.0],
             baseline_draw: BaselineDraw::LogUniform,
             disparity_shift: 0,
+            recalibrate_every: 0,
             scenes: vec![
                 SceneKind::Random,
                 SceneKind::Random,
@@ -674,7 +686,13 @@ pub fn train(
         }
         _ => {
             let mut net = match &config.init_weights {
-                Some(path) => weights::load(path, Some(config.views))?.0,
+                Some(path) => {
+                    let mut net = weights::load(path, Some(config.views))?.0;
+                    if config.recalibrate_every > 0 {
+                        recalibrate_batch_norm(&mut net, &calibration)?;
+                    }
+                    net
+                }
                 None => {
                     let mut net = Network::init(config.views, config.seed);
                     recalibrate_batch_norm(&mut net, &calibration)?;
@@ -715,6 +733,9 @@ pub fn train(
             net.loss_and_gradients_with(&example.inputs, &example.target, &example.mask, BatchNormMode::Frozen)?;
         clip_gradients(&mut gradients, MAX_GRADIENT_NORM);
         adam.update(&mut net, &gradients);
+        if config.recalibrate_every > 0 && adam.step % config.recalibrate_every == 0 {
+            recalibrate_batch_norm(&mut net, &calibration)?;
+        }
         recent.insert(0, loss);
         recent.truncate(50);
         let done = adam.step;

@@ -113,15 +113,20 @@ fn replay_runs_mfusenet_and_names_bad_weight_files() {
 }
 
 fn train(dir: &Path, steps: &str) -> serde_json::Value {
+    train_with(dir, steps, &[])
+}
+
+fn train_with(dir: &Path, steps: &str, extra: &[&str]) -> serde_json::Value {
     let run_dir = dir.join("run");
-    let output = replay(&[
+    let dataset_dir = dir.join("dataset");
+    let mut args = vec![
         "train",
         "--views",
         "2",
         "--dir",
         run_dir.to_str().unwrap_or_default(),
         "--dataset-dir",
-        dir.join("dataset").to_str().unwrap_or_default(),
+        dataset_dir.to_str().unwrap_or_default(),
         "--resolution",
         "96x72",
         "--disparities",
@@ -139,10 +144,27 @@ fn train(dir: &Path, steps: &str) -> serde_json::Value {
         "--validate-every",
         "3",
         "-q",
-    ]);
+    ];
+    args.extend_from_slice(extra);
+    let output = replay(&args);
     assert_success(&output, "replay train");
     serde_json::from_slice(&std::fs::read(run_dir.join("training.json")).unwrap_or_default())
         .unwrap_or_else(|e| panic!("training.json: {e}"))
+}
+
+#[test]
+fn training_can_keep_its_batch_norm_statistics_up_to_date() {
+    // `--recalibrate-every N` re-estimates the statistics every N steps; the run records it and
+    // a longer budget with the same setting resumes.
+    let dir = temp_dir();
+    let first = train_with(dir.path(), "2", &["--recalibrate-every", "2"]);
+    assert_eq!(first["config"]["recalibrate_every"], 2, "{first}");
+    let second = train_with(dir.path(), "4", &["--recalibrate-every", "2"]);
+    assert_eq!(second["steps_done"], 4, "{second}");
+    assert!(
+        second["val_avg_err_px"].as_f64().is_some_and(f64::is_finite),
+        "{second}"
+    );
 }
 
 #[test]

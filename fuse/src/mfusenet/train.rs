@@ -288,6 +288,34 @@ mod tests {
         (vec![volume(0), volume(3)], vec![5.0; w * h])
     }
 
+    /// Largest logit magnitude of the eval-mode network on `example`.
+    fn logit_scale(net: &Network, example: &Example) -> f32 {
+        let logits = net.logits(&example.inputs).unwrap_or_else(|e| panic!("{e}"));
+        logits.data.iter().fold(0f32, |m, v| m.max(v.abs()))
+    }
+
+    #[test]
+    fn recalibration_undoes_activations_grown_under_frozen_statistics() {
+        // Weights that grew while the statistics stayed frozen (every convolution ×3, as Adam
+        // can do over thousands of steps): the activations grow ×3 per layer and the logits by
+        // orders of magnitude, a saturated softmax. Re-estimating the statistics brings them back
+        // to the scale of a freshly calibrated network.
+        let (volumes, truth) = plane_volumes(16, 16, 12);
+        let refs: Vec<&CostVolume<u8>> = volumes.iter().collect();
+        let example = crop(&refs, &truth, (0, 0), (16, 16), 12);
+        let mut net = Network::init(2, 5);
+        recalibrate_batch_norm(&mut net, [&example]).unwrap_or_else(|e| panic!("{e}"));
+        let fresh = logit_scale(&net, &example);
+        for layer in net.layers_mut() {
+            layer.weight.iter_mut().for_each(|w| *w *= 3.0);
+        }
+        let grown = logit_scale(&net, &example);
+        assert!(grown > 1000.0 * fresh, "logits {fresh} → {grown}");
+        recalibrate_batch_norm(&mut net, [&example]).unwrap_or_else(|e| panic!("{e}"));
+        let again = logit_scale(&net, &example);
+        assert!((again / fresh - 1.0).abs() < 0.05, "logits {fresh} → {grown} → {again}");
+    }
+
     #[test]
     fn training_lowers_the_loss_on_a_tiny_set_and_resumes() {
         let (volumes, truth) = plane_volumes(16, 16, 12);

@@ -71,6 +71,11 @@ pub struct TrainArgs {
     /// weights' metadata `input_spec` records it and inference reads it from there).
     #[arg(long, value_name = "R", default_value_t = TrainConfig::default().input.block_radius)]
     input_block_radius: usize,
+    /// Re-estimate the BatchNorm statistics on 32 fixed crops at the start and every N steps
+    /// (0 = once at a random initialisation, then frozen), so that activations stay normalised
+    /// while the weights move.
+    #[arg(long, value_name = "N", default_value_t = 0)]
+    recalibrate_every: u64,
     /// Steps between validations.
     #[arg(long, default_value_t = TrainConfig::default().validate_every)]
     validate_every: u64,
@@ -113,6 +118,7 @@ impl TrainArgs {
             validate_every: self.validate_every.max(1),
             init_weights: self.init_weights.clone(),
             disparity_shift: self.disparity_shift,
+            recalibrate_every: self.recalibrate_every,
             input: InputSpec {
                 block_radius: self.input_block_radius,
                 ..InputSpec::default()
