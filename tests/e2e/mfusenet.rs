@@ -154,8 +154,9 @@ fn train_with(dir: &Path, steps: &str, extra: &[&str]) -> serde_json::Value {
 
 #[test]
 fn training_can_keep_its_batch_norm_statistics_up_to_date() {
-    // `--recalibrate-every N` re-estimates the statistics every N steps; the run records it and
-    // a longer budget with the same setting resumes.
+    // `--recalibrate-every N` re-estimates the statistics every N steps: the option reaches the
+    // run's configuration, and runs with it (at the start and at steps 2 and 4) finish with a
+    // finite validation. (Resuming is `training_resumes_and_its_weights_run`'s.)
     let dir = temp_dir();
     let first = train_with(dir.path(), "2", &["--recalibrate-every", "2"]);
     assert_eq!(first["config"]["recalibrate_every"], 2, "{first}");

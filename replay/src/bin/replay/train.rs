@@ -73,7 +73,8 @@ pub struct TrainArgs {
     input_block_radius: usize,
     /// Re-estimate the BatchNorm statistics on 32 fixed crops at the start and every N steps
     /// (0 = once at a random initialisation, then frozen), so that activations stay normalised
-    /// while the weights move.
+    /// while the weights move. Each recalibration changes the function being trained: every
+    /// 100 steps it slowed learning from scratch (README, MFuseNet, Training (6)).
     #[arg(long, value_name = "N", default_value_t = 0)]
     recalibrate_every: u64,
     /// Steps between validations.
