@@ -135,10 +135,20 @@ pub struct TrainConfig {
     /// saturated softmax with no gradient for the sub-pixel part).
     #[serde(default, skip_serializing_if = "is_zero")]
     pub recalibrate_every: u64,
+    /// Track the BatchNorm statistics while training: every step normalises with the running
+    /// statistics (as inference does) and then moves them by this momentum towards the step's
+    /// crop's batch statistics (`BatchNorm::forward_tracking`), so that they follow the weights
+    /// a little at a time; 0 = frozen after the start (the shipped files before 2026-11-24).
+    #[serde(default, skip_serializing_if = "is_zero_f32")]
+    pub statistics_momentum: f32,
 }
 
 fn is_zero(n: &u64) -> bool {
     *n == 0
+}
+
+fn is_zero_f32(x: &f32) -> bool {
+    *x == 0.0
 }
 
 impl Default for TrainConfig {
@@ -157,6 +167,7 @@ impl Default for TrainConfig {
             baseline_draw: BaselineDraw::LogUniform,
             disparity_shift: 0,
             recalibrate_every: 0,
+            statistics_momentum: 0.0,
             scenes: vec![
                 SceneKind::Random,
                 SceneKind::Random,
@@ -272,6 +283,13 @@ impl TrainConfig {
                 "disparity_shift",
                 self.disparity_shift.to_string(),
                 "a multiple of 4 leaving at least 8 disparities",
+            );
+        }
+        if !(0.0..1.0).contains(&self.statistics_momentum) {
+            return bad(
+                "statistics_momentum",
+                self.statistics_momentum.to_string(),
+                "in [0, 1): 0 = frozen statistics",
             );
         }
         if self.disparities < 4 || !self.disparities.is_multiple_of(4) {
@@ -534,6 +552,10 @@ pub struct Validation {
     /// The integer nearest the soft-argmin, refined by a parabola through the summed inputs
     /// (`fuse::mfusenet::infer::Estimate::refine`).
     pub refined: (f64, f64),
+    /// Mean over the validated pixels of the logits' range over disparity (max − min): how
+    /// peaked the softmax is. Tens in a healthy network; the three- and five-view files
+    /// trained with frozen statistics reach about 10⁵ (saturated, one-hot).
+    pub logit_range: f64,
 }
 
 impl Validation {
@@ -549,6 +571,7 @@ impl Validation {
 pub fn validate_estimates(net: &Network, examples: &[Example]) -> Result<Validation, TrainError> {
     let mut sums = [(0f64, 0usize); 2];
     let mut count = 0usize;
+    let mut range_sum = 0f64;
     for example in examples {
         let logits = net.logits(&example.inputs)?;
         let (disparity, _) = soft_argmin(&logits);
@@ -558,6 +581,10 @@ pub fn validate_estimates(net: &Network, examples: &[Example]) -> Result<Validat
             if !*m {
                 continue;
             }
+            let (lo, hi) = (0..depth)
+                .map(|z| logits.data[z * plane + pixel])
+                .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), v| (lo.min(v), hi.max(v)));
+            range_sum += f64::from(hi - lo);
             let cost = |z: usize| {
                 example
                     .inputs
@@ -579,6 +606,7 @@ pub fn validate_estimates(net: &Network, examples: &[Example]) -> Result<Validat
     Ok(Validation {
         soft_argmin: figures(sums[0]),
         refined: figures(sums[1]),
+        logit_range: range_sum / count,
     })
 }
 
@@ -670,7 +698,8 @@ pub fn train(
     );
 
     // BatchNorm statistics: batch statistics of a few dozen fixed crops at the start, then frozen
-    // (see `BatchNorm::forward_frozen`): one crop per step is far too small a batch for them.
+    // (see `BatchNorm::forward_frozen`; one crop per step is far too small a batch to normalise
+    // with), recalibrated every `recalibrate_every` steps, or tracked (`statistics_momentum`).
     let mut calibration_rng = Rng(config.seed ^ 0x5EED_CA1B);
     let calibration: Vec<Example> = (0..CALIBRATION_CROPS)
         .map(|_| random_crop(config, &train_samples, &mut calibration_rng))
@@ -703,6 +732,15 @@ pub fn train(
             (net, adam, Vec::new(), 0.0)
         }
     };
+    // The momentum is not part of the weights: set it on every (re)start.
+    let batch_norm_mode = if config.statistics_momentum > 0.0 {
+        for layer in net.layers_mut() {
+            layer.bn.momentum = Some(config.statistics_momentum);
+        }
+        BatchNormMode::Tracking
+    } else {
+        BatchNormMode::Frozen
+    };
     let started = Instant::now();
     let session_start_step = adam.step;
     let mut recent: Vec<f32> = history.iter().rev().take(50).map(|r: &CurveRow| r.loss).collect();
@@ -730,7 +768,7 @@ pub fn train(
         let mut rng = Rng((config.seed ^ 0x9E37_79B9_7F4A_7C15).wrapping_add(step.wrapping_mul(0xD1B5_4A32_D192_ED03)));
         let example = random_crop(config, &train_samples, &mut rng);
         let (loss, _, mut gradients) =
-            net.loss_and_gradients_with(&example.inputs, &example.target, &example.mask, BatchNormMode::Frozen)?;
+            net.loss_and_gradients_with(&example.inputs, &example.target, &example.mask, batch_norm_mode)?;
         clip_gradients(&mut gradients, MAX_GRADIENT_NORM);
         adam.update(&mut net, &gradients);
         if config.recalibrate_every > 0 && adam.step % config.recalibrate_every == 0 {
@@ -747,6 +785,14 @@ pub fn train(
         };
         if done % config.validate_every == 0 || done == config.steps {
             let estimates = validate_estimates(&net, &val_examples)?;
+            tracing::info!(
+                "step {done}: validation AvgErr {:.3} px / Bad1 {:.2} % (refined {:.3} / {:.2}), logit range {:.1} (tens is healthy, thousands saturated)",
+                estimates.soft_argmin.0,
+                estimates.soft_argmin.1,
+                estimates.refined.0,
+                estimates.refined.1,
+                estimates.logit_range
+            );
             last_estimates = Some((done, estimates));
             let (avg, bad1) = estimates.soft_argmin;
             row.val_avg_err = Some(avg);
@@ -812,6 +858,7 @@ pub fn train(
     let (avg, bad1) = estimates.refined;
     info.set("val_refined_avg_err_px", format!("{avg:.4}"));
     info.set("val_refined_bad1_percent", format!("{bad1:.3}"));
+    info.set("val_logit_range", format!("{:.1}", estimates.logit_range));
     info.set(
         "estimate",
         if estimates.refine_is_better() {

@@ -169,6 +169,32 @@ fn training_can_keep_its_batch_norm_statistics_up_to_date() {
 }
 
 #[test]
+fn training_can_track_its_batch_norm_statistics() {
+    // `--statistics-momentum M` moves the running statistics towards each step's crop's: from the
+    // same calibration (same seed, same data), a tracked run's statistics differ from a frozen
+    // run's, and its validation (eval mode, with those statistics) is finite.
+    let (frozen_dir, tracked_dir) = (temp_dir(), temp_dir());
+    let frozen = train(frozen_dir.path(), "2");
+    let tracked = train_with(tracked_dir.path(), "2", &["--statistics-momentum", "0.5"]);
+    assert_eq!(tracked["config"]["statistics_momentum"], 0.5, "{tracked}");
+    assert!(frozen["config"].get("statistics_momentum").is_none(), "{frozen}");
+    assert!(
+        tracked["val_avg_err_px"].as_f64().is_some_and(f64::is_finite),
+        "{tracked}"
+    );
+    let statistics = |dir: &Path| -> Vec<f32> {
+        let path = dir.join("run/mfusenet-3view.safetensors");
+        let (net, _) =
+            fuse::mfusenet::weights::load(&path, Some(2)).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+        net.layers().flat_map(|l| l.bn.running_mean.clone()).collect()
+    };
+    let (a, b) = (statistics(frozen_dir.path()), statistics(tracked_dir.path()));
+    assert_eq!(a.len(), b.len());
+    let moved = a.iter().zip(&b).filter(|(x, y)| (*x - *y).abs() > 1e-6).count();
+    assert!(moved > a.len() / 2, "{moved} of {} running means moved", a.len());
+}
+
+#[test]
 fn training_resumes_and_its_weights_run() {
     let dir = temp_dir();
     let first = train(dir.path(), "4");

@@ -34,6 +34,10 @@ pub enum BatchNormMode {
     Batch,
     /// Running statistics, frozen (see [`BatchNorm::forward_frozen`]); only γ and β learn.
     Frozen,
+    /// Running statistics in the forward pass (the frozen gradient), then moved by each
+    /// BatchNorm's `momentum` towards the pass's batch statistics (see
+    /// [`BatchNorm::forward_tracking`]).
+    Tracking,
 }
 
 /// How a convolution samples its input.
@@ -181,6 +185,7 @@ impl ConvBn {
         let (y, bn) = match mode {
             BatchNormMode::Batch => self.bn.forward_train(z),
             BatchNormMode::Frozen => self.bn.forward_frozen(z),
+            BatchNormMode::Tracking => self.bn.forward_tracking(z),
         };
         let output = y.relu();
         let cache = ConvBnCache {
@@ -204,7 +209,7 @@ impl ConvBn {
         }
         let (gz, bn_grad) = match cache.mode {
             BatchNormMode::Batch => self.bn.backward(&g, &cache.bn),
-            BatchNormMode::Frozen => self.bn.backward_frozen(&g, &cache.bn),
+            BatchNormMode::Frozen | BatchNormMode::Tracking => self.bn.backward_frozen(&g, &cache.bn),
         };
         let gz = match self.kind {
             ConvKind::Down => gz.upsample2_zeros(cache.input_spatial),
@@ -607,8 +612,8 @@ mod layer_tests {
     use crate::nn::conv::tests::{random, random_values};
 
     #[test]
-    fn conv_bn_layers_match_finite_differences_in_both_modes() {
-        for mode in [BatchNormMode::Frozen, BatchNormMode::Batch] {
+    fn conv_bn_layers_match_finite_differences_in_every_mode() {
+        for mode in [BatchNormMode::Frozen, BatchNormMode::Tracking, BatchNormMode::Batch] {
             for (kind, k, shape) in [
                 (ConvKind::Same, 3, [4, 4, 6, 6]),
                 (ConvKind::Down, 3, [4, 4, 6, 6]),

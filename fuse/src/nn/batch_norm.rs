@@ -117,6 +117,32 @@ impl BatchNorm {
         (out, BatchNormCache { normalised, inv_std })
     }
 
+    /// Training with tracked statistics: normalises with the running statistics like
+    /// [`BatchNorm::forward_frozen`] (the gradient is the frozen one, and training computes
+    /// the function inference will), then moves them by `momentum` towards this pass's batch
+    /// statistics (unbiased variance, as in train mode). With a small momentum the statistics
+    /// are an average over the last few dozen crops: they follow the weights, so the
+    /// activations stay normalised, and change little from one step to the next.
+    pub fn forward_tracking(&mut self, x: Tensor) -> (Tensor, BatchNormCache) {
+        let n = x.channel_len();
+        let stats: Vec<(f64, f64)> = (0..self.channels())
+            .map(|c| {
+                let values = x.channel(c);
+                let mean = values.iter().map(|v| f64::from(*v)).sum::<f64>() / n as f64;
+                let var = values.iter().map(|v| (f64::from(*v) - mean).powi(2)).sum::<f64>() / n as f64;
+                (mean, if n > 1 { var * n as f64 / (n - 1) as f64 } else { var })
+            })
+            .collect();
+        let out = self.forward_frozen(x);
+        self.num_batches_tracked += 1;
+        let momentum = self.momentum.unwrap_or(1.0 / self.num_batches_tracked as f32);
+        for (c, (mean, unbiased)) in stats.into_iter().enumerate() {
+            self.running_mean[c] = (1.0 - momentum) * self.running_mean[c] + momentum * mean as f32;
+            self.running_var[c] = (1.0 - momentum) * self.running_var[c] + momentum * unbiased as f32;
+        }
+        out
+    }
+
     /// Backward of [`BatchNorm::forward_frozen`]: `∂x = γ/σ · ∂y` and the γ, β gradients.
     pub fn backward_frozen(&self, grad: &Tensor, cache: &BatchNormCache) -> (Tensor, BatchNormGrad) {
         let n = grad.channel_len();
@@ -251,5 +277,32 @@ mod tests {
         let (folded, bias) = bn.fold_into(&w);
         assert!((folded[4] - w[4] * bn.weight[1] / (1.0 + EPS).sqrt()).abs() < 1e-6);
         assert!((bias[0] - 0.2).abs() < 1e-6);
+    }
+
+    #[test]
+    fn tracking_normalises_with_the_running_statistics_and_moves_them_like_train_mode() {
+        let x = random([2, 3, 4, 5], 6);
+        let mut bn = BatchNorm::new(2);
+        bn.running_mean = vec![0.4, -0.3];
+        bn.running_var = vec![2.0, 0.5];
+        bn.weight = vec![1.5, -0.7];
+        bn.momentum = Some(0.25);
+        let (frozen, _) = bn.forward_frozen(x.clone());
+        let mut trained = bn.clone();
+        trained.forward_train(x.clone());
+        let mut tracked = bn.clone();
+        let (y, _) = tracked.forward_tracking(x.clone());
+        // The output is the frozen one (the statistics before this pass) ...
+        assert_eq!(y.data, frozen.data);
+        // ... and the statistics moved a quarter of the way to the batch's, as train mode moves them.
+        for c in 0..2 {
+            assert!((tracked.running_mean[c] - trained.running_mean[c]).abs() < 1e-6);
+            assert!((tracked.running_var[c] - trained.running_var[c]).abs() < 1e-6);
+            assert!(
+                (tracked.running_mean[c] - bn.running_mean[c]).abs() > 1e-3,
+                "the mean did not move"
+            );
+        }
+        assert_eq!(tracked.num_batches_tracked, 1);
     }
 }

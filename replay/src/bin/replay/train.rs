@@ -77,6 +77,13 @@ pub struct TrainArgs {
     /// 100 steps it slowed learning from scratch (README, MFuseNet, Training (6)).
     #[arg(long, value_name = "N", default_value_t = 0)]
     recalibrate_every: u64,
+    /// Track the BatchNorm statistics: each step normalises with the running statistics (what
+    /// inference computes) and then moves them by M towards its crop's, so that they follow
+    /// the weights a little at a time and the activations stay normalised (e.g. 0.05, about
+    /// the last 20 crops); 0 = frozen after the start, as the shipped files before 2026-11-24
+    /// were trained, whose activations grew tenfold per layer.
+    #[arg(long, value_name = "M", default_value_t = 0.0)]
+    statistics_momentum: f32,
     /// Steps between validations.
     #[arg(long, default_value_t = TrainConfig::default().validate_every)]
     validate_every: u64,
@@ -120,6 +127,7 @@ impl TrainArgs {
             init_weights: self.init_weights.clone(),
             disparity_shift: self.disparity_shift,
             recalibrate_every: self.recalibrate_every,
+            statistics_momentum: self.statistics_momentum,
             input: InputSpec {
                 block_radius: self.input_block_radius,
                 ..InputSpec::default()
