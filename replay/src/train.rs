@@ -138,7 +138,7 @@ pub struct TrainConfig {
     /// Track the BatchNorm statistics while training: every step normalises with the running
     /// statistics (as inference does) and then moves them by this momentum towards the step's
     /// crop's batch statistics (`BatchNorm::forward_tracking`), so that they follow the weights
-    /// a little at a time; 0 = frozen after the start (the shipped files before 2026-11-24).
+    /// a little at a time; 0 = frozen after the start (how the shipped files were trained).
     #[serde(default, skip_serializing_if = "is_zero_f32")]
     pub statistics_momentum: f32,
 }

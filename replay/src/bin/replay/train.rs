@@ -79,9 +79,10 @@ pub struct TrainArgs {
     recalibrate_every: u64,
     /// Track the BatchNorm statistics: each step normalises with the running statistics (what
     /// inference computes) and then moves them by M towards its crop's, so that they follow
-    /// the weights a little at a time and the activations stay normalised (e.g. 0.05, about
-    /// the last 20 crops); 0 = frozen after the start, as the shipped files before 2026-11-24
-    /// were trained, whose activations grew tenfold per layer.
+    /// the weights a little at a time and the activations stay normalised (0.005 ≈ the last
+    /// 200 crops; 0.05 broke learning); 0 = frozen after the start, as the shipped files were
+    /// trained (their activations grew tenfold per layer, yet they score better: README,
+    /// MFuseNet, Training (6)).
     #[arg(long, value_name = "M", default_value_t = 0.0)]
     statistics_momentum: f32,
     /// Steps between validations.
