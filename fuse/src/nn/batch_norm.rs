@@ -72,12 +72,10 @@ impl BatchNorm {
         let mut normalised = x;
         let mut inv_std = Vec::with_capacity(self.channels());
         let mut out = Tensor::zeros(normalised.shape);
-        self.num_batches_tracked += 1;
-        let momentum = self.momentum.unwrap_or(1.0 / self.num_batches_tracked as f32);
+        let mut statistics = Vec::with_capacity(self.channels());
         for c in 0..self.channels() {
             let values = &mut normalised.data[c * n..(c + 1) * n];
-            let mean = values.iter().map(|v| f64::from(*v)).sum::<f64>() / n as f64;
-            let var = values.iter().map(|v| (f64::from(*v) - mean).powi(2)).sum::<f64>() / n as f64;
+            let (mean, var) = mean_and_variance(values);
             let inv = 1.0 / (var + f64::from(EPS)).sqrt();
             let (g, b) = (self.weight[c], self.bias[c]);
             for (v, o) in values.iter_mut().zip(&mut out.data[c * n..(c + 1) * n]) {
@@ -85,11 +83,23 @@ impl BatchNorm {
                 *o = *v * g + b;
             }
             inv_std.push(inv as f32);
+            statistics.push((mean, var));
+        }
+        self.update_running(&statistics, n);
+        (out, BatchNormCache { normalised, inv_std })
+    }
+
+    /// Moves the running statistics by `momentum` (or the cumulative average) towards a batch's
+    /// per-channel `(mean, biased variance)` over `n` values; the variance is stored unbiased,
+    /// as PyTorch does.
+    fn update_running(&mut self, statistics: &[(f64, f64)], n: usize) {
+        self.num_batches_tracked += 1;
+        let momentum = self.momentum.unwrap_or(1.0 / self.num_batches_tracked as f32);
+        for (c, &(mean, var)) in statistics.iter().enumerate() {
             let unbiased = if n > 1 { var * n as f64 / (n - 1) as f64 } else { var };
             self.running_mean[c] = (1.0 - momentum) * self.running_mean[c] + momentum * mean as f32;
             self.running_var[c] = (1.0 - momentum) * self.running_var[c] + momentum * unbiased as f32;
         }
-        (out, BatchNormCache { normalised, inv_std })
     }
 
     /// Training with frozen statistics: normalises with the running statistics (as in eval
@@ -125,21 +135,9 @@ impl BatchNorm {
     /// activations stay normalised, and change little from one step to the next.
     pub fn forward_tracking(&mut self, x: Tensor) -> (Tensor, BatchNormCache) {
         let n = x.channel_len();
-        let stats: Vec<(f64, f64)> = (0..self.channels())
-            .map(|c| {
-                let values = x.channel(c);
-                let mean = values.iter().map(|v| f64::from(*v)).sum::<f64>() / n as f64;
-                let var = values.iter().map(|v| (f64::from(*v) - mean).powi(2)).sum::<f64>() / n as f64;
-                (mean, if n > 1 { var * n as f64 / (n - 1) as f64 } else { var })
-            })
-            .collect();
+        let statistics: Vec<(f64, f64)> = (0..self.channels()).map(|c| mean_and_variance(x.channel(c))).collect();
         let out = self.forward_frozen(x);
-        self.num_batches_tracked += 1;
-        let momentum = self.momentum.unwrap_or(1.0 / self.num_batches_tracked as f32);
-        for (c, (mean, unbiased)) in stats.into_iter().enumerate() {
-            self.running_mean[c] = (1.0 - momentum) * self.running_mean[c] + momentum * mean as f32;
-            self.running_var[c] = (1.0 - momentum) * self.running_var[c] + momentum * unbiased as f32;
-        }
+        self.update_running(&statistics, n);
         out
     }
 
@@ -227,6 +225,14 @@ impl BatchNorm {
         }
         x
     }
+}
+
+/// Mean and biased variance of one channel's values, accumulated in f64.
+fn mean_and_variance(values: &[f32]) -> (f64, f64) {
+    let n = values.len().max(1) as f64;
+    let mean = values.iter().map(|v| f64::from(*v)).sum::<f64>() / n;
+    let var = values.iter().map(|v| (f64::from(*v) - mean).powi(2)).sum::<f64>() / n;
+    (mean, var)
 }
 
 #[cfg(test)]
