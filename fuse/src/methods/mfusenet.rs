@@ -15,7 +15,7 @@ use serde::{Deserialize, Serialize};
 use super::{Family, Method, MethodEntry, Progress, apply_overrides};
 use crate::FuseError;
 use crate::image::DisparityImage;
-use crate::mfusenet::infer::{DEFAULT_TILE_BUDGET_BYTES, Estimate, infer};
+use crate::mfusenet::infer::{DEFAULT_REFINE_REACH, DEFAULT_TILE_BUDGET_BYTES, Estimate, infer};
 use crate::mfusenet::input::{InputSpec, input_volumes_below, ordered_neighbours, views_for};
 use crate::mfusenet::{Network, weights};
 use crate::postprocess::median3x3;
@@ -60,6 +60,10 @@ pub struct MFuseNetConfig {
     /// the weights file's metadata `estimate` says (`refine` or `soft-argmin`, the paper's and
     /// the default when the file does not say).
     pub refine: Option<bool>,
+    /// With the refined estimate: how far (px) it may move from the network's integer to a
+    /// neighbouring minimum of the summed input costs when the integer is not one itself
+    /// (`mfusenet::infer::refined`); 0 = the integer's own minimum only.
+    pub refine_reach: f64,
     /// A 3×3 median on the result (as block matching and SGM do).
     pub median: bool,
     /// The network sees this many disparities under the searched range as well (negative ones
@@ -77,6 +81,7 @@ impl Default for MFuseNetConfig {
             tile_budget_mib: DEFAULT_TILE_BUDGET_BYTES >> 20,
             window: None,
             refine: None,
+            refine_reach: DEFAULT_REFINE_REACH,
             median: false,
             room_below: None,
         }
@@ -215,6 +220,7 @@ impl Method for MFuseNet {
             Estimate {
                 window: self.config.window,
                 refine: self.config.refine.unwrap_or(loaded.refine),
+                refine_reach: self.config.refine_reach,
                 context_below: usize::try_from(problem.min_disparity as i64 - first).unwrap_or(0),
             },
             &|f| progress(0.1 + 0.9 * f),
