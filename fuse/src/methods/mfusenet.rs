@@ -64,7 +64,8 @@ pub struct MFuseNetConfig {
     /// neighbouring minimum of the summed input costs when the integer is not one itself
     /// (`mfusenet::infer::refined`); 0 = the integer's own minimum only.
     pub refine_reach: f64,
-    /// A 3×3 median on the result (as block matching and SGM do).
+    /// A 3×3 median on the result, as block matching and SGM do (shipped three-view network:
+    /// Middlebury 0.395 → 0.391 px, held-out simulated five-view 0.347 → 0.338 px).
     pub median: bool,
     /// The network sees this many disparities under the searched range as well (negative ones
     /// included), so that answers at the range's start are not in its first slices, where it
@@ -82,7 +83,7 @@ impl Default for MFuseNetConfig {
             window: None,
             refine: None,
             refine_reach: DEFAULT_REFINE_REACH,
-            median: false,
+            median: true,
             room_below: None,
         }
     }
