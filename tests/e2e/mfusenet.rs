@@ -110,6 +110,19 @@ fn replay_runs_mfusenet_and_names_bad_weight_files() {
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert_eq!(output.status.code(), Some(1), "{stderr}");
     assert!(stderr.contains("five-view network needs"), "{stderr}");
+    // A readout reach that is no distance is named with its value.
+    let output = replay(&[
+        log,
+        "--method",
+        "mfusenet",
+        "--config",
+        r#"{"refine_reach": -1}"#,
+        "--out",
+        out.to_str().unwrap_or_default(),
+    ]);
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert_eq!(output.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains("refine_reach = -1"), "{stderr}");
 }
 
 fn train(dir: &Path, steps: &str) -> serde_json::Value {

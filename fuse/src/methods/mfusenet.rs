@@ -196,6 +196,13 @@ impl Method for MFuseNet {
         let loaded = self.network_for(problem)?;
         let net = &loaded.net;
         let neighbours = ordered_neighbours(problem, net.views)?;
+        if !(self.config.refine_reach >= 0.0 && self.config.refine_reach.is_finite()) {
+            return Err(FuseError::Config {
+                field: "refine_reach",
+                value: self.config.refine_reach.to_string(),
+                reason: "a distance in pixels, 0 or more",
+            });
+        }
         let room_below = self.config.room_below.unwrap_or(loaded.context_below);
         if room_below > weights::MAX_CONTEXT_BELOW {
             return Err(FuseError::Config {
