@@ -13,7 +13,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use fuse::mfusenet::infer::DEFAULT_REFINE_REACH;
-use fuse::mfusenet::input::{InputSpec, input_volumes, ordered_neighbours};
+use fuse::mfusenet::input::{InputSpec, input_volumes_below, ordered_neighbours};
 use fuse::mfusenet::network::BatchNormMode;
 use fuse::mfusenet::train::{
     Adam, Example, clip_gradients, crop, load_checkpoint, recalibrate_batch_norm, save_checkpoint,
@@ -142,6 +142,18 @@ pub struct TrainConfig {
     /// a little at a time; 0 = frozen after the start (how the shipped files were trained).
     #[serde(default, skip_serializing_if = "is_zero_f32")]
     pub statistics_momentum: f32,
+    /// Context below the range, as inference gives it (`fuse::mfusenet::input::input_volumes_below`):
+    /// the dataset's volumes start this many disparities under 0 (each neighbour mirrored) and
+    /// the targets move up by as many, so the network trains on what it sees at inference,
+    /// image borders included (where a neighbour's correspondences leave its image and its
+    /// costs under 0 are its only finite ones); the weights' metadata `context_below` says it.
+    /// A multiple of 4 up to 16; not with `disparity_shift`. 0 = off.
+    #[serde(default, skip_serializing_if = "is_zero_usize")]
+    pub context_below: usize,
+}
+
+fn is_zero_usize(n: &usize) -> bool {
+    *n == 0
 }
 
 fn is_zero(n: &u64) -> bool {
@@ -169,6 +181,7 @@ impl Default for TrainConfig {
             disparity_shift: 0,
             recalibrate_every: 0,
             statistics_momentum: 0.0,
+            context_below: 0,
             scenes: vec![
                 SceneKind::Random,
                 SceneKind::Random,
@@ -286,6 +299,16 @@ impl TrainConfig {
                 "a multiple of 4 leaving at least 8 disparities",
             );
         }
+        if !self.context_below.is_multiple_of(4)
+            || self.context_below > weights::MAX_CONTEXT_BELOW
+            || (self.context_below > 0 && self.disparity_shift > 0)
+        {
+            return bad(
+                "context_below",
+                self.context_below.to_string(),
+                "a multiple of 4 up to 16, and not with disparity_shift",
+            );
+        }
         if !(0.0..1.0).contains(&self.statistics_momentum) {
             return bad(
                 "statistics_momentum",
@@ -305,10 +328,16 @@ impl TrainConfig {
         Ok(())
     }
 
+    /// Disparity slices of the dataset's volumes and of every crop: the range plus the context
+    /// below it.
+    pub fn depth(&self) -> usize {
+        self.disparities + self.context_below
+    }
+
     /// A hash of everything that makes the dataset (seed, captures, volumes): cached samples
     /// are reused only by runs that would make the same ones.
     pub fn data_key(&self) -> u64 {
-        let key = serde_json::json!({
+        let mut key = serde_json::json!({
             "seed": self.seed,
             "resolution": self.resolution,
             "baseline_mm": self.baseline_mm,
@@ -320,8 +349,12 @@ impl TrainConfig {
             "steps_per_unit": fuse::mfusenet::input::STEPS_PER_UNIT,
             // Bumped when `record`'s scene generator changes what a seed draws.
             "scene_generator": 5,
-        })
-        .to_string();
+        });
+        // Only when set, so that the keys of datasets made without it stay as they were.
+        if self.context_below > 0 {
+            key["context_below"] = self.context_below.into();
+        }
+        let key = key.to_string();
         // FNV-1a.
         key.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| {
             (h ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3)
@@ -382,7 +415,7 @@ pub fn sample(config: &TrainConfig, index: usize, validation: bool, cache_dir: &
     );
     let path = cache_dir.join(name);
     if let Ok(bytes) = std::fs::read(&path)
-        && let Some(sample) = read_sample(&bytes, config.disparities)
+        && let Some(sample) = read_sample(&bytes, config.depth())
     {
         return Ok(sample);
     }
@@ -405,11 +438,16 @@ pub fn sample(config: &TrainConfig, index: usize, validation: bool, cache_dir: &
         .problem(0, config.disparities, false)
         .map_err(|source| TrainError::Replay { index, source })?;
     let neighbours = ordered_neighbours(&problem, 4).map_err(|source| TrainError::Fuse { index, source })?;
-    let volumes = input_volumes(&problem, &neighbours, config.input, &|| {})
-        .map_err(|source| TrainError::Fuse { index, source })?;
+    let volumes = input_volumes_below(&problem, &neighbours, config.input, config.context_below, &|| {})
+        .map_err(|source| TrainError::Fuse { index, source })?
+        .0;
+    let below = config.context_below as f32;
     let truth = view_set
         .ground_truth_disparity()
-        .ok_or_else(|| file_error(&path, "the simulated set has no ground truth".to_owned()))?;
+        .ok_or_else(|| file_error(&path, "the simulated set has no ground truth".to_owned()))?
+        .into_iter()
+        .map(|t| if t > 0.0 { t + below } else { t })
+        .collect();
     let sample = Sample { volumes, truth };
     write_sample(&sample, &path)?;
     Ok(sample)
@@ -692,7 +730,7 @@ pub fn train(
             reason: "interrupted before the dataset was complete (the captures made so far are cached)",
         });
     }
-    let val_examples = validation_examples(&val_samples, config.views, config.disparities);
+    let val_examples = validation_examples(&val_samples, config.views, config.depth());
     let (wta_avg, wta_bad1) = winner_take_all_reference(&val_examples);
     tracing::info!(
         "validation crops: winner-take-all of the mean input volume gives AvgErr {wta_avg:.3} px, Bad1 {wta_bad1:.2} % (the network must do better)"
@@ -843,7 +881,13 @@ pub fn train(
     // A network trained on crops that start below their answers (`--disparity-shift`) is run
     // with 4 slices of context below the searched range (measured: the three-view network on
     // Middlebury 0.442 -> 0.410 px); one trained without them never saw that and is run without.
-    info.set("context_below", config.disparity_shift.min(4).to_string());
+    // A network trained with context below its range (`context_below`) is run with as much.
+    let context = if config.context_below > 0 {
+        config.context_below
+    } else {
+        config.disparity_shift.min(4)
+    };
+    info.set("context_below", context.to_string());
     info.set("made_by", command);
     info.set("steps", adam.step.to_string());
     if let Some((avg, bad1)) = last_validation {
@@ -903,7 +947,7 @@ fn random_crop(config: &TrainConfig, samples: &[Sample], rng: &mut Rng) -> Examp
             &s.truth,
             (y0, x0),
             (config.crop, config.crop),
-            config.disparities,
+            config.depth(),
         );
         if config.disparity_shift > 0 {
             e = shifted(e, 4 * rng.below(config.disparity_shift / 4 + 1));

@@ -268,3 +268,52 @@ fn training_resumes_and_its_weights_run() {
     ]);
     assert_success(&output, "replay with trained weights");
 }
+
+/// The JSON header of a safetensors file (tensor shapes and `__metadata__`).
+fn safetensors_header(path: &Path) -> serde_json::Value {
+    let bytes = std::fs::read(path).unwrap_or_default();
+    let header_len = bytes
+        .get(..8)
+        .map_or(0, |b| u64::from_le_bytes(b.try_into().unwrap_or([0; 8])) as usize);
+    serde_json::from_slice(bytes.get(8..8 + header_len).unwrap_or_default())
+        .unwrap_or_else(|e| panic!("safetensors header of {}: {e}", path.display()))
+}
+
+#[test]
+fn training_can_give_its_network_context_below_the_range() {
+    // `--context-below 4`: the dataset's volumes are 4 slices deeper (costs under 0), the run's
+    // configuration says it, and the weights' metadata asks inference for the same context.
+    let dir = temp_dir();
+    let run = train_with(dir.path(), "2", &["--context-below", "4"]);
+    assert_eq!(run["config"]["context_below"], 4, "{run}");
+    assert!(run["val_avg_err_px"].as_f64().is_some_and(f64::is_finite), "{run}");
+    let metadata = &safetensors_header(&dir.path().join("run/mfusenet-3view.safetensors"))["__metadata__"];
+    assert_eq!(metadata["context_below"], "4", "{metadata}");
+    let samples: Vec<_> = std::fs::read_dir(dir.path().join("dataset"))
+        .map(|entries| entries.filter_map(Result::ok).map(|e| e.path()).collect())
+        .unwrap_or_default();
+    assert_eq!(samples.len(), 3, "{samples:?}");
+    for sample in &samples {
+        let header = safetensors_header(sample);
+        // 96×72 px, 12 disparities + 4 below.
+        assert_eq!(
+            header["volume.0"]["shape"],
+            serde_json::json!([72, 96, 16]),
+            "{}",
+            sample.display()
+        );
+    }
+    // Not with the disparity shift, which would drop the context: an error naming the option.
+    let output = replay(&[
+        "train",
+        "--dir",
+        dir.path().join("other").to_str().unwrap_or_default(),
+        "--context-below",
+        "4",
+        "--disparity-shift",
+        "4",
+        "-q",
+    ]);
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(!output.status.success() && stderr.contains("context_below"), "{stderr}");
+}

@@ -85,6 +85,14 @@ pub struct TrainArgs {
     /// MFuseNet, Training (6)).
     #[arg(long, value_name = "M", default_value_t = 0.0)]
     statistics_momentum: f32,
+    /// Train with N disparities of context below the range, as inference gives it (costs under
+    /// 0 from each neighbour mirrored; the dataset is made anew): the network learns those
+    /// slices are never the answer, at the image borders too, where a neighbour's only finite
+    /// costs are under 0 (the shipped three-view network, trained with --disparity-shift
+    /// instead and run with 4 slices of context, fails there: README, Results, known failure).
+    /// A multiple of 4 up to 16; not with --disparity-shift.
+    #[arg(long, value_name = "N", default_value_t = 0)]
+    context_below: usize,
     /// Steps between validations.
     #[arg(long, default_value_t = TrainConfig::default().validate_every)]
     validate_every: u64,
@@ -129,6 +137,7 @@ impl TrainArgs {
             disparity_shift: self.disparity_shift,
             recalibrate_every: self.recalibrate_every,
             statistics_momentum: self.statistics_momentum,
+            context_below: self.context_below,
             input: InputSpec {
                 block_radius: self.input_block_radius,
                 ..InputSpec::default()
