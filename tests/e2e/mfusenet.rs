@@ -226,12 +226,7 @@ fn training_resumes_and_its_weights_run() {
     // The weights load through --weights, and their metadata says how to read the output
     // (the estimate that validated better).
     let weights = dir.path().join("run/mfusenet-3view.safetensors");
-    let bytes = std::fs::read(&weights).unwrap_or_default();
-    let header_len = bytes
-        .get(..8)
-        .map_or(0, |b| u64::from_le_bytes(b.try_into().unwrap_or([0; 8])) as usize);
-    let header: serde_json::Value = serde_json::from_slice(bytes.get(8..8 + header_len).unwrap_or_default())
-        .unwrap_or_else(|e| panic!("safetensors header of {}: {e}", weights.display()));
+    let header = safetensors_header(&weights);
     let metadata = &header["__metadata__"];
     assert!(
         matches!(metadata["estimate"].as_str(), Some("refine" | "soft-argmin")),
