@@ -11,7 +11,7 @@ use rayon::prelude::*;
 
 use crate::cost::INVALID_COST;
 use crate::volume::CostVolume;
-use crate::wta::winner_take_all;
+use crate::wta::{SubpixelFit, winner_take_all};
 
 /// Scales costs so that the sum of eight paths fits `u16`: returns the right shift to apply.
 pub fn cost_shift(max_cost: u32, p2: u32) -> u32 {
@@ -176,7 +176,7 @@ pub fn select(
     max_cost: u32,
     (p1, p2): (u16, u16),
     min_disparity: usize,
-    subpixel: bool,
+    subpixel: Option<SubpixelFit>,
 ) -> Vec<f32> {
     let penalties = Penalties::new(max_cost, p1, p2);
     let mut out = vec![f32::INFINITY; width * height];
@@ -192,7 +192,7 @@ pub fn select(
 /// Where the last pass puts the winners instead of the sums.
 struct Selection<'a> {
     min_disparity: usize,
-    subpixel: bool,
+    subpixel: Option<SubpixelFit>,
     out: &'a mut [f32],
 }
 
@@ -316,7 +316,7 @@ struct BlockJob<'a> {
     geometry: Geometry,
     penalties: &'a Penalties,
     downward: bool,
-    pick: Option<(usize, bool)>,
+    pick: Option<(usize, Option<SubpixelFit>)>,
     columns: std::ops::Range<usize>,
     worker: usize,
     exchange: &'a Exchange,
@@ -664,7 +664,7 @@ mod tests {
             let max_cost = 1100 >> 3;
             let reference = aggregate_reference(&volume, w, h, nd, max_cost, 40, 400);
             let mut expected = vec![0.0f32; w * h];
-            winner_take_all(&reference, nd, 3, true, &mut expected);
+            winner_take_all(&reference, nd, 3, Some(SubpixelFit::Parabola), &mut expected);
             // One, two and three column blocks (with edge exchanges between them).
             for threads in [1, 2, 3] {
                 let pool = rayon::ThreadPoolBuilder::new()
@@ -676,7 +676,7 @@ mod tests {
                         aggregate(&volume, w, h, nd, max_cost, 40, 400) == reference,
                         "{w}x{h}x{nd} {threads}"
                     );
-                    let selected = select(&volume, w, h, nd, max_cost, (40, 400), 3, true);
+                    let selected = select(&volume, w, h, nd, max_cost, (40, 400), 3, Some(SubpixelFit::Parabola));
                     assert!(
                         selected
                             .iter()
@@ -708,7 +708,7 @@ mod tests {
         }
         let sum = aggregate(&volume, w, h, nd, 20, 3, 12);
         let mut disparity = vec![0.0f32; w * h];
-        winner_take_all(&sum, nd, 0, false, &mut disparity);
+        winner_take_all(&sum, nd, 0, None, &mut disparity);
         assert!(disparity.iter().all(|d| *d == 2.0), "{disparity:?}");
     }
 

@@ -12,7 +12,7 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
-use fuse::mfusenet::infer::DEFAULT_REFINE_REACH;
+use fuse::mfusenet::infer::{DEFAULT_REFINE_REACH, DEFAULT_SUBPIXEL_FIT};
 use fuse::mfusenet::input::{InputSpec, input_volumes_below, ordered_neighbours};
 use fuse::mfusenet::network::BatchNormMode;
 use fuse::mfusenet::train::{
@@ -631,7 +631,8 @@ pub fn validate_estimates(net: &Network, examples: &[Example]) -> Result<Validat
                     .map(|v| f64::from(v.data[z * plane + pixel]))
                     .sum::<f64>()
             };
-            let refined = fuse::mfusenet::infer::refined(f64::from(*d), cost, depth, DEFAULT_REFINE_REACH);
+            let refined =
+                fuse::mfusenet::infer::refined(f64::from(*d), cost, depth, DEFAULT_REFINE_REACH, DEFAULT_SUBPIXEL_FIT);
             for (sum, value) in sums.iter_mut().zip([f64::from(*d), refined]) {
                 let error = (value - f64::from(*t)).abs();
                 sum.0 += error;

@@ -15,11 +15,12 @@ use serde::{Deserialize, Serialize};
 use super::{Family, Method, MethodEntry, Progress, apply_overrides};
 use crate::FuseError;
 use crate::image::DisparityImage;
-use crate::mfusenet::infer::{DEFAULT_REFINE_REACH, DEFAULT_TILE_BUDGET_BYTES, Estimate, infer};
+use crate::mfusenet::infer::{DEFAULT_REFINE_REACH, DEFAULT_SUBPIXEL_FIT, DEFAULT_TILE_BUDGET_BYTES, Estimate, infer};
 use crate::mfusenet::input::{InputSpec, input_volumes_below, ordered_neighbours, views_for};
 use crate::mfusenet::{Network, weights};
 use crate::postprocess::median3x3;
 use crate::volume::Problem;
+use crate::wta::SubpixelFit;
 
 /// The shipped weights, per number of input volumes.
 const SHIPPED: [(usize, &str, &[u8]); 3] = [
@@ -64,6 +65,10 @@ pub struct MFuseNetConfig {
     /// neighbouring minimum of the summed input costs when the integer is not one itself
     /// (`mfusenet::infer::refined`); 0 = the integer's own minimum only.
     pub refine_reach: f64,
+    /// With the refined estimate: the curve through the summed input costs whose vertex is the
+    /// sub-pixel disparity, `equiangular` (default) or `parabola` (see `wta::SubpixelFit` and
+    /// `mfusenet::infer::DEFAULT_SUBPIXEL_FIT`).
+    pub subpixel_fit: SubpixelFit,
     /// A 3×3 median on the result, as block matching and SGM do (shipped three-view network:
     /// Middlebury 0.395 → 0.391 px, held-out simulated five-view 0.347 → 0.338 px).
     pub median: bool,
@@ -83,6 +88,7 @@ impl Default for MFuseNetConfig {
             window: None,
             refine: None,
             refine_reach: DEFAULT_REFINE_REACH,
+            subpixel_fit: DEFAULT_SUBPIXEL_FIT,
             median: true,
             room_below: None,
         }
@@ -229,6 +235,7 @@ impl Method for MFuseNet {
                 window: self.config.window,
                 refine: self.config.refine.unwrap_or(loaded.refine),
                 refine_reach: self.config.refine_reach,
+                fit: self.config.subpixel_fit,
                 context_below: usize::try_from(problem.min_disparity as i64 - first).unwrap_or(0),
             },
             &|f| progress(0.1 + 0.9 * f),

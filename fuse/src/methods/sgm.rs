@@ -12,6 +12,7 @@ use crate::image::DisparityImage;
 use crate::postprocess::median3x3;
 use crate::sgm::{quantisation_shift, quantise_penalty, select};
 use crate::volume::{CostSpec, PreparedProblem, Problem, band_rows};
+use crate::wta::SubpixelFit;
 
 /// Configuration of SGM.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -27,8 +28,11 @@ pub struct SgmConfig {
     pub p1: u16,
     /// Penalty for larger disparity changes.
     pub p2: u16,
-    /// Sub-pixel parabola refinement.
+    /// Sub-pixel refinement of the winners.
     pub subpixel: bool,
+    /// The curve whose vertex is the sub-pixel disparity: `equiangular` (default; SGM's sums of
+    /// census distances have V-shaped minima) or `parabola` (see `wta::SubpixelFit`).
+    pub subpixel_fit: SubpixelFit,
     /// 3×3 median filter on the result.
     pub median: bool,
 }
@@ -44,6 +48,7 @@ impl Default for SgmConfig {
             p1: 300,
             p2: 3000,
             subpixel: true,
+            subpixel_fit: SubpixelFit::Equiangular,
             median: true,
         }
     }
@@ -91,7 +96,7 @@ impl Method for Sgm {
             max_cost,
             (p1, p2),
             problem.min_disparity,
-            self.config.subpixel,
+            self.config.subpixel.then_some(self.config.subpixel_fit),
         );
         drop(volume);
         progress(0.95);
