@@ -147,7 +147,8 @@ pub struct TrainConfig {
     /// the targets move up by as many, so the network trains on what it sees at inference,
     /// image borders included (where a neighbour's correspondences leave its image and its
     /// costs under 0 are its only finite ones); the weights' metadata `context_below` says it.
-    /// A multiple of 4 up to 16; not with `disparity_shift`. 0 = off.
+    /// A multiple of 4 up to 16; with `disparity_shift` a crop's first `context_below` slices
+    /// after the shift are its context (pixels whose truth falls there are not asked for). 0 = off.
     #[serde(default, skip_serializing_if = "is_zero_usize")]
     pub context_below: usize,
 }
@@ -299,14 +300,11 @@ impl TrainConfig {
                 "a multiple of 4 leaving at least 8 disparities",
             );
         }
-        if !self.context_below.is_multiple_of(4)
-            || self.context_below > weights::MAX_CONTEXT_BELOW
-            || (self.context_below > 0 && self.disparity_shift > 0)
-        {
+        if !self.context_below.is_multiple_of(4) || self.context_below > weights::MAX_CONTEXT_BELOW {
             return bad(
                 "context_below",
                 self.context_below.to_string(),
-                "a multiple of 4 up to 16, and not with disparity_shift",
+                "a multiple of 4 up to 16",
             );
         }
         if !(0.0..1.0).contains(&self.statistics_momentum) {
@@ -952,6 +950,13 @@ fn random_crop(config: &TrainConfig, samples: &[Sample], rng: &mut Rng) -> Examp
         );
         if config.disparity_shift > 0 {
             e = shifted(e, 4 * rng.below(config.disparity_shift / 4 + 1));
+            // With context below the range, the crop's first `context_below` slices are its
+            // context (real costs once shifted, as inference has them inside a wider range):
+            // pixels whose truth falls there are not asked for.
+            let context = config.context_below as f32;
+            for (m, t) in e.mask.iter_mut().zip(&e.target) {
+                *m = *m && *t >= context;
+            }
         }
         let enough = e.mask.iter().filter(|m| **m).count() * 2 > e.mask.len() && !hopeless(&e);
         example = Some(e);

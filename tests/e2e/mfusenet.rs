@@ -298,17 +298,48 @@ fn training_can_give_its_network_context_below_the_range() {
             sample.display()
         );
     }
-    // Not with the disparity shift, which would drop the context: an error naming the option.
-    let output = replay(&[
+    // With the disparity shift as well, on the same dataset (the shift is drawn per crop: the
+    // samples are reused, none is added), and the metadata still asks for the context.
+    let shifted_run = dir.path().join("shifted");
+    let dataset = dir.path().join("dataset");
+    let common = [
         "train",
-        "--dir",
-        dir.path().join("other").to_str().unwrap_or_default(),
+        "--views",
+        "2",
+        "--dataset-dir",
+        dataset.to_str().unwrap_or_default(),
+        "--resolution",
+        "96x72",
+        "--disparities",
+        "12",
+        "--crop",
+        "32",
+        "--train-sets",
+        "2",
+        "--val-sets",
+        "1",
+        "--steps",
+        "2",
+        "-q",
         "--context-below",
+    ];
+    let mut args = common.to_vec();
+    args.extend([
         "4",
         "--disparity-shift",
         "4",
-        "-q",
+        "--dir",
+        shifted_run.to_str().unwrap_or_default(),
     ]);
+    let output = replay(&args);
+    assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
+    let metadata = &safetensors_header(&shifted_run.join("mfusenet-3view.safetensors"))["__metadata__"];
+    assert_eq!(metadata["context_below"], "4", "{metadata}");
+    assert_eq!(std::fs::read_dir(&dataset).map(Iterator::count).unwrap_or(0), 3);
+    // Not a multiple of 4: an error naming the option.
+    let mut args = common.to_vec();
+    args.extend(["6", "--dir", dir.path().join("other").to_str().unwrap_or_default()]);
+    let output = replay(&args);
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(!output.status.success() && stderr.contains("context_below"), "{stderr}");
 }

@@ -90,7 +90,9 @@ pub struct TrainArgs {
     /// slices are never the answer, at the image borders too, where a neighbour's only finite
     /// costs are under 0 (the shipped three-view network, trained with --disparity-shift
     /// instead and run with 4 slices of context, fails there: README, Results, known failure).
-    /// A multiple of 4 up to 16; not with --disparity-shift.
+    /// A multiple of 4 up to 16. With --disparity-shift the crop's first N slices after the
+    /// shift are its context (real costs then, as inside a wider range at inference), and
+    /// pixels whose truth falls there are not asked for.
     #[arg(long, value_name = "N", default_value_t = 0)]
     context_below: usize,
     /// Steps between validations.
