@@ -337,8 +337,9 @@ fn training_can_give_its_network_context_below_the_range() {
     assert_eq!(metadata["context_below"], "4", "{metadata}");
     assert_eq!(std::fs::read_dir(&dataset).map(Iterator::count).unwrap_or(0), 3);
     // Not a multiple of 4: an error naming the option.
+    let other = dir.path().join("other");
     let mut args = common.to_vec();
-    args.extend(["6", "--dir", dir.path().join("other").to_str().unwrap_or_default()]);
+    args.extend(["6", "--dir", other.to_str().unwrap_or_default()]);
     let output = replay(&args);
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(!output.status.success() && stderr.contains("context_below"), "{stderr}");
