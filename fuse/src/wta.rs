@@ -17,11 +17,10 @@ use crate::cost::INVALID_COST;
 /// scene better; on the held-out simulated captures (`scripts/eval-simulated.sh`) `sgm-heuristic`
 /// 0.998 → 0.961 and three-view `mfusenet` 0.985 → 0.950. Block matching on Birchfield–Tomasi
 /// colour costs keeps the parabola (`bm-mean` 0.753 → 0.759 with the lines).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum SubpixelFit {
     /// `δ = (l − r) / (2 (l − 2c + r))`.
-    #[default]
     Parabola,
     /// `δ = (l − r) / (2 (max(l, r) − c))`: lines of equal and opposite slope through the
     /// lower neighbour and the steeper side.
@@ -30,9 +29,10 @@ pub enum SubpixelFit {
 
 impl SubpixelFit {
     /// The offset δ ∈ [−½, ½] of the vertex from the middle sample, when `c` is a minimum of the
-    /// three with a vertex (positive curvature, or a positive slope for the lines).
+    /// three with a vertex (positive curvature, or a positive slope for the lines); `None` for
+    /// non-finite costs.
     pub fn offset(self, [l, c, r]: [f64; 3]) -> Option<f64> {
-        if !(c <= l && c <= r) {
+        if !(c <= l && c <= r && l.is_finite() && r.is_finite()) {
             return None;
         }
         let denominator = match self {
@@ -123,10 +123,23 @@ mod tests {
             lines = lines.max((offset(SubpixelFit::Equiangular, v(m)) - m).abs());
         }
         assert!(locked > 0.08 && lines < 1e-9, "pixel locking {locked}, lines {lines}");
-        // No minimum at the middle sample, or flat: no vertex.
+        // No minimum at the middle sample, flat, or not finite: no vertex.
         for fit in [SubpixelFit::Parabola, SubpixelFit::Equiangular] {
             assert_eq!(fit.offset([1.0, 2.0, 3.0]), None);
             assert_eq!(fit.offset([2.0, 2.0, 2.0]), None);
+            assert_eq!(fit.offset([f64::INFINITY, 1.0, 3.0]), None);
+            assert_eq!(fit.offset([f64::NAN, 1.0, 3.0]), None);
+        }
+        // Configuration names.
+        for (fit, name) in [
+            (SubpixelFit::Parabola, "parabola"),
+            (SubpixelFit::Equiangular, "equiangular"),
+        ] {
+            assert_eq!(serde_json::to_value(fit).ok(), Some(serde_json::json!(name)));
+            assert_eq!(
+                serde_json::from_value::<SubpixelFit>(serde_json::json!(name)).ok(),
+                Some(fit)
+            );
         }
         // Through the winner-take-all: a V with its minimum at 2.3.
         let costs: Vec<u16> = (0..6).map(|d| ((d as f32 - 2.3).abs() * 1000.0) as u16).collect();

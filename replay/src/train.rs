@@ -586,8 +586,8 @@ fn hopeless(example: &Example) -> bool {
 pub struct Validation {
     /// The paper's soft-argmin over the whole range.
     pub soft_argmin: (f64, f64),
-    /// The integer nearest the soft-argmin, refined by a parabola through the summed inputs
-    /// (`fuse::mfusenet::infer::Estimate::refine`).
+    /// The integer nearest the soft-argmin, refined by the shipped fit through the summed
+    /// inputs (`fuse::mfusenet::infer::Estimate::refine`, `DEFAULT_SUBPIXEL_FIT`).
     pub refined: (f64, f64),
     /// Mean over the validated pixels of the logits' range over disparity (max − min): how
     /// peaked the softmax is. Tens in a healthy network; the three- and five-view files
@@ -949,14 +949,7 @@ fn random_crop(config: &TrainConfig, samples: &[Sample], rng: &mut Rng) -> Examp
             config.depth(),
         );
         if config.disparity_shift > 0 {
-            e = shifted(e, 4 * rng.below(config.disparity_shift / 4 + 1));
-            // With context below the range, the crop's first `context_below` slices are its
-            // context (real costs once shifted, as inference has them inside a wider range):
-            // pixels whose truth falls there are not asked for.
-            let context = config.context_below as f32;
-            for (m, t) in e.mask.iter_mut().zip(&e.target) {
-                *m = *m && *t >= context;
-            }
+            e = shifted(e, 4 * rng.below(config.disparity_shift / 4 + 1), config.context_below);
         }
         let enough = e.mask.iter().filter(|m| **m).count() * 2 > e.mask.len() && !hopeless(&e);
         example = Some(e);
@@ -972,9 +965,12 @@ fn random_crop(config: &TrainConfig, samples: &[Sample], rng: &mut Rng) -> Examp
 }
 
 /// `example` without its first `slices` disparity slices: targets move down by as many, and
-/// pixels whose truth falls below the new range no longer count.
-pub fn shifted(example: Example, slices: usize) -> Example {
+/// pixels whose truth falls below the new range, or in its first `context` slices (context
+/// below the range, `TrainConfig::context_below`: real costs under the crop's range where the
+/// shift reaches past them, the mirrored ones where it does not), no longer count.
+pub fn shifted(example: Example, slices: usize, context: usize) -> Example {
     if slices == 0 {
+        // The targets are already above the context (the dataset moved them up by it).
         return example;
     }
     let inputs = example
@@ -994,7 +990,7 @@ pub fn shifted(example: Example, slices: usize) -> Example {
         .mask
         .iter()
         .zip(&example.target)
-        .map(|(m, t)| *m && *t >= offset)
+        .map(|(m, t)| *m && *t >= offset + context as f32)
         .collect();
     let target = example.target.iter().map(|t| (t - offset).max(0.0)).collect();
     Example { inputs, target, mask }
@@ -1115,13 +1111,20 @@ mod tests {
         // slice 2 and leaves the second below the range, no longer counted.
         let mut original = example(|p| if p < 10 { 6.0 } else { 2.0 }, 0.0);
         original.target = (0..20).map(|p| if p < 10 { 6.0 } else { 2.0 }).collect();
-        let shifted = shifted(original.clone(), 4);
+        let shifted = shifted(original.clone(), 4, 0);
         assert_eq!(shifted.inputs[0].shape, [1, 12, 4, 5]);
         assert_eq!(shifted.inputs[1].data, original.inputs[1].data[4 * 20..]);
         assert!(shifted.target[..10].iter().all(|t| (*t - 2.0).abs() < 1e-6));
         assert!(shifted.mask[..10].iter().all(|m| *m) && shifted.mask[10..].iter().all(|m| !*m));
         let errors = winner_take_all_errors(&shifted);
         assert!(errors.iter().all(|e| *e < 1e-6), "{errors:?}");
-        assert_eq!(super::shifted(original.clone(), 0), original);
+        assert_eq!(super::shifted(original.clone(), 0, 0), original);
+        // The first 10 pixels' truth lands on slice 2 after the shift: just above 2 slices of
+        // context, still asked for; inside 3, no longer.
+        let context2 = super::shifted(original.clone(), 4, 2);
+        assert_eq!(context2.mask, shifted.mask);
+        let context3 = super::shifted(original.clone(), 4, 3);
+        assert!(context3.mask.iter().all(|m| !*m));
+        assert_eq!(context3.target, shifted.target);
     }
 }

@@ -335,6 +335,16 @@ fn training_can_give_its_network_context_below_the_range() {
     assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
     let metadata = &safetensors_header(&shifted_run.join("mfusenet-3view.safetensors"))["__metadata__"];
     assert_eq!(metadata["context_below"], "4", "{metadata}");
+    let shifted: serde_json::Value = std::fs::read_to_string(shifted_run.join("training.json"))
+        .ok()
+        .and_then(|text| serde_json::from_str(&text).ok())
+        .unwrap_or_default();
+    assert_eq!(shifted["config"]["context_below"], 4, "{shifted}");
+    assert_eq!(shifted["config"]["disparity_shift"], 4, "{shifted}");
+    assert!(
+        shifted["val_avg_err_px"].as_f64().is_some_and(f64::is_finite),
+        "{shifted}"
+    );
     assert_eq!(std::fs::read_dir(&dataset).map(Iterator::count).unwrap_or(0), 3);
     // Not a multiple of 4: an error naming the option.
     let other = dir.path().join("other");

@@ -56,8 +56,8 @@ pub struct MFuseNetConfig {
     /// Soft-argmin only over this many disparities either side of the most probable one
     /// (`null` = over the whole range, as in the paper); see `mfusenet::infer::infer`.
     pub window: Option<usize>,
-    /// Sub-pixel from the inputs: the integer nearest the network's estimate, refined by a
-    /// parabola through the summed input costs (see `mfusenet::infer::Estimate`); `null` = as
+    /// Sub-pixel from the inputs: the integer nearest the network's estimate, refined by the
+    /// `subpixel_fit` curve through the summed input costs (see `mfusenet::infer::Estimate`); `null` = as
     /// the weights file's metadata `estimate` says (`refine` or `soft-argmin`, the paper's and
     /// the default when the file does not say).
     pub refine: Option<bool>,
@@ -70,7 +70,8 @@ pub struct MFuseNetConfig {
     /// `mfusenet::infer::DEFAULT_SUBPIXEL_FIT`).
     pub subpixel_fit: SubpixelFit,
     /// A 3×3 median on the result, as block matching and SGM do (shipped three-view network:
-    /// Middlebury 0.395 → 0.391 px, held-out simulated five-view 0.347 → 0.338 px).
+    /// Middlebury 0.395 → 0.391 px, held-out simulated five-view 0.347 → 0.338 px, both with the
+    /// parabola fit).
     pub median: bool,
     /// The network sees this many disparities under the searched range as well (negative ones
     /// included), so that answers at the range's start are not in its first slices, where it

@@ -172,6 +172,30 @@ mod tests {
         assert_eq!(stereo_baseline_of("nope"), None);
     }
 
+    #[test]
+    fn each_family_fits_its_sub_pixel_curve_and_a_configuration_chooses() {
+        use crate::wta::SubpixelFit;
+        // Measured (README, Sub-pixel fit): the lines for SGM's census sums and MFuseNet's
+        // refined estimate over them, the parabola for block matching's BT sums.
+        let fit = |name: &str, overrides: Option<&serde_json::Value>| {
+            build(name, overrides)
+                .map(|m| m.config_json()["subpixel_fit"].clone())
+                .unwrap_or_else(|e| panic!("{name}: {e}"))
+        };
+        for (name, expected) in [
+            ("sgm-heuristic", SubpixelFit::Equiangular),
+            ("sgm-stereo", SubpixelFit::Equiangular),
+            ("mfusenet", SubpixelFit::Equiangular),
+            ("bm-heuristic", SubpixelFit::Parabola),
+        ] {
+            assert_eq!(fit(name, None), serde_json::json!(expected), "{name}");
+        }
+        let parabola = serde_json::json!({"subpixel_fit": "parabola"});
+        assert_eq!(fit("sgm-mean", Some(&parabola)), serde_json::json!("parabola"));
+        let wrong = serde_json::json!({"subpixel_fit": "cubic"});
+        assert!(build("sgm-mean", Some(&wrong)).is_err());
+    }
+
     /// A textured fronto-parallel plane at disparity `d` seen from a line of five: views at
     /// −2, −1, +1 and +2 baselines, shifted by `offset · d`.
     fn line_of_five(d: i64) -> Problem {

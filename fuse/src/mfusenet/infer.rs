@@ -133,8 +133,9 @@ pub fn infer(
     Ok(disparity)
 }
 
-/// How a pixel's disparity is read from the network's distribution.
-#[derive(Debug, Clone, Copy, Default, PartialEq)]
+/// How a pixel's disparity is read from the network's distribution. The default is the
+/// paper's soft-argmin over the whole range (with, for `refine`, the shipped reach and fit).
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Estimate {
     /// Soft-argmin over `2r + 1` disparities around the most probable one (`None`: all, the paper).
     pub window: Option<usize>,
@@ -142,7 +143,7 @@ pub struct Estimate {
     /// read from the slices after them (the searched range), never from them.
     pub context_below: usize,
     /// Keep the integer disparity nearest the network's estimate, and take the sub-pixel offset
-    /// from a parabola through the summed input costs there (where they have a minimum), as
+    /// from the `fit` through the summed input costs there (where they have a minimum), as
     /// the classical methods do.
     pub refine: bool,
     /// With `refine`: how far (px) the estimate may move from the network's integer to a
@@ -153,10 +154,22 @@ pub struct Estimate {
     pub fit: SubpixelFit,
 }
 
+impl Default for Estimate {
+    fn default() -> Self {
+        Self {
+            window: None,
+            context_below: 0,
+            refine: false,
+            refine_reach: DEFAULT_REFINE_REACH,
+            fit: DEFAULT_SUBPIXEL_FIT,
+        }
+    }
+}
+
 /// How far (px) from the network's integer the refined estimate may move to a neighbouring
 /// minimum of the summed input costs ([`refined`]). On `middlebury2006-third-dev` (three-view,
-/// shipped network): 0 → 1 px took AvgErr 0.410 → 0.395 and Bad0.5 11.96 → 10.33 % with Bad1
-/// unchanged (6.60 → 6.59 %); 1.5 (any neighbouring minimum) raised Bad1 to 6.80 %.
+/// shipped network, parabola fit): 0 → 1 px took AvgErr 0.410 → 0.395 and Bad0.5 11.96 → 10.33 %
+/// with Bad1 unchanged (6.60 → 6.59 %); 1.5 (any neighbouring minimum) raised Bad1 to 6.80 %.
 pub const DEFAULT_REFINE_REACH: f64 = 1.0;
 
 /// The refined estimate's sub-pixel fit: the inputs are SGM sums of census distances, V-shaped

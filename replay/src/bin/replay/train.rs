@@ -64,7 +64,7 @@ pub struct TrainArgs {
     /// Disparity-shift augmentation: drop the first 0, 4, …, N slices of each crop's volumes
     /// (targets shifted alike), so that answers near the range's start are as common as
     /// elsewhere; a multiple of 4, 0 = off. The weights then ask inference for 4 disparities of
-    /// context below the searched range (metadata `context_below`).
+    /// context below the searched range (metadata `context_below`; N with --context-below N).
     #[arg(long, value_name = "N", default_value_t = 0)]
     disparity_shift: usize,
     /// Block radius of the inputs' aggregation before SGM (the inputs' `block_radius`; the
@@ -91,8 +91,9 @@ pub struct TrainArgs {
     /// costs are under 0 (the shipped three-view network, trained with --disparity-shift
     /// instead and run with 4 slices of context, fails there: README, Results, known failure).
     /// A multiple of 4 up to 16. With --disparity-shift the crop's first N slices after the
-    /// shift are its context (real costs then, as inside a wider range at inference), and
-    /// pixels whose truth falls there are not asked for.
+    /// shift are its context (real costs below the crop's range where the shift reaches past
+    /// them, as inside a wider range at inference, mirrored ones where it does not), and pixels
+    /// whose truth falls there are not asked for.
     #[arg(long, value_name = "N", default_value_t = 0)]
     context_below: usize,
     /// Steps between validations.
