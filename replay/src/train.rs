@@ -16,7 +16,7 @@ use fuse::mfusenet::infer::{DEFAULT_REFINE_REACH, DEFAULT_SUBPIXEL_FIT};
 use fuse::mfusenet::input::{InputSpec, input_volumes_below, ordered_neighbours};
 use fuse::mfusenet::network::BatchNormMode;
 use fuse::mfusenet::train::{
-    Adam, Example, clip_gradients, crop, load_checkpoint, recalibrate_batch_norm, save_checkpoint,
+    Adam, Example, clip_gradients, crop, flipped, load_checkpoint, recalibrate_batch_norm, save_checkpoint,
 };
 use fuse::mfusenet::{Network, WeightsInfo, weights};
 use fuse::nn::Tensor;
@@ -151,6 +151,11 @@ pub struct TrainConfig {
     /// after the shift are its context (pixels whose truth falls there are not asked for). 0 = off.
     #[serde(default, skip_serializing_if = "is_zero_usize")]
     pub context_below: usize,
+    /// Mirror augmentation ([`fuse::mfusenet::train::flipped`]): each crop is flipped top to
+    /// bottom and (two or four neighbours) left to right with probability ½ each, its
+    /// neighbours' volumes swapped as the mirrored rig would see them. Off in the shipped files.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub flips: bool,
 }
 
 fn is_zero_usize(n: &usize) -> bool {
@@ -183,6 +188,7 @@ impl Default for TrainConfig {
             recalibrate_every: 0,
             statistics_momentum: 0.0,
             context_below: 0,
+            flips: false,
             scenes: vec![
                 SceneKind::Random,
                 SceneKind::Random,
@@ -950,6 +956,10 @@ fn random_crop(config: &TrainConfig, samples: &[Sample], rng: &mut Rng) -> Examp
         );
         if config.disparity_shift > 0 {
             e = shifted(e, 4 * rng.below(config.disparity_shift / 4 + 1), config.context_below);
+        }
+        if config.flips {
+            let (vertical, horizontal) = (rng.below(2) == 1, rng.below(2) == 1);
+            e = flipped(e, vertical, horizontal);
         }
         let enough = e.mask.iter().filter(|m| **m).count() * 2 > e.mask.len() && !hopeless(&e);
         example = Some(e);

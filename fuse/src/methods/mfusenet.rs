@@ -78,6 +78,10 @@ pub struct MFuseNetConfig {
     /// fails; the estimate is read from the searched range only (see `input_volumes_below`).
     /// `null` = as the weights file's metadata `context_below` says (0 when it says nothing).
     pub room_below: Option<usize>,
+    /// Test-time flips: the network also answers the set's mirror image (left to right, the
+    /// left and right volumes swapped; top to bottom for the stereo network) and the two
+    /// passes' logits are averaged, at twice the network's time (`mfusenet::infer::Estimate`).
+    pub flips: bool,
 }
 
 impl Default for MFuseNetConfig {
@@ -92,6 +96,7 @@ impl Default for MFuseNetConfig {
             subpixel_fit: DEFAULT_SUBPIXEL_FIT,
             median: true,
             room_below: None,
+            flips: false,
         }
     }
 }
@@ -238,6 +243,7 @@ impl Method for MFuseNet {
                 refine_reach: self.config.refine_reach,
                 fit: self.config.subpixel_fit,
                 context_below: usize::try_from(problem.min_disparity as i64 - first).unwrap_or(0),
+                flips: self.config.flips,
             },
             &|f| progress(0.1 + 0.9 * f),
         )?;

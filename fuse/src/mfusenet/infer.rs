@@ -6,7 +6,7 @@
 //! soft-argmin runs over the real disparities only (padded slices are dropped).
 
 use super::Error;
-use super::input::STEPS_PER_UNIT;
+use super::input::{STEPS_PER_UNIT, mirrored};
 use super::network::Network;
 use crate::nn::Tensor;
 use crate::volume::CostVolume;
@@ -113,7 +113,21 @@ pub fn infer(
                 t
             })
             .collect();
-        let logits = net.logits(&inputs)?;
+        let mut logits = net.logits(&inputs)?;
+        if estimate.flips {
+            // The set's mirror image answered and mirrored back; the mean of the two passes'
+            // logits is the network made symmetric, at its own temperature (with one-hot
+            // logits the surer pass decides).
+            let (vertical, horizontal) = flip_axes(net.views);
+            let mirror = net
+                .logits(&mirrored(&inputs, vertical, horizontal))?
+                .flipped(vertical, horizontal);
+            logits
+                .data
+                .iter_mut()
+                .zip(&mirror.data)
+                .for_each(|(a, b)| *a = 0.5 * (*a + b));
+        }
         drop(inputs);
         let plane = rh * rw;
         for y in y0..y1.min(h) {
@@ -152,6 +166,15 @@ pub struct Estimate {
     /// With `refine`: the curve through the summed input costs whose vertex is the sub-pixel
     /// disparity ([`DEFAULT_SUBPIXEL_FIT`]).
     pub fit: SubpixelFit,
+    /// Test-time flips: the network also answers the set's mirror image ([`flip_axes`]) and
+    /// the two passes' logits are averaged before the estimate is read, at twice the time.
+    pub flips: bool,
+}
+
+/// The mirror `(vertical, horizontal)` that [`Estimate::flips`] adds: left to right with two or
+/// four neighbours (their volumes swapped, [`mirrored`]), top to bottom with one.
+pub fn flip_axes(views: usize) -> (bool, bool) {
+    if views >= 2 { (false, true) } else { (true, false) }
 }
 
 impl Default for Estimate {
@@ -162,6 +185,7 @@ impl Default for Estimate {
             refine: false,
             refine_reach: DEFAULT_REFINE_REACH,
             fit: DEFAULT_SUBPIXEL_FIT,
+            flips: false,
         }
     }
 }
@@ -358,5 +382,83 @@ mod tests {
             ),
             "{error:?}"
         );
+    }
+
+    #[test]
+    fn flips_make_the_network_answer_a_mirrored_set_mirrored() {
+        // Sizes that need no padding, so that the mirror image's padding is the original's.
+        let (w, h, nd) = (40, 24, 12);
+        let volume = |seed: usize| CostVolume {
+            width: w,
+            height: h,
+            min_disparity: 2,
+            disparities: nd,
+            data: (0..w * h * nd)
+                .map(|i| {
+                    let (p, d) = (i / nd, i % nd);
+                    ((p % w) * 7 + (p / w) * 3 * (seed + 1) + d * (11 + seed) + seed * 5 + (i * i) % 13) as u8 % 97
+                })
+                .collect(),
+            max_cost: 255,
+            source: VolumeSource::Neighbour {
+                role: "left".into(),
+                offset: [-1, 0],
+            },
+        };
+        // The volume seen in a mirror, `[y][x][d]` layout.
+        let flip = |v: &CostVolume<u8>, vertical: bool, horizontal: bool| {
+            let mut out = v.clone();
+            for y in 0..h {
+                for x in 0..w {
+                    let (sy, sx) = (
+                        if vertical { h - 1 - y } else { y },
+                        if horizontal { w - 1 - x } else { x },
+                    );
+                    out.data[(y * w + x) * nd..][..nd].copy_from_slice(v.costs(sx, sy));
+                }
+            }
+            out
+        };
+        for views in [1, 2, 4] {
+            let mut net = Network::init(views, 11);
+            for weight in &mut net.classify.weight {
+                *weight *= 400.0;
+            }
+            let volumes: Vec<CostVolume<u8>> = (0..views).map(volume).collect();
+            let (vertical, horizontal) = flip_axes(views);
+            let mut order: Vec<usize> = (0..views).collect();
+            if horizontal {
+                order.swap(0, 1);
+            }
+            let seen: Vec<CostVolume<u8>> = order.iter().map(|&i| flip(&volumes[i], vertical, horizontal)).collect();
+            for refine in [false, true] {
+                let run = |volumes: &[CostVolume<u8>], flips: bool| {
+                    let estimate = Estimate {
+                        refine,
+                        flips,
+                        ..Estimate::default()
+                    };
+                    infer(&net, volumes, usize::MAX, estimate, &|_| {}).unwrap_or_else(|e| panic!("{e}"))
+                };
+                let worst = |a: &[f32], b: &[f32]| {
+                    let mut worst = 0f32;
+                    for y in 0..h {
+                        for x in 0..w {
+                            let (sy, sx) = (
+                                if vertical { h - 1 - y } else { y },
+                                if horizontal { w - 1 - x } else { x },
+                            );
+                            worst = worst.max((a[y * w + x] - b[sy * w + sx]).abs());
+                        }
+                    }
+                    worst
+                };
+                let symmetric = worst(&run(&seen, true), &run(&volumes, true));
+                assert!(symmetric < 1e-4, "views {views}, refine {refine}: {symmetric} px");
+                // The network alone is not symmetric: without flips the mirror answers otherwise.
+                let plain = worst(&run(&seen, false), &run(&volumes, false));
+                assert!(plain > 0.01, "views {views}, refine {refine}: only {plain} px");
+            }
+        }
     }
 }

@@ -26,6 +26,7 @@ use serde::{Deserialize, Serialize};
 use crate::FuseError;
 use crate::cost::PixelCost;
 use crate::fusion::Fusion;
+use crate::nn::Tensor;
 use crate::sgm::{aggregate_volume, quantisation_shift, quantise_penalty};
 use crate::volume::{CostSpec, CostVolume, Neighbour, Problem, neighbour_volumes};
 
@@ -85,6 +86,24 @@ pub fn ordered_neighbours(problem: &Problem, views: usize) -> Result<Vec<&Neighb
             _ => "MFuseNet has variants for 1, 2 and 4 neighbours",
         },
     })
+}
+
+/// The network's inputs (one `[1, D, H, W]` volume per neighbour, in [`ordered_neighbours`]'
+/// order) for the mirror image of the set: each volume flipped (rows if `vertical`, columns if
+/// `horizontal`) and, since a mirrored neighbour's matches move the other way, the left and
+/// right volumes swapped by a horizontal flip and the top and bottom ones by a vertical flip with
+/// four views. A single (right) neighbour has no mirror image left to right: `horizontal` is
+/// ignored for it. `mirrored(mirrored(x)) == x`.
+pub fn mirrored(inputs: &[Tensor], vertical: bool, horizontal: bool) -> Vec<Tensor> {
+    let horizontal = horizontal && inputs.len() >= 2;
+    let mut order: Vec<usize> = (0..inputs.len()).collect();
+    if horizontal {
+        order.swap(0, 1);
+    }
+    if vertical && order.len() == 4 {
+        order.swap(2, 3);
+    }
+    order.iter().map(|&i| inputs[i].flipped(vertical, horizontal)).collect()
 }
 
 /// The number of inputs `mfusenet` uses for a problem: 4 with a full cross of neighbours, 2
@@ -260,6 +279,75 @@ mod tests {
                 .collect(),
             ..problem.clone()
         }
+    }
+
+    /// A step (disparity 3 on the left half, 6 on the right, with the occlusions that go with
+    /// it) seen from the left and right, the images mirrored in `x` and/or `y` if asked; a
+    /// horizontal mirror swaps the neighbours' roles, as the mirrored rig would.
+    fn step(mirror_x: bool, mirror_y: bool) -> (Problem, Vec<f32>) {
+        let (w, h) = (48usize, 24usize);
+        let d = |x: usize| if x < w / 2 { 3i64 } else { 6 };
+        let texture = |x: i64, y: i64| (((x * 37 + y * 11) ^ (x * y)) % 97 * 2 + 20) as u8;
+        let view = |o: i64| {
+            let data = (0..h)
+                .flat_map(|y| {
+                    (0..w).map(move |x| {
+                        let (sx, sy) = (
+                            if mirror_x { w - 1 - x } else { x },
+                            if mirror_y { h - 1 - y } else { y },
+                        );
+                        texture(sx as i64 + o * d(sx), sy as i64)
+                    })
+                })
+                .collect();
+            Image::gray(w, h, data).unwrap_or_else(|e| panic!("{e}"))
+        };
+        let neighbour = |role: &str, offset: i32, seen_from: i64| Neighbour {
+            role: role.into(),
+            image: view(seen_from),
+            offset: [offset, 0],
+            baseline_ratio: 1.0,
+        };
+        let from = |o: i64| if mirror_x { -o } else { o };
+        let truth = (0..h)
+            .flat_map(|_| (0..w).map(move |x| d(if mirror_x { w - 1 - x } else { x }) as f32))
+            .collect();
+        let problem = Problem {
+            reference: view(0),
+            neighbours: vec![neighbour("left", -1, from(-1)), neighbour("right", 1, from(1))],
+            min_disparity: 0,
+            num_disparities: 12,
+        };
+        (problem, truth)
+    }
+
+    #[test]
+    fn a_mirrored_rig_sees_the_flipped_example() {
+        use crate::mfusenet::train::{crop, flipped};
+        let example = |(problem, truth): (Problem, Vec<f32>)| {
+            let neighbours: Vec<&Neighbour> = problem.neighbours.iter().collect();
+            let volumes =
+                input_volumes(&problem, &neighbours, InputSpec::default(), &|| {}).unwrap_or_else(|e| panic!("{e}"));
+            let refs: Vec<&CostVolume<u8>> = volumes.iter().collect();
+            let (w, h) = (problem.reference.width, problem.reference.height);
+            crop(&refs, &truth, (0, 0), (h, w), 12)
+        };
+        let original = example(step(false, false));
+        for (mirror_x, mirror_y) in [(true, false), (false, true), (true, true)] {
+            let mirrored = example(step(mirror_x, mirror_y));
+            assert!(mirrored != original, "the step is not symmetric");
+            assert_eq!(
+                flipped(original.clone(), mirror_y, mirror_x),
+                mirrored,
+                "mirror x {mirror_x}, y {mirror_y}"
+            );
+        }
+        // One (right) neighbour has no horizontal mirror image: left as it is.
+        let single = crate::mfusenet::train::Example {
+            inputs: vec![original.inputs[1].clone()],
+            ..original.clone()
+        };
+        assert_eq!(flipped(single.clone(), false, true), single);
     }
 
     fn volumes_below(problem: &Problem, below: usize) -> (Vec<CostVolume<u8>>, i64) {

@@ -67,6 +67,35 @@ pub fn crop(
     Example { inputs, target, mask }
 }
 
+/// `example` seen in a mirror, as the same network must answer it: its inputs
+/// [`super::input::mirrored`] (rows flipped if `vertical`; columns if `horizontal`, the left
+/// and right neighbours swapped; one-view examples are not flipped left to right), its targets
+/// and mask moved with their pixels. Disparities are unchanged.
+pub fn flipped(example: Example, vertical: bool, horizontal: bool) -> Example {
+    let horizontal = horizontal && example.inputs.len() >= 2;
+    let Some([_, _, h, w]) = example.inputs.first().map(|t| t.shape) else {
+        return example;
+    };
+    let plane = |values: Vec<f32>| {
+        Tensor {
+            shape: [1, 1, h, w],
+            data: values,
+        }
+        .flipped(vertical, horizontal)
+        .data
+    };
+    let target = plane(example.target);
+    let mask = plane(example.mask.iter().map(|m| f32::from(u8::from(*m))).collect())
+        .into_iter()
+        .map(|m| m > 0.5)
+        .collect();
+    Example {
+        inputs: super::input::mirrored(&example.inputs, vertical, horizontal),
+        target,
+        mask,
+    }
+}
+
 /// Re-estimates every BatchNorm's running statistics as the plain average of the batch
 /// statistics over `examples` in train mode (PyTorch's `momentum=None` after resetting the
 /// counts), instead of the exponential average of the last training steps: the eval-mode network

@@ -53,6 +53,28 @@ impl Tensor {
         ((c * self.shape[1] + d) * self.shape[2] + h) * self.shape[3] + w
     }
 
+    /// The tensor seen in a mirror: rows reversed if `vertical`, columns if `horizontal`
+    /// (`torch.flip(dims=…)` over height and width).
+    pub fn flipped(&self, vertical: bool, horizontal: bool) -> Tensor {
+        let [_, _, h, w] = self.shape;
+        if !(vertical || horizontal) || h * w == 0 {
+            return self.clone();
+        }
+        let mut out = Tensor::zeros(self.shape);
+        for (to, from) in out.data.chunks_exact_mut(h * w).zip(self.data.chunks_exact(h * w)) {
+            for y in 0..h {
+                let sy = if vertical { h - 1 - y } else { y };
+                let (row, source) = (&mut to[y * w..(y + 1) * w], &from[sy * w..(sy + 1) * w]);
+                if horizontal {
+                    row.iter_mut().zip(source.iter().rev()).for_each(|(a, b)| *a = *b);
+                } else {
+                    row.copy_from_slice(source);
+                }
+            }
+        }
+        out
+    }
+
     /// Channels of several tensors of one spatial shape, stacked (`torch.cat(dim=1)`).
     pub fn concat(parts: &[&Tensor]) -> Tensor {
         let spatial = parts.first().map_or([0; 3], |t| [t.shape[1], t.shape[2], t.shape[3]]);
@@ -144,6 +166,31 @@ impl Tensor {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_flip_moves_each_value_to_its_mirror_position() {
+        let shape = [2, 3, 5, 7];
+        let t = Tensor {
+            shape,
+            data: (0..shape.iter().product::<usize>())
+                .map(|i| (i * 7919 % 1000) as f32)
+                .collect(),
+        };
+        for (vertical, horizontal) in [(false, false), (true, false), (false, true), (true, true)] {
+            let f = t.flipped(vertical, horizontal);
+            for c in 0..2 {
+                for d in 0..3 {
+                    for y in 0..5 {
+                        for x in 0..7 {
+                            let (sy, sx) = (if vertical { 4 - y } else { y }, if horizontal { 6 - x } else { x });
+                            assert_eq!(f.data[f.index(c, d, y, x)], t.data[t.index(c, d, sy, sx)]);
+                        }
+                    }
+                }
+            }
+            assert_eq!(f.flipped(vertical, horizontal), t);
+        }
+    }
 
     #[test]
     fn subsampling_and_zero_upsampling_are_adjoint() {
