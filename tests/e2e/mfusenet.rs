@@ -298,8 +298,9 @@ fn training_can_give_its_network_context_below_the_range() {
             sample.display()
         );
     }
-    // With the disparity shift as well, on the same dataset (the shift is drawn per crop: the
-    // samples are reused, none is added), and the metadata still asks for the context.
+    // With the disparity shift and the mirror augmentation as well, on the same dataset (both
+    // are drawn per crop: the samples are reused, none is added), and the metadata still asks
+    // for the context.
     let shifted_run = dir.path().join("shifted");
     let dataset = dir.path().join("dataset");
     let common = [
@@ -328,6 +329,7 @@ fn training_can_give_its_network_context_below_the_range() {
         "4",
         "--disparity-shift",
         "4",
+        "--flips",
         "--dir",
         shifted_run.to_str().unwrap_or_default(),
     ]);
@@ -341,6 +343,7 @@ fn training_can_give_its_network_context_below_the_range() {
         .unwrap_or_default();
     assert_eq!(shifted["config"]["context_below"], 4, "{shifted}");
     assert_eq!(shifted["config"]["disparity_shift"], 4, "{shifted}");
+    assert_eq!(shifted["config"]["flips"], true, "{shifted}");
     assert!(
         shifted["val_avg_err_px"].as_f64().is_some_and(f64::is_finite),
         "{shifted}"
