@@ -14,6 +14,7 @@ use std::time::Instant;
 
 use fuse::mfusenet::infer::{DEFAULT_REFINE_REACH, DEFAULT_SUBPIXEL_FIT};
 use fuse::mfusenet::input::{InputSpec, input_volumes_below, ordered_neighbours};
+use fuse::mfusenet::input::{mirror_order, neighbour_offsets};
 use fuse::mfusenet::network::BatchNormMode;
 use fuse::mfusenet::train::{
     Adam, Example, clip_gradients, crop, flipped, load_checkpoint, recalibrate_batch_norm, save_checkpoint,
@@ -959,7 +960,13 @@ fn random_crop(config: &TrainConfig, samples: &[Sample], rng: &mut Rng) -> Examp
         }
         if config.flips {
             let (vertical, horizontal) = (rng.below(2) == 1, rng.below(2) == 1);
-            e = flipped(e, vertical, horizontal);
+            let offsets = neighbour_offsets(s.for_views(config.views)).unwrap_or_default();
+            // A flip the rig has no mirror for (a single right neighbour, left to right) is not made.
+            let possible = |v: bool, h: bool| mirror_order(&offsets, v, h).is_some();
+            let (vertical, horizontal) = (vertical && possible(true, false), horizontal && possible(false, true));
+            if let Some(mirror) = flipped(&e, &offsets, vertical, horizontal) {
+                e = mirror;
+            }
         }
         let enough = e.mask.iter().filter(|m| **m).count() * 2 > e.mask.len() && !hopeless(&e);
         example = Some(e);

@@ -78,9 +78,11 @@ pub struct MFuseNetConfig {
     /// fails; the estimate is read from the searched range only (see `input_volumes_below`).
     /// `null` = as the weights file's metadata `context_below` says (0 when it says nothing).
     pub room_below: Option<usize>,
-    /// Test-time flips: the network also answers the set's mirror image (left to right, the
-    /// left and right volumes swapped; top to bottom for the stereo network) and the two
-    /// passes' logits are averaged, at twice the network's time (`mfusenet::infer::Estimate`).
+    /// Test-time flips: the network also answers the set's mirror image (left to right for a
+    /// left/right pair and the five-view cross, the left and right volumes swapped; top to
+    /// bottom for a top/bottom pair, swapped, and for the stereo network) and the two passes'
+    /// logits are averaged, at twice the network's time (`mfusenet::input::flip_axes`,
+    /// `mfusenet::infer::Estimate`).
     pub flips: bool,
 }
 

@@ -6,7 +6,7 @@
 //! soft-argmin runs over the real disparities only (padded slices are dropped).
 
 use super::Error;
-use super::input::{STEPS_PER_UNIT, mirrored};
+use super::input::{STEPS_PER_UNIT, flip_axes, mirrored};
 use super::network::Network;
 use crate::nn::Tensor;
 use crate::volume::CostVolume;
@@ -79,6 +79,16 @@ pub fn infer(
             disparities: nd,
         });
     }
+    // Test-time flips: the mirror that maps this set's neighbours onto themselves.
+    let offsets = super::input::neighbour_offsets(volumes).unwrap_or_default();
+    let no_mirror = || Error::NoMirror {
+        offsets: offsets.clone(),
+    };
+    let mirror = if estimate.flips {
+        Some((offsets.clone(), flip_axes(&offsets).ok_or_else(no_mirror)?))
+    } else {
+        None
+    };
     let (dp, hp, wp) = (round4(nd), round4(h), round4(w));
     let whole = dp * hp * wp * bytes_per_voxel(net.views) <= budget_bytes;
     let side = if whole {
@@ -114,21 +124,32 @@ pub fn infer(
             })
             .collect();
         let mut logits = net.logits(&inputs)?;
-        if estimate.flips {
+        if let Some((offsets, (vertical, horizontal))) = &mirror {
             // The set's mirror image answered and mirrored back; the mean of the two passes'
-            // logits is the network made symmetric, at its own temperature (with one-hot
-            // logits the surer pass decides).
-            let (vertical, horizontal) = flip_axes(net.views);
-            let mirror = net
-                .logits(&mirrored(&inputs, vertical, horizontal))?
-                .flipped(vertical, horizontal);
-            logits
+            // logits is the network made symmetric, at its own temperature (where the logits
+            // are peaked, the surer pass decides).
+            let flipped = mirrored(&inputs, offsets, *vertical, *horizontal).ok_or_else(no_mirror)?;
+            drop(inputs);
+            let answer = net.logits(&flipped)?;
+            drop(flipped);
+            let [_, _, th, tw] = answer.shape;
+            for (plane, mirror_plane) in logits
                 .data
-                .iter_mut()
-                .zip(&mirror.data)
-                .for_each(|(a, b)| *a = 0.5 * (*a + b));
+                .chunks_exact_mut(th * tw)
+                .zip(answer.data.chunks_exact(th * tw))
+            {
+                for (y, row) in plane.chunks_exact_mut(tw).enumerate() {
+                    let sy = if *vertical { th - 1 - y } else { y };
+                    let source = &mirror_plane[sy * tw..(sy + 1) * tw];
+                    for (x, value) in row.iter_mut().enumerate() {
+                        let sx = if *horizontal { tw - 1 - x } else { x };
+                        *value = 0.5 * (*value + source[sx]);
+                    }
+                }
+            }
+        } else {
+            drop(inputs);
         }
-        drop(inputs);
         let plane = rh * rw;
         for y in y0..y1.min(h) {
             for x in x0..x1.min(w) {
@@ -166,15 +187,12 @@ pub struct Estimate {
     /// With `refine`: the curve through the summed input costs whose vertex is the sub-pixel
     /// disparity ([`DEFAULT_SUBPIXEL_FIT`]).
     pub fit: SubpixelFit,
-    /// Test-time flips: the network also answers the set's mirror image ([`flip_axes`]) and
-    /// the two passes' logits are averaged before the estimate is read, at twice the time.
+    /// Test-time flips: the network also answers the set's mirror image
+    /// ([`super::input::flip_axes`]: left to right for a left/right pair and the four-view
+    /// cross, top to bottom for a top/bottom pair or a single neighbour; the volumes move to
+    /// their mirrored neighbours' slots) and the two passes' logits are averaged, mirrored
+    /// back, before the estimate is read, at twice the time.
     pub flips: bool,
-}
-
-/// The mirror `(vertical, horizontal)` that [`Estimate::flips`] adds: left to right with two or
-/// four neighbours (their volumes swapped, [`mirrored`]), top to bottom with one.
-pub fn flip_axes(views: usize) -> (bool, bool) {
-    if views >= 2 { (false, true) } else { (true, false) }
 }
 
 impl Default for Estimate {
@@ -332,8 +350,8 @@ mod tests {
                 .collect(),
             max_cost: 255,
             source: VolumeSource::Neighbour {
-                role: "left".into(),
-                offset: [-1, 0],
+                role: if seed == 0 { "left" } else { "right" }.into(),
+                offset: [if seed == 0 { -1 } else { 1 }, 0],
             },
         };
         let volumes = [volume(0), volume(1)];
@@ -347,6 +365,20 @@ mod tests {
             .map(|(a, b)| (a - b).abs())
             .fold(0f32, f32::max);
         assert!(worst < 1e-3, "tiled differs by {worst} px");
+        // With test-time flips too: each haloed tile's mirror is the mirrored image's tile.
+        let flips = Estimate {
+            flips: true,
+            ..Estimate::default()
+        };
+        let whole_flipped = infer(&net, &volumes, usize::MAX, flips, &|_| {}).unwrap_or_else(|e| panic!("{e}"));
+        let tiled_flipped = infer(&net, &volumes, budget, flips, &|_| {}).unwrap_or_else(|e| panic!("{e}"));
+        let worst = whole_flipped
+            .iter()
+            .zip(&tiled_flipped)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0f32, f32::max);
+        assert!(worst < 1e-3, "tiled with flips differs by {worst} px");
+        assert!(whole_flipped != whole, "the flips changed nothing");
         assert!(whole.iter().all(|d| (3.0..=12.0).contains(d)));
         // Not constant: the test would pass trivially on a flat output.
         let spread = whole.iter().fold(0f32, |m, d| m.max(*d)) - whole.iter().fold(f32::MAX, |m, d| m.min(*d));
@@ -388,7 +420,7 @@ mod tests {
     fn flips_make_the_network_answer_a_mirrored_set_mirrored() {
         // Sizes that need no padding, so that the mirror image's padding is the original's.
         let (w, h, nd) = (40, 24, 12);
-        let volume = |seed: usize| CostVolume {
+        let volume = |seed: usize, offset: [i32; 2]| CostVolume {
             width: w,
             height: h,
             min_disparity: 2,
@@ -401,8 +433,8 @@ mod tests {
                 .collect(),
             max_cost: 255,
             source: VolumeSource::Neighbour {
-                role: "left".into(),
-                offset: [-1, 0],
+                role: format!("{offset:?}"),
+                offset,
             },
         };
         // The volume seen in a mirror, `[y][x][d]` layout.
@@ -419,18 +451,36 @@ mod tests {
             }
             out
         };
-        for views in [1, 2, 4] {
+        let (right, left, top, bottom) = ([1, 0], [-1, 0], [0, -1], [0, 1]);
+        // A right neighbour alone mirrors top to bottom, a top/bottom pair top to bottom with a
+        // swap, a left/right pair and the cross left to right with one.
+        type Rig<'a> = (&'a [[i32; 2]], (bool, bool));
+        let rigs: [Rig; 4] = [
+            (&[right], (true, false)),
+            (&[left, right], (false, true)),
+            (&[top, bottom], (true, false)),
+            (&[left, right, top, bottom], (false, true)),
+        ];
+        for (offsets, axes) in rigs {
+            let views = offsets.len();
+            assert_eq!(flip_axes(offsets), Some(axes), "{offsets:?}");
+            let (vertical, horizontal) = axes;
             let mut net = Network::init(views, 11);
             for weight in &mut net.classify.weight {
                 *weight *= 400.0;
             }
-            let volumes: Vec<CostVolume<u8>> = (0..views).map(volume).collect();
-            let (vertical, horizontal) = flip_axes(views);
-            let mut order: Vec<usize> = (0..views).collect();
-            if horizontal {
-                order.swap(0, 1);
-            }
-            let seen: Vec<CostVolume<u8>> = order.iter().map(|&i| flip(&volumes[i], vertical, horizontal)).collect();
+            let volumes: Vec<CostVolume<u8>> = offsets.iter().enumerate().map(|(i, o)| volume(i, *o)).collect();
+            // The mirrored rig: each slot holds its mirrored neighbour's volume, flipped, and
+            // keeps its own offset.
+            let order = super::super::input::mirror_order(offsets, vertical, horizontal).unwrap_or_default();
+            let seen: Vec<CostVolume<u8>> = order
+                .iter()
+                .zip(&volumes)
+                .map(|(&i, slot)| CostVolume {
+                    source: slot.source.clone(),
+                    ..flip(&volumes[i], vertical, horizontal)
+                })
+                .collect();
             for refine in [false, true] {
                 let run = |volumes: &[CostVolume<u8>], flips: bool| {
                     let estimate = Estimate {
@@ -454,11 +504,28 @@ mod tests {
                     worst
                 };
                 let symmetric = worst(&run(&seen, true), &run(&volumes, true));
-                assert!(symmetric < 1e-4, "views {views}, refine {refine}: {symmetric} px");
+                assert!(symmetric < 1e-4, "{offsets:?}, refine {refine}: {symmetric} px");
                 // The network alone is not symmetric: without flips the mirror answers otherwise.
                 let plain = worst(&run(&seen, false), &run(&volumes, false));
-                assert!(plain > 0.01, "views {views}, refine {refine}: only {plain} px");
+                assert!(plain > 0.01, "{offsets:?}, refine {refine}: only {plain} px");
             }
         }
+        // Right and bottom: no mirror maps the pair onto itself.
+        let net = Network::init(2, 11);
+        let error = infer(
+            &net,
+            &[volume(0, right), volume(1, bottom)],
+            usize::MAX,
+            Estimate {
+                flips: true,
+                ..Estimate::default()
+            },
+            &|_| {},
+        )
+        .err();
+        assert!(
+            matches!(&error, Some(Error::NoMirror { offsets }) if offsets == &[right, bottom]),
+            "{error:?}"
+        );
     }
 }

@@ -28,7 +28,7 @@ use crate::cost::PixelCost;
 use crate::fusion::Fusion;
 use crate::nn::Tensor;
 use crate::sgm::{aggregate_volume, quantisation_shift, quantise_penalty};
-use crate::volume::{CostSpec, CostVolume, Neighbour, Problem, neighbour_volumes};
+use crate::volume::{CostSpec, CostVolume, Neighbour, Problem, VolumeSource, neighbour_volumes};
 
 /// Byte steps per normalised cost unit.
 pub const STEPS_PER_UNIT: f32 = 128.0;
@@ -88,22 +88,58 @@ pub fn ordered_neighbours(problem: &Problem, views: usize) -> Result<Vec<&Neighb
     })
 }
 
-/// The network's inputs (one `[1, D, H, W]` volume per neighbour, in [`ordered_neighbours`]'
-/// order) for the mirror image of the set: each volume flipped (rows if `vertical`, columns if
-/// `horizontal`) and, since a mirrored neighbour's matches move the other way, the left and
-/// right volumes swapped by a horizontal flip and the top and bottom ones by a vertical flip with
-/// four views. A single (right) neighbour has no mirror image left to right: `horizontal` is
-/// ignored for it. `mirrored(mirrored(x)) == x`.
-pub fn mirrored(inputs: &[Tensor], vertical: bool, horizontal: bool) -> Vec<Tensor> {
-    let horizontal = horizontal && inputs.len() >= 2;
-    let mut order: Vec<usize> = (0..inputs.len()).collect();
-    if horizontal {
-        order.swap(0, 1);
+/// The grid offsets of the neighbours whose volumes these are (`None` if one is not a single
+/// neighbour's).
+pub fn neighbour_offsets<'a>(volumes: impl IntoIterator<Item = &'a CostVolume<u8>>) -> Option<Vec<[i32; 2]>> {
+    volumes
+        .into_iter()
+        .map(|v| match &v.source {
+            VolumeSource::Neighbour { offset, .. } => Some(*offset),
+            VolumeSource::Fused(_) => None,
+        })
+        .collect()
+}
+
+/// For the mirror image of a set whose neighbours sit at `offsets` (rows flipped if `vertical`,
+/// columns if `horizontal`): for each input slot, the slot whose neighbour the mirror puts there
+/// (a mirrored camera's offset is mirrored too: left ↔ right in a left-to-right mirror, top ↔
+/// bottom in a top-to-bottom one). `None` when the mirror moves a neighbour where the set has
+/// none (a single right neighbour mirrored left to right).
+pub fn mirror_order(offsets: &[[i32; 2]], vertical: bool, horizontal: bool) -> Option<Vec<usize>> {
+    let mirror = |[x, y]: [i32; 2]| [if horizontal { -x } else { x }, if vertical { -y } else { y }];
+    offsets
+        .iter()
+        .map(|&slot| offsets.iter().position(|&o| mirror(o) == slot))
+        .collect()
+}
+
+/// The mirror `(vertical, horizontal)` that test-time flips use for neighbours at `offsets`:
+/// along the axis the first neighbour matches on (left to right for a left/right pair and for
+/// the four-view cross, whose volumes swap; top to bottom for a top/bottom pair), or across it
+/// when the set has no mirror along it (a single neighbour: top to bottom for a right one).
+/// `None` for no neighbours or a set with no mirror on either axis.
+pub fn flip_axes(offsets: &[[i32; 2]]) -> Option<(bool, bool)> {
+    let along = if offsets.first()?[0] != 0 {
+        (false, true)
+    } else {
+        (true, false)
+    };
+    [along, (along.1, along.0)]
+        .into_iter()
+        .find(|&(vertical, horizontal)| mirror_order(offsets, vertical, horizontal).is_some())
+}
+
+/// The network's inputs (one `[1, D, H, W]` volume per neighbour at `offsets`) for the mirror
+/// image of the set: each volume flipped (rows if `vertical`, columns if `horizontal`) and moved
+/// to the slot of its mirrored neighbour ([`mirror_order`]: a mirrored neighbour's matches move
+/// the other way, so a mirrored left volume is a right one). `None` when the set has no such
+/// mirror. Mirroring twice gives the inputs back.
+pub fn mirrored(inputs: &[Tensor], offsets: &[[i32; 2]], vertical: bool, horizontal: bool) -> Option<Vec<Tensor>> {
+    if inputs.len() != offsets.len() {
+        return None;
     }
-    if vertical && order.len() == 4 {
-        order.swap(2, 3);
-    }
-    order.iter().map(|&i| inputs[i].flipped(vertical, horizontal)).collect()
+    let order = mirror_order(offsets, vertical, horizontal)?;
+    Some(order.iter().map(|&i| inputs[i].flipped(vertical, horizontal)).collect())
 }
 
 /// The number of inputs `mfusenet` uses for a problem: 4 with a full cross of neighbours, 2
@@ -282,39 +318,45 @@ mod tests {
     }
 
     /// A step (disparity 3 on the left half, 6 on the right, with the occlusions that go with
-    /// it) seen from the left and right, the images mirrored in `x` and/or `y` if asked; a
-    /// horizontal mirror swaps the neighbours' roles, as the mirrored rig would.
-    fn step(mirror_x: bool, mirror_y: bool) -> (Problem, Vec<f32>) {
+    /// it) seen from neighbours at `offsets`, the world mirrored in `x` and/or `y` if asked: the
+    /// neighbour at offset `o` of the mirrored rig sees the mirror image of what the neighbour at
+    /// the mirrored offset saw.
+    fn step(offsets: &[[i32; 2]], mirror_x: bool, mirror_y: bool) -> (Problem, Vec<f32>) {
         let (w, h) = (48usize, 24usize);
         let d = |x: usize| if x < w / 2 { 3i64 } else { 6 };
         let texture = |x: i64, y: i64| (((x * 37 + y * 11) ^ (x * y)) % 97 * 2 + 20) as u8;
-        let view = |o: i64| {
+        let (sx, sy) = (
+            move |x: usize| if mirror_x { w - 1 - x } else { x },
+            move |y: usize| if mirror_y { h - 1 - y } else { y },
+        );
+        let view = |[ox, oy]: [i32; 2]| {
+            // The unmirrored camera this one is the mirror image of.
+            let (ox, oy) = (
+                i64::from(if mirror_x { -ox } else { ox }),
+                i64::from(if mirror_y { -oy } else { oy }),
+            );
             let data = (0..h)
                 .flat_map(|y| {
                     (0..w).map(move |x| {
-                        let (sx, sy) = (
-                            if mirror_x { w - 1 - x } else { x },
-                            if mirror_y { h - 1 - y } else { y },
-                        );
-                        texture(sx as i64 + o * d(sx), sy as i64)
+                        let (x, y) = (sx(x), sy(y));
+                        texture(x as i64 + ox * d(x), y as i64 + oy * d(x))
                     })
                 })
                 .collect();
             Image::gray(w, h, data).unwrap_or_else(|e| panic!("{e}"))
         };
-        let neighbour = |role: &str, offset: i32, seen_from: i64| Neighbour {
-            role: role.into(),
-            image: view(seen_from),
-            offset: [offset, 0],
-            baseline_ratio: 1.0,
-        };
-        let from = |o: i64| if mirror_x { -o } else { o };
-        let truth = (0..h)
-            .flat_map(|_| (0..w).map(move |x| d(if mirror_x { w - 1 - x } else { x }) as f32))
-            .collect();
+        let truth = (0..h).flat_map(|_| (0..w).map(move |x| d(sx(x)) as f32)).collect();
         let problem = Problem {
-            reference: view(0),
-            neighbours: vec![neighbour("left", -1, from(-1)), neighbour("right", 1, from(1))],
+            reference: view([0, 0]),
+            neighbours: offsets
+                .iter()
+                .map(|&offset| Neighbour {
+                    role: format!("{offset:?}"),
+                    image: view(offset),
+                    offset,
+                    baseline_ratio: 1.0,
+                })
+                .collect(),
             min_disparity: 0,
             num_disparities: 12,
         };
@@ -329,25 +371,31 @@ mod tests {
             let volumes =
                 input_volumes(&problem, &neighbours, InputSpec::default(), &|| {}).unwrap_or_else(|e| panic!("{e}"));
             let refs: Vec<&CostVolume<u8>> = volumes.iter().collect();
+            assert_eq!(
+                neighbour_offsets(refs.iter().copied()),
+                Some(problem.neighbours.iter().map(|n| n.offset).collect())
+            );
             let (w, h) = (problem.reference.width, problem.reference.height);
             crop(&refs, &truth, (0, 0), (h, w), 12)
         };
-        let original = example(step(false, false));
-        for (mirror_x, mirror_y) in [(true, false), (false, true), (true, true)] {
-            let mirrored = example(step(mirror_x, mirror_y));
-            assert!(mirrored != original, "the step is not symmetric");
-            assert_eq!(
-                flipped(original.clone(), mirror_y, mirror_x),
-                mirrored,
-                "mirror x {mirror_x}, y {mirror_y}"
-            );
+        let (right, left, top, bottom) = ([1, 0], [-1, 0], [0, -1], [0, 1]);
+        let rigs: [&[[i32; 2]]; 4] = [&[right], &[left, right], &[top, bottom], &[left, right, top, bottom]];
+        for offsets in rigs {
+            let original = example(step(offsets, false, false));
+            for (mirror_x, mirror_y) in [(true, false), (false, true), (true, true)] {
+                let Some(flipped) = flipped(&original, offsets, mirror_y, mirror_x) else {
+                    // Only a single right neighbour has no left-to-right mirror.
+                    assert!(
+                        offsets.len() == 1 && mirror_x,
+                        "{offsets:?}: no mirror {mirror_x} {mirror_y}"
+                    );
+                    continue;
+                };
+                let mirrored = example(step(offsets, mirror_x, mirror_y));
+                assert!(mirrored != original, "{offsets:?}: the step is symmetric");
+                assert_eq!(flipped, mirrored, "{offsets:?}: mirror x {mirror_x}, y {mirror_y}");
+            }
         }
-        // One (right) neighbour has no horizontal mirror image: left as it is.
-        let single = crate::mfusenet::train::Example {
-            inputs: vec![original.inputs[1].clone()],
-            ..original.clone()
-        };
-        assert_eq!(flipped(single.clone(), false, true), single);
     }
 
     fn volumes_below(problem: &Problem, below: usize) -> (Vec<CostVolume<u8>>, i64) {

@@ -53,6 +53,13 @@ pub enum Error {
         /// Slices in the volumes.
         disparities: usize,
     },
+    /// Test-time flips were asked for volumes whose neighbours have no mirror image among
+    /// themselves (or that are not single neighbours' volumes).
+    #[error("test-time flips need neighbours that a mirror maps onto each other; these sit at {offsets:?}")]
+    NoMirror {
+        /// The neighbours' grid offsets (empty when a volume is not one neighbour's).
+        offsets: Vec<[i32; 2]>,
+    },
     /// A weights file cannot be read.
     #[error("cannot read weights file {file}: {reason}")]
     Read {

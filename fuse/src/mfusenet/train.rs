@@ -68,14 +68,13 @@ pub fn crop(
 }
 
 /// `example` seen in a mirror, as the same network must answer it: its inputs
-/// [`super::input::mirrored`] (rows flipped if `vertical`; columns if `horizontal`, the left
-/// and right neighbours swapped; one-view examples are not flipped left to right), its targets
-/// and mask moved with their pixels. Disparities are unchanged.
-pub fn flipped(example: Example, vertical: bool, horizontal: bool) -> Example {
-    let horizontal = horizontal && example.inputs.len() >= 2;
-    let Some([_, _, h, w]) = example.inputs.first().map(|t| t.shape) else {
-        return example;
-    };
+/// [`super::input::mirrored`] (rows flipped if `vertical`, columns if `horizontal`, each volume
+/// moved to its mirrored neighbour's slot; `offsets` are the neighbours'), its targets and mask
+/// moved with their pixels; disparities are unchanged. `None` when the set has no such mirror
+/// (a single right neighbour mirrored left to right).
+pub fn flipped(example: &Example, offsets: &[[i32; 2]], vertical: bool, horizontal: bool) -> Option<Example> {
+    let inputs = super::input::mirrored(&example.inputs, offsets, vertical, horizontal)?;
+    let [_, _, h, w] = inputs.first()?.shape;
     let plane = |values: Vec<f32>| {
         Tensor {
             shape: [1, 1, h, w],
@@ -84,16 +83,12 @@ pub fn flipped(example: Example, vertical: bool, horizontal: bool) -> Example {
         .flipped(vertical, horizontal)
         .data
     };
-    let target = plane(example.target);
+    let target = plane(example.target.clone());
     let mask = plane(example.mask.iter().map(|m| f32::from(u8::from(*m))).collect())
         .into_iter()
         .map(|m| m > 0.5)
         .collect();
-    Example {
-        inputs: super::input::mirrored(&example.inputs, vertical, horizontal),
-        target,
-        mask,
-    }
+    Some(Example { inputs, target, mask })
 }
 
 /// Re-estimates every BatchNorm's running statistics as the plain average of the batch
