@@ -64,6 +64,29 @@ fn replay_runs_mfusenet_and_names_bad_weight_files() {
         assert!(files >= 5, "{method} wrote {files} files");
     }
 
+    // Test-time flips: the network and its mirror image averaged, recorded in the summary.
+    let flipped_out = dir.path().join("flipped");
+    let output = replay(&[
+        log,
+        "--method",
+        "mfusenet",
+        "--config",
+        r#"{"flips": true}"#,
+        "--out",
+        flipped_out.to_str().unwrap_or_default(),
+        "-q",
+    ]);
+    assert_success(&output, "replay --method mfusenet --config '{\"flips\": true}'");
+    let flipped: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(flipped_out.join("summary.json")).unwrap_or_default())
+            .unwrap_or_else(|e| panic!("summary.json: {e}"));
+    assert_eq!(flipped["config"]["flips"], true, "{flipped}");
+    let avg = flipped["sets"][0]["outputs"]["metrics"]["all"]["avg_err"]
+        .as_f64()
+        .unwrap_or(f64::NAN);
+    println!("mfusenet with flips: AvgErr {avg:.3} px");
+    assert!(avg.is_finite() && avg < 3.0, "with flips: AvgErr {avg}");
+
     // Bad weight files: exit 1, the file (and tensor) named, nothing panics.
     let truncated = dir.path().join("truncated.safetensors");
     let bytes = std::fs::read(weights("mfusenet-3view.safetensors")).unwrap_or_default();
