@@ -13,8 +13,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use fuse::mfusenet::infer::{DEFAULT_REFINE_REACH, DEFAULT_SUBPIXEL_FIT};
-use fuse::mfusenet::input::{InputSpec, input_volumes_below, ordered_neighbours};
-use fuse::mfusenet::input::{mirror_order, neighbour_offsets};
+use fuse::mfusenet::input::{InputSpec, input_volumes_below, mirror_order, neighbour_offsets, ordered_neighbours};
 use fuse::mfusenet::network::BatchNormMode;
 use fuse::mfusenet::train::{
     Adam, Example, clip_gradients, crop, flipped, load_checkpoint, recalibrate_batch_norm, save_checkpoint,

@@ -49,9 +49,7 @@ fn replay_runs_mfusenet_and_names_bad_weight_files() {
         "-q",
     ]);
     assert_success(&output, "replay --method mfusenet");
-    let summary: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap_or_default())
-            .unwrap_or_else(|e| panic!("summary.json: {e}"));
+    let summary = read_summary(&out);
     for method in ["mfusenet", "mfusenet-stereo"] {
         let set = summary["sets"]
             .as_array()
@@ -77,9 +75,7 @@ fn replay_runs_mfusenet_and_names_bad_weight_files() {
         "-q",
     ]);
     assert_success(&output, "replay --method mfusenet --config '{\"flips\": true}'");
-    let flipped: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(flipped_out.join("summary.json")).unwrap_or_default())
-            .unwrap_or_else(|e| panic!("summary.json: {e}"));
+    let flipped = read_summary(&flipped_out);
     assert_eq!(flipped["config"]["flips"], true, "{flipped}");
     let avg = flipped["sets"][0]["outputs"]["metrics"]["all"]["avg_err"]
         .as_f64()
@@ -288,6 +284,13 @@ fn training_resumes_and_its_weights_run() {
 }
 
 /// The JSON header of a safetensors file (tensor shapes and `__metadata__`).
+/// The `summary.json` that `replay --out DIR` wrote.
+fn read_summary(out: &Path) -> serde_json::Value {
+    let path = out.join("summary.json");
+    serde_json::from_slice(&std::fs::read(&path).unwrap_or_default())
+        .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+}
+
 fn safetensors_header(path: &Path) -> serde_json::Value {
     let bytes = std::fs::read(path).unwrap_or_default();
     let header_len = bytes

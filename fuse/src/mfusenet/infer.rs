@@ -85,7 +85,7 @@ pub fn infer(
         offsets: offsets.clone(),
     };
     let mirror = if estimate.flips {
-        Some((offsets.clone(), flip_axes(&offsets).ok_or_else(no_mirror)?))
+        Some(flip_axes(&offsets).ok_or_else(no_mirror)?)
     } else {
         None
     };
@@ -124,29 +124,20 @@ pub fn infer(
             })
             .collect();
         let mut logits = net.logits(&inputs)?;
-        if let Some((offsets, (vertical, horizontal))) = &mirror {
+        if let Some((vertical, horizontal)) = mirror {
             // The set's mirror image answered and mirrored back; the mean of the two passes'
             // logits is the network made symmetric, at its own temperature (where the logits
             // are peaked, the surer pass decides).
-            let flipped = mirrored(&inputs, offsets, *vertical, *horizontal).ok_or_else(no_mirror)?;
+            let flipped = mirrored(&inputs, &offsets, vertical, horizontal).ok_or_else(no_mirror)?;
             drop(inputs);
             let answer = net.logits(&flipped)?;
             drop(flipped);
-            let [_, _, th, tw] = answer.shape;
-            for (plane, mirror_plane) in logits
+            let answer = answer.flipped(vertical, horizontal);
+            logits
                 .data
-                .chunks_exact_mut(th * tw)
-                .zip(answer.data.chunks_exact(th * tw))
-            {
-                for (y, row) in plane.chunks_exact_mut(tw).enumerate() {
-                    let sy = if *vertical { th - 1 - y } else { y };
-                    let source = &mirror_plane[sy * tw..(sy + 1) * tw];
-                    for (x, value) in row.iter_mut().enumerate() {
-                        let sx = if *horizontal { tw - 1 - x } else { x };
-                        *value = 0.5 * (*value + source[sx]);
-                    }
-                }
-            }
+                .iter_mut()
+                .zip(&answer.data)
+                .for_each(|(a, b)| *a = 0.5 * (*a + b));
         } else {
             drop(inputs);
         }
