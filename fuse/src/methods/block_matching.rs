@@ -3,6 +3,7 @@
 
 use std::sync::atomic::{AtomicUsize, Ordering};
 
+use crate::postprocess::{WeightedMedian, weighted_median};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
@@ -33,6 +34,9 @@ pub struct BlockMatchingConfig {
     pub fill_invalid: bool,
     /// 3×3 median filter on the result.
     pub median: bool,
+    /// An image-guided weighted median after the rest (`postprocess::WeightedMedian`; `{}` =
+    /// its defaults, `null` = none): depth edges snap to the reference's colour edges.
+    pub weighted_median: Option<WeightedMedian>,
 }
 
 impl Default for BlockMatchingConfig {
@@ -47,6 +51,7 @@ impl Default for BlockMatchingConfig {
             subpixel_fit: SubpixelFit::Parabola,
             fill_invalid: true,
             median: true,
+            weighted_median: None,
         }
     }
 }
@@ -113,6 +118,9 @@ impl Method for BlockMatching {
         }
         if self.config.median {
             disparity = crate::postprocess::median3x3(&disparity);
+        }
+        if let Some(filter) = &self.config.weighted_median {
+            disparity = weighted_median(&disparity, &problem.reference, filter)?;
         }
         Ok(disparity)
     }

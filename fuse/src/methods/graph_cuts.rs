@@ -2,6 +2,7 @@
 //! uniqueness over the fused Birchfield–Tomasi data term, minimised by α-expansion
 //! ([`crate::graph_cuts`]). Occluded pixels have no estimate unless `fill_occlusions` is set.
 
+use crate::postprocess::{WeightedMedian, weighted_median};
 use serde::{Deserialize, Serialize};
 
 use super::{Family, Method, MethodEntry, Progress, apply_overrides};
@@ -51,6 +52,9 @@ pub struct GraphCutsConfig {
     /// [`KzEnergy::subpixel_disparity`]); `0` = integer disparities, as the paper and the IPOL
     /// program give.
     pub subpixel_radius: usize,
+    /// An image-guided weighted median after the rest (`postprocess::WeightedMedian`; `{}` =
+    /// its defaults, `null` = none): depth edges snap to the reference's colour edges.
+    pub weighted_median: Option<WeightedMedian>,
 }
 
 impl Default for GraphCutsConfig {
@@ -68,6 +72,7 @@ impl Default for GraphCutsConfig {
             upsample: false,
             seed: 1,
             max_rounds: 2,
+            weighted_median: None,
             fill_occlusions: false,
             subpixel_radius: DEFAULT_SUBPIXEL_RADIUS,
         }
@@ -140,6 +145,9 @@ impl Method for GraphCuts {
         }
         if c.fill_occlusions {
             disparity.fill_invalid_from_row_neighbours();
+        }
+        if let Some(filter) = &c.weighted_median {
+            disparity = weighted_median(&disparity, &problem.reference, filter)?;
         }
         progress(1.0);
         Ok(disparity)

@@ -18,7 +18,7 @@ use crate::image::DisparityImage;
 use crate::mfusenet::infer::{DEFAULT_REFINE_REACH, DEFAULT_SUBPIXEL_FIT, DEFAULT_TILE_BUDGET_BYTES, Estimate, infer};
 use crate::mfusenet::input::{InputSpec, input_volumes_below, ordered_neighbours, views_for};
 use crate::mfusenet::{Network, weights};
-use crate::postprocess::median3x3;
+use crate::postprocess::{WeightedMedian, median3x3, weighted_median};
 use crate::volume::Problem;
 use crate::wta::SubpixelFit;
 
@@ -73,6 +73,13 @@ pub struct MFuseNetConfig {
     /// Middlebury 0.395 → 0.391 px, held-out simulated five-view 0.347 → 0.338 px, both with the
     /// parabola fit).
     pub median: bool,
+    /// An image-guided weighted median after the rest (`postprocess::WeightedMedian`; `{}` =
+    /// its defaults, `null` = none): depth edges snap to the reference's colour edges, which
+    /// the network, seeing only cost volumes, cannot place. On by default (about 5 % of the
+    /// time; the classical methods have it opt-in, their speed is held against OpenCV's):
+    /// Middlebury three-view 0.363 → 0.322 px, Bad1 6.42 → 5.56 %; held-out simulated
+    /// three-view 0.950 → 0.936 px, five-view 0.295 → 0.278 px (README, "Weighted median").
+    pub weighted_median: Option<WeightedMedian>,
     /// The network sees this many disparities under the searched range as well (negative ones
     /// included), so that answers at the range's start are not in its first slices, where it
     /// fails; the estimate is read from the searched range only (see `input_volumes_below`).
@@ -97,6 +104,7 @@ impl Default for MFuseNetConfig {
             refine_reach: DEFAULT_REFINE_REACH,
             subpixel_fit: DEFAULT_SUBPIXEL_FIT,
             median: true,
+            weighted_median: Some(WeightedMedian::default()),
             room_below: None,
             flips: false,
         }
@@ -256,10 +264,14 @@ impl Method for MFuseNet {
             height: problem.reference.height,
             data: data.into_iter().map(|d| (d + origin).clamp(low, high)).collect(),
         };
-        Ok(if self.config.median {
+        let disparity = if self.config.median {
             median3x3(&disparity)
         } else {
             disparity
+        };
+        Ok(match &self.config.weighted_median {
+            Some(filter) => weighted_median(&disparity, &problem.reference, filter)?,
+            None => disparity,
         })
     }
 }

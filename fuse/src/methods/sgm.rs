@@ -9,7 +9,7 @@ use crate::FuseError;
 use crate::cost::PixelCost;
 use crate::fusion::Fusion;
 use crate::image::DisparityImage;
-use crate::postprocess::median3x3;
+use crate::postprocess::{WeightedMedian, median3x3, weighted_median};
 use crate::sgm::{quantisation_shift, quantise_penalty, select};
 use crate::volume::{CostSpec, PreparedProblem, Problem, band_rows};
 use crate::wta::SubpixelFit;
@@ -35,6 +35,9 @@ pub struct SgmConfig {
     pub subpixel_fit: SubpixelFit,
     /// 3×3 median filter on the result.
     pub median: bool,
+    /// An image-guided weighted median after the rest (`postprocess::WeightedMedian`; `{}` =
+    /// its defaults, `null` = none): depth edges snap to the reference's colour edges.
+    pub weighted_median: Option<WeightedMedian>,
 }
 
 impl Default for SgmConfig {
@@ -50,6 +53,7 @@ impl Default for SgmConfig {
             subpixel: true,
             subpixel_fit: SubpixelFit::Equiangular,
             median: true,
+            weighted_median: None,
         }
     }
 }
@@ -108,6 +112,9 @@ impl Method for Sgm {
         disparity.fill_invalid_from_row_neighbours();
         if self.config.median {
             disparity = median3x3(&disparity);
+        }
+        if let Some(filter) = &self.config.weighted_median {
+            disparity = weighted_median(&disparity, &problem.reference, filter)?;
         }
         progress(1.0);
         Ok(disparity)
