@@ -1,6 +1,6 @@
 //! Criterion benchmarks of the methods on a synthetic five-view problem (a textured slanted
 //! plane, 640×360, 64 disparities), read as ratios within one run: fused methods against their
-//! stereo baseline, SGM against block matching. The absolute figures against OpenCV come from
+//! stereo baseline, SGM against block matching, SGM with the weighted median against without. The absolute figures against OpenCV come from
 //! `scripts/bench-replay.py` (graph cuts: `scripts/bench-gc.sh`).
 
 #![allow(missing_docs)]
@@ -55,6 +55,12 @@ fn methods(c: &mut Criterion) {
         let method = fuse::methods::build(name, None).unwrap_or_else(|e| panic!("{e}"));
         group.bench_function(name, |b| b.iter(|| black_box(method.run(&problem, &|_| {}))));
     }
+    // The opt-in image-guided weighted median (MFuseNet's default) on top of SGM.
+    let weighted = serde_json::json!({"weighted_median": {}});
+    let method = fuse::methods::build("sgm-heuristic", Some(&weighted)).unwrap_or_else(|e| panic!("{e}"));
+    group.bench_function("sgm-heuristic_weighted_median", |b| {
+        b.iter(|| black_box(method.run(&problem, &|_| {})))
+    });
     group.finish();
 }
 

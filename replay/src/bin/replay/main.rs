@@ -32,6 +32,7 @@ static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
     replay capture.mcap --method all --rerun spawn       every method, shown in the Rerun viewer\n  \
     replay capture.mcap --method gc-heuristic --config '{\"fill_occlusions\": true}'   graph cuts, occlusions filled\n  \
     replay capture.mcap --method mfusenet --config '{\"flips\": true}'   the network and its mirror image averaged (twice the time)\n  \
+    replay capture.mcap --method sgm-heuristic --config '{\"weighted_median\": {}}'   depth edges snapped to colour edges (mfusenet's default)\n  \
     replay --list-methods\n  \
     replay eval ../shared/data/middlebury2006-third-dev --methods sgm-stereo,sgm-heuristic,mfusenet-stereo,mfusenet\n  \
     replay train --views 2                               train the three-view network on simulated captures")]
