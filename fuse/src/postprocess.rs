@@ -155,10 +155,12 @@ pub fn weighted_median(
             (-(dx * dx + dy * dy) * (step * step) as f32 / two_var).exp()
         })
         .collect();
-    // The window's values are binned by eighths of a pixel, the bins grouped in blocks of 16:
+    // The window's values are binned by eighths of a pixel (coarser beyond 8192 px of range),
+    // the bins grouped in blocks of 16:
     // the block holding the weighted median is found from the blocks' sums, its bin from the
     // bins', and only that bin's values are sorted.
     const BINS_PER_PX: f32 = 8.0;
+    const MAX_BINS: f32 = 65_536.0;
     const BLOCK: usize = 16;
     let finite = || disparity.data.iter().copied().filter(|v| v.is_finite());
     let (low, high) = (
@@ -169,8 +171,10 @@ pub fn weighted_median(
         // No finite value at all.
         return Ok(disparity.clone());
     }
-    let bins = ((high - low) * BINS_PER_PX) as usize + 1;
-    let bin = |v: f32| (((v - low) * BINS_PER_PX) as usize).min(bins - 1);
+    // Coarser bins for a range wider than 8192 px, so that the bins stay few.
+    let per_px = BINS_PER_PX.min(MAX_BINS / (high - low).max(1.0));
+    let bins = ((high - low) * per_px) as usize + 1;
+    let bin = |v: f32| (((v - low) * per_px) as usize).min(bins - 1);
     let mut data = disparity.data.clone();
     data.par_chunks_mut(w).enumerate().for_each(|(y, out)| {
         let mut window: Vec<(f32, f32)> = Vec::with_capacity(side * side);
@@ -366,6 +370,29 @@ mod tests {
         }
         // The plain 3×3 median keeps the bleed.
         assert_eq!(median3x3(&fattened).data[5 * w + 18], 20.5);
+    }
+
+    #[test]
+    fn a_huge_range_of_values_is_filtered_with_coarser_bins() {
+        let (w, h) = (16, 12);
+        let d = disparity(
+            w,
+            h,
+            |x, y| if (x + y) % 7 == 0 { 3.0e9 } else { 5.0 + x as f32 * 0.01 },
+        );
+        let f = WeightedMedian {
+            radius_px: 3,
+            step_px: 1,
+            ..Default::default()
+        };
+        let out = weighted_median(&d, &grey(w, h, |_, _| 50), &f).unwrap();
+        let plain = plain_weighted_median(&d, &grey(w, h, |_, _| 50), &f);
+        for (got, (want, margin)) in out.data.iter().zip(plain) {
+            if margin > 1e-5 {
+                assert_eq!(*got, want);
+            }
+        }
+        assert!(out.data.iter().all(|v| *v < 1.0e9), "the outliers are voted out");
     }
 
     #[test]
