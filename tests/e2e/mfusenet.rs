@@ -77,6 +77,8 @@ fn replay_runs_mfusenet_and_names_bad_weight_files() {
     assert_success(&output, "replay --method mfusenet --config '{\"flips\": true}'");
     let flipped = read_summary(&flipped_out);
     assert_eq!(flipped["config"]["flips"], true, "{flipped}");
+    // The image-guided weighted median is MFuseNet's default, with its parameters recorded.
+    assert_eq!(flipped["config"]["weighted_median"]["radius_px"], 10, "{flipped}");
     let avg = flipped["sets"][0]["outputs"]["metrics"]["all"]["avg_err"]
         .as_f64()
         .unwrap_or(f64::NAN);
@@ -142,6 +144,19 @@ fn replay_runs_mfusenet_and_names_bad_weight_files() {
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert_eq!(output.status.code(), Some(1), "{stderr}");
     assert!(stderr.contains("refine_reach = -1"), "{stderr}");
+    // So is a bad weighted-median parameter, for a classical method that opts in as well.
+    let output = replay(&[
+        log,
+        "--method",
+        "sgm-heuristic",
+        "--config",
+        r#"{"weighted_median": {"sigma_colour": 0}}"#,
+        "--out",
+        out.to_str().unwrap_or_default(),
+    ]);
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert_eq!(output.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains("weighted_median.sigma_colour = 0"), "{stderr}");
 }
 
 fn train(dir: &Path, steps: &str) -> serde_json::Value {
