@@ -132,6 +132,35 @@ pub fn weighted_median(
     reference: &Image,
     filter: &WeightedMedian,
 ) -> Result<DisparityImage, FuseError> {
+    weighted_median_with_votes(disparity, reference, filter, None)
+}
+
+/// [`weighted_median`] with each pixel's weight also scaled by its entry of `votes` (one per
+/// pixel, 0 or more; `None` = all 1): a confidence, so that the pixels a method trusts decide
+/// (MFuseNet: those whose estimate its input costs back). A pixel whose window has no weight at
+/// all keeps its value.
+pub fn weighted_median_with_votes(
+    disparity: &DisparityImage,
+    reference: &Image,
+    filter: &WeightedMedian,
+    votes: Option<&[f32]>,
+) -> Result<DisparityImage, FuseError> {
+    let ones;
+    let votes = match votes {
+        Some(v) if v.len() != disparity.data.len() => {
+            return Err(FuseError::ImageSize {
+                what: "weighted median's votes",
+                width: disparity.width,
+                height: disparity.height,
+                len: v.len(),
+            });
+        }
+        Some(v) => v,
+        None => {
+            ones = vec![1.0f32; disparity.data.len()];
+            &ones
+        }
+    };
     filter.validate()?;
     let (w, h, c) = (disparity.width, disparity.height, reference.channels);
     if (reference.width, reference.height) != (w, h) {
@@ -198,9 +227,10 @@ pub fn weighted_median(
                 let spaced = &space[ky * side + reach - left..=ky * side + reach + right];
                 let values = disparity.data[yy * w + x0..].iter().step_by(step);
                 let colours = reference.data[(yy * w + x0) * c..].chunks_exact(c).step_by(step);
+                let voted = votes[yy * w + x0..].iter().step_by(step);
                 match c {
-                    3 => gather::<3>(centre, colours, values, spaced, &colour, &mut window),
-                    _ => gather::<1>(centre, colours, values, spaced, &colour, &mut window),
+                    3 => gather::<3>(centre, colours, values, spaced, &colour, &mut window, voted),
+                    _ => gather::<1>(centre, colours, values, spaced, &colour, &mut window, voted),
                 }
             }
             let mut total = 0.0f32;
@@ -209,6 +239,15 @@ pub fn weighted_median(
                 total += weight;
                 sums[b] += weight;
                 block_sums[b / BLOCK] += weight;
+            }
+            if total <= 0.0 {
+                // No weight to decide with (every vote 0): the pixel keeps its value.
+                window.iter().for_each(|&(v, _)| {
+                    let b = bin(v);
+                    sums[b] = 0.0;
+                    block_sums[b / BLOCK] = 0.0;
+                });
+                continue;
             }
             // The bin where the running sum reaches half the total, and the sum below it.
             let half = 0.5 * total;
@@ -271,12 +310,13 @@ fn gather<'a, const C: usize>(
     spaced: &[f32],
     colour: &[f32],
     window: &mut Vec<(f32, f32)>,
+    votes: impl Iterator<Item = &'a f32>,
 ) {
     let centre: [u8; C] = std::array::from_fn(|k| centre[k]);
-    for ((&v, pixel), &space) in values.zip(colours).zip(spaced) {
+    for (((&v, pixel), &space), &vote) in values.zip(colours).zip(spaced).zip(votes) {
         if v.is_finite() {
             let diff: usize = (0..C).map(|k| centre[k].abs_diff(pixel[k]) as usize).sum();
-            window.push((v, colour[diff] * space));
+            window.push((v, colour[diff] * space * vote));
         }
     }
 }
@@ -414,6 +454,10 @@ mod tests {
 
     /// The weighted median by the definition: every window value sorted, in f64.
     fn plain_weighted_median(d: &DisparityImage, image: &Image, f: &WeightedMedian) -> Vec<(f32, f64)> {
+        plain_with_votes(d, image, f, &vec![1.0; d.data.len()])
+    }
+
+    fn plain_with_votes(d: &DisparityImage, image: &Image, f: &WeightedMedian, votes: &[f32]) -> Vec<(f32, f64)> {
         let (w, h, c) = (d.width as isize, d.height as isize, image.channels);
         let (step, reach) = (f.step_px as isize, (f.radius_px / f.step_px) as isize);
         let mut out = Vec::new();
@@ -441,11 +485,15 @@ mod tests {
                         let r2 = ((kx * kx + ky * ky) * step * step) as f64;
                         let sigma = f64::from(f.sigma_space_px);
                         let weight = (-diff / c as f64 / f64::from(f.sigma_colour) - r2 / (2.0 * sigma * sigma)).exp();
-                        window.push((d.data[q], weight));
+                        window.push((d.data[q], weight * f64::from(votes[q])));
                     }
                 }
                 window.sort_by(|a, b| a.0.total_cmp(&b.0));
                 let total: f64 = window.iter().map(|p| p.1).sum();
+                if total <= 0.0 {
+                    out.push((d.data[at], 1.0));
+                    continue;
+                }
                 let mut sum = 0.0;
                 // The value, and how close its decision was (distance of half from a step).
                 let mut pick = (window[0].0, f64::INFINITY);
@@ -502,16 +550,30 @@ mod tests {
                     })
                     .collect(),
             };
-            let fast = weighted_median(&d, &image, &f).unwrap();
-            let plain = plain_weighted_median(&d, &image, &f);
-            let mut compared = 0;
-            for (i, (&got, &(want, margin))) in fast.data.iter().zip(&plain).enumerate() {
-                if margin > 1e-5 {
-                    assert_eq!(got.to_bits(), want.to_bits(), "{w}x{h}x{channels} pixel {i}");
-                    compared += 1;
+            // Votes: all 1, then a third of the pixels at 0.05 and some at 0.
+            let ones = vec![1.0f32; w * h];
+            let mixed: Vec<f32> = (0..w * h)
+                .map(|_| match next() % 9 {
+                    0 => 0.0,
+                    1..=3 => 0.05,
+                    _ => 1.0,
+                })
+                .collect();
+            for votes in [&ones, &mixed] {
+                let fast = weighted_median_with_votes(&d, &image, &f, Some(votes)).unwrap();
+                let plain = plain_with_votes(&d, &image, &f, votes);
+                let mut compared = 0;
+                for (i, (&got, &(want, margin))) in fast.data.iter().zip(&plain).enumerate() {
+                    if margin > 1e-5 {
+                        assert_eq!(got.to_bits(), want.to_bits(), "{w}x{h}x{channels} pixel {i}");
+                        compared += 1;
+                    }
                 }
+                assert!(compared > w * h * 8 / 10, "only {compared} clear decisions");
             }
-            assert!(compared > w * h * 8 / 10, "only {compared} clear decisions");
+            let plain = weighted_median(&d, &image, &f).unwrap();
+            let all_ones = weighted_median_with_votes(&d, &image, &f, Some(&ones)).unwrap();
+            assert_eq!(plain, all_ones);
         }
     }
 
@@ -554,6 +616,10 @@ mod tests {
                 other => panic!("{field}: {other:?}"),
             }
         }
+        assert!(matches!(
+            weighted_median_with_votes(&d, &image, &WeightedMedian::default(), Some(&[1.0; 63])),
+            Err(FuseError::ImageSize { len: 63, .. })
+        ));
         let small = grey(8, 7, |_, _| 1);
         assert!(matches!(
             weighted_median(&d, &small, &WeightedMedian::default()),
