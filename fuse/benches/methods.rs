@@ -1,7 +1,8 @@
 //! Criterion benchmarks of the methods on a synthetic five-view problem (a textured slanted
 //! plane, 640×360, 64 disparities), read as ratios within one run: fused methods against their
-//! stereo baseline, SGM against block matching, SGM with the weighted median against without. The absolute figures against OpenCV come from
-//! `scripts/bench-replay.py` (graph cuts: `scripts/bench-gc.sh`).
+//! stereo baseline, SGM against block matching, SGM with the weighted median against without.
+//! The absolute figures against OpenCV come from `scripts/bench-replay.py` (graph cuts:
+//! `scripts/bench-gc.sh`).
 
 #![allow(missing_docs)]
 

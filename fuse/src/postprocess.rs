@@ -240,55 +240,32 @@ pub fn weighted_median_with_votes(
                 sums[b] += weight;
                 block_sums[b / BLOCK] += weight;
             }
-            if total <= 0.0 {
-                // No weight to decide with (every vote 0): the pixel keeps its value.
-                window.iter().for_each(|&(v, _)| {
-                    let b = bin(v);
-                    sums[b] = 0.0;
-                    block_sums[b / BLOCK] = 0.0;
-                });
-                continue;
-            }
-            // The bin where the running sum reaches half the total, and the sum below it.
+            // The bin where the running sum reaches half the total, and the sum below it; none
+            // when the window has no weight (every vote 0): the pixel keeps its value.
             let half = 0.5 * total;
-            let mut below = 0.0f32;
-            let mut block = block_sums.len() - 1;
-            for (k, s) in block_sums.iter().enumerate() {
-                if below + s >= half {
-                    block = k;
-                    break;
-                }
-                below += s;
-            }
-            let mut median_bin = (block * BLOCK + BLOCK).min(bins) - 1;
-            for (b, s) in sums
-                .iter()
-                .enumerate()
-                .take((block * BLOCK + BLOCK).min(bins))
-                .skip(block * BLOCK)
-            {
-                if below + s >= half {
-                    median_bin = b;
-                    break;
-                }
-                below += s;
-            }
+            let median = (total > 0.0).then(|| {
+                let (block, below) = reaching(&block_sums, 0.0, half);
+                let first = block * BLOCK;
+                let (b, below) = reaching(&sums[first..(first + BLOCK).min(bins)], below, half);
+                (first + b, below)
+            });
             chosen.clear();
             for &(v, weight) in &window {
                 let b = bin(v);
                 sums[b] = 0.0;
                 block_sums[b / BLOCK] = 0.0;
-                if b == median_bin {
+                if median.is_some_and(|(m, _)| m == b) {
                     chosen.push((v, weight));
                 }
             }
-            chosen.sort_unstable_by(|a, b| a.0.total_cmp(&b.0));
-            let mut sum = below;
-            for &(v, weight) in &chosen {
-                sum += weight;
-                *value = v;
-                if sum >= half {
-                    break;
+            if let Some((_, mut sum)) = median {
+                chosen.sort_unstable_by(|a, b| a.0.total_cmp(&b.0));
+                for &(v, weight) in &chosen {
+                    sum += weight;
+                    *value = v;
+                    if sum >= half {
+                        break;
+                    }
                 }
             }
         }
@@ -298,6 +275,19 @@ pub fn weighted_median_with_votes(
         height: h,
         data,
     })
+}
+
+/// The first index where the running sum of `sums`, starting from `below`, reaches `half`, and
+/// the sum before it (the last index when rounding keeps it short).
+fn reaching(sums: &[f32], mut below: f32, half: f32) -> (usize, f32) {
+    for (i, s) in sums.iter().enumerate() {
+        if below + s >= half {
+            return (i, below);
+        }
+        below += s;
+    }
+    let last = sums.len().saturating_sub(1);
+    (last, below - sums.get(last).copied().unwrap_or(0.0))
 }
 
 /// Appends one window row's finite values with their weights (the colour table at the summed

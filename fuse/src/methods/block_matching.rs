@@ -3,7 +3,6 @@
 
 use std::sync::atomic::{AtomicUsize, Ordering};
 
-use crate::postprocess::{WeightedMedian, weighted_median};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
@@ -12,6 +11,7 @@ use crate::FuseError;
 use crate::cost::PixelCost;
 use crate::fusion::Fusion;
 use crate::image::DisparityImage;
+use crate::postprocess::{WeightedMedian, weighted_median};
 use crate::volume::{BandScratch, CostSpec, PreparedProblem, Problem, band_rows};
 use crate::wta::{SubpixelFit, winner_take_all};
 

@@ -2,7 +2,6 @@
 //! uniqueness over the fused Birchfield–Tomasi data term, minimised by α-expansion
 //! ([`crate::graph_cuts`]). Occluded pixels have no estimate unless `fill_occlusions` is set.
 
-use crate::postprocess::{WeightedMedian, weighted_median};
 use serde::{Deserialize, Serialize};
 
 use super::{Family, Method, MethodEntry, Progress, apply_overrides};
@@ -10,6 +9,7 @@ use crate::FuseError;
 use crate::fusion::Fusion;
 use crate::graph_cuts::{DataNorm, EnergyParams, KzEnergy, Uniqueness, expand_until_converged, label_order};
 use crate::image::{DisparityImage, Image};
+use crate::postprocess::{WeightedMedian, weighted_median};
 use crate::volume::{Neighbour, Problem};
 
 /// Configuration of graph cuts. Defaults are the paper's (K = 10, λ1 = 9, λ2 = 3, θ = 8) with the
@@ -109,6 +109,10 @@ impl Method for GraphCuts {
             problem
         };
         let c = &self.config;
+        // The post-processing's parameters before the cuts' seconds to minutes of work.
+        if let Some(filter) = &c.weighted_median {
+            filter.validate()?;
+        }
         let mut energy = KzEnergy::new(
             solved,
             c.fusion,

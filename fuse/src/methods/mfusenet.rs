@@ -232,6 +232,17 @@ impl Method for MFuseNet {
                 reason: "a distance in pixels, 0 or more",
             });
         }
+        // The post-processing's parameters too, before the network's minutes of work.
+        if let Some(filter) = &self.config.weighted_median {
+            filter.validate()?;
+        }
+        if !(0.0..=1.0).contains(&self.config.disagreeing_vote) {
+            return Err(FuseError::Config {
+                field: "disagreeing_vote",
+                value: self.config.disagreeing_vote.to_string(),
+                reason: "a vote weight from 0 to 1",
+            });
+        }
         let room_below = self.config.room_below.unwrap_or(loaded.context_below);
         if room_below > weights::MAX_CONTEXT_BELOW {
             return Err(FuseError::Config {
@@ -276,13 +287,6 @@ impl Method for MFuseNet {
         } else {
             disparity
         };
-        if !(0.0..=1.0).contains(&self.config.disagreeing_vote) {
-            return Err(FuseError::Config {
-                field: "disagreeing_vote",
-                value: self.config.disagreeing_vote.to_string(),
-                reason: "a vote weight from 0 to 1",
-            });
-        }
         Ok(match &self.config.weighted_median {
             Some(filter) => {
                 let votes = (self.config.disagreeing_vote < 1.0)
