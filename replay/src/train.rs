@@ -156,6 +156,12 @@ pub struct TrainConfig {
     /// neighbours' volumes swapped as the mirrored rig would see them. Off in the shipped files.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub flips: bool,
+    /// Keep hopeless crops ([`HOPELESS_ERROR_PX`]: the inputs' winner-take-all wrong by more
+    /// than 3 px on more than 40 % of the labelled pixels: blank, periodic or mirror-like
+    /// surfaces filling the crop) instead of drawing another, so that the network also learns
+    /// what to answer where the costs cannot tell. Off in the shipped stereo and five-view files.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub keep_hopeless: bool,
 }
 
 fn is_zero_usize(n: &usize) -> bool {
@@ -189,6 +195,7 @@ impl Default for TrainConfig {
             statistics_momentum: 0.0,
             context_below: 0,
             flips: false,
+            keep_hopeless: false,
             scenes: vec![
                 SceneKind::Random,
                 SceneKind::Random,
@@ -575,8 +582,9 @@ pub fn winner_take_all_reference(examples: &[Example]) -> (f64, f64) {
 
 /// A crop is hopeless when the inputs are wrong by more than this (px) on more than
 /// [`HOPELESS_FRACTION`] of its labelled pixels: a periodic or blank surface filling the crop,
-/// where no local fusion can know the answer. Such crops teach the network to hedge, so
-/// training draws another (occlusions and reflections, wrong in one neighbour only, stay in).
+/// where no local fusion can know the answer. Training draws another unless
+/// [`TrainConfig::keep_hopeless`] (occlusions and reflections, wrong in one neighbour only, stay
+/// in either way).
 pub const HOPELESS_ERROR_PX: f32 = 3.0;
 /// See [`HOPELESS_ERROR_PX`].
 pub const HOPELESS_FRACTION: f32 = 0.4;
@@ -967,7 +975,7 @@ fn random_crop(config: &TrainConfig, samples: &[Sample], rng: &mut Rng) -> Examp
                 e = mirror;
             }
         }
-        let enough = e.mask.iter().filter(|m| **m).count() * 2 > e.mask.len() && !hopeless(&e);
+        let enough = acceptable(config, &e);
         example = Some(e);
         if enough {
             break;
@@ -978,6 +986,13 @@ fn random_crop(config: &TrainConfig, samples: &[Sample], rng: &mut Rng) -> Examp
         target: Vec::new(),
         mask: Vec::new(),
     })
+}
+
+/// Whether training takes this crop: ground truth on more than half its pixels, and inputs
+/// that are not hopeless unless the configuration keeps those.
+fn acceptable(config: &TrainConfig, example: &Example) -> bool {
+    example.mask.iter().filter(|m| **m).count() * 2 > example.mask.len()
+        && (config.keep_hopeless || !hopeless(example))
 }
 
 /// `example` without its first `slices` disparity slices: targets move down by as many, and
@@ -1117,6 +1132,18 @@ mod tests {
         assert!(hopeless(&mostly_wrong));
         let partly_wrong = example(|p| if p < 4 { 11.0 } else { 6.0 }, 6.0);
         assert!(!hopeless(&partly_wrong));
+        // Training redraws the hopeless crop unless told to keep it; a crop mostly without
+        // ground truth is redrawn either way.
+        let keep = TrainConfig {
+            keep_hopeless: true,
+            ..TrainConfig::default()
+        };
+        assert!(!acceptable(&TrainConfig::default(), &mostly_wrong));
+        assert!(acceptable(&keep, &mostly_wrong));
+        assert!(acceptable(&TrainConfig::default(), &partly_wrong));
+        let mut unlabelled = right.clone();
+        unlabelled.mask.iter_mut().take(10).for_each(|m| *m = false);
+        assert!(!acceptable(&keep, &unlabelled));
         let (avg, bad1) = winner_take_all_reference(&[partly_wrong]);
         assert!((avg - 1.0).abs() < 1e-6 && (bad1 - 20.0).abs() < 1e-6, "{avg} {bad1}");
     }

@@ -103,6 +103,13 @@ pub struct TrainArgs {
     /// inference, `{"flips": true}`, took Middlebury AvgErr 0.363 → 0.352 px).
     #[arg(long)]
     flips: bool,
+    /// Keep hopeless crops (inputs wrong by more than 3 px on more than 40 % of the labelled
+    /// pixels: blank, periodic or mirror-like surfaces filling the crop) instead of drawing
+    /// another, so that the network also learns what to answer where the costs cannot tell (the
+    /// shipped three-view network's last stage: Middlebury Bad1 5.38 → 4.85 %, README, MFuseNet,
+    /// Training (9))
+    #[arg(long)]
+    keep_hopeless: bool,
     /// Steps between validations.
     #[arg(long, default_value_t = TrainConfig::default().validate_every)]
     validate_every: u64,
@@ -149,6 +156,7 @@ impl TrainArgs {
             statistics_momentum: self.statistics_momentum,
             context_below: self.context_below,
             flips: self.flips,
+            keep_hopeless: self.keep_hopeless,
             input: InputSpec {
                 block_radius: self.input_block_radius,
                 ..InputSpec::default()
