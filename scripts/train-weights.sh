@@ -43,7 +43,10 @@ for views in ${*:-2 1 4}; do
             tune 2 mfusenet-3view 600 128 mfusenet-3view mfusenet-3view-ft
             # Stage 3: answers in the first slices of the range (crops drop 0-12 slices).
             tune 2 mfusenet-3view 1000 128 mfusenet-3view-ft mfusenet-3view-shift --disparity-shift 12 --validate-every 200
-            ship mfusenet-3view mfusenet-3view-shift
+            # Stage 4: the same, keeping the crops whose inputs cannot tell (blank, periodic,
+            # mirror-like) instead of drawing others.
+            tune 2 mfusenet-3view 600 128 mfusenet-3view-shift mfusenet-3view-keep --disparity-shift 12 --keep-hopeless --validate-every 200
+            ship mfusenet-3view mfusenet-3view-keep
             ;;
         4)
             first 4 mfusenet-5view 700 96

@@ -991,8 +991,7 @@ fn random_crop(config: &TrainConfig, samples: &[Sample], rng: &mut Rng) -> Examp
 /// Whether training takes this crop: ground truth on more than half its pixels, and inputs
 /// that are not hopeless unless the configuration keeps those.
 fn acceptable(config: &TrainConfig, example: &Example) -> bool {
-    example.mask.iter().filter(|m| **m).count() * 2 > example.mask.len()
-        && (config.keep_hopeless || !hopeless(example))
+    example.mask.iter().filter(|m| **m).count() * 2 > example.mask.len() && (config.keep_hopeless || !hopeless(example))
 }
 
 /// `example` without its first `slices` disparity slices: targets move down by as many, and

@@ -77,13 +77,13 @@ pub struct MFuseNetConfig {
     /// its defaults, `null` = none): depth edges snap to the reference's colour edges, which
     /// the network, seeing only cost volumes, cannot place. On by default (about 5 % of the
     /// time; the classical methods have it opt-in, their speed is held against OpenCV's):
-    /// Middlebury three-view 0.363 → 0.322 px, Bad1 6.42 → 5.56 %; held-out simulated
-    /// three-view 0.950 → 0.936 px, five-view 0.295 → 0.278 px (README, "Weighted median").
+    /// Middlebury three-view 0.346 → 0.305 px, Bad1 5.89 → 4.94 % (without the votes);
+    /// held-out simulated five-view 0.295 → 0.278 px (README, "Weighted median").
     pub weighted_median: Option<WeightedMedian>,
     /// In the weighted median, the vote of a pixel whose estimate the input costs do not back
     /// (no local minimum of the summed input costs within 1 px of it), relative to one they do:
     /// where the network and the data disagree, the pixel's neighbours of the same colour that
-    /// agree decide. 1 = every pixel alike. Middlebury 0.322 → 0.319 px, Bad1 5.56 → 5.38 %;
+    /// agree decide. 1 = every pixel alike. Middlebury 0.305 → 0.303 px, Bad1 4.94 → 4.85 %;
     /// held-out simulated five-view 0.278 → 0.265 px (README, "Weighted median").
     pub disagreeing_vote: f32,
     /// The network sees this many disparities under the searched range as well (negative ones
