@@ -19,10 +19,13 @@ SCENES=${2:-8}
 mkdir -p "$OUT"
 cargo build --release -q -p record -p replay
 R=target/release/replay
+# The captures of this set only (OUT may hold a larger set's too).
+logs=()
 capture() { # scene seed
     local log="$OUT/$1-$2.mcap"
     [ -f "$log" ] || target/release/record --rig five-view --scene "$1" --seed "$2" --resolution 448x336 \
-        --baseline-mm 15 --samples-per-pixel 2 -o "$log" -q --no-blueprint 2>/dev/null
+        --baseline-mm 15 --samples-per-pixel 2 -o "$log" -q --no-blueprint 2>/dev/null || return 1
+    logs+=("$log")
 }
 # Some random scenes put the camera out of the arm's reach: take the next seed until enough are made.
 made=0
@@ -36,8 +39,6 @@ for family in toy workpiece; do
     [ "$extra" -gt 0 ] && seeds+=($(seq 908 $((907 + extra))))
     for seed in "${seeds[@]:0:$((SCENES / 4))}"; do capture "$family" "$seed"; done
 done
-logs=()
-for log in "$OUT"/*.mcap; do logs+=("$log"); done
 common=(--num-disparities 32 --format json -q)
 $R eval "${logs[@]}" --methods sgm-stereo,mfusenet-stereo "${common[@]}" > "$OUT/stereo.json"
 $R eval "${logs[@]}" --methods sgm-heuristic,mfusenet --neighbours left,right "${common[@]}" > "$OUT/three.json"
