@@ -28,6 +28,8 @@ tune() { # views name steps crop from-dir to-dir [more options]
         --init-weights "train/$5/$2.safetensors" --dir "train/$6" "${@:7}"
 }
 ship() { # name dir
+    # `replay train` writes the refined readout's locking curve (metadata `locking_curve`)
+    # itself; the shipped files that predate it got theirs from `replay train --calibrate FILE`.
     cp "train/$2/$1.safetensors" fuse/weights/
     echo "$1: $(python3 -c "import json;d=json.load(open('train/$2/training.json'));print(f\"{d['steps_done']} steps in this stage, {d['train_seconds']/60:.1f} min, validation AvgErr {d['val_avg_err_px']:.3f} px, Bad1 {d['val_bad1_percent']:.2f} %\")")"
 }

@@ -43,6 +43,123 @@ impl SubpixelFit {
     }
 }
 
+/// `|δ|` at which a [`LockingCurve`] gives its corrected offsets.
+pub const LOCKING_KNOTS: [f64; 10] = [0.025, 0.05, 0.075, 0.1, 0.15, 0.2, 0.25, 0.3, 0.4, 0.5];
+
+/// Fewest samples [`LockingCurve::fit`] fits a curve to.
+pub const LOCKING_MIN_SAMPLES: usize = 1000;
+
+/// A correction of a [`SubpixelFit`]'s pixel locking: the sub-pixel offset expected of the truth
+/// given the fit's offset δ, an odd piecewise-linear map through `(0, 0)` and
+/// `(LOCKING_KNOTS[i], self.0[i])` ([`LockingCurve::fit`] on the ground truth of training
+/// captures). The identity is `LOCKING_KNOTS` itself.
+///
+/// Census distances summed by SGM lock hard even with the equiangular fit: on the simulated
+/// training captures a surface 0.2 px off an integer reads as about 0.05 px. MFuseNet's refined
+/// readout takes the curve its weights file carries (`locking_curve`, written by `replay
+/// train`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct LockingCurve(pub [f64; 10]);
+
+impl LockingCurve {
+    /// The curve that changes nothing.
+    pub const IDENTITY: Self = Self(LOCKING_KNOTS);
+
+    /// The curve moved `strength` of the way from the identity (0) to itself (1).
+    pub fn damped(self, strength: f64) -> Self {
+        let mut values = LOCKING_KNOTS;
+        for (v, c) in values.iter_mut().zip(self.0) {
+            *v += strength * (c - *v);
+        }
+        Self(values)
+    }
+
+    /// The corrected offset for the fit's offset `delta` (∈ [−½, ½]).
+    pub fn apply(&self, delta: f64) -> f64 {
+        let a = delta.abs().min(0.5);
+        let (mut x0, mut y0) = (0.0, 0.0);
+        for (&x1, &y1) in LOCKING_KNOTS.iter().zip(&self.0) {
+            if a <= x1 {
+                return delta.signum() * (y0 + (y1 - y0) * (a - x0) / (x1 - x0));
+            }
+            (x0, y0) = (x1, y1);
+        }
+        delta.signum() * y0
+    }
+
+    /// The least-squares curve through `(δ, truth)` pairs: the fit's offset at the integer
+    /// nearest the truth and the truth's offset from that integer (both in [−½, ½]). The map is
+    /// odd (a surface ¼ px left of an integer locks as one ¼ px right does, mirrored); knots no
+    /// sample reaches stay near the identity (a small ridge towards it). `None` with fewer than
+    /// [`LOCKING_MIN_SAMPLES`] usable pairs. Values are rounded to 1e-4.
+    pub fn fit(pairs: impl IntoIterator<Item = (f64, f64)>) -> Option<Self> {
+        const N: usize = LOCKING_KNOTS.len();
+        let mut normal = [[0.0f64; N]; N];
+        let mut rhs = [0.0f64; N];
+        let mut count = 0usize;
+        for (delta, truth) in pairs {
+            if !(delta.is_finite() && truth.is_finite()) || delta == 0.0 {
+                continue;
+            }
+            let (a, t) = (delta.abs().min(0.5), delta.signum() * truth);
+            // The hat functions of the two knots around `a` (the one at 0 is pinned to 0).
+            let upper = LOCKING_KNOTS.iter().position(|&k| a <= k).unwrap_or(N - 1);
+            let (x0, x1) = (
+                if upper == 0 { 0.0 } else { LOCKING_KNOTS[upper - 1] },
+                LOCKING_KNOTS[upper],
+            );
+            let w1 = (a - x0) / (x1 - x0);
+            let mut basis = [(upper, w1), (usize::MAX, 0.0)];
+            if upper > 0 {
+                basis[1] = (upper - 1, 1.0 - w1);
+            }
+            for &(i, wi) in basis.iter().filter(|(i, _)| *i != usize::MAX) {
+                rhs[i] += wi * t;
+                for &(j, wj) in basis.iter().filter(|(j, _)| *j != usize::MAX) {
+                    normal[i][j] += wi * wj;
+                }
+            }
+            count += 1;
+        }
+        if count < LOCKING_MIN_SAMPLES {
+            return None;
+        }
+        let ridge = 1e-6 * count as f64;
+        for (i, row) in normal.iter_mut().enumerate() {
+            row[i] += ridge;
+            rhs[i] += ridge * LOCKING_KNOTS[i];
+        }
+        // Rounded to 1e-4 px: the curve is read back from JSON metadata.
+        solve(normal, rhs).map(|values| Self(values.map(|v| (v * 1e4).round() / 1e4)))
+    }
+}
+
+/// `x` with `a x = b` by Gaussian elimination with partial pivoting; `None` when singular.
+fn solve<const N: usize>(mut a: [[f64; N]; N], mut b: [f64; N]) -> Option<[f64; N]> {
+    for col in 0..N {
+        let pivot = (col..N).max_by(|&i, &j| a[i][col].abs().total_cmp(&a[j][col].abs()))?;
+        if a[pivot][col].abs() < 1e-12 {
+            return None;
+        }
+        a.swap(col, pivot);
+        b.swap(col, pivot);
+        let (pivot_row, pivot_b) = (a[col], b[col]);
+        for (row, rhs) in a.iter_mut().zip(b.iter_mut()).skip(col + 1) {
+            let f = row[col] / pivot_row[col];
+            for (v, p) in row.iter_mut().zip(&pivot_row).skip(col) {
+                *v -= f * p;
+            }
+            *rhs -= f * pivot_b;
+        }
+    }
+    let mut x = [0.0; N];
+    for row in (0..N).rev() {
+        let tail: f64 = (row + 1..N).map(|k| a[row][k] * x[k]).sum();
+        x[row] = (b[row] - tail) / a[row][row];
+    }
+    Some(x)
+}
+
 /// Picks the disparity of least cost for every pixel of `costs` (`[x][d]` rows, any number of
 /// rows) and writes `min_disparity + d + δ` into `out`, where δ ∈ [−½, ½] is the vertex of the
 /// `subpixel` fit through the costs at `d − 1, d, d + 1` (when both exist; `None`: δ = 0). Pixels
@@ -85,6 +202,58 @@ pub fn winner_take_all(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_identity_curve_changes_nothing_and_a_curve_is_odd() {
+        for delta in [-0.5, -0.31, -0.02, 0.0, 0.07, 0.25, 0.5] {
+            assert!((LockingCurve::IDENTITY.apply(delta) - delta).abs() < 1e-12, "{delta}");
+        }
+        let doubled = LockingCurve(LOCKING_KNOTS.map(|k| (2.0 * k).min(0.5)));
+        // Between knots the map is linear: 0.0375 lies halfway from 0.025 (0.05) to 0.05 (0.1).
+        assert!((doubled.apply(0.0375) - 0.075).abs() < 1e-12);
+        assert!((doubled.apply(-0.0375) + 0.075).abs() < 1e-12);
+        assert!((doubled.apply(0.4) - 0.5).abs() < 1e-12);
+        // Damped: part of the way from the identity.
+        assert_eq!(doubled.damped(0.0), LockingCurve::IDENTITY);
+        assert_eq!(doubled.damped(1.0), doubled);
+        assert!((doubled.damped(0.5).apply(0.0375) - 0.05625).abs() < 1e-12);
+    }
+
+    #[test]
+    fn fit_recovers_a_known_locking_from_samples() {
+        // Truth offsets t uniform in [−½, ½]; the fit reads them locked towards the integer:
+        // δ = t (½ + 2t²) (odd, monotone, δ(½) = ½, half the slope at 0). Its inverse at the
+        // knots (by bisection) is what the fit must find, to within the piecewise-linear
+        // approximation between knots.
+        let lock = |t: f64| t * (0.5 + 2.0 * t * t);
+        let pairs: Vec<(f64, f64)> = (0..20_000)
+            .map(|i| {
+                let t = -0.5 + (f64::from(i) + 0.5) / 20_000.0;
+                (lock(t), t)
+            })
+            .collect();
+        let curve = LockingCurve::fit(pairs.iter().copied()).expect("enough samples");
+        for (k, v) in LOCKING_KNOTS.iter().zip(curve.0) {
+            let (mut lo, mut hi) = (0.0, 0.5);
+            for _ in 0..60 {
+                let mid = 0.5 * (lo + hi);
+                if lock(mid) < *k { lo = mid } else { hi = mid }
+            }
+            assert!((v - lo).abs() < 0.01, "knot {k}: {v} vs {lo}");
+        }
+        // The corrected offsets are far nearer the truth than the locked ones.
+        let error = |f: &dyn Fn(f64) -> f64| pairs.iter().map(|(d, t)| (f(*d) - t).abs()).sum::<f64>();
+        assert!(error(&|d| curve.apply(d)) < 0.2 * error(&|d| d));
+        // Unlocked samples give (about) the identity; too few give none.
+        let unlocked = LockingCurve::fit(pairs.iter().map(|(_, t)| (*t, *t))).expect("enough samples");
+        for (k, v) in LOCKING_KNOTS.iter().zip(unlocked.0) {
+            assert!((v - k).abs() < 1e-3, "knot {k}: {v}");
+        }
+        assert_eq!(
+            LockingCurve::fit(pairs.iter().copied().take(LOCKING_MIN_SAMPLES - 1)),
+            None
+        );
+    }
 
     #[test]
     fn parabola_vertex_is_recovered() {

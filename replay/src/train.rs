@@ -22,6 +22,7 @@ use fuse::mfusenet::{Network, WeightsInfo, weights};
 use fuse::nn::Tensor;
 use fuse::nn::regression::soft_argmin;
 use fuse::volume::{CostVolume, VolumeSource};
+use fuse::wta::LockingCurve;
 use record::capture::{Simulation, SimulationConfig};
 use record::rig::RigKind;
 use record::scene::SceneKind;
@@ -601,7 +602,8 @@ pub struct Validation {
     /// The paper's soft-argmin over the whole range.
     pub soft_argmin: (f64, f64),
     /// The integer nearest the soft-argmin, refined by the shipped fit through the summed
-    /// inputs (`fuse::mfusenet::infer::Estimate::refine`, `DEFAULT_SUBPIXEL_FIT`).
+    /// inputs (`fuse::mfusenet::infer::Estimate::refine`, `DEFAULT_SUBPIXEL_FIT`) with the
+    /// given locking correction.
     pub refined: (f64, f64),
     /// Mean over the validated pixels of the logits' range over disparity (max − min): how
     /// peaked the softmax is. Tens in a healthy network; the three- and five-view files
@@ -617,9 +619,114 @@ impl Validation {
     }
 }
 
+/// The refined readout's pixel-locking curve on these samples' inputs for a network of `views`
+/// inputs (`fuse::wta::LockingCurve::fit` over [`locking_pairs`]). `None` when too few pixels
+/// have a minimum there.
+pub fn fit_locking(samples: &[Sample], views: usize) -> Option<LockingCurve> {
+    LockingCurve::fit(locking_pairs(samples, views))
+}
+
+/// At every pixel with ground truth, the fit's offset through the summed input costs at the
+/// integer nearest the truth (where that integer is a minimum of them), and the truth's
+/// offset from that integer.
+pub fn locking_pairs(samples: &[Sample], views: usize) -> impl Iterator<Item = (f64, f64)> + '_ {
+    samples.iter().flat_map(move |sample| {
+        let volumes = sample.for_views(views);
+        let (w, depth) = (volumes[0].width, volumes[0].disparities);
+        sample.truth.iter().enumerate().filter_map(move |(pixel, &t)| {
+            let d = t.round();
+            if !(t > 0.0 && d >= 1.0 && d + 1.0 < depth as f32) {
+                return None;
+            }
+            let (x, y, d) = (pixel % w, pixel / w, d as usize);
+            let cost = |z: usize| volumes.iter().map(|v| f64::from(v.costs(x, y)[z])).sum::<f64>();
+            DEFAULT_SUBPIXEL_FIT
+                .offset([cost(d - 1), cost(d), cost(d + 1)])
+                .map(|delta| (delta, f64::from(t) - d as f64))
+        })
+    })
+}
+
+/// What [`calibrate_locking`] fitted and how far it moves the readout on its captures.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Calibration {
+    /// The curve written into the file.
+    pub curve: LockingCurve,
+    /// Pixels it was fitted on.
+    pub pixels: usize,
+    /// Mean |offset − truth's offset| (px) of the fit's own offsets on them.
+    pub error_before_px: f64,
+    /// The same with the curve applied.
+    pub error_after_px: f64,
+    /// The same with half the curve (`LockingCurve::damped(0.5)`, inference's default).
+    pub error_half_px: f64,
+}
+
+/// Fits the refined readout's locking curve ([`fit_locking`]) for a weights file made by
+/// `replay train` and writes the file again at `out` (the same tensors) with the curve in its
+/// metadata (`locking_curve`, with `locking_note`): the training captures its metadata
+/// `train_config` names (made again, or read from the cache in `dataset_dir`), never
+/// evaluation scenes. For files trained before `replay train` wrote the curve itself.
+pub fn calibrate_locking(
+    weights_file: &Path,
+    dataset_dir: &Path,
+    out: &Path,
+    on_dataset: &mut dyn FnMut(usize, usize),
+) -> Result<Calibration, TrainError> {
+    let (net, mut info) = weights::load(weights_file, None)?;
+    let file = weights_file.display().to_string();
+    let config: TrainConfig = info
+        .get("train_config")
+        .and_then(|json| serde_json::from_str(json).ok())
+        .ok_or_else(|| TrainError::Config {
+            field: "train_config",
+            value: file.clone(),
+            reason: "the weights file's metadata has no training configuration to make its captures from",
+        })?;
+    let mut samples = Vec::with_capacity(config.train_sets);
+    for index in 0..config.train_sets {
+        samples.push(sample(&config, index, false, dataset_dir)?);
+        on_dataset(index + 1, config.train_sets);
+    }
+    let curve = fit_locking(&samples, net.views).ok_or_else(|| TrainError::Config {
+        field: "train_sets",
+        value: config.train_sets.to_string(),
+        reason: "too few pixels with ground truth to fit the locking curve",
+    })?;
+    let (mut pixels, mut before, mut after, mut half) = (0usize, 0f64, 0f64, 0f64);
+    let damped = curve.damped(0.5);
+    for (delta, truth) in locking_pairs(&samples, net.views) {
+        pixels += 1;
+        before += (delta - truth).abs();
+        after += (curve.apply(delta) - truth).abs();
+        half += (damped.apply(delta) - truth).abs();
+    }
+    let pixels_f = pixels.max(1) as f64;
+    info.set("locking_curve", serde_json::to_string(&curve).unwrap_or_default());
+    info.set(
+        "locking_note",
+        format!(
+            "fitted after training by `replay train --calibrate {file}` on the {} training captures of train_config",
+            config.train_sets
+        ),
+    );
+    weights::save(&net, &info, out)?;
+    Ok(Calibration {
+        curve,
+        pixels,
+        error_before_px: before / pixels_f,
+        error_after_px: after / pixels_f,
+        error_half_px: half / pixels_f,
+    })
+}
+
 /// AvgErr (px) and Bad1 (%) of the eval-mode network over the examples' masked pixels, for
-/// both estimates.
-pub fn validate_estimates(net: &Network, examples: &[Example]) -> Result<Validation, TrainError> {
+/// both estimates (the refined one with `locking`).
+pub fn validate_estimates(
+    net: &Network,
+    examples: &[Example],
+    locking: Option<LockingCurve>,
+) -> Result<Validation, TrainError> {
     let mut sums = [(0f64, 0usize); 2];
     let mut count = 0usize;
     let mut range_sum = 0f64;
@@ -643,8 +750,14 @@ pub fn validate_estimates(net: &Network, examples: &[Example]) -> Result<Validat
                     .map(|v| f64::from(v.data[z * plane + pixel]))
                     .sum::<f64>()
             };
-            let refined =
-                fuse::mfusenet::infer::refined(f64::from(*d), cost, depth, DEFAULT_REFINE_REACH, DEFAULT_SUBPIXEL_FIT);
+            let refined = fuse::mfusenet::infer::refined(
+                f64::from(*d),
+                cost,
+                depth,
+                DEFAULT_REFINE_REACH,
+                DEFAULT_SUBPIXEL_FIT,
+                locking,
+            );
             for (sum, value) in sums.iter_mut().zip([f64::from(*d), refined]) {
                 let error = (value - f64::from(*t)).abs();
                 sum.0 += error;
@@ -745,6 +858,7 @@ pub fn train(
     }
     let val_examples = validation_examples(&val_samples, config.views, config.depth());
     let (wta_avg, wta_bad1) = winner_take_all_reference(&val_examples);
+    let locking = fit_locking(&train_samples, config.views);
     tracing::info!(
         "validation crops: winner-take-all of the mean input volume gives AvgErr {wta_avg:.3} px, Bad1 {wta_bad1:.2} % (the network must do better)"
     );
@@ -836,7 +950,7 @@ pub fn train(
             val_bad1: None,
         };
         if done % config.validate_every == 0 || done == config.steps {
-            let estimates = validate_estimates(&net, &val_examples)?;
+            let estimates = validate_estimates(&net, &val_examples, locking)?;
             tracing::info!(
                 "step {done}: validation AvgErr {:.3} px / Bad1 {:.2} % (refined {:.3} / {:.2}), logit range {:.1} (tens is healthy, thousands saturated)",
                 estimates.soft_argmin.0,
@@ -911,12 +1025,15 @@ pub fn train(
     // step's validation when it had one, e.g. not after an interruption or a resumed finished run).
     let estimates = match last_estimates {
         Some((step, estimates)) if step == adam.step => estimates,
-        _ => validate_estimates(&net, &val_examples)?,
+        _ => validate_estimates(&net, &val_examples, locking)?,
     };
     let (avg, bad1) = estimates.refined;
     info.set("val_refined_avg_err_px", format!("{avg:.4}"));
     info.set("val_refined_bad1_percent", format!("{bad1:.3}"));
     info.set("val_logit_range", format!("{:.1}", estimates.logit_range));
+    if let Some(curve) = locking {
+        info.set("locking_curve", serde_json::to_string(&curve).unwrap_or_default());
+    }
     info.set(
         "estimate",
         if estimates.refine_is_better() {
@@ -1145,6 +1262,69 @@ mod tests {
         assert!(!acceptable(&keep, &unlabelled));
         let (avg, bad1) = winner_take_all_reference(&[partly_wrong]);
         assert!((avg - 1.0).abs() < 1e-6 && (bad1 - 20.0).abs() < 1e-6, "{avg} {bad1}");
+    }
+
+    #[test]
+    fn the_locking_fit_reads_the_truth_through_the_inputs() {
+        // Costs 20·|d − t|^p around each pixel's truth t ∈ [2, 9]. With p = 1 (a V) the
+        // equiangular fit reads t exactly: the curve is the identity. With p = 2 (a parabola)
+        // the lines read it locked towards the integer: the curve undoes that.
+        let (w, h, nd) = (40, 30, 12);
+        let truth: Vec<f32> = (0..w * h).map(|p| 2.0 + 7.0 * p as f32 / (w * h) as f32).collect();
+        let sample = |power: i32| {
+            let volume = CostVolume::<u8> {
+                width: w,
+                height: h,
+                min_disparity: 0,
+                disparities: nd,
+                data: truth
+                    .iter()
+                    .flat_map(|t| (0..nd).map(move |d| (20.0 * (d as f32 - t).abs().powi(power)).min(255.0) as u8))
+                    .collect(),
+                max_cost: 255,
+                source: VolumeSource::Fused(fuse::fusion::Fusion::Mean),
+            };
+            Sample {
+                volumes: vec![volume; 4],
+                truth: truth.clone(),
+            }
+        };
+        let v = fit_locking(&[sample(1)], 2).unwrap_or_else(|| panic!("no curve"));
+        for (k, value) in fuse::wta::LOCKING_KNOTS.iter().zip(v.0) {
+            assert!((value - k).abs() < 0.03, "V: knot {k}: {value}");
+        }
+        let parabola = fit_locking(&[sample(2)], 2).unwrap_or_else(|| panic!("no curve"));
+        // A parabola's minimum t = d + 0.25 reads as (l − r) / (2 (max(l, r) − c)) =
+        // ((1.25)² − (0.75)²) / (2 ((1.25)² − (0.25)²)) = 1/3 through the lines: the curve takes
+        // about 1/3 back to 1/4.
+        let corrected = parabola.apply(1.0 / 3.0);
+        assert!((corrected - 0.25).abs() < 0.03, "{corrected}");
+        // Too few pixels: none.
+        assert_eq!(
+            fit_locking(
+                &[Sample {
+                    truth: vec![0.0; w * h],
+                    ..sample(1)
+                }],
+                2
+            ),
+            None
+        );
+    }
+
+    #[test]
+    fn calibration_needs_the_files_training_configuration() {
+        let dir = std::env::temp_dir().join(format!("replay-calibrate-{}", std::process::id()));
+        let _ = std::fs::create_dir_all(&dir);
+        let file = dir.join("bare.safetensors");
+        let saved = weights::save(&Network::init(2, 1), &WeightsInfo::default(), &file);
+        assert!(saved.is_ok(), "{saved:?}");
+        let error = calibrate_locking(&file, &dir, &dir.join("out.safetensors"), &mut |_, _| {}).err();
+        assert!(
+            matches!(&error, Some(TrainError::Config { field: "train_config", value, .. }) if value.ends_with("bare.safetensors")),
+            "{error:?}"
+        );
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     #[test]

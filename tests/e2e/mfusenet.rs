@@ -144,6 +144,19 @@ fn replay_runs_mfusenet_and_names_bad_weight_files() {
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert_eq!(output.status.code(), Some(1), "{stderr}");
     assert!(stderr.contains("refine_reach = -1"), "{stderr}");
+    // So is a share of the locking correction outside 0..=1.
+    let output = replay(&[
+        log,
+        "--method",
+        "mfusenet",
+        "--config",
+        r#"{"locking_strength": 2}"#,
+        "--out",
+        out.to_str().unwrap_or_default(),
+    ]);
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert_eq!(output.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains("locking_strength = 2"), "{stderr}");
     // So is a bad weighted-median parameter, for a classical method that opts in as well.
     let output = replay(&[
         log,
@@ -273,6 +286,55 @@ fn training_resumes_and_its_weights_run() {
             .is_some_and(f64::is_finite),
         "{metadata}"
     );
+    // The refined readout's locking curve, fitted on the training captures, is in the metadata;
+    // `--calibrate` fits it again for a file (the same captures: the same curve) and writes the
+    // file with the same tensors.
+    let curve: Vec<f64> = metadata["locking_curve"]
+        .as_str()
+        .and_then(|v| serde_json::from_str(v).ok())
+        .unwrap_or_default();
+    assert!(curve.len() == 10 && curve.iter().all(|v| v.is_finite()), "{metadata}");
+    let calibrated = dir.path().join("calibrated.safetensors");
+    let output = replay(&[
+        "train",
+        "--calibrate",
+        weights.to_str().unwrap_or_default(),
+        "--weights-out",
+        calibrated.to_str().unwrap_or_default(),
+        "--dataset-dir",
+        dir.path().join("dataset").to_str().unwrap_or_default(),
+        "-q",
+    ]);
+    assert_success(&output, "replay train --calibrate");
+    let again = safetensors_header(&calibrated);
+    assert_eq!(
+        again["__metadata__"]["locking_curve"], metadata["locking_curve"],
+        "{again}"
+    );
+    assert!(again["__metadata__"]["locking_note"].is_string(), "{again}");
+    let tensors = |path: &Path, header: &serde_json::Value| -> Vec<u8> {
+        let bytes = std::fs::read(path).unwrap_or_default();
+        let start = 8 + bytes
+            .get(..8)
+            .map_or(0, |b| u64::from_le_bytes(b.try_into().unwrap_or([0; 8])) as usize);
+        let mut names: Vec<&String> = header.as_object().map(|o| o.keys().collect()).unwrap_or_default();
+        names.retain(|n| *n != "__metadata__");
+        names.sort();
+        names
+            .iter()
+            .flat_map(|n| {
+                let at = &header[n.as_str()]["data_offsets"];
+                let (a, b) = (
+                    at[0].as_u64().unwrap_or(0) as usize,
+                    at[1].as_u64().unwrap_or(0) as usize,
+                );
+                bytes.get(start + a..start + b).unwrap_or_default().to_vec()
+            })
+            .collect()
+    };
+    let before = tensors(&weights, &header);
+    assert!(!before.is_empty());
+    assert_eq!(before, tensors(&calibrated, &again), "tensors changed");
     let log = record_log(
         dir.path(),
         "three.mcap",

@@ -20,7 +20,7 @@ use crate::mfusenet::input::{InputSpec, input_volumes_below, ordered_neighbours,
 use crate::mfusenet::{Network, weights};
 use crate::postprocess::{WeightedMedian, median3x3, weighted_median_with_votes};
 use crate::volume::{CostVolume, Problem};
-use crate::wta::SubpixelFit;
+use crate::wta::{LockingCurve, SubpixelFit};
 
 /// The shipped weights, per number of input volumes.
 const SHIPPED: [(usize, &str, &[u8]); 3] = [
@@ -40,6 +40,9 @@ const SHIPPED: [(usize, &str, &[u8]); 3] = [
         include_bytes!("../../weights/mfusenet-5view.safetensors"),
     ),
 ];
+
+/// Default [`MFuseNetConfig::locking_strength`].
+pub const DEFAULT_LOCKING_STRENGTH: f64 = 0.5;
 
 /// Configuration of MFuseNet.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -69,6 +72,16 @@ pub struct MFuseNetConfig {
     /// sub-pixel disparity, `equiangular` (default) or `parabola` (see `wta::SubpixelFit` and
     /// `mfusenet::infer::DEFAULT_SUBPIXEL_FIT`).
     pub subpixel_fit: SubpixelFit,
+    /// With the refined estimate: the correction of the fit's pixel locking, ten numbers
+    /// (`wta::LockingCurve`); `null` = the curve the weights file carries (metadata
+    /// `locking_curve`, fitted by `replay train` on its training captures), if any.
+    pub locking: Option<LockingCurve>,
+    /// With the refined estimate: how much of the `locking` correction to apply, from 0 (the
+    /// fit's own offset) to 1 (the whole curve, what the simulated training captures call
+    /// for). Real images lock less than our renders: on Middlebury 0.5 gave AvgErr 0.303 →
+    /// 0.293 px with Bad0.5 8.15 → 8.34 %, the whole curve 0.294 px with 8.58 % (README,
+    /// "Pixel locking").
+    pub locking_strength: f64,
     /// A 3×3 median on the result, as block matching and SGM do (shipped three-view network:
     /// Middlebury 0.395 → 0.391 px, held-out simulated five-view 0.347 → 0.338 px, both with the
     /// parabola fit).
@@ -109,6 +122,8 @@ impl Default for MFuseNetConfig {
             refine: None,
             refine_reach: DEFAULT_REFINE_REACH,
             subpixel_fit: DEFAULT_SUBPIXEL_FIT,
+            locking: None,
+            locking_strength: DEFAULT_LOCKING_STRENGTH,
             median: true,
             weighted_median: Some(WeightedMedian::default()),
             disagreeing_vote: 0.05,
@@ -128,6 +143,8 @@ struct Loaded {
     context_below: usize,
     /// Metadata `input_spec`.
     input: InputSpec,
+    /// Metadata `locking_curve`.
+    locking: Option<LockingCurve>,
 }
 
 impl Loaded {
@@ -137,6 +154,7 @@ impl Loaded {
             refine: weights::refine_recommended(info, file)?,
             context_below: weights::context_below_recommended(info, file)?,
             input: weights::input_spec_recommended(info, file)?,
+            locking: weights::locking_recommended(info, file)?,
             net,
         })
     }
@@ -232,6 +250,13 @@ impl Method for MFuseNet {
                 reason: "a distance in pixels, 0 or more",
             });
         }
+        if !(0.0..=1.0).contains(&self.config.locking_strength) {
+            return Err(FuseError::Config {
+                field: "locking_strength",
+                value: self.config.locking_strength.to_string(),
+                reason: "a share of the locking correction from 0 to 1",
+            });
+        }
         // The post-processing's parameters too, before the network's minutes of work.
         if let Some(filter) = &self.config.weighted_median {
             filter.validate()?;
@@ -270,6 +295,11 @@ impl Method for MFuseNet {
                 refine: self.config.refine.unwrap_or(loaded.refine),
                 refine_reach: self.config.refine_reach,
                 fit: self.config.subpixel_fit,
+                locking: self
+                    .config
+                    .locking
+                    .or(loaded.locking)
+                    .map(|curve| curve.damped(self.config.locking_strength)),
                 context_below: usize::try_from(problem.min_disparity as i64 - first).unwrap_or(0),
                 flips: self.config.flips,
             },

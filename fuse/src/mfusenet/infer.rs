@@ -10,7 +10,7 @@ use super::input::{STEPS_PER_UNIT, flip_axes, mirrored};
 use super::network::Network;
 use crate::nn::Tensor;
 use crate::volume::CostVolume;
-use crate::wta::SubpixelFit;
+use crate::wta::{LockingCurve, SubpixelFit};
 
 /// Pixels of context around each tile (≥ the receptive radius, a multiple of 4).
 pub const HALO: usize = 48;
@@ -149,7 +149,14 @@ pub fn infer(
                 let mut value = expected_disparity(column, nd - skip, estimate.window);
                 if estimate.refine {
                     let cost = |d: usize| volumes.iter().map(|v| f64::from(v.costs(x, y)[d + skip])).sum::<f64>();
-                    value = refined(value, cost, nd - skip, estimate.refine_reach, estimate.fit);
+                    value = refined(
+                        value,
+                        cost,
+                        nd - skip,
+                        estimate.refine_reach,
+                        estimate.fit,
+                        estimate.locking,
+                    );
                 }
                 disparity[y * w + x] = (first.min_disparity as f64 + (skip as f64 + value)) as f32;
             }
@@ -178,6 +185,8 @@ pub struct Estimate {
     /// With `refine`: the curve through the summed input costs whose vertex is the sub-pixel
     /// disparity ([`DEFAULT_SUBPIXEL_FIT`]).
     pub fit: SubpixelFit,
+    /// With `refine`: the correction of the fit's pixel locking (`None`: the fit's offset).
+    pub locking: Option<LockingCurve>,
     /// Test-time flips: the network also answers the set's mirror image
     /// ([`super::input::flip_axes`]: left to right for a left/right pair and the four-view
     /// cross, top to bottom for a top/bottom pair or a single neighbour; the volumes move to
@@ -194,6 +203,7 @@ impl Default for Estimate {
             refine: false,
             refine_reach: DEFAULT_REFINE_REACH,
             fit: DEFAULT_SUBPIXEL_FIT,
+            locking: None,
             flips: false,
         }
     }
@@ -217,20 +227,26 @@ pub const DEFAULT_SUBPIXEL_FIT: SubpixelFit = SubpixelFit::Equiangular;
 /// the neighbouring integer on its downhill side is tried instead, and its vertex taken if it is
 /// a local minimum and the vertex lies within `reach` px of `d` (the network chose the integer to
 /// within one; the costs place the surface between the two); else `estimate` is kept.
-pub fn refined(estimate: f64, cost: impl Fn(usize) -> f64, nd: usize, reach: f64, fit: SubpixelFit) -> f64 {
+pub fn refined(
+    estimate: f64,
+    cost: impl Fn(usize) -> f64,
+    nd: usize,
+    reach: f64,
+    fit: SubpixelFit,
+    locking: Option<LockingCurve>,
+) -> f64 {
+    let offset = |costs| fit.offset(costs).map(|o| locking.map_or(o, |curve| curve.apply(o)));
     let d = estimate.round().clamp(0.0, nd.saturating_sub(1) as f64) as usize;
     if d == 0 || d + 1 >= nd {
         return estimate;
     }
     let (l, c, r) = (cost(d - 1), cost(d), cost(d + 1));
-    if let Some(offset) = fit.offset([l, c, r]) {
+    if let Some(offset) = offset([l, c, r]) {
         return d as f64 + offset;
     }
     let n = if l < r { d - 1 } else { d + 1 };
     if reach > 0.0 && n >= 1 && n + 1 < nd {
-        let vertex = fit
-            .offset([cost(n - 1), cost(n), cost(n + 1)])
-            .map(|offset| n as f64 + offset);
+        let vertex = offset([cost(n - 1), cost(n), cost(n + 1)]).map(|offset| n as f64 + offset);
         if let Some(v) = vertex.filter(|v| (v - d as f64).abs() <= reach) {
             return v;
         }
@@ -295,7 +311,7 @@ mod tests {
         ];
         for (fit, shape) in shapes {
             let at = |m: f64| move |d: usize| shape(m, d);
-            let refined = |estimate, m, reach| refined(estimate, at(m), 32, reach, fit);
+            let refined = |estimate, m, reach| refined(estimate, at(m), 32, reach, fit, None);
             // The network's integer is the costs' minimum: the vertex, whatever the reach.
             for reach in [0.0, 1.0] {
                 assert!((refined(7.0, 7.3, reach) - 7.3).abs() < 1e-9, "{fit:?}");
@@ -315,7 +331,7 @@ mod tests {
         }
         // A parabola through a V is pulled towards the integer (pixel locking).
         let v = |d: usize| (d as f64 - 7.3).abs();
-        let locked = refined(7.0, v, 32, 0.0, SubpixelFit::Parabola);
+        let locked = refined(7.0, v, 32, 0.0, SubpixelFit::Parabola, None);
         assert!((7.05..7.25).contains(&locked), "{locked}");
     }
 

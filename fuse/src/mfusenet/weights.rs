@@ -68,6 +68,26 @@ pub fn context_below_recommended(info: &WeightsInfo, file: &str) -> Result<usize
         })
 }
 
+/// The correction of the refined readout's pixel locking the file carries (metadata
+/// `locking_curve`, the JSON array of a [`crate::wta::LockingCurve`], fitted by `replay train`
+/// on its training captures); no entry = none. A value that is not ten finite numbers in
+/// [−1, 1] is an error naming the file.
+pub fn locking_recommended(info: &WeightsInfo, file: &str) -> Result<Option<crate::wta::LockingCurve>, Error> {
+    let Some(value) = info.get("locking_curve") else {
+        return Ok(None);
+    };
+    serde_json::from_str::<crate::wta::LockingCurve>(value)
+        .ok()
+        .filter(|curve| curve.0.iter().all(|v| v.is_finite() && v.abs() <= 1.0))
+        .map(Some)
+        .ok_or_else(|| Error::Metadata {
+            file: file.to_owned(),
+            key: "locking_curve",
+            value: value.to_owned(),
+            expected: "a JSON array of ten numbers in [-1, 1]",
+        })
+}
+
 /// How the file's inputs were made (metadata `input_spec`, the JSON of
 /// [`super::input::InputSpec`], as `replay train` writes it); no entry (files exported from
 /// PyTorch) = our default inputs. A value that does not parse is an error naming the file.
@@ -146,6 +166,7 @@ pub fn from_bytes(
     refine_recommended(&info, file)?;
     context_below_recommended(&info, file)?;
     input_spec_recommended(&info, file)?;
+    locking_recommended(&info, file)?;
     let concat_name = format!("{prefix}concat.0.weight");
     let concat = tensors.tensor(&concat_name).map_err(|_| Error::MissingTensor {
         file: file.to_owned(),
@@ -535,6 +556,28 @@ mod tests {
             "{:?}",
             result.err()
         );
+        // The locking curve: none unless the file says; ten numbers in [-1, 1], else an error.
+        info.set(
+            "input_spec",
+            serde_json::to_string(&InputSpec::default()).unwrap_or_default(),
+        );
+        let (_, read) = from_bytes(&to_bytes(&net, &info).unwrap_or_else(|e| panic!("{e}")), "w", "", None)
+            .unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(locking_recommended(&read, "w").ok(), Some(None));
+        let curve = crate::wta::LockingCurve([0.07, 0.13, 0.17, 0.2, 0.25, 0.27, 0.29, 0.33, 0.37, 0.31]);
+        info.set("locking_curve", serde_json::to_string(&curve).unwrap_or_default());
+        let (_, read) = from_bytes(&to_bytes(&net, &info).unwrap_or_else(|e| panic!("{e}")), "w", "", None)
+            .unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(locking_recommended(&read, "w").ok(), Some(Some(curve)));
+        for bad in ["[0.1, 0.2]", "[0,0,0,0,0,0,0,0,0,3]", "steep"] {
+            info.set("locking_curve", bad);
+            let result = from_bytes(&to_bytes(&net, &info).unwrap_or_else(|e| panic!("{e}")), "w", "", None);
+            assert!(
+                matches!(&result, Err(Error::Metadata { key: "locking_curve", value, .. }) if value == bad),
+                "{bad}: {:?}",
+                result.err()
+            );
+        }
         // A missing file names it.
         let error = load(Path::new("/nonexistent/w.safetensors"), None).err();
         assert!(

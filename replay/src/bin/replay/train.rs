@@ -8,7 +8,7 @@ use anyhow::{Context, Result};
 use clap::Args;
 use fuse::mfusenet::input::InputSpec;
 use record::cli::{Outcome, UsageError, progress_bar};
-use replay::train::{BaselineDraw, TrainConfig, TrainPaths, train, variant_name};
+use replay::train::{BaselineDraw, TrainConfig, TrainPaths, calibrate_locking, train, variant_name};
 use tracing::info;
 
 /// Arguments of `replay train`.
@@ -110,6 +110,12 @@ pub struct TrainArgs {
     /// Training (9))
     #[arg(long)]
     keep_hopeless: bool,
+    /// Do not train: fit the pixel-locking curve of the refined readout for FILE, a weights
+    /// file made by `replay train` before it wrote the curve itself, on the training captures
+    /// its metadata names (cached in --dataset-dir), and write FILE again with the curve in its
+    /// metadata (or write --weights-out; the tensors are unchanged). README, "Pixel locking".
+    #[arg(long, value_name = "FILE")]
+    calibrate: Option<PathBuf>,
     /// Steps between validations.
     #[arg(long, default_value_t = TrainConfig::default().validate_every)]
     validate_every: u64,
@@ -170,6 +176,27 @@ impl TrainArgs {
 
 /// Runs `replay train`.
 pub fn run(args: &TrainArgs, quiet: bool) -> Result<Outcome> {
+    if let Some(file) = &args.calibrate {
+        let out = args.weights_out.clone().unwrap_or_else(|| file.clone());
+        let bar = progress_bar(0, quiet, "captures");
+        bar.set_message("the training captures' cost volumes (cached)");
+        let fitted = calibrate_locking(file, &args.dataset_dir, &out, &mut |done, total| {
+            bar.set_length(total as u64);
+            bar.set_position(done as u64);
+        })
+        .with_context(|| format!("fitting the locking curve of {}", file.display()))?;
+        bar.finish_and_clear();
+        info!(
+            "locking curve {:?} → {}; on the {} training pixels it was fitted on, the fit's offsets were {:.4} px off the truth's on average, {:.4} px with the curve (half of it, inference's default: {:.4} px)",
+            fitted.curve.0,
+            out.display(),
+            fitted.pixels,
+            fitted.error_before_px,
+            fitted.error_after_px,
+            fitted.error_half_px,
+        );
+        return Ok(Outcome::Complete);
+    }
     let config = args.config()?;
     let variant = variant_name(config.views);
     let dir = args.dir.clone().unwrap_or_else(|| PathBuf::from("train").join(variant));
