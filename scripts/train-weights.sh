@@ -38,7 +38,11 @@ for views in ${*:-2 1 4}; do
         1)
             first 1 mfusenet-stereo 1000 128
             tune 1 mfusenet-stereo 600 128 mfusenet-stereo mfusenet-stereo-ft
-            ship mfusenet-stereo mfusenet-stereo-ft
+            # Stages 3 and 4 as for the three-view network (stop 27: the same recipe for both,
+            # so that the paper's comparison of the two is between equally trained networks).
+            tune 1 mfusenet-stereo 1000 128 mfusenet-stereo-ft mfusenet-stereo-shift --disparity-shift 12 --validate-every 200
+            tune 1 mfusenet-stereo 600 128 mfusenet-stereo-shift mfusenet-stereo-keep --disparity-shift 12 --keep-hopeless --validate-every 200
+            ship mfusenet-stereo mfusenet-stereo-keep
             ;;
         2)
             first 2 mfusenet-3view 1600 128
