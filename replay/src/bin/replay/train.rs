@@ -88,8 +88,8 @@ pub struct TrainArgs {
     /// Train with N disparities of context below the range, as inference gives it (costs under
     /// 0 from each neighbour mirrored; the dataset is made anew): the network learns those
     /// slices are never the answer, at the image borders too, where a neighbour's only finite
-    /// costs are under 0 (the shipped three-view network, trained with --disparity-shift
-    /// instead and run with 4 slices of context, fails there: README, Results, known failure).
+    /// costs are under 0 (the three-view network's stage-3 file, trained with --disparity-shift
+    /// instead and run with 4 slices of context, failed there: README, More views of a line).
     /// A multiple of 4 up to 16. With --disparity-shift the crop's first N slices after the
     /// shift are its context (real costs below the crop's range where the shift reaches past
     /// them, as inside a wider range at inference, mirrored ones where it does not), and pixels
