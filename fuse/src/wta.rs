@@ -109,13 +109,10 @@ impl LockingCurve {
                 LOCKING_KNOTS[upper],
             );
             let w1 = (a - x0) / (x1 - x0);
-            let mut basis = [(upper, w1), (usize::MAX, 0.0)];
-            if upper > 0 {
-                basis[1] = (upper - 1, 1.0 - w1);
-            }
-            for &(i, wi) in basis.iter().filter(|(i, _)| *i != usize::MAX) {
+            let basis = [Some((upper, w1)), upper.checked_sub(1).map(|lower| (lower, 1.0 - w1))];
+            for &(i, wi) in basis.iter().flatten() {
                 rhs[i] += wi * t;
-                for &(j, wj) in basis.iter().filter(|(j, _)| *j != usize::MAX) {
+                for &(j, wj) in basis.iter().flatten() {
                     normal[i][j] += wi * wj;
                 }
             }

@@ -131,45 +131,32 @@ fn replay_runs_mfusenet_and_names_bad_weight_files() {
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert_eq!(output.status.code(), Some(1), "{stderr}");
     assert!(stderr.contains("five-view network needs"), "{stderr}");
-    // A readout reach that is no distance is named with its value.
-    let output = replay(&[
-        log,
-        "--method",
-        "mfusenet",
-        "--config",
-        r#"{"refine_reach": -1}"#,
-        "--out",
-        out.to_str().unwrap_or_default(),
-    ]);
-    let stderr = String::from_utf8_lossy(&output.stderr);
-    assert_eq!(output.status.code(), Some(1), "{stderr}");
-    assert!(stderr.contains("refine_reach = -1"), "{stderr}");
-    // So is a share of the locking correction outside 0..=1.
-    let output = replay(&[
-        log,
-        "--method",
-        "mfusenet",
-        "--config",
-        r#"{"locking_strength": 2}"#,
-        "--out",
-        out.to_str().unwrap_or_default(),
-    ]);
-    let stderr = String::from_utf8_lossy(&output.stderr);
-    assert_eq!(output.status.code(), Some(1), "{stderr}");
-    assert!(stderr.contains("locking_strength = 2"), "{stderr}");
-    // So is a bad weighted-median parameter, for a classical method that opts in as well.
-    let output = replay(&[
-        log,
-        "--method",
-        "sgm-heuristic",
-        "--config",
-        r#"{"weighted_median": {"sigma_colour": 0}}"#,
-        "--out",
-        out.to_str().unwrap_or_default(),
-    ]);
-    let stderr = String::from_utf8_lossy(&output.stderr);
-    assert_eq!(output.status.code(), Some(1), "{stderr}");
-    assert!(stderr.contains("weighted_median.sigma_colour = 0"), "{stderr}");
+    // A bad parameter is named with its value: a readout reach that is no distance, a share of
+    // the locking correction outside 0..=1, and a bad weighted-median parameter for a classical
+    // method that opts in as well.
+    let cases = [
+        ("mfusenet", r#"{"refine_reach": -1}"#, "refine_reach = -1"),
+        ("mfusenet", r#"{"locking_strength": 2}"#, "locking_strength = 2"),
+        (
+            "sgm-heuristic",
+            r#"{"weighted_median": {"sigma_colour": 0}}"#,
+            "weighted_median.sigma_colour = 0",
+        ),
+    ];
+    for (method, config, expected) in cases {
+        let output = replay(&[
+            log,
+            "--method",
+            method,
+            "--config",
+            config,
+            "--out",
+            out.to_str().unwrap_or_default(),
+        ]);
+        let stderr = String::from_utf8_lossy(&output.stderr);
+        assert_eq!(output.status.code(), Some(1), "{method} {config}: {stderr}");
+        assert!(stderr.contains(expected), "{stderr}");
+    }
 }
 
 fn train(dir: &Path, steps: &str) -> serde_json::Value {
@@ -312,29 +299,9 @@ fn training_resumes_and_its_weights_run() {
         "{again}"
     );
     assert!(again["__metadata__"]["locking_note"].is_string(), "{again}");
-    let tensors = |path: &Path, header: &serde_json::Value| -> Vec<u8> {
-        let bytes = std::fs::read(path).unwrap_or_default();
-        let start = 8 + bytes
-            .get(..8)
-            .map_or(0, |b| u64::from_le_bytes(b.try_into().unwrap_or([0; 8])) as usize);
-        let mut names: Vec<&String> = header.as_object().map(|o| o.keys().collect()).unwrap_or_default();
-        names.retain(|n| *n != "__metadata__");
-        names.sort();
-        names
-            .iter()
-            .flat_map(|n| {
-                let at = &header[n.as_str()]["data_offsets"];
-                let (a, b) = (
-                    at[0].as_u64().unwrap_or(0) as usize,
-                    at[1].as_u64().unwrap_or(0) as usize,
-                );
-                bytes.get(start + a..start + b).unwrap_or_default().to_vec()
-            })
-            .collect()
-    };
-    let before = tensors(&weights, &header);
+    let before = safetensors_tensor_bytes(&weights);
     assert!(!before.is_empty());
-    assert_eq!(before, tensors(&calibrated, &again), "tensors changed");
+    assert_eq!(before, safetensors_tensor_bytes(&calibrated), "tensors changed");
     let log = record_log(
         dir.path(),
         "three.mcap",
@@ -360,7 +327,6 @@ fn training_resumes_and_its_weights_run() {
     assert_success(&output, "replay with trained weights");
 }
 
-/// The JSON header of a safetensors file (tensor shapes and `__metadata__`).
 /// The `summary.json` that `replay --out DIR` wrote.
 fn read_summary(out: &Path) -> serde_json::Value {
     let path = out.join("summary.json");
@@ -368,13 +334,39 @@ fn read_summary(out: &Path) -> serde_json::Value {
         .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
 }
 
+/// The JSON header of a safetensors file (tensor shapes and `__metadata__`).
 fn safetensors_header(path: &Path) -> serde_json::Value {
+    read_safetensors(path).0
+}
+
+/// A safetensors file's header and its data section (the bytes after the header).
+fn read_safetensors(path: &Path) -> (serde_json::Value, Vec<u8>) {
     let bytes = std::fs::read(path).unwrap_or_default();
     let header_len = bytes
         .get(..8)
         .map_or(0, |b| u64::from_le_bytes(b.try_into().unwrap_or([0; 8])) as usize);
-    serde_json::from_slice(bytes.get(8..8 + header_len).unwrap_or_default())
-        .unwrap_or_else(|e| panic!("safetensors header of {}: {e}", path.display()))
+    let header = serde_json::from_slice(bytes.get(8..8 + header_len).unwrap_or_default())
+        .unwrap_or_else(|e| panic!("safetensors header of {}: {e}", path.display()));
+    (header, bytes.get(8 + header_len..).unwrap_or_default().to_vec())
+}
+
+/// Every tensor's bytes, in the order of their names (the metadata left out).
+fn safetensors_tensor_bytes(path: &Path) -> Vec<u8> {
+    let (header, data) = read_safetensors(path);
+    let mut names: Vec<&String> = header.as_object().map(|o| o.keys().collect()).unwrap_or_default();
+    names.retain(|n| *n != "__metadata__");
+    names.sort();
+    names
+        .iter()
+        .flat_map(|n| {
+            let at = &header[n.as_str()]["data_offsets"];
+            let (a, b) = (
+                at[0].as_u64().unwrap_or(0) as usize,
+                at[1].as_u64().unwrap_or(0) as usize,
+            );
+            data.get(a..b).unwrap_or_default().to_vec()
+        })
+        .collect()
 }
 
 #[test]
