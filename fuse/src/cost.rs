@@ -217,7 +217,7 @@ pub fn pixel_cost_tile(
     offset: [i32; 2],
     y: usize,
     xs: Range<isize>,
-    min_disparity: usize,
+    min_disparity: i32,
     disparities: usize,
     out: &mut [u8],
 ) {
@@ -305,14 +305,14 @@ pub fn mark_invalid(
     offset: [i32; 2],
     (x_start, y): (usize, usize),
     size: (usize, usize),
-    disparity_axis: (usize, usize),
+    disparity_axis: (i32, usize),
     baseline_ratio: f32,
 ) {
     let (min_disparity, disparities) = disparity_axis;
     let (width, height) = (size.0 as f32, size.1 as f32);
     let (ox, oy) = (offset[0] as f32, offset[1] as f32);
     let valid = |x: usize, d: usize| {
-        let disparity = (min_disparity + d) as f32 * baseline_ratio;
+        let disparity = (min_disparity as f32 + d as f32) * baseline_ratio;
         let qx = (x as f32 - ox * disparity).round();
         let qy = (y as f32 - oy * disparity).round();
         qx >= 0.0 && qx < width && qy >= 0.0 && qy < height
@@ -357,11 +357,11 @@ pub struct ValidDisparities {
 
 impl ValidDisparities {
     /// Tabulates the valid disparities of a neighbour at `offset` (see [`mark_invalid`]).
-    pub fn new(offset: [i32; 2], size: (usize, usize), disparity_axis: (usize, usize), baseline_ratio: f32) -> Self {
+    pub fn new(offset: [i32; 2], size: (usize, usize), disparity_axis: (i32, usize), baseline_ratio: f32) -> Self {
         let (min_disparity, disparities) = disparity_axis;
         let interval = |position: usize, step: i32, limit: usize| {
             let inside = |d: usize| {
-                let disparity = (min_disparity + d) as f32 * baseline_ratio;
+                let disparity = (min_disparity as f32 + d as f32) * baseline_ratio;
                 let q = (position as f32 - step as f32 * disparity).round();
                 q >= 0.0 && q < limit as f32
             };
@@ -417,14 +417,14 @@ struct ResampleRun {
 
 impl DisparityResampler {
     /// `None` when `ratio` is 1 (nothing to resample).
-    pub fn new(min_disparity: usize, disparities: usize, ratio: f32) -> Option<Self> {
+    pub fn new(min_disparity: i32, disparities: usize, ratio: f32) -> Option<Self> {
         if (ratio - 1.0).abs() < 1e-6 || disparities == 0 {
             return None;
         }
         let table: Vec<(usize, usize, u32)> = (0..disparities)
             .map(|d| {
-                let source =
-                    ((min_disparity + d) as f32 * ratio - min_disparity as f32).clamp(0.0, (disparities - 1) as f32);
+                let source = ((min_disparity as f32 + d as f32) * ratio - min_disparity as f32)
+                    .clamp(0.0, (disparities - 1) as f32);
                 let lower = source.floor() as usize;
                 let upper = (lower + 1).min(disparities - 1);
                 (lower, upper, ((source - lower as f32) * 256.0).round() as u32)

@@ -234,7 +234,7 @@ fn bt_cost(reference: &PreparedView, neighbour: &PreparedView, p: usize, q: usiz
 pub struct KzEnergy {
     width: usize,
     height: usize,
-    min_disparity: usize,
+    min_disparity: i32,
     labels: usize,
     /// Fused data cost per (label, pixel), [`INVALID_COST`] where the assignment is not allowed.
     data: Vec<u16>,
@@ -296,7 +296,7 @@ impl KzEnergy {
                 height: h,
                 shifts: (0..labels)
                     .map(|l| {
-                        let d = (problem.min_disparity + l) as f32 * n.baseline_ratio;
+                        let d = (problem.min_disparity as f32 + l as f32) * n.baseline_ratio;
                         (
                             (n.offset[0] as f32 * d).round() as i32,
                             (n.offset[1] as f32 * d).round() as i32,
@@ -395,7 +395,7 @@ impl KzEnergy {
                     if l == OCCLUDED {
                         f32::INFINITY
                     } else {
-                        (self.min_disparity + usize::from(l)) as f32
+                        self.min_disparity as f32 + f32::from(l)
                     }
                 })
                 .collect(),

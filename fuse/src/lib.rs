@@ -78,10 +78,12 @@ pub enum FuseError {
     #[error("the view set has no neighbour view")]
     NoNeighbours,
     /// The disparity range is empty or too large.
-    #[error("disparity range {min_disparity}+{num_disparities} is invalid (1..=1024 disparities)")]
+    #[error(
+        "disparity range {min_disparity}+{num_disparities} is invalid (1..=1024 disparities from at most ±1048576)"
+    )]
     DisparityRange {
         /// First disparity.
-        min_disparity: usize,
+        min_disparity: i32,
         /// Count.
         num_disparities: usize,
     },

@@ -1,5 +1,6 @@
 //! Search lines: a neighbour's samples rearranged so that, for every reference pixel, the samples
-//! along its search line `q = p − offset·s` (s = 0, 1, 2, …) are contiguous in memory. The cost
+//! along its search line `q = p − offset·s` (s = …, −1, 0, 1, 2, …, signed for converged rigs) are
+//! contiguous in memory. The cost
 //! loops over the disparities then read straight runs that the compiler vectorises, instead of
 //! computing and clamping a 2-D index per (pixel, disparity).
 //!
@@ -15,6 +16,8 @@ use crate::cost::{PixelCost, PreparedView, mean_of_three};
 pub struct SearchLines {
     offset: [i32; 2],
     line_len: usize,
+    /// Samples before s = 0 on every line (the border repeated), for negative disparities.
+    before: usize,
     width: usize,
     height: usize,
     /// Per channel: values (absolute difference) or interleaved (min, max) pairs' planes
@@ -26,41 +29,45 @@ pub struct SearchLines {
 }
 
 impl SearchLines {
-    /// Lays out `view`'s samples for `offset`, long enough for disparities below `max_disparity`.
-    /// `None` for diagonal offsets.
-    pub fn new(view: &PreparedView, cost: PixelCost, offset: [i32; 2], max_disparity: usize) -> Option<Self> {
+    /// Lays out `view`'s samples for `offset`, long enough for the disparities `reach` (signed:
+    /// a converged rig searches below 0). `None` for diagonal offsets.
+    pub fn new(view: &PreparedView, cost: PixelCost, offset: [i32; 2], reach: Range<i32>) -> Option<Self> {
         if !matches!(offset, [1, 0] | [-1, 0] | [0, 1] | [0, -1]) {
             return None;
         }
         let image = view.image();
         let (w, h, channels) = (image.width, image.height, image.channels);
-        let line_len = if offset[1] == 0 { w } else { h } + max_disparity + 1;
+        let before = reach.start.min(0).unsigned_abs() as usize;
+        let after = reach.end.max(0) as usize;
+        let line_len = before + if offset[1] == 0 { w } else { h } + after + 1;
+        let layout = (offset, (w, h), (before, line_len));
         let mut planes = Vec::new();
         let mut census = Vec::new();
         match cost {
             PixelCost::AbsoluteDifference => {
                 for c in 0..channels {
-                    planes.push(gather_lines(offset, (w, h), line_len, |p| image.data[p * channels + c]));
+                    planes.push(gather_lines(layout, |p| image.data[p * channels + c]));
                 }
             }
             PixelCost::BirchfieldTomasi => {
                 let (lo, hi) = view.bt_bounds();
                 for c in 0..channels {
-                    planes.push(gather_lines(offset, (w, h), line_len, |p| lo[p * channels + c]));
-                    planes.push(gather_lines(offset, (w, h), line_len, |p| hi[p * channels + c]));
+                    planes.push(gather_lines(layout, |p| lo[p * channels + c]));
+                    planes.push(gather_lines(layout, |p| hi[p * channels + c]));
                 }
             }
             PixelCost::Census { .. } => {
                 census = view
                     .census_planes()
                     .iter()
-                    .map(|plane| gather_lines(offset, (w, h), line_len, |p| plane[p]))
+                    .map(|plane| gather_lines(layout, |p| plane[p]))
                     .collect();
             }
         }
         Some(Self {
             offset,
             line_len,
+            before,
             width: w,
             height: h,
             planes,
@@ -71,25 +78,37 @@ impl SearchLines {
     /// Index of the sample at s = 0 on the search line of reference pixel `(x, y)`.
     #[inline]
     fn base(&self, x: usize, y: usize) -> usize {
-        match self.offset {
-            [-1, 0] => y * self.line_len + x,
-            [1, 0] => y * self.line_len + (self.width - 1 - x),
-            [0, -1] => x * self.line_len + y,
-            _ => x * self.line_len + (self.height - 1 - y),
-        }
+        self.before
+            + match self.offset {
+                [-1, 0] => y * self.line_len + x,
+                [1, 0] => y * self.line_len + (self.width - 1 - x),
+                [0, -1] => x * self.line_len + y,
+                _ => x * self.line_len + (self.height - 1 - y),
+            }
     }
 }
 
 /// One plane in search-line order: line `k` is image row `k` (horizontal offsets) or column `k`
-/// (vertical), read away from the neighbour's side and continued past the border with the border
-/// value; `value(p)` gives the sample of pixel index `p`. Lines are filled as runs (the rows
-/// forwards or backwards, the columns with a stride) rather than per-sample index arithmetic.
-fn gather_lines(offset: [i32; 2], (w, h): (usize, usize), line_len: usize, value: impl Fn(usize) -> u8) -> Vec<u8> {
+/// (vertical), read away from the neighbour's side, preceded by `before` copies of its first
+/// sample and continued past the far border with the border value; `value(p)` gives the sample
+/// of pixel index `p`. Lines are filled as runs (the rows forwards or backwards, the columns with a
+/// stride) rather than per-sample index arithmetic.
+fn gather_lines(
+    (offset, (w, h), (before, line_len)): ([i32; 2], (usize, usize), (usize, usize)),
+    value: impl Fn(usize) -> u8,
+) -> Vec<u8> {
     let horizontal = offset[1] == 0;
     let (lines, run) = if horizontal { (h, w) } else { (w, h) };
     let mut plane = Vec::with_capacity(lines * line_len);
     for k in 0..lines {
-        let start = plane.len();
+        let start = plane.len() + before;
+        let first = match offset {
+            [-1, 0] => value(k * w),
+            [1, 0] => value(k * w + w - 1),
+            [0, -1] => value(k),
+            _ => value((h - 1) * w + k),
+        };
+        plane.resize(start, first);
         match offset {
             [-1, 0] => plane.extend((0..w).map(|x| value(k * w + x))),
             [1, 0] => plane.extend((0..w).rev().map(|x| value(k * w + x))),
@@ -97,7 +116,7 @@ fn gather_lines(offset: [i32; 2], (w, h): (usize, usize), line_len: usize, value
             _ => plane.extend((0..h).rev().map(|y| value(y * w + k))),
         }
         let border = plane[start + run - 1];
-        plane.resize(start + line_len, border);
+        plane.resize(start - before + line_len, border);
     }
     plane
 }
@@ -112,7 +131,7 @@ pub fn pixel_cost_tile_lines(
     lines: &SearchLines,
     y: usize,
     xs: Range<isize>,
-    min_disparity: usize,
+    min_disparity: i32,
     disparities: usize,
     out: &mut [u8],
 ) {
@@ -120,7 +139,7 @@ pub fn pixel_cost_tile_lines(
     let (width, channels) = (image.width, image.channels);
     for (costs, x) in out.chunks_exact_mut(disparities).zip(xs) {
         let x = x.clamp(0, width as isize - 1) as usize;
-        let start = lines.base(x, y) + min_disparity;
+        let start = lines.base(x, y).saturating_add_signed(min_disparity as isize);
         let range = start..start + disparities;
         let p = (y * width + x) * channels;
         match (cost, channels) {
@@ -199,10 +218,13 @@ mod tests {
                     PreparedView::new(if channels == 1 { image.to_gray() } else { image }, cost)
                 };
                 let (reference, neighbour) = (make(&rgb), make(&other));
-                for offset in [[1, 0], [-1, 0], [0, 1], [0, -1]] {
-                    let (min_d, nd) = (2, 9);
-                    let lines =
-                        SearchLines::new(&neighbour, cost, offset, min_d + nd).unwrap_or_else(|| panic!("no lines"));
+                for (offset, min_d) in [[1, 0], [-1, 0], [0, 1], [0, -1]]
+                    .into_iter()
+                    .flat_map(|o| [(o, 2), (o, -6)])
+                {
+                    let nd = 9;
+                    let lines = SearchLines::new(&neighbour, cost, offset, min_d..min_d + nd as i32)
+                        .unwrap_or_else(|| panic!("no lines"));
                     // A tile reaching past both image borders.
                     let xs = -3..w as isize + 2;
                     for y in 0..h {
@@ -220,7 +242,10 @@ mod tests {
                             &mut generic,
                         );
                         pixel_cost_tile_lines(cost, &reference, &lines, y, xs.clone(), min_d, nd, &mut fast);
-                        assert_eq!(generic, fast, "{cost:?} {channels} channels {offset:?} row {y}");
+                        assert_eq!(
+                            generic, fast,
+                            "{cost:?} {channels} channels {offset:?} from {min_d} row {y}"
+                        );
                     }
                 }
             }

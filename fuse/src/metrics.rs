@@ -1,5 +1,6 @@
 //! Error measures against ground-truth disparity, as in the paper's evaluation code: over every
-//! pixel whose ground truth is known (finite and > 0), RMS, AvgErr (mean absolute error) and the
+//! pixel whose ground truth is known (finite: signed truths of converged rigs count, NaN is
+//! unknown), RMS, AvgErr (mean absolute error) and the
 //! percentages of pixels with an error above 0.5, 1 and 2 px. A pixel without an estimate counts
 //! as an error of the whole search range (it is never silently left out).
 
@@ -42,7 +43,7 @@ pub fn evaluate(
     let mut bad = [0usize; 3];
     let (mut sum_inlier, mut inliers) = (0.0f64, 0usize);
     for (i, (&e, &g)) in estimate.iter().zip(ground_truth).enumerate() {
-        if !(g.is_finite() && g > 0.0) || mask.is_some_and(|m| !m[i]) {
+        if !g.is_finite() || mask.is_some_and(|m| !m[i]) {
             continue;
         }
         let error = if e.is_finite() {
@@ -100,7 +101,7 @@ mod tests {
 
     #[test]
     fn metrics_of_a_known_error_pattern() {
-        let gt = [10.0f32, 10.0, 10.0, 10.0, 0.0];
+        let gt = [10.0f32, 10.0, 10.0, 10.0, f32::NAN];
         let estimate = [10.0f32, 10.6, 11.5, 13.0, 99.0];
         let m = evaluate(&estimate, &gt, None, 64.0).unwrap_or_else(|| panic!("no pixels"));
         assert_eq!(m.pixels, 4);
@@ -113,5 +114,9 @@ mod tests {
         assert!((m.rms - rms).abs() < 1e-5);
         let missing = evaluate(&[f32::INFINITY], &[5.0], None, 32.0).unwrap_or_else(|| panic!("no pixels"));
         assert_eq!((missing.missing, missing.avg_err), (1, 32.0));
+        // A converged rig's truths are signed: 0 and negative disparities are known values.
+        let signed = evaluate(&[-2.5, 0.5], &[-3.0, 0.0], None, 32.0).unwrap_or_else(|| panic!("no pixels"));
+        assert_eq!(signed.pixels, 2);
+        assert!((signed.avg_err - 0.5).abs() < 1e-6);
     }
 }

@@ -175,7 +175,7 @@ pub fn select(
     disparities: usize,
     max_cost: u32,
     (p1, p2): (u16, u16),
-    min_disparity: usize,
+    min_disparity: i32,
     subpixel: Option<SubpixelFit>,
 ) -> Vec<f32> {
     let penalties = Penalties::new(max_cost, p1, p2);
@@ -191,7 +191,7 @@ pub fn select(
 
 /// Where the last pass puts the winners instead of the sums.
 struct Selection<'a> {
-    min_disparity: usize,
+    min_disparity: i32,
     subpixel: Option<SubpixelFit>,
     out: &'a mut [f32],
 }
@@ -316,7 +316,7 @@ struct BlockJob<'a> {
     geometry: Geometry,
     penalties: &'a Penalties,
     downward: bool,
-    pick: Option<(usize, Option<SubpixelFit>)>,
+    pick: Option<(i32, Option<SubpixelFit>)>,
     columns: std::ops::Range<usize>,
     worker: usize,
     exchange: &'a Exchange,

@@ -41,19 +41,26 @@ pub struct Problem {
     pub reference: Image,
     /// Neighbours at one baseline (or grid offsets) from the reference.
     pub neighbours: Vec<Neighbour>,
-    /// Smallest disparity searched (px).
-    pub min_disparity: usize,
+    /// Smallest disparity searched (px); negative for a converged rig, whose views' optical axes
+    /// meet in front of the camera (points beyond that distance shift the other way).
+    pub min_disparity: i32,
     /// Number of disparities searched.
     pub num_disparities: usize,
 }
 
 impl Problem {
+    /// One past the largest disparity searched.
+    pub fn end_disparity(&self) -> i32 {
+        self.min_disparity
+            .saturating_add(i32::try_from(self.num_disparities).unwrap_or(i32::MAX))
+    }
+
     /// Checks sizes, offsets and the search range.
     pub fn validate(&self) -> Result<(), FuseError> {
         if self.neighbours.is_empty() {
             return Err(FuseError::NoNeighbours);
         }
-        if self.num_disparities == 0 || self.num_disparities > 1024 {
+        if self.num_disparities == 0 || self.num_disparities > 1024 || self.min_disparity.unsigned_abs() > 1 << 20 {
             return Err(FuseError::DisparityRange {
                 min_disparity: self.min_disparity,
                 num_disparities: self.num_disparities,
@@ -117,8 +124,8 @@ pub struct CostVolume<T> {
     pub width: usize,
     /// Height of the reference view.
     pub height: usize,
-    /// Disparity of the first slice.
-    pub min_disparity: usize,
+    /// Disparity of the first slice (signed).
+    pub min_disparity: i32,
     /// Disparities per pixel.
     pub disparities: usize,
     /// `height × width × disparities` costs.
@@ -274,7 +281,7 @@ pub struct PreparedProblem {
     neighbours: Vec<PreparedNeighbour>,
     width: usize,
     height: usize,
-    min_disparity: usize,
+    min_disparity: i32,
     disparities: usize,
     spec: CostSpec,
     fusion: Fusion,
@@ -317,9 +324,10 @@ impl PreparedProblem {
             .into_par_iter()
             .map(|n| {
                 let view = PreparedView::new(n.image.clone(), spec.pixel);
-                let max_disparity = problem.min_disparity + problem.num_disparities;
+                let end = problem.end_disparity();
                 // A resampled neighbour reads up to ratio × the range.
-                let reach = (max_disparity as f32 * n.baseline_ratio.max(1.0)).ceil() as usize + 1;
+                let scaled = |d: i32| (d as f32 * n.baseline_ratio.max(1.0)).ceil() as i32;
+                let reach = scaled(problem.min_disparity).min(problem.min_disparity)..scaled(end) + 1;
                 let lines = SearchLines::new(&view, spec.pixel, n.offset, reach);
                 PreparedNeighbour {
                     view,
@@ -587,15 +595,29 @@ mod tests {
             .into_iter()
             .map(|n| {
                 let view = PreparedView::new(n.image.clone(), spec.pixel);
-                let reach = ((min_d + nd) as f32 * n.baseline_ratio.max(1.0)).ceil() as usize + 1;
+                // Pixel costs from `low` (0, or the range's start when negative).
+                let low = min_d.min(0);
+                let reach = ((min_d + nd as i32) as f32 * n.baseline_ratio.max(1.0)).ceil() as usize
+                    + 1
+                    + low.unsigned_abs() as usize;
                 let mut pixel = vec![0u8; w * h * reach];
                 for y in 0..h {
                     let row = &mut pixel[y * w * reach..(y + 1) * w * reach];
-                    pixel_cost_tile(spec.pixel, &reference, &view, n.offset, y, 0..w as isize, 0, reach, row);
+                    pixel_cost_tile(
+                        spec.pixel,
+                        &reference,
+                        &view,
+                        n.offset,
+                        y,
+                        0..w as isize,
+                        low,
+                        reach,
+                        row,
+                    );
                 }
-                let at = |x: isize, y: isize, d: usize| {
+                let at = |x: isize, y: isize, d: i32| {
                     let (x, y) = (x.clamp(0, w as isize - 1) as usize, y.clamp(0, h as isize - 1) as usize);
-                    u16::from(pixel[(y * w + x) * reach + d])
+                    u16::from(pixel[(y * w + x) * reach + (d - low) as usize])
                 };
                 let mut out = vec![0u16; w * h * nd];
                 for y in 0..h {
@@ -605,7 +627,7 @@ mod tests {
                             let mut sum = 0u16;
                             for dy in -r..=r {
                                 for dx in -r..=r {
-                                    sum += at(x as isize + dx, y as isize + dy, min_d + d);
+                                    sum += at(x as isize + dx, y as isize + dy, min_d + d as i32);
                                 }
                             }
                             *c = sum;
@@ -644,7 +666,7 @@ mod tests {
             offset,
             baseline_ratio: ratio,
         };
-        let problem = Problem {
+        let problem = |min_disparity| Problem {
             reference: view(w, h, 0),
             neighbours: vec![
                 neighbour("left", [-1, 0], 1, 1.0),
@@ -654,36 +676,40 @@ mod tests {
                 // Twice the baseline on the right's side: the heuristic takes the side's minimum.
                 neighbour("right2", [2, 0], 5, 1.0),
             ],
-            min_disparity: 1,
+            min_disparity,
             num_disparities: nd,
         };
         assert_eq!(tile_columns(nd), 32);
-        for (spec, fusion) in [
-            (
-                CostSpec {
-                    pixel: PixelCost::BirchfieldTomasi,
-                    block_radius: 2,
-                },
-                Fusion::Heuristic,
-            ),
-            (
-                CostSpec {
-                    pixel: PixelCost::Census { radius: 1 },
-                    block_radius: 1,
-                },
-                Fusion::Mean,
-            ),
-            (
-                CostSpec {
-                    pixel: PixelCost::AbsoluteDifference,
-                    block_radius: 0,
-                },
-                Fusion::Stereo,
-            ),
-        ] {
-            let expected = brute_force(&problem, spec, fusion);
+        // A range from 1 and a signed one (a converged rig) reaching well under 0.
+        for (problem, (spec, fusion)) in [problem(1), problem(-100)].iter().flat_map(|p| {
+            [
+                (
+                    CostSpec {
+                        pixel: PixelCost::BirchfieldTomasi,
+                        block_radius: 2,
+                    },
+                    Fusion::Heuristic,
+                ),
+                (
+                    CostSpec {
+                        pixel: PixelCost::Census { radius: 1 },
+                        block_radius: 1,
+                    },
+                    Fusion::Mean,
+                ),
+                (
+                    CostSpec {
+                        pixel: PixelCost::AbsoluteDifference,
+                        block_radius: 0,
+                    },
+                    Fusion::Stereo,
+                ),
+            ]
+            .map(|case| (p, case))
+        }) {
+            let expected = brute_force(problem, spec, fusion);
             assert!(expected.contains(&INVALID_COST) && expected.iter().any(|c| *c != INVALID_COST));
-            let prepared = PreparedProblem::new(&problem, spec, fusion).unwrap_or_else(|e| panic!("{e}"));
+            let prepared = PreparedProblem::new(problem, spec, fusion).unwrap_or_else(|e| panic!("{e}"));
             // Bands of uneven heights, one scratch reused across them.
             let row_len = w * nd;
             let mut got = vec![0u16; w * h * nd];
@@ -695,7 +721,8 @@ mod tests {
             if let Some(i) = (0..got.len()).find(|i| got[*i] != expected[*i]) {
                 let (pixel, d) = (i / nd, i % nd);
                 panic!(
-                    "{spec:?} {fusion:?}: x {} y {} d {d}: got {} expected {}",
+                    "{spec:?} {fusion:?} from {}: x {} y {} d {d}: got {} expected {}",
+                    problem.min_disparity,
                     pixel % w,
                     pixel / w,
                     got[i],

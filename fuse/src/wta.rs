@@ -164,7 +164,7 @@ fn solve<const N: usize>(mut a: [[f64; N]; N], mut b: [f64; N]) -> Option<[f64; 
 pub fn winner_take_all(
     costs: &[u16],
     disparities: usize,
-    min_disparity: usize,
+    min_disparity: i32,
     subpixel: Option<SubpixelFit>,
     out: &mut [f32],
 ) {
@@ -192,7 +192,7 @@ pub fn winner_take_all(
             let costs = [c[best - 1], best_cost, c[best + 1]].map(f64::from);
             delta = fit.offset(costs).unwrap_or(0.0) as f32;
         }
-        *pixel = (min_disparity + best) as f32 + delta;
+        *pixel = min_disparity as f32 + best as f32 + delta;
     }
 }
 

@@ -131,6 +131,11 @@ pub struct SimulationConfig {
     pub settle_secs: f64,
     /// Injected errors.
     pub errors: ErrorInjection,
+    /// A converged rig: each view's principal point is shifted by its grid offset × `f·b/DIST`
+    /// (Middlebury's `doffs`), so that a plane at this distance (m) has disparity 0, nearer points
+    /// positive and farther ones negative disparities. `None`: parallel views (disparities ≥ 0).
+    #[serde(default)]
+    pub converge_m: Option<f64>,
 }
 
 impl Default for SimulationConfig {
@@ -150,6 +155,7 @@ impl Default for SimulationConfig {
             motion_rate_hz: 30.0,
             settle_secs: 0.3,
             errors: ErrorInjection::default(),
+            converge_m: None,
         }
     }
 }
@@ -272,9 +278,41 @@ impl Simulation {
         &self.scene
     }
 
-    /// The camera intrinsics.
+    /// The camera intrinsics (of the reference view; a converged rig's neighbours have their
+    /// principal points shifted by [`Self::principal_point_shift_px`] per baseline).
     pub fn camera(&self) -> &PinholeCamera {
         &self.camera
+    }
+
+    /// The principal-point shift per baseline of grid offset (px; Middlebury's `doffs`):
+    /// `f·b / converge_m` for a converged rig, 0 for parallel views.
+    pub fn principal_point_shift_px(&self) -> f64 {
+        self.config.converge_m.map_or(0.0, |distance| {
+            self.camera.fx * self.config.baseline_mm / 1000.0 / distance
+        })
+    }
+
+    /// The disparity search range of the capture from its known working depth: the table at the
+    /// scene's camera height is the farthest point, the top of its highest object the nearest
+    /// (2 px of margin each side, the count a multiple of 16), less the principal-point shift of
+    /// a converged rig (its range is signed).
+    pub fn working_disparity_range(&self) -> crate::DisparityRange {
+        let far_m = self.scene.camera_height_m;
+        let near_m = (far_m - self.scene.highest_point_m()).max(0.2 * far_m);
+        let fb = self.camera.fx * self.config.baseline_mm / 1000.0;
+        let shift = self.principal_point_shift_px();
+        let first = (fb / far_m - shift).floor() as i32 - 2;
+        let first = if self.config.converge_m.is_some() {
+            first
+        } else {
+            first.max(0)
+        };
+        let last = (fb / near_m - shift).ceil() as i32 + 2;
+        let count = (last - first).max(1).unsigned_abs().div_ceil(16) * 16;
+        crate::DisparityRange {
+            min_disparity: first,
+            num_disparities: Some(count),
+        }
     }
 
     /// The arm model.
@@ -372,6 +410,8 @@ impl Simulation {
             baseline_m,
             motion,
             views,
+            // A converged rig's range is signed: replay would search from 0 without it.
+            disparity_range: self.config.converge_m.map(|_| self.working_disparity_range()),
         }))
     }
 
@@ -464,11 +504,15 @@ impl Simulation {
             noise_sigma_levels: self.config.noise_sigma_levels,
             noise_seed: hash4(self.config.seed, view_index, 0x6e6f, 0),
         };
-        let rendered = self.prepared.render(&self.camera, &world_from_camera_true, &settings);
+        let mut camera = self.camera;
+        let shift = self.principal_point_shift_px();
+        camera.cx += f64::from(slot.grid_offset[0]) * shift;
+        camera.cy += f64::from(slot.grid_offset[1]) * shift;
+        let rendered = self.prepared.render(&camera, &world_from_camera_true, &settings);
         Ok(CapturedView {
             role: slot.role.to_owned(),
             grid_offset: slot.grid_offset,
-            camera: self.camera,
+            camera,
             capture_time_nanos,
             rgb: rendered.rgb,
             depth_m: Some(rendered.depth_m),
@@ -519,6 +563,11 @@ fn validate(config: &SimulationConfig) -> Result<(), SimulationError> {
     }
     if config.captures == 0 {
         return invalid("captures", "0".into(), "must be at least 1");
+    }
+    if let Some(distance) = config.converge_m
+        && !(distance.is_finite() && distance > 0.0)
+    {
+        return invalid("converge_m", distance.to_string(), "a distance in metres, > 0");
     }
     if !(config.motion_rate_hz > 0.0 && config.motion_rate_hz <= 1000.0) {
         return invalid(

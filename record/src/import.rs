@@ -201,6 +201,13 @@ pub struct ImportConfig {
     /// Only these set folders (names), all when empty.
     #[serde(default)]
     pub sets: Vec<String>,
+    /// Smallest disparity to search (px, signed: negative for a converged rig, whose far points
+    /// shift the other way); written into the log, where replay takes it unless told otherwise.
+    #[serde(default)]
+    pub min_disparity: Option<i32>,
+    /// Disparities to search (from `min_disparity`, or from 0); written into the log.
+    #[serde(default)]
+    pub num_disparities: Option<u32>,
 }
 
 impl Default for ImportConfig {
@@ -222,6 +229,8 @@ impl Default for ImportConfig {
             horizontal_fov_deg: crate::camera::DEFAULT_HORIZONTAL_FOV_DEG,
             calibration: None,
             sets: Vec::new(),
+            min_disparity: None,
+            num_disparities: None,
         }
     }
 }
@@ -284,6 +293,20 @@ fn parse_pair(text: &str) -> Result<[f64; 2], String> {
             .ok_or_else(|| format!("'{s}' in '{text}' is not a number"))
     };
     Ok([number(a)?, number(b)?])
+}
+
+impl ImportConfig {
+    /// The search range the folder asks for: `min_disparity` (default 0) and `num_disparities`
+    /// (default: replay's per-set default from the width), `None` when it names neither.
+    pub fn disparity_range(&self) -> Option<crate::DisparityRange> {
+        if self.min_disparity.is_none() && self.num_disparities.is_none() {
+            return None;
+        }
+        Some(crate::DisparityRange {
+            min_disparity: self.min_disparity.unwrap_or(0),
+            num_disparities: self.num_disparities,
+        })
+    }
 }
 
 impl ImportOverrides {
@@ -541,6 +564,24 @@ impl ImportConfig {
         }
         if let Some(b) = self.baseline_mm {
             positive("baseline_mm", b)?;
+        }
+        if let Some(n) = self.num_disparities
+            && !(1..=1024).contains(&n)
+        {
+            return Err(ImportError::InvalidOption {
+                field: "num_disparities",
+                value: f64::from(n),
+                reason: "must be 1 to 1024",
+            });
+        }
+        if let Some(m) = self.min_disparity
+            && m.unsigned_abs() > 1 << 20
+        {
+            return Err(ImportError::InvalidOption {
+                field: "min_disparity",
+                value: f64::from(m),
+                reason: "must be within ±1048576",
+            });
         }
         if let Some(f) = self.focal_px {
             positive("focal_px", f)?;
@@ -1020,6 +1061,7 @@ pub fn import_set(dir: &Path, index: u32, config: &ImportConfig) -> Result<Captu
         baseline_m,
         motion: Vec::new(),
         views,
+        disparity_range: config.disparity_range(),
     })
 }
 

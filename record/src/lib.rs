@@ -98,4 +98,17 @@ pub struct CapturedSet {
     pub motion: Vec<MotionSample>,
     /// The views, reference first.
     pub views: Vec<CapturedView>,
+    /// The disparities to search, when the source knows them (an imported folder's
+    /// `min_disparity`/`num_disparities`, a simulated converged rig's working range).
+    pub disparity_range: Option<DisparityRange>,
+}
+
+/// A disparity search range (px, signed: a converged rig's far points have negative
+/// disparities).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct DisparityRange {
+    /// Smallest disparity searched.
+    pub min_disparity: i32,
+    /// Disparities searched; `None`: replay's default for the image width.
+    pub num_disparities: Option<u32>,
 }

@@ -143,6 +143,9 @@ pub struct CaptureEvent {
     pub joint_positions_rad: Option<[f64; JOINT_COUNT]>,
     /// Exposure gain applied (simulation; 1 = nominal).
     pub exposure_gain: f64,
+    /// The disparities to search for this set, when its source knows them.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub disparity_range: Option<crate::DisparityRange>,
 }
 
 /// JSON schema of [`CaptureEvent`].
@@ -178,7 +181,16 @@ pub fn capture_event_json_schema() -> serde_json::Value {
             "commanded_world_from_camera": nullable_pose,
             "true_world_from_camera": nullable_pose,
             "joint_positions_rad": {"anyOf": [{"type": "array", "items": {"type": "number"}}, {"type": "null"}]},
-            "exposure_gain": {"type": "number"}
+            "exposure_gain": {"type": "number"},
+            "disparity_range": {
+                "description": "the disparities to search (px, signed), when the source knows them",
+                "type": "object",
+                "properties": {
+                    "min_disparity": {"type": "integer"},
+                    "num_disparities": {"anyOf": [{"type": "integer", "minimum": 1}, {"type": "null"}]}
+                },
+                "required": ["min_disparity"]
+            }
         },
         "required": ["set_index", "set_name", "rig", "views_in_set", "role", "grid_offset", "baseline_m",
                      "capture_time_nanos", "image_topic", "calibration_topic", "world_from_camera", "exposure_gain"]
@@ -691,6 +703,7 @@ impl<W: Write + Seek> LogWriter<W> {
             true_world_from_camera: view.world_from_camera_true.as_ref().map(Into::into),
             joint_positions_rad: view.joints,
             exposure_gain: view.exposure_gain,
+            disparity_range: set.disparity_range,
         };
         self.write_event(t, &event)
     }

@@ -80,6 +80,15 @@ fn parse_positive_mm(text: &str) -> Result<f64, String> {
     }
 }
 
+fn parse_positive_m(text: &str) -> Result<f64, String> {
+    let value: f64 = text.parse().map_err(|_| format!("'{text}' is not a number"))?;
+    if value.is_finite() && value > 0.0 {
+        Ok(value)
+    } else {
+        Err(format!("{value} m is out of range: must be a distance > 0"))
+    }
+}
+
 fn parse_non_negative(text: &str) -> Result<f64, String> {
     match text.parse::<f64>() {
         Ok(v) if v.is_finite() && v >= 0.0 => Ok(v),
@@ -150,6 +159,11 @@ struct SimulateArgs {
     /// Distance between the centre view and each direct neighbour (mm).
     #[arg(long, default_value = "20", value_parser = parse_positive_mm)]
     baseline_mm: f64,
+    /// A converged rig: every view's principal point shifted so that a plane at this distance
+    /// (m) has disparity 0 (nearer points positive, farther negative; the log carries the signed
+    /// working range, which replay searches).
+    #[arg(long, value_name = "DIST", value_parser = parse_positive_m)]
+    converge_m: Option<f64>,
     /// Number of view sets, each from a different arm station.
     #[arg(long, default_value = "1", value_parser = clap::value_parser!(u32).range(1..=10_000))]
     captures: u32,
@@ -231,6 +245,14 @@ struct ImportArgs {
     output: PathBuf,
     #[command(flatten)]
     settings: ImportOverrides,
+    /// Smallest disparity to search (px, signed: negative for a converged rig), written into the
+    /// log for replay (as `min_disparity` in multiscopic.toml).
+    #[arg(long, value_name = "PX", allow_hyphen_values = true)]
+    min_disparity: Option<i32>,
+    /// Disparities to search, written into the log for replay (as `num_disparities` in
+    /// multiscopic.toml).
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..=1024))]
+    num_disparities: Option<u32>,
     /// Do not write the viewer layout beside the log (`<log stem>.rbl`, opened with
     /// `rerun LOG.mcap LOG.rbl`).
     #[arg(long)]
@@ -272,6 +294,7 @@ fn simulation_config(args: &SimulateArgs) -> SimulationConfig {
             exposure_jitter: args.exposure_jitter,
             exposure: args.exposure.clone(),
         },
+        converge_m: args.converge_m,
         ..SimulationConfig::default()
     }
 }
@@ -430,7 +453,11 @@ fn run_import(args: &ImportArgs) -> Result<Outcome> {
             anyhow::Error::new(e)
         }
     };
-    let plan = plan_import(&args.dir, &args.settings).map_err(usage)?;
+    let mut plan = plan_import(&args.dir, &args.settings).map_err(usage)?;
+    for (_, config) in &mut plan {
+        config.min_disparity = args.min_disparity.or(config.min_disparity);
+        config.num_disparities = args.num_disparities.or(config.num_disparities);
+    }
     // Every set is read before the log is started: a bad file stops the import with nothing
     // written.
     let bar = progress_bar(plan.len() as u64, false, "sets");

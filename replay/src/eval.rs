@@ -43,8 +43,10 @@ pub fn baseline_of(method: &str) -> Option<String> {
 /// How methods are run during an evaluation.
 #[derive(Debug, Clone, Default)]
 pub struct EvalOptions {
-    /// Disparities searched (default: per set, see `ViewSet::default_num_disparities`).
+    /// Disparities searched (default: per set, see `ViewSet::search_range`).
     pub num_disparities: Option<usize>,
+    /// Smallest disparity searched, signed (default: per set, see `ViewSet::search_range`).
+    pub min_disparity: Option<i32>,
     /// Configuration overrides for every method.
     pub overrides: Option<serde_json::Value>,
     /// Only these neighbours (all when empty).
@@ -80,7 +82,7 @@ pub fn evaluate_sets(
                 set,
                 &RunOptions {
                     num_disparities: options.num_disparities,
-                    min_disparity: 0,
+                    min_disparity: options.min_disparity,
                     neighbours: options.neighbours.clone(),
                     rectify: options.rectify,
                 },

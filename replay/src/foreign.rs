@@ -341,6 +341,7 @@ fn assemble(index: u32, mut views: Vec<View>) -> Result<ViewSet, ReplayError> {
         neighbours,
         ground_truth_depth_m: None,
         surface_class: None,
+        disparity_range: None,
     })
 }
 

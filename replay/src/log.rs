@@ -697,6 +697,7 @@ fn assemble_set(
         neighbours: views,
         ground_truth_depth_m: ground_truth,
         surface_class: surface,
+        disparity_range: reference_event.disparity_range,
     })
 }
 
@@ -734,6 +735,7 @@ mod tests {
                 view("left", -1, t + 2),
                 view("right", 1, t + 3),
             ],
+            disparity_range: None,
         }
     }
 

@@ -96,7 +96,7 @@ pub fn write_set_outputs(
             .data
             .iter()
             .zip(&truth)
-            .map(|(d, t)| match (*t > 0.0, d.is_finite()) {
+            .map(|(d, t)| match (t.is_finite(), d.is_finite()) {
                 (true, true) => (d - t).abs(),
                 (true, false) => ERROR_MAP_RANGE_PX.1,
                 _ => f32::NAN,

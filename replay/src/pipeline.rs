@@ -20,10 +20,12 @@ use crate::viewset::ViewSet;
 /// How sets are run.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct RunOptions {
-    /// Disparities searched (default: per set, [`ViewSet::default_num_disparities`]).
+    /// Disparities searched (default: the log's range for the set, else
+    /// [`ViewSet::default_num_disparities`]).
     pub num_disparities: Option<usize>,
-    /// Smallest disparity searched.
-    pub min_disparity: usize,
+    /// Smallest disparity searched (signed: negative for a converged rig; default: the log's
+    /// range for the set, else 0).
+    pub min_disparity: Option<i32>,
     /// Only these neighbours (all when empty).
     pub neighbours: Vec<String>,
     /// De-rotate the neighbours and resample their costs by their real baseline ratio.
@@ -85,6 +87,8 @@ pub struct PreparedSet<'a> {
     pub selected: ViewSet,
     /// The matching problem.
     pub problem: Problem,
+    /// Smallest disparity searched.
+    pub min_disparity: i32,
     /// Disparities searched.
     pub num_disparities: usize,
     /// The alignment report of the set.
@@ -107,15 +111,18 @@ pub struct MethodResult {
 impl<'a> PreparedSet<'a> {
     /// Checks the alignment, selects the neighbours and builds the problem.
     pub fn new(set: &'a ViewSet, options: &RunOptions) -> Result<Self, ReplayError> {
-        let num_disparities = options.num_disparities.unwrap_or_else(|| set.default_num_disparities());
+        let (min_disparity, num_disparities) = set.search_range(options.min_disparity, options.num_disparities);
         // The image-based shift search must reach the disparities searched.
-        let alignment = check_set(set, options.min_disparity + num_disparities);
+        let end = min_disparity.saturating_add(i32::try_from(num_disparities).unwrap_or(i32::MAX));
+        let reach = min_disparity.unsigned_abs().max(end.unsigned_abs()) as usize;
+        let alignment = check_set(set, reach);
         let selected = set.with_neighbours(&options.neighbours)?;
-        let problem = selected.problem(options.min_disparity, num_disparities, options.rectify)?;
+        let problem = selected.problem(min_disparity, num_disparities, options.rectify)?;
         Ok(Self {
             set,
             selected,
             problem,
+            min_disparity,
             num_disparities,
             alignment,
             occluded: set.occlusion_mask(),
@@ -153,6 +160,8 @@ pub struct SetSummary {
     pub outputs: SetOutputs,
     /// Seconds the method took.
     pub seconds: f64,
+    /// Smallest disparity searched.
+    pub min_disparity: i32,
     /// Disparities searched.
     pub num_disparities: usize,
     /// The set's alignment report.
@@ -174,8 +183,8 @@ pub struct RunSummary {
     pub methods: Vec<String>,
     /// Their effective configurations (one object for one method, else an array).
     pub config: serde_json::Value,
-    /// Smallest disparity searched.
-    pub min_disparity: usize,
+    /// `--min-disparity` as given (`null`: each set's range, see [`SetSummary`]).
+    pub min_disparity: Option<i32>,
     /// Per set and method.
     pub sets: Vec<SetSummary>,
     /// Sets skipped as incomplete, with the reason.

@@ -21,7 +21,7 @@ pub fn occluded_in(disparity: &[f32], width: usize, height: usize, offset: [i32;
     let pixels = || (0..height).flat_map(move |y| (0..width).map(move |x| (x, y)));
     let mut front = vec![f32::NEG_INFINITY; width * height];
     for ((x, y), d) in pixels().zip(disparity) {
-        if *d > 0.0
+        if d.is_finite()
             && let Some(q) = target(x, y, *d)
         {
             front[q] = front[q].max(*d);
@@ -29,7 +29,7 @@ pub fn occluded_in(disparity: &[f32], width: usize, height: usize, offset: [i32;
     }
     pixels()
         .zip(disparity)
-        .map(|((x, y), d)| *d > 0.0 && target(x, y, *d).is_none_or(|q| front[q] > d + OCCLUSION_MARGIN_PX))
+        .map(|((x, y), d)| d.is_finite() && target(x, y, *d).is_none_or(|q| front[q] > d + OCCLUSION_MARGIN_PX))
         .collect()
 }
 

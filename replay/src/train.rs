@@ -458,7 +458,7 @@ pub fn sample(config: &TrainConfig, index: usize, validation: bool, cache_dir: &
         .ground_truth_disparity()
         .ok_or_else(|| file_error(&path, "the simulated set has no ground truth".to_owned()))?
         .into_iter()
-        .map(|t| if t > 0.0 { t + below } else { t })
+        .map(|t| if t.is_finite() && t > 0.0 { t + below } else { 0.0 })
         .collect();
     let sample = Sample { volumes, truth };
     write_sample(&sample, &path)?;

@@ -113,7 +113,7 @@ pub fn probe_pixels(set: &ViewSet, occluded: Option<&[bool]>) -> Vec<(String, us
     let pick = |keep: &dyn Fn(usize) -> bool| {
         (0..w * h)
             .step_by(7)
-            .find(|p| truth[*p] > 0.0 && inside(p % w, p / w) && keep(*p))
+            .find(|p| truth[*p].is_finite() && inside(p % w, p / w) && keep(*p))
             .map(|p| (p % w, p / w))
     };
     if let Some((x, y)) = pick(&|p| occluded[p]) {
@@ -136,7 +136,7 @@ pub fn probe_pixels(set: &ViewSet, occluded: Option<&[bool]>) -> Vec<(String, us
     let mut best: Option<(i32, usize, usize)> = None;
     for y in (margin..h.saturating_sub(margin)).step_by(step) {
         for x in (margin..w.saturating_sub(margin)).step_by(step) {
-            if truth[y * w + x] <= 0.0 || occluded[y * w + x] {
+            if !truth[y * w + x].is_finite() || occluded[y * w + x] {
                 continue;
             }
             let mut gradient = 0;
@@ -195,7 +195,7 @@ pub fn log_costs(viewer: &Viewer, set: &ViewSet, problem: &Problem, occluded: Op
         "rerun costs: downsampled and probes chosen in {:.3} s",
         started.elapsed().as_secs_f64()
     );
-    let min_disparity = problem.min_disparity / factor;
+    let min_disparity = problem.min_disparity.div_euclid(factor as i32);
     // Each neighbour's aggregated costs and their heuristic fusion, as the methods fuse them,
     // quantised to bytes (255 = no correspondence), the viewer's tensor encoding.
     let small_problem = Problem {
@@ -238,7 +238,7 @@ pub fn log_costs(viewer: &Viewer, set: &ViewSet, problem: &Problem, occluded: Op
                     }
                 })
                 .collect();
-            viewer.log_cost_curve(probe, name, min_disparity * factor, factor, &curve)?;
+            viewer.log_cost_curve(probe, name, i64::from(min_disparity) * factor as i64, factor, &curve)?;
         }
     }
     Ok(())

@@ -48,6 +48,8 @@ pub struct ViewSet {
     pub ground_truth_depth_m: Option<Vec<f32>>,
     /// Ground-truth surface classes of the reference (simulation).
     pub surface_class: Option<Vec<u8>>,
+    /// The disparities to search, when the log says (imported folders, converged rigs).
+    pub disparity_range: Option<record::DisparityRange>,
 }
 
 fn view_from_captured(view: &CapturedView) -> View {
@@ -88,6 +90,7 @@ impl ViewSet {
                 .collect(),
             ground_truth_depth_m: reference.depth_m.clone(),
             surface_class: reference.surface_class.clone(),
+            disparity_range: set.disparity_range,
         })
     }
 
@@ -105,6 +108,18 @@ impl ViewSet {
     /// a multiple of 16 (32 for Middlebury's third size, 128 for 1920 px).
     pub fn default_num_disparities(&self) -> usize {
         (self.width() / 15).div_ceil(16).clamp(1, 16) * 16
+    }
+
+    /// The range `(min, count)` searched: each of `min_disparity` and `num_disparities` as given,
+    /// else as the log's range for the set says, else from 0 over
+    /// [`Self::default_num_disparities`].
+    pub fn search_range(&self, min_disparity: Option<i32>, num_disparities: Option<usize>) -> (i32, usize) {
+        let logged = self.disparity_range.as_ref();
+        let min = min_disparity.or(logged.map(|r| r.min_disparity)).unwrap_or(0);
+        let count = num_disparities
+            .or(logged.and_then(|r| r.num_disparities).map(|n| n as usize))
+            .unwrap_or_else(|| self.default_num_disparities());
+        (min, count)
     }
 
     /// Principal-point offset between the reference and a direct neighbour (px; Middlebury 2014's
@@ -136,8 +151,8 @@ impl ViewSet {
         move |disparity_px| fuse::depth_from_disparity(fb, 1.0, f64::from(disparity_px) + doffs)
     }
 
-    /// Ground-truth pixel disparity `f·b/z − doffs` of the reference to a direct neighbour (0 =
-    /// unknown).
+    /// Ground-truth pixel disparity `f·b/z − doffs` of the reference to a direct neighbour (NaN =
+    /// unknown; signed: a converged rig's far points are negative).
     pub fn ground_truth_disparity(&self) -> Option<Vec<f32>> {
         let fb = self.reference.camera.fx * self.baseline_m;
         let doffs = self.disparity_offset_px();
@@ -147,8 +162,8 @@ impl ViewSet {
                 .map(|z| {
                     fuse::disparity_from_depth(fb, 1.0, f64::from(*z))
                         .map(|d| d - doffs)
-                        .filter(|d| *d > 0.0)
-                        .map_or(0.0, |d| d as f32)
+                        .filter(|d| d.is_finite())
+                        .map_or(f32::NAN, |d| d as f32)
                 })
                 .collect()
         })
@@ -287,7 +302,7 @@ impl ViewSet {
     /// its real baseline ratio. Out-of-plane and perpendicular translation remain (see `check`).
     pub fn problem(
         &self,
-        min_disparity: usize,
+        min_disparity: i32,
         num_disparities: usize,
         rectify: bool,
     ) -> Result<fuse::Problem, ReplayError> {

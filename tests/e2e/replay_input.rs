@@ -41,6 +41,7 @@ fn three_view_set() -> CapturedSet {
             view("left", -1, 20, (32, 24)),
             view("right", 1, 30, (32, 24)),
         ],
+        disparity_range: None,
     }
 }
 

@@ -456,7 +456,7 @@ impl Viewer {
                 .iter()
                 .zip(truth)
                 .map(|(d, t)| {
-                    if *t > 0.0 && d.is_finite() {
+                    if t.is_finite() && d.is_finite() {
                         ((d - t).abs() * ERROR_STEPS_PER_PX).round().clamp(1.0, 255.0) as u8
                     } else {
                         0
@@ -524,7 +524,7 @@ impl Viewer {
         &self,
         probe: &str,
         source: &str,
-        first_disparity: usize,
+        first_disparity: i64,
         step: usize,
         costs: &[f32],
     ) -> Result<(), VizError> {
@@ -532,7 +532,7 @@ impl Viewer {
         for (i, cost) in costs.iter().enumerate() {
             if cost.is_finite() {
                 self.recording
-                    .set_time_sequence(DISPARITY_TIMELINE, (first_disparity + i * step) as i64);
+                    .set_time_sequence(DISPARITY_TIMELINE, first_disparity + (i * step) as i64);
                 self.log(&entity, &rerun::Scalars::single(f64::from(*cost)))?;
             }
         }

@@ -102,7 +102,9 @@ pub struct MFuseNetConfig {
     /// The network sees this many disparities under the searched range as well (negative ones
     /// included), so that answers at the range's start are not in its first slices, where it
     /// fails; the estimate is read from the searched range only (see `input_volumes_below`).
-    /// `null` = as the weights file's metadata `context_below` says (0 when it says nothing).
+    /// `null` = as the weights file's metadata `context_below` says, and at least
+    /// [`MIN_ROOM_BELOW`] (a network trained without context, such as the shipped five-view
+    /// one, put a far wall at the range start 4 px too near; the room fixes it).
     pub room_below: Option<usize>,
     /// Test-time flips: the network also answers the set's mirror image (left to right for a
     /// left/right pair and the five-view cross, the left and right volumes swapped; top to
@@ -268,7 +270,10 @@ impl Method for MFuseNet {
                 reason: "a vote weight from 0 to 1",
             });
         }
-        let room_below = self.config.room_below.unwrap_or(loaded.context_below);
+        let room_below = self
+            .config
+            .room_below
+            .unwrap_or(loaded.context_below.max(MIN_ROOM_BELOW));
         if room_below > weights::MAX_CONTEXT_BELOW {
             return Err(FuseError::Config {
                 field: "room_below",
@@ -300,13 +305,13 @@ impl Method for MFuseNet {
                     .locking
                     .or(loaded.locking)
                     .map(|curve| curve.damped(self.config.locking_strength)),
-                context_below: usize::try_from(problem.min_disparity as i64 - first).unwrap_or(0),
+                context_below: usize::try_from(i64::from(problem.min_disparity) - first).unwrap_or(0),
                 flips: self.config.flips,
             },
             &|f| progress(0.1 + 0.9 * f),
         )?;
         // Back into the requested range when it was widened.
-        let (low, high) = (requested.0 as f32, (requested.0 + requested.1 - 1) as f32);
+        let (low, high) = (requested.0 as f32, requested.0 as f32 + (requested.1 - 1) as f32);
         let disparity = DisparityImage {
             width: problem.reference.width,
             height: problem.reference.height,
@@ -351,6 +356,10 @@ fn cost_agreement(disparity: &DisparityImage, volumes: &[CostVolume<u8>], first:
         .collect()
 }
 
+/// The fewest disparities under the searched range that the networks see by default: a truth
+/// at the range's start is then never in a network's first slices.
+pub const MIN_ROOM_BELOW: usize = 4;
+
 /// The fewest disparities the networks see: the depth the shipped weights were trained on. A
 /// narrower search range gives the network a volume shape it never saw (the demo's 16
 /// disparities: Bad1 16 % against 2 % over 32), so the costs are computed over this many
@@ -358,13 +367,13 @@ fn cost_agreement(disparity: &DisparityImage, volumes: &[CostVolume<u8>], first:
 pub const MIN_NETWORK_DISPARITIES: usize = 32;
 
 /// The range `(min, count)` searched for a requested `(min, count)` narrower than
-/// [`MIN_NETWORK_DISPARITIES`]: widened evenly on both sides, never below 0; `None` when wide
-/// enough.
-pub fn widened_range((min_disparity, num_disparities): (usize, usize)) -> Option<(usize, usize)> {
+/// [`MIN_NETWORK_DISPARITIES`]: widened evenly on both sides (signed: a range near 0 reaches
+/// under it); `None` when wide enough.
+pub fn widened_range((min_disparity, num_disparities): (i32, usize)) -> Option<(i32, usize)> {
     let extra = MIN_NETWORK_DISPARITIES
         .checked_sub(num_disparities)
         .filter(|e| *e > 0)?;
-    let below = (extra / 2).min(min_disparity);
+    let below = i32::try_from(extra / 2).unwrap_or(0);
     Some((min_disparity - below, MIN_NETWORK_DISPARITIES))
 }
 
@@ -396,13 +405,107 @@ pub const ENTRIES: &[MethodEntry] = &[
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::image::Image;
     use crate::volume::VolumeSource;
 
+    /// A fronto-parallel textured plane at integer disparity `d` seen by the neighbours at
+    /// `offsets`, searched over `min_disparity .. min_disparity + 32`.
+    fn plane(offsets: &[[i32; 2]], d: i32, min_disparity: i32) -> Problem {
+        let (w, h) = (96, 64);
+        // Blobs of a few pixels (hashed 3×3 cells, smoothed by the bilinear lookup): texture the
+        // networks' census costs see at every scale they were trained on.
+        let cell = |x: i64, y: i64| {
+            let v = (x.wrapping_mul(73_856_093) ^ y.wrapping_mul(19_349_663)).rem_euclid(1 << 20);
+            (((v * 2_654_435_761) >> 7) & 0xFF) as f32
+        };
+        let texture = |x: i64, y: i64| {
+            let (cx, cy) = (x.div_euclid(3), y.div_euclid(3));
+            let (fx, fy) = (x.rem_euclid(3) as f32 / 3.0, y.rem_euclid(3) as f32 / 3.0);
+            let top = cell(cx, cy) * (1.0 - fx) + cell(cx + 1, cy) * fx;
+            let bottom = cell(cx, cy + 1) * (1.0 - fx) + cell(cx + 1, cy + 1) * fx;
+            (top * (1.0 - fy) + bottom * fy) as u8
+        };
+        // The neighbour at offset o sees the reference's pixel p at p − o·d.
+        let view = |o: [i32; 2]| {
+            let (sx, sy) = (i64::from(o[0] * d), i64::from(o[1] * d));
+            let data = (0..h as i64)
+                .flat_map(|y| (0..w as i64).map(move |x| texture(x + sx, y + sy)))
+                .collect();
+            Image::gray(w, h, data).unwrap_or_else(|e| panic!("{e}"))
+        };
+        Problem {
+            reference: view([0, 0]),
+            neighbours: offsets
+                .iter()
+                .map(|&offset| crate::volume::Neighbour {
+                    role: match offset {
+                        [-1, 0] => "left",
+                        [1, 0] => "right",
+                        [0, -1] => "top",
+                        _ => "bottom",
+                    }
+                    .to_owned(),
+                    image: view(offset),
+                    offset,
+                    baseline_ratio: 1.0,
+                })
+                .collect(),
+            min_disparity,
+            num_disparities: 32,
+        }
+    }
+
     #[test]
-    fn narrow_ranges_are_widened_evenly_and_never_below_zero() {
+    fn every_shipped_network_finds_a_plane_at_its_range_start_up_to_the_borders() {
+        let layouts: [(&str, &[[i32; 2]]); 3] = [
+            ("stereo", &[[1, 0]]),
+            ("three-view", &[[-1, 0], [1, 0]]),
+            ("five-view", &[[-1, 0], [1, 0], [0, -1], [0, 1]]),
+        ];
+        for (name, offsets) in layouts {
+            // A far wall at the start of an unsigned range, and of a converged rig's signed one.
+            for (d, min_disparity) in [(2, 2), (-7, -7)] {
+                let problem = plane(offsets, d, min_disparity);
+                let method = crate::methods::build("mfusenet", None).unwrap_or_else(|e| panic!("{e}"));
+                let out = method.run(&problem, &|_| {}).unwrap_or_else(|e| panic!("{name}: {e}"));
+                // Every pixel that some neighbour sees counts, the image borders included (the
+                // stereo network cannot know the strip its one neighbour does not see).
+                let (w, h) = (problem.reference.width as i32, problem.reference.height as i32);
+                let seen = |x: i32, y: i32| {
+                    offsets.iter().any(|o| {
+                        let (qx, qy) = (x - o[0] * d, y - o[1] * d);
+                        (0..w).contains(&qx) && (0..h).contains(&qy)
+                    })
+                };
+                let errors: Vec<f32> = out
+                    .data
+                    .iter()
+                    .enumerate()
+                    .filter(|(i, _)| seen(*i as i32 % w, *i as i32 / w))
+                    .map(|(_, e)| (e - d as f32).abs())
+                    .collect();
+                assert!(
+                    errors.len() >= (w * (h - 7)) as usize,
+                    "{name}: {} pixels seen",
+                    errors.len()
+                );
+                let mean = errors.iter().sum::<f32>() / errors.len() as f32;
+                let bad = errors.iter().filter(|e| **e > 1.0).count();
+                assert!(
+                    mean < 0.25 && bad * 100 < errors.len(),
+                    "{name}, plane at {d} searched from {min_disparity}: AvgErr {mean:.3} px, {bad} of {} pixels off by > 1 px",
+                    errors.len()
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn narrow_ranges_are_widened_evenly_on_both_sides() {
         assert_eq!(widened_range((24, 16)), Some((16, 32)));
-        assert_eq!(widened_range((3, 16)), Some((0, 32)));
-        assert_eq!(widened_range((0, 8)), Some((0, 32)));
+        assert_eq!(widened_range((3, 16)), Some((-5, 32)));
+        assert_eq!(widened_range((0, 8)), Some((-12, 32)));
+        assert_eq!(widened_range((-20, 16)), Some((-28, 32)));
         assert_eq!(widened_range((10, 31)), Some((10, 32)));
         assert_eq!(widened_range((0, 32)), None);
         assert_eq!(widened_range((5, 64)), None);

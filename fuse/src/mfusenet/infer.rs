@@ -145,20 +145,13 @@ pub fn infer(
         for y in y0..y1.min(h) {
             for x in x0..x1.min(w) {
                 let at = (y - ry0) * rw + (x - rx0);
-                let column = |d: usize| logits.data[(d + skip) * plane + at];
-                let mut value = expected_disparity(column, nd - skip, estimate.window);
+                let column = |d: usize| logits.data[d * plane + at];
+                let mut value = expected_disparity_from(column, nd, skip, estimate.window);
                 if estimate.refine {
-                    let cost = |d: usize| volumes.iter().map(|v| f64::from(v.costs(x, y)[d + skip])).sum::<f64>();
-                    value = refined(
-                        value,
-                        cost,
-                        nd - skip,
-                        estimate.refine_reach,
-                        estimate.fit,
-                        estimate.locking,
-                    );
+                    let cost = |d: usize| volumes.iter().map(|v| f64::from(v.costs(x, y)[d])).sum::<f64>();
+                    value = refined(value, cost, nd, estimate.refine_reach, estimate.fit, estimate.locking);
                 }
-                disparity[y * w + x] = (first.min_disparity as f64 + (skip as f64 + value)) as f32;
+                disparity[y * w + x] = (first.min_disparity as f64 + value) as f32;
             }
         }
         progress((done + 1) as f32 / tiles.len() as f32);
@@ -172,8 +165,10 @@ pub fn infer(
 pub struct Estimate {
     /// Soft-argmin over `2r + 1` disparities around the most probable one (`None`: all, the paper).
     pub window: Option<usize>,
-    /// The volumes' first this many slices are context for the network only: the estimate is
-    /// read from the slices after them (the searched range), never from them.
+    /// The volumes' first this many slices are context for the network only: the most probable
+    /// disparity is looked for after them (in the searched range), never in them, but the
+    /// distribution around it and the refining costs reach into them, so that a truth at the
+    /// range's first slice is read without bias (the caller clamps the result into the range).
     pub context_below: usize,
     /// Keep the integer disparity nearest the network's estimate, and take the sub-pixel offset
     /// from the `fit` through the summed input costs there (where they have a minimum), as
@@ -257,15 +252,33 @@ pub fn refined(
 /// The soft-argmin `Σ d·softmax(logit)_d` of one pixel's `nd` logits, over the whole range or,
 /// with `window: Some(r)`, over the `2r + 1` disparities around the most probable one.
 pub fn expected_disparity(logit: impl Fn(usize) -> f32, nd: usize, window: Option<usize>) -> f64 {
-    let (mode, max) =
-        (0..nd).map(|d| (d, logit(d))).fold(
-            (0, f32::NEG_INFINITY),
-            |best, (d, v)| if v > best.1 { (d, v) } else { best },
-        );
+    expected_disparity_from(logit, nd, 0, window)
+}
+
+/// How far under the first searched slice the whole-range soft-argmin reaches, when the most
+/// probable disparity is that close to it: the peak's lower tail, not the context's own modes.
+pub const CONTEXT_TAIL: usize = 2;
+
+/// [`expected_disparity`] with the most probable disparity looked for from slice `first_mode`
+/// on only: the slices under it are context, never the mode. A window around the mode reaches
+/// into them; the whole-range sum (`window: None`) takes them only within [`CONTEXT_TAIL`] of
+/// the mode (a truth at the range's start keeps its peak's lower tail, while an occluded pixel's
+/// mass in the context does not pull the estimate).
+pub fn expected_disparity_from(
+    logit: impl Fn(usize) -> f32,
+    nd: usize,
+    first_mode: usize,
+    window: Option<usize>,
+) -> f64 {
+    let (mode, _) = (first_mode.min(nd.saturating_sub(1))..nd).map(|d| (d, logit(d))).fold(
+        (first_mode, f32::NEG_INFINITY),
+        |best, (d, v)| if v > best.1 { (d, v) } else { best },
+    );
     let range = match window {
         Some(r) => mode.saturating_sub(r)..(mode + r + 1).min(nd),
-        None => 0..nd,
+        None => first_mode.min(mode.saturating_sub(CONTEXT_TAIL))..nd,
     };
+    let max = range.clone().map(&logit).fold(f32::NEG_INFINITY, f32::max);
     let (mut sum, mut weighted) = (0f64, 0f64);
     for d in range {
         let e = f64::from((logit(d) - max).exp());
@@ -390,16 +403,23 @@ mod tests {
         // Not constant: the test would pass trivially on a flat output.
         let spread = whole.iter().fold(0f32, |m, d| m.max(*d)) - whole.iter().fold(f32::MAX, |m, d| m.min(*d));
         assert!(spread > 0.1, "spread {spread}");
-        // Slices kept as context are never the answer: with 5 of them, every estimate is ≥ 3 + 5
-        // (the whole-range estimates are not).
-        let lowest = whole.iter().fold(f32::MAX, |m, d| m.min(*d));
+        // Slices kept as context are never the most probable answer: with 5 of them, every mode
+        // (a window of 0) is ≥ 3 + 5 (the whole range's are not); the distribution around it
+        // reaches into them.
+        let mode = |context_below| Estimate {
+            context_below,
+            window: Some(0),
+            ..Estimate::default()
+        };
+        let modes = infer(&net, &volumes, usize::MAX, mode(0), &|_| {}).unwrap_or_else(|e| panic!("{e}"));
+        let lowest = modes.iter().fold(f32::MAX, |m, d| m.min(*d));
         assert!(lowest < 7.5, "lowest {lowest}");
+        let read = infer(&net, &volumes, usize::MAX, mode(5), &|_| {}).unwrap_or_else(|e| panic!("{e}"));
+        assert!(read.iter().all(|d| (8.0..=12.0).contains(d)));
         let context = Estimate {
             context_below: 5,
             ..Estimate::default()
         };
-        let read = infer(&net, &volumes, usize::MAX, context, &|_| {}).unwrap_or_else(|e| panic!("{e}"));
-        assert!(read.iter().all(|d| (8.0..=12.0).contains(d)));
         let error = infer(
             &net,
             &volumes,

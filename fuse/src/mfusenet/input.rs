@@ -176,11 +176,10 @@ pub fn input_volumes(
 
 /// [`input_volumes`] over a range that starts `below` disparities under the problem's: the
 /// networks answer badly when the truth lies in the first slices of their range (Middlebury's
-/// far backgrounds at 1–2 px searched from 0: Bowling1), so inference gives them room. Costs
-/// under 0 come from each neighbour mirrored (the cost of `−d` towards offset `o` is that of `d`
-/// towards `−o`), and SGM aggregates each neighbour over the whole extended range. Returns the
-/// volumes (whose `min_disparity` is 0 when the range starts under 0) and the disparity of
-/// their first slice.
+/// far backgrounds at 1–2 px searched from 0: Bowling1), so inference gives them room. The
+/// extended range may reach under 0 (signed disparities: the costs of `−d` towards offset `o`
+/// are those of `d` towards `−o`); SGM aggregates each neighbour over the whole extended range.
+/// Returns the volumes and the disparity of their first slice.
 pub fn input_volumes_below(
     problem: &Problem,
     neighbours: &[&Neighbour],
@@ -188,62 +187,14 @@ pub fn input_volumes_below(
     below: usize,
     on_band: &(dyn Fn() + Sync),
 ) -> Result<(Vec<CostVolume<u8>>, i64), FuseError> {
-    let first = problem.min_disparity as i64 - below as i64;
-    let negative = usize::try_from(-first).unwrap_or(0);
-    if negative == 0 {
-        let extended = Problem {
-            min_disparity: problem.min_disparity - below,
-            num_disparities: problem.num_disparities + below,
-            ..problem.clone()
-        };
-        return Ok((input_volumes(&extended, neighbours, spec, on_band)?, first));
-    }
-    let cost = CostSpec {
-        pixel: spec.cost,
-        block_radius: spec.block_radius,
-    };
-    let shift = quantisation_shift(cost.max_cost());
-    let (p1, p2) = (quantise_penalty(spec.p1, shift), quantise_penalty(spec.p2, shift));
-    let non_negative = Problem {
-        min_disparity: 0,
-        num_disparities: problem.min_disparity + problem.num_disparities,
+    let below_i32 = i32::try_from(below).unwrap_or(i32::MAX);
+    let extended = Problem {
+        min_disparity: problem.min_disparity.saturating_sub(below_i32),
+        num_disparities: problem.num_disparities + below,
         ..problem.clone()
     };
-    let mirrored_range = Problem {
-        min_disparity: 1,
-        num_disparities: negative,
-        ..problem.clone()
-    };
-    let mut out = Vec::with_capacity(neighbours.len());
-    for n in neighbours {
-        let upper = neighbour_volumes(&non_negative, &[*n], cost, shift, on_band)?.remove(0);
-        let mirror = Neighbour {
-            offset: [-n.offset[0], -n.offset[1]],
-            ..(*n).clone()
-        };
-        let lower = neighbour_volumes(&mirrored_range, &[&mirror], cost, shift, on_band)?.remove(0);
-        let disparities = negative + upper.disparities;
-        let mut data = Vec::with_capacity(upper.width * upper.height * disparities);
-        for (low, high) in lower
-            .data
-            .chunks_exact(negative)
-            .zip(upper.data.chunks_exact(upper.disparities))
-        {
-            data.extend(low.iter().rev());
-            data.extend_from_slice(high);
-        }
-        let volume = CostVolume {
-            disparities,
-            data,
-            min_disparity: 0,
-            ..upper
-        };
-        drop(lower);
-        let sums = aggregate_volume(&volume, p1, p2);
-        drop(volume);
-        out.push(normalise(&sums, p2));
-    }
-    Ok((out, first))
+    let volumes = input_volumes(&extended, neighbours, spec, on_band)?;
+    Ok((volumes, i64::from(extended.min_disparity)))
 }
 
 /// `(S − min_d S) / (8 · P2)` in steps of 1/[`STEPS_PER_UNIT`], capped at 255 steps.
@@ -276,7 +227,7 @@ mod tests {
     use crate::image::Image;
 
     /// A textured fronto-parallel plane at (signed) disparity `d` seen from the left and right.
-    fn plane(d: i64, min_disparity: usize, num_disparities: usize) -> Problem {
+    fn plane(d: i64, min_disparity: i32, num_disparities: usize) -> Problem {
         let view = |shift: i64| crate::image::textured_view(64, 32, shift);
         let neighbour = |role: &str, offset: i32| Neighbour {
             role: role.into(),
@@ -427,7 +378,7 @@ mod tests {
             assert_eq!(first, -4);
             volumes.extend(volumes_below(&vertical(&plane(d, 0, 12)), 4).0);
             for v in &volumes {
-                assert_eq!((v.disparities, v.min_disparity), (16, 0));
+                assert_eq!((v.disparities, v.min_disparity), (16, -4));
                 let (mut right, mut total) = (0, 0);
                 let (mx, my) = if v.width > v.height { (12, 4) } else { (4, 12) };
                 for y in my..v.height - my {

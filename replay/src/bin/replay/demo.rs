@@ -42,19 +42,6 @@ pub struct DemoArgs {
     resolution: String,
 }
 
-/// The disparity search range `(first, count)` of a capture from its known working depth: the
-/// table at the scene's camera height is the farthest point, the top of its highest object the
-/// nearest (2 px of margin each side, the count a multiple of 16).
-pub fn working_disparity_range(sim: &record::capture::Simulation) -> (usize, usize) {
-    let scene = sim.scene();
-    let far_m = scene.camera_height_m;
-    let near_m = (far_m - scene.highest_point_m()).max(0.2 * far_m);
-    let fb = sim.camera().fx * sim.config().baseline_mm / 1000.0;
-    let first = ((fb / far_m).floor() as usize).saturating_sub(2);
-    let last = (fb / near_m).ceil() as usize + 2;
-    (first, (last - first).div_ceil(16).max(1) * 16)
-}
-
 /// Writes `DIR/.gitignore` ignoring everything in `DIR` (as Cargo does for `target/`), unless the
 /// folder already has one: the demo's outputs are results, never work to commit.
 fn ignore_in_git(dir: &std::path::Path) -> Result<()> {
@@ -88,10 +75,11 @@ pub fn run(args: &DemoArgs, quiet: bool) -> Result<Outcome> {
     ignore_in_git(&args.out)?;
     let log = args.out.join("capture.mcap");
     let mut sim = record::capture::Simulation::new(config.clone()).map_err(|e| UsageError(e.to_string()))?;
-    let (min_disparity, num_disparities) = working_disparity_range(&sim);
+    let range = sim.working_disparity_range();
+    let (min_disparity, num_disparities) = (range.min_disparity, range.num_disparities.unwrap_or(16) as usize);
     info!(
         "disparities {min_disparity}..{} px from the working depth (table at {:.2} m, objects up to {:.2} m above it)",
-        min_disparity + num_disparities,
+        min_disparity + num_disparities as i32,
         sim.scene().camera_height_m,
         sim.scene().highest_point_m()
     );
@@ -136,7 +124,7 @@ pub fn run(args: &DemoArgs, quiet: bool) -> Result<Outcome> {
             config: None,
             out: args.out.join("results"),
             num_disparities: Some(num_disparities),
-            min_disparity,
+            min_disparity: Some(min_disparity),
             sets: Vec::new(),
             start: None,
             end: None,

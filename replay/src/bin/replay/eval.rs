@@ -31,9 +31,14 @@ pub struct EvalArgs {
         default_value = "bm-stereo,bm-mean,bm-min,bm-heuristic,sgm-stereo,sgm-heuristic"
     )]
     methods: Vec<String>,
-    /// Disparities searched (default: per set, width/15 rounded up to a multiple of 16).
+    /// Disparities searched (default: per set, the range its log or multiscopic.toml gives, else
+    /// width/15 rounded up to a multiple of 16).
     #[arg(long)]
     num_disparities: Option<usize>,
+    /// Smallest disparity searched, signed: negative for converged rigs (default: per set, as
+    /// its log or multiscopic.toml says, else 0), e.g. --min-disparity -8.
+    #[arg(long, value_name = "PX", allow_hyphen_values = true)]
+    min_disparity: Option<i32>,
     /// Table format on stdout.
     #[arg(long, value_enum, default_value = "markdown")]
     format: TableFormat,
@@ -99,6 +104,7 @@ pub fn run(args: &EvalArgs) -> Result<Outcome> {
     let progress = progress_bar((args.methods.len() * with_truth) as u64, false, "runs");
     let options = replay::eval::EvalOptions {
         num_disparities: args.num_disparities,
+        min_disparity: args.min_disparity,
         overrides,
         neighbours: args.neighbours.clone(),
         rectify: args.rectify,

@@ -26,12 +26,15 @@ pub struct RunArgs {
     /// Output directory for the result files.
     #[arg(long, default_value = "results")]
     pub(crate) out: PathBuf,
-    /// Disparities searched (default: width/15 rounded up to a multiple of 16).
+    /// Disparities searched (default: the log's range for the set, else width/15 rounded up to
+    /// a multiple of 16); at most 1024.
     #[arg(long)]
     pub(crate) num_disparities: Option<usize>,
-    /// Smallest disparity searched.
-    #[arg(long, default_value = "0")]
-    pub(crate) min_disparity: usize,
+    /// Smallest disparity searched, signed: negative for a converged rig, whose points beyond
+    /// the distance its views converge at shift the other way (default: the log's range for the
+    /// set, else 0), e.g. --min-disparity -8.
+    #[arg(long, value_name = "PX", allow_hyphen_values = true)]
+    pub(crate) min_disparity: Option<i32>,
     /// Only these sets (indexes, comma-separated).
     #[arg(long, value_delimiter = ',')]
     pub(crate) sets: Vec<u32>,
@@ -192,10 +195,12 @@ pub fn run(args: &RunArgs, quiet: bool) -> Result<Outcome> {
         for method in &methods {
             let progress = progress_bar(100, quiet, "%");
             progress.set_message(format!(
-                "set {} {} ({} neighbours, {nd} disparities)",
+                "set {} {} ({} neighbours, disparities {}..{})",
                 set.index,
                 method.name(),
-                prepared.problem.neighbours.len()
+                prepared.problem.neighbours.len(),
+                prepared.min_disparity,
+                prepared.problem.end_disparity()
             ));
             let result = prepared
                 .run(method.as_ref(), &|fraction| {
@@ -243,6 +248,7 @@ pub fn run(args: &RunArgs, quiet: bool) -> Result<Outcome> {
                 method: method.name().to_owned(),
                 outputs,
                 seconds: result.seconds,
+                min_disparity: prepared.min_disparity,
                 num_disparities: nd,
                 alignment: alignment.clone(),
             };
