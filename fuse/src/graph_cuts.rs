@@ -230,6 +230,12 @@ fn bt_cost(reference: &PreparedView, neighbour: &PreparedView, p: usize, q: usiz
     sum / c as u16
 }
 
+/// The largest data cost of a valid assignment (the truncation, squared).
+const MAX_DATA_COST: u16 = BT_TRUNCATION * BT_TRUNCATION;
+
+/// Half-size of the window whose data costs [`KzEnergy::confidence`] compares.
+pub const CONFIDENCE_RADIUS: usize = 2;
+
 /// Kolmogorov–Zabih's energy over a multiscopic problem and its current configuration.
 pub struct KzEnergy {
     width: usize,
@@ -383,7 +389,72 @@ impl KzEnergy {
         self.disparity.iter().filter(|l| **l == OCCLUDED).count()
     }
 
-    /// The disparity of every reference pixel (`f32::INFINITY` = occluded).
+    /// The confidence of every reference pixel's assignment: 0 where it is occluded, else the
+    /// margin of its label's data cost over the best label at least 2 away, `1 − c₁/c₂` as
+    /// [`crate::wta::peak_confidence`], with each label's fused costs summed over the
+    /// `(2·`[`CONFIDENCE_RADIUS`]`+1)²` window around the pixel (one pixel's Birchfield–Tomasi
+    /// cost is 0 at many labels; a window's is not). Labels are visited one plane at a time, so
+    /// the memory is two planes whatever the range.
+    pub fn confidence(&self) -> Vec<f32> {
+        let (w, h) = (self.width, self.height);
+        let plane = w * h;
+        let r = CONFIDENCE_RADIUS;
+        // Per pixel: the window sum at its own label, the least at labels ≥ 2 away.
+        let mut own = vec![f32::NAN; plane];
+        let mut other = vec![f32::INFINITY; plane];
+        let mut rows = vec![0f32; plane];
+        for label in 0..self.labels {
+            let costs = &self.data[label * plane..(label + 1) * plane];
+            // An invalid cell counts as the largest valid cost in the window sums.
+            let value = |c: u16| {
+                if c == INVALID_COST {
+                    f32::from(MAX_DATA_COST)
+                } else {
+                    f32::from(c)
+                }
+            };
+            rows.par_chunks_mut(w).enumerate().for_each(|(y, out)| {
+                let row = &costs[y * w..(y + 1) * w];
+                let mut sum: f32 = (0..=r).map(|x| value(row[x.min(w - 1)])).sum::<f32>() + r as f32 * value(row[0]);
+                for (x, o) in out.iter_mut().enumerate() {
+                    *o = sum;
+                    sum += value(row[(x + r + 1).min(w - 1)]) - value(row[x.saturating_sub(r)]);
+                }
+            });
+            own.par_chunks_mut(w)
+                .zip(other.par_chunks_mut(w))
+                .enumerate()
+                .for_each(|(y, (own, other))| {
+                    for x in 0..w {
+                        let p = y * w + x;
+                        let l = self.disparity[p];
+                        if l == OCCLUDED || costs[p] == INVALID_COST {
+                            continue;
+                        }
+                        let sum: f32 = (y as isize - r as isize..=(y + r) as isize)
+                            .map(|yy| rows[yy.clamp(0, h as isize - 1) as usize * w + x])
+                            .sum();
+                        if usize::from(l) == label {
+                            own[x] = sum;
+                        } else if usize::from(l).abs_diff(label) >= 2 {
+                            other[x] = other[x].min(sum);
+                        }
+                    }
+                });
+        }
+        own.iter()
+            .zip(&other)
+            .map(|(c1, c2)| match (c1.is_finite(), c2.is_finite()) {
+                (false, _) => 0.0,
+                (true, false) => 1.0,
+                (true, true) if *c2 <= 0.0 => 0.0,
+                (true, true) => (1.0 - c1 / c2).clamp(0.0, 1.0),
+            })
+            .collect()
+    }
+
+    /// The disparity of every reference pixel (`f32::INFINITY` = occluded), with its
+    /// [`Self::confidence`].
     pub fn disparity(&self) -> DisparityImage {
         DisparityImage {
             width: self.width,
@@ -399,6 +470,7 @@ impl KzEnergy {
                     }
                 })
                 .collect(),
+            confidence: Some(self.confidence()),
         }
     }
 

@@ -87,14 +87,27 @@ pub struct DisparityImage {
     pub height: usize,
     /// `width × height` disparities.
     pub data: Vec<f32>,
+    /// `width × height` confidences in [0, 1] (1 = certain, 0 = no estimate or a guess), from
+    /// each method's own evidence (the cost curve's peak, the network's distribution, graph cuts'
+    /// occlusions and label margin), for ranking pixels: every registered method gives them.
+    /// `None` where no confidence is known.
+    pub confidence: Option<Vec<f32>>,
 }
 
 impl DisparityImage {
     /// Fills every invalid pixel with the smaller of the nearest valid disparities to its left
     /// and right on the same row (the background side of an occlusion), as Middlebury's
-    /// evaluations of OpenCV and KZ2 do. Rows without any valid pixel stay invalid.
+    /// evaluations of OpenCV and KZ2 do. Rows without any valid pixel stay invalid. A filled
+    /// pixel's confidence is 0: it is a guess.
     pub fn fill_invalid_from_row_neighbours(&mut self) {
         let width = self.width;
+        if let Some(confidence) = &mut self.confidence {
+            for (c, d) in confidence.iter_mut().zip(&self.data) {
+                if !d.is_finite() {
+                    *c = 0.0;
+                }
+            }
+        }
         for row in self.data.chunks_mut(width) {
             let mut left = vec![f32::INFINITY; width];
             let mut last = f32::INFINITY;
@@ -144,9 +157,11 @@ mod tests {
             width: 6,
             height: 1,
             data: vec![inf, 5.0, inf, inf, 9.0, inf],
+            confidence: Some(vec![0.5; 6]),
         };
         image.fill_invalid_from_row_neighbours();
         assert_eq!(image.data, vec![5.0, 5.0, 5.0, 5.0, 9.0, 9.0]);
+        assert_eq!(image.confidence, Some(vec![0.0, 0.5, 0.0, 0.0, 0.5, 0.0]));
     }
 
     #[test]

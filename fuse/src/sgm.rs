@@ -11,7 +11,7 @@ use rayon::prelude::*;
 
 use crate::cost::INVALID_COST;
 use crate::volume::CostVolume;
-use crate::wta::{SubpixelFit, winner_take_all};
+use crate::wta::{SubpixelFit, winner_take_all_confident};
 
 /// Scales costs so that the sum of eight paths fits `u16`: returns the right shift to apply.
 pub fn cost_shift(max_cost: u32, p2: u32) -> u32 {
@@ -166,7 +166,8 @@ pub fn aggregate_volume(volume: &CostVolume<u8>, p1: u16, p2: u16) -> CostVolume
 
 /// Winner-take-all over the eight-path sums of `volume` (as [`aggregate`] then
 /// [`crate::wta::winner_take_all`]), picked while the last pass visits each pixel so that the
-/// summed volume is never written back or read again. Returns the disparities (`[y][x]`).
+/// summed volume is never written back or read again. Returns the disparities and their
+/// confidences (`[y][x]`, [`crate::wta::peak_confidence`] of the summed costs).
 #[allow(clippy::too_many_arguments)]
 pub fn select(
     volume: &[u8],
@@ -177,22 +178,23 @@ pub fn select(
     (p1, p2): (u16, u16),
     min_disparity: i32,
     subpixel: Option<SubpixelFit>,
-) -> Vec<f32> {
+) -> (Vec<f32>, Vec<f32>) {
     let penalties = Penalties::new(max_cost, p1, p2);
-    let mut out = vec![f32::INFINITY; width * height];
+    let mut out = vec![f32::INFINITY; 2 * width * height];
     let selection = Selection {
         min_disparity,
         subpixel,
         out: &mut out,
     };
     passes(volume, width, height, disparities, &penalties, Some(selection));
-    out
+    out.chunks_exact(2).map(|pair| (pair[0], pair[1])).unzip()
 }
 
 /// Where the last pass puts the winners instead of the sums.
 struct Selection<'a> {
     min_disparity: i32,
     subpixel: Option<SubpixelFit>,
+    /// Per pixel (`[y][x]`), its disparity and its confidence.
     out: &'a mut [f32],
 }
 
@@ -280,10 +282,10 @@ fn vertical_pass(
     let pick = selection.as_ref().map(|s| (s.min_disparity, s.subpixel));
     let mut winner_blocks: Vec<Vec<&mut [f32]>> = (0..workers).map(|_| Vec::new()).collect();
     if let Some(selection) = selection {
-        for row in selection.out.chunks_mut(width) {
+        for row in selection.out.chunks_mut(2 * width) {
             let mut rest = row;
             for blocks in &mut winner_blocks {
-                let (left, right) = rest.split_at_mut(block.min(rest.len()));
+                let (left, right) = rest.split_at_mut((2 * block).min(rest.len()));
                 blocks.push(left);
                 rest = right;
             }
@@ -387,7 +389,8 @@ impl BlockJob<'_> {
                         for ((((t, s), a), b), c) in total.iter_mut().zip(&*sum_cell).zip(a).zip(b).zip(c) {
                             *t = s.saturating_add(*a + *b + *c);
                         }
-                        winner_take_all(&total, nd, min_disparity, subpixel, &mut winners[y][i..i + 1]);
+                        let (disparity, confidence) = winners[y][2 * i..2 * i + 2].split_at_mut(1);
+                        winner_take_all_confident(&total, nd, min_disparity, subpixel, disparity, confidence);
                     }
                     None => {
                         for (((s, a), b), c) in sum_cell.iter_mut().zip(a).zip(b).zip(c) {
@@ -664,7 +667,15 @@ mod tests {
             let max_cost = 1100 >> 3;
             let reference = aggregate_reference(&volume, w, h, nd, max_cost, 40, 400);
             let mut expected = vec![0.0f32; w * h];
-            winner_take_all(&reference, nd, 3, Some(SubpixelFit::Parabola), &mut expected);
+            let mut expected_confidence = vec![0.0f32; w * h];
+            winner_take_all_confident(
+                &reference,
+                nd,
+                3,
+                Some(SubpixelFit::Parabola),
+                &mut expected,
+                &mut expected_confidence,
+            );
             // One, two and three column blocks (with edge exchanges between them).
             for threads in [1, 2, 3] {
                 let pool = rayon::ThreadPoolBuilder::new()
@@ -676,13 +687,18 @@ mod tests {
                         aggregate(&volume, w, h, nd, max_cost, 40, 400) == reference,
                         "{w}x{h}x{nd} {threads}"
                     );
-                    let selected = select(&volume, w, h, nd, max_cost, (40, 400), 3, Some(SubpixelFit::Parabola));
+                    let (selected, confidence) =
+                        select(&volume, w, h, nd, max_cost, (40, 400), 3, Some(SubpixelFit::Parabola));
                     assert!(
                         selected
                             .iter()
                             .zip(&expected)
                             .all(|(a, b)| a == b || (a.is_infinite() && b.is_infinite())),
                         "{w}x{h}x{nd} selection, {threads} threads"
+                    );
+                    assert!(
+                        confidence == expected_confidence,
+                        "{w}x{h}x{nd} confidence, {threads} threads"
                     );
                 });
             }
@@ -708,7 +724,7 @@ mod tests {
         }
         let sum = aggregate(&volume, w, h, nd, 20, 3, 12);
         let mut disparity = vec![0.0f32; w * h];
-        winner_take_all(&sum, nd, 0, None, &mut disparity);
+        crate::wta::winner_take_all(&sum, nd, 0, None, &mut disparity);
         assert!(disparity.iter().all(|d| *d == 2.0), "{disparity:?}");
     }
 

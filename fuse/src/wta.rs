@@ -168,7 +168,55 @@ pub fn winner_take_all(
     subpixel: Option<SubpixelFit>,
     out: &mut [f32],
 ) {
-    for (pixel, c) in out.iter_mut().zip(costs.chunks_exact(disparities)) {
+    winners(costs, disparities, min_disparity, subpixel, out, None);
+}
+
+/// [`winner_take_all`] that also writes each pixel's [`peak_confidence`] into `confidence`.
+pub fn winner_take_all_confident(
+    costs: &[u16],
+    disparities: usize,
+    min_disparity: i32,
+    subpixel: Option<SubpixelFit>,
+    out: &mut [f32],
+    confidence: &mut [f32],
+) {
+    winners(costs, disparities, min_disparity, subpixel, out, Some(confidence));
+}
+
+/// The confidence of the winner `best` of one pixel's costs, in [0, 1]: `1 − c₁/c₂`, where `c₁` is
+/// its cost and `c₂` the least cost at least 2 disparities away from it (the naive peak ratio,
+/// Hu & Mordohai 2012, with the winner's own slope left out): 0 where another disparity matches
+/// as well, near 1 where the winner stands alone; 1 when no other disparity is valid, 0 when
+/// the winner itself is invalid.
+pub fn peak_confidence(costs: &[u16], best: usize) -> f32 {
+    let Some(&c1) = costs.get(best) else {
+        return 0.0;
+    };
+    if c1 == INVALID_COST {
+        return 0.0;
+    }
+    let c2 = costs
+        .iter()
+        .enumerate()
+        .filter(|(d, c)| d.abs_diff(best) >= 2 && **c != INVALID_COST)
+        .map(|(_, c)| *c)
+        .min();
+    match c2 {
+        None => 1.0,
+        Some(0) => 0.0,
+        Some(c2) => (1.0 - f32::from(c1) / f32::from(c2)).clamp(0.0, 1.0),
+    }
+}
+
+fn winners(
+    costs: &[u16],
+    disparities: usize,
+    min_disparity: i32,
+    subpixel: Option<SubpixelFit>,
+    out: &mut [f32],
+    mut confidence: Option<&mut [f32]>,
+) {
+    for (i, (pixel, c)) in out.iter_mut().zip(costs.chunks_exact(disparities)).enumerate() {
         // Cost and disparity packed into one u32 (cost high): one vectorised min finds the
         // smallest cost at its first disparity.
         let packed = c
@@ -178,6 +226,9 @@ pub fn winner_take_all(
             .min()
             .unwrap_or(u32::from(INVALID_COST) << 16);
         let (best, best_cost) = ((packed & 0xFFFF) as usize, (packed >> 16) as u16);
+        if let Some(confidence) = confidence.as_deref_mut() {
+            confidence[i] = peak_confidence(c, best);
+        }
         if best_cost == INVALID_COST {
             *pixel = f32::INFINITY;
             continue;
@@ -199,6 +250,23 @@ pub fn winner_take_all(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_peak_confidence_compares_the_winner_with_the_best_cost_away_from_it() {
+        // A lone minimum: 1 − 10/40; its own slope (d ± 1) does not count.
+        assert!((peak_confidence(&[50, 40, 12, 10, 11, 45], 3) - 0.75).abs() < 1e-6);
+        // A second minimum as good as the first: no confidence.
+        assert_eq!(peak_confidence(&[10, 30, 30, 10, 30], 0), 0.0);
+        // Invalid costs never count; an invalid winner has none; a lone valid one is certain.
+        assert!((peak_confidence(&[INVALID_COST, 9, 20, 30], 1) - (1.0 - 9.0 / 30.0)).abs() < 1e-6);
+        assert_eq!(peak_confidence(&[INVALID_COST; 4], 0), 0.0);
+        assert_eq!(peak_confidence(&[INVALID_COST, 3, INVALID_COST], 1), 1.0);
+        let costs = [50u16, 40, 12, 10, 11, 45, 60, 20];
+        let (mut d, mut c) = ([0.0f32; 1], [0.0f32; 1]);
+        winner_take_all_confident(&costs, 8, -2, None, &mut d, &mut c);
+        assert_eq!(d[0], 1.0);
+        assert!((c[0] - 0.5).abs() < 1e-6, "{}", c[0]);
+    }
 
     #[test]
     fn the_identity_curve_changes_nothing_and_a_curve_is_odd() {

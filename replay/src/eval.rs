@@ -10,6 +10,7 @@ use serde::Serialize;
 
 use crate::ReplayError;
 use crate::pipeline::{PreparedSet, RunOptions};
+use crate::regions::Sparsification;
 use crate::viewset::ViewSet;
 
 /// One method's row of the table.
@@ -25,6 +26,9 @@ pub struct EvalRow {
     pub specular: Option<Metrics>,
     /// Per-scene metrics.
     pub scenes: Vec<(String, Metrics)>,
+    /// The sparsification curve averaged over the scenes (AvgErr of the most confident 50, 75
+    /// and 90 % of each scene's pixels).
+    pub sparsification: Option<Sparsification>,
     /// The stereo method compared against.
     pub baseline: Option<String>,
     /// Relative change of AvgErr against the baseline (%; negative = better).
@@ -72,6 +76,7 @@ pub fn evaluate_sets(
         let mut scenes = Vec::new();
         let mut occluded = Vec::new();
         let mut specular = Vec::new();
+        let mut curves = Vec::new();
         let started = Instant::now();
         for set in sets {
             if set.ground_truth_depth_m.is_none() {
@@ -91,6 +96,7 @@ pub fn evaluate_sets(
                 scenes.push((set.name.clone(), metrics.all));
                 occluded.extend(metrics.occluded);
                 specular.extend(metrics.specular);
+                curves.extend(metrics.sparsification);
             }
         }
         let seconds = started.elapsed().as_secs_f64();
@@ -102,6 +108,12 @@ pub fn evaluate_sets(
                 occluded: average(&occluded),
                 specular: average(&specular),
                 scenes,
+                // Only when every scene has a curve, so that the mean is over the same scenes.
+                sparsification: if curves.len() == per_scene.len() {
+                    Sparsification::average(&curves)
+                } else {
+                    None
+                },
                 baseline: None,
                 avg_err_change_percent: None,
                 rms_change_percent: None,
@@ -133,12 +145,21 @@ fn region(metrics: Option<Metrics>) -> String {
 /// The table as Markdown.
 pub fn markdown(rows: &[EvalRow]) -> String {
     let mut out = String::from(
-        "| method | scenes | RMS | AvgErr | Bad0.5 (%) | Bad1 (%) | Bad2 (%) | AvgErr vs stereo | RMS vs stereo | AvgErr occluded | AvgErr specular | time (s) |\n",
+        "| method | scenes | RMS | AvgErr | Bad0.5 (%) | Bad1 (%) | Bad2 (%) | AvgErr vs stereo | RMS vs stereo | AvgErr occluded | AvgErr specular | AvgErr most confident 50 / 75 / 90 % | time (s) |\n",
     );
-    out.push_str("|---|---|---|---|---|---|---|---|---|---|---|---|\n");
+    out.push_str("|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
     for r in rows {
+        let sparsification = r.sparsification.map_or_else(
+            || "–".to_owned(),
+            |s| {
+                format!(
+                    "{:.3} / {:.3} / {:.3}",
+                    s.avg_err_top50_px, s.avg_err_top75_px, s.avg_err_top90_px
+                )
+            },
+        );
         out.push_str(&format!(
-            "| {} | {} | {:.3} | {:.3} | {:.2} | {:.2} | {:.2} | {} | {} | {} | {} | {:.1} |\n",
+            "| {} | {} | {:.3} | {:.3} | {:.2} | {:.2} | {:.2} | {} | {} | {} | {} | {} | {:.1} |\n",
             r.method,
             r.scenes.len(),
             r.mean.rms,
@@ -150,6 +171,7 @@ pub fn markdown(rows: &[EvalRow]) -> String {
             change(r.rms_change_percent),
             region(r.occluded),
             region(r.specular),
+            sparsification,
             r.seconds
         ));
     }

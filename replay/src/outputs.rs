@@ -61,6 +61,14 @@ pub fn write_set_outputs(
     let depth_png = set_dir.join(format!("{method}_depth_mm.png"));
     viz::files::write_depth_png_mm(&depth_png, w, h, &depth)?;
     files.push(depth_png);
+    if let Some(confidence) = &disparity.confidence {
+        let pfm = set_dir.join(format!("{method}_confidence.pfm"));
+        viz::files::write_pfm(&pfm, w, h, confidence)?;
+        files.push(pfm);
+        let png = set_dir.join(format!("{method}_confidence.png"));
+        viz::files::write_unit_png16(&png, w, h, confidence)?;
+        files.push(png);
+    }
     let range = viz::files::finite_range(&disparity.data);
     if let Some(range) = range {
         files.push(viz::files::write_colormap_png(
@@ -159,6 +167,11 @@ pub fn result_depth_topic(method: &str) -> String {
     format!("/results/{method}/depth")
 }
 
+/// Topic of a method's per-pixel confidence (`foxglove.RawImage`, `32FC1`, 0 … 1).
+pub fn result_confidence_topic(method: &str) -> String {
+    format!("/results/{method}/confidence")
+}
+
 /// Topic of a method's colour-mapped disparity (`foxglove.RawImage`, `rgb8`).
 pub fn result_color_topic(method: &str) -> String {
     format!("/results/{method}/disparity_color")
@@ -231,6 +244,10 @@ impl ResultLog {
         )?;
         self.writer
             .write_message(&result_depth_topic(method), time, &raw_f32(time, w, h, &depth))?;
+        if let Some(confidence) = &disparity.confidence {
+            self.writer
+                .write_message(&result_confidence_topic(method), time, &raw_f32(time, w, h, confidence))?;
+        }
         if let Some((lo, hi)) = viz::files::finite_range(&disparity.data) {
             let mut color = raw_f32(time, w, h, &[]);
             color.encoding = "rgb8".into();

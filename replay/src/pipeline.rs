@@ -140,8 +140,12 @@ impl<'a> PreparedSet<'a> {
             })?;
         let seconds = started.elapsed().as_secs_f64();
         let regions = self.occluded.as_deref().and_then(|mask| {
-            self.set
-                .region_metrics_with(&disparity.data, self.num_disparities as f64, mask)
+            self.set.region_metrics_with(
+                &disparity.data,
+                disparity.confidence.as_deref(),
+                self.num_disparities as f64,
+                mask,
+            )
         });
         Ok(MethodResult {
             disparity,

@@ -44,11 +44,84 @@ pub struct RegionMetrics {
     pub visible: Option<Metrics>,
     /// Glossy or mirror-like surfaces (simulated sets).
     pub specular: Option<Metrics>,
+    /// AvgErr of the most confident pixels, when the method gives a confidence.
+    pub sparsification: Option<Sparsification>,
 }
 
-/// Evaluates `estimate` against `truth` overall and per region.
+/// The sparsification curve at three points: the AvgErr (px) of the most confident 50 %, 75 %
+/// and 90 % of the pixels with ground truth, ranked by the method's confidence. A useful
+/// confidence makes these fall well below the AvgErr of all pixels; a random one leaves them
+/// equal. Ties keep the image order.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, serde::Deserialize)]
+pub struct Sparsification {
+    /// The most confident half.
+    pub avg_err_top50_px: f64,
+    /// The most confident three quarters.
+    pub avg_err_top75_px: f64,
+    /// The most confident 90 %.
+    pub avg_err_top90_px: f64,
+    /// The same shares of the pixels ranked by their true error (the best any confidence could
+    /// do): 50, 75 and 90 %.
+    pub oracle_avg_err_px: [f64; 3],
+}
+
+impl Sparsification {
+    /// The shares of the pixels kept, in the order of the fields.
+    pub const SHARES: [f64; 3] = [0.5, 0.75, 0.9];
+
+    /// The curve of `estimate` against `truth` (NaN = unknown) ranked by `confidence`; a pixel
+    /// without an estimate counts as an error of `missing_error_px`. `None` without pixels.
+    pub fn measure(estimate: &[f32], confidence: &[f32], truth: &[f32], missing_error_px: f64) -> Option<Self> {
+        let mut ranked: Vec<(f32, f64)> = estimate
+            .iter()
+            .zip(confidence)
+            .zip(truth)
+            .filter(|(_, t)| t.is_finite())
+            .map(|((e, c), t)| {
+                let error = if e.is_finite() {
+                    f64::from((e - t).abs())
+                } else {
+                    missing_error_px
+                };
+                (*c, error)
+            })
+            .collect();
+        if ranked.is_empty() {
+            return None;
+        }
+        ranked.sort_by(|a, b| b.0.total_cmp(&a.0));
+        let mean_of_first = |errors: &mut dyn Iterator<Item = f64>, share: f64| {
+            let kept = ((ranked.len() as f64 * share).round() as usize).max(1);
+            errors.take(kept).sum::<f64>() / kept as f64
+        };
+        let [top50, top75, top90] = Self::SHARES.map(|share| mean_of_first(&mut ranked.iter().map(|(_, e)| *e), share));
+        let mut errors: Vec<f64> = ranked.iter().map(|(_, e)| *e).collect();
+        errors.sort_by(f64::total_cmp);
+        Some(Self {
+            avg_err_top50_px: top50,
+            avg_err_top75_px: top75,
+            avg_err_top90_px: top90,
+            oracle_avg_err_px: Self::SHARES.map(|share| mean_of_first(&mut errors.iter().copied(), share)),
+        })
+    }
+
+    /// The mean curve of several scenes.
+    pub fn average(curves: &[Self]) -> Option<Self> {
+        let n = curves.len() as f64;
+        (!curves.is_empty()).then(|| Self {
+            avg_err_top50_px: curves.iter().map(|c| c.avg_err_top50_px).sum::<f64>() / n,
+            avg_err_top75_px: curves.iter().map(|c| c.avg_err_top75_px).sum::<f64>() / n,
+            avg_err_top90_px: curves.iter().map(|c| c.avg_err_top90_px).sum::<f64>() / n,
+            oracle_avg_err_px: [0, 1, 2].map(|k| curves.iter().map(|c| c.oracle_avg_err_px[k]).sum::<f64>() / n),
+        })
+    }
+}
+
+/// Evaluates `estimate` against `truth` overall and per region, and, with the method's
+/// `confidence`, its sparsification curve.
 pub fn region_metrics(
     estimate: &[f32],
+    confidence: Option<&[f32]>,
     truth: &[f32],
     occluded: &[bool],
     surface_class: Option<&[u8]>,
@@ -67,12 +140,36 @@ pub fn region_metrics(
         occluded: evaluate(estimate, truth, Some(occluded), missing_error_px),
         visible: evaluate(estimate, truth, Some(&visible_mask), missing_error_px),
         specular: specular_mask.and_then(|mask| evaluate(estimate, truth, Some(&mask), missing_error_px)),
+        sparsification: confidence.and_then(|c| Sparsification::measure(estimate, c, truth, missing_error_px)),
     })
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_most_confident_pixels_are_kept_first() {
+        // Errors 0, 1, 2, 3 (and one unknown truth), confidence highest where the error is least.
+        let truth = [10.0, 10.0, 10.0, 10.0, f32::NAN];
+        let estimate = [10.0, 11.0, 12.0, f32::INFINITY, 10.0];
+        let confidence = [0.9, 0.5, 0.4, 0.0, 1.0];
+        let curve = Sparsification::measure(&estimate, &confidence, &truth, 3.0).unwrap_or_else(|| panic!("none"));
+        assert_eq!(curve.avg_err_top50_px, 0.5, "two of four kept: errors 0 and 1");
+        assert_eq!(curve.avg_err_top75_px, 1.0, "three: 0, 1, 2");
+        assert_eq!(curve.avg_err_top90_px, 1.5, "all four, the missing one at 3");
+        assert_eq!(
+            curve.oracle_avg_err_px,
+            [0.5, 1.0, 1.5],
+            "this confidence is the oracle's ranking"
+        );
+        // Ranked the other way round the curve rises instead.
+        let reversed = [0.0, 0.4, 0.5, 0.9, 1.0];
+        let worse = Sparsification::measure(&estimate, &reversed, &truth, 3.0).unwrap_or_else(|| panic!("none"));
+        assert_eq!(worse.avg_err_top50_px, 2.5);
+        assert_eq!(worse.oracle_avg_err_px, curve.oracle_avg_err_px);
+        assert_eq!(Sparsification::measure(&[1.0], &[1.0], &[f32::NAN], 3.0), None);
+    }
 
     #[test]
     fn background_left_of_a_foreground_step_is_occluded_in_the_right_view() {

@@ -266,6 +266,9 @@ pub fn log_result(
         truth.as_deref(),
         ERROR_SCALE_PX,
     )?;
+    if let Some(confidence) = &disparity.confidence {
+        viewer.log_confidence(method, [disparity.width as u32, disparity.height as u32], confidence)?;
+    }
     if let Some(m) = metrics {
         viewer.log_metrics(
             method,

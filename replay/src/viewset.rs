@@ -194,7 +194,7 @@ impl ViewSet {
     /// Metrics of a disparity estimate against the ground truth, overall and in the regions
     /// occluded in at least one of this set's direct neighbours and on specular surfaces.
     pub fn region_metrics(&self, estimate: &[f32], missing_error_px: f64) -> Option<crate::regions::RegionMetrics> {
-        self.region_metrics_with(estimate, missing_error_px, self.occlusion_mask()?.as_slice())
+        self.region_metrics_with(estimate, None, missing_error_px, self.occlusion_mask()?.as_slice())
     }
 
     /// Pixels occluded in at least one *direct* neighbour (one baseline away, diagonals
@@ -232,12 +232,14 @@ impl ViewSet {
     pub fn region_metrics_with(
         &self,
         estimate: &[f32],
+        confidence: Option<&[f32]>,
         missing_error_px: f64,
         occluded: &[bool],
     ) -> Option<crate::regions::RegionMetrics> {
         let truth = self.ground_truth_disparity()?;
         crate::regions::region_metrics(
             estimate,
+            confidence,
             &truth,
             occluded,
             self.surface_class.as_deref(),

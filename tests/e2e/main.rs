@@ -10,4 +10,5 @@ mod record_log;
 mod replay_check;
 mod replay_eval;
 mod replay_input;
+mod signed_ranges;
 mod viz_rerun;

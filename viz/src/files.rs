@@ -173,6 +173,30 @@ pub fn write_depth_png_mm(path: &Path, width: usize, height: usize, depth_m: &[f
     )
 }
 
+/// Writes values in [0, 1] (a confidence) as a 16-bit grey PNG: 0 → 0, 1 → 65535; NaN → 0.
+pub fn write_unit_png16(path: &Path, width: usize, height: usize, values: &[f32]) -> Result<(), FileError> {
+    check(path, values.len(), width, height)?;
+    let bytes: Vec<u8> = values
+        .iter()
+        .flat_map(|v| {
+            let level = if v.is_finite() {
+                (v.clamp(0.0, 1.0) * 65535.0).round() as u16
+            } else {
+                0
+            };
+            level.to_be_bytes()
+        })
+        .collect();
+    write_png(
+        path,
+        width,
+        height,
+        png::ColorType::Grayscale,
+        png::BitDepth::Sixteen,
+        &bytes,
+    )
+}
+
 /// Writes 8-bit RGB.
 pub fn write_rgb_png(path: &Path, width: usize, height: usize, rgb: &[u8]) -> Result<(), FileError> {
     check(path, rgb.len(), width * 3, height)?;

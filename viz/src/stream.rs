@@ -9,6 +9,7 @@
 //! - `world/camera/center/<method>`: the result as a `DepthImage` under the centre pinhole, so the
 //!   3D view back-projects it to a point cloud; `results/<method>/error`: |disparity − truth|
 //!   (a colour-mapped `DepthImage` in 1/64 px, so that the viewer shows its scale);
+//!   `results/<method>/confidence`: the method's per-pixel confidence (0 … 1, turbo);
 //! - `cost/<source>`: a bounded cost volume `Tensor` (disparity × height × width);
 //!   `cost_curves/<probe>/<source>`: cost against disparity (`Scalars` on the `disparity` timeline);
 //! - `metrics/<method>/<name>`: `Scalars` per set; `alignment`: the alignment report (`TextLog`).
@@ -174,8 +175,16 @@ pub fn blueprint(layout: &Layout) -> Blueprint {
         cameras.push(
             Tabs::new([
                 ContainerLike::from(
-                    Spatial2DView::new(format!("{method} error")).with_origin(format!("results/{method}")),
+                    Spatial2DView::new(format!("{method} error"))
+                        .with_origin(format!("results/{method}"))
+                        .with_contents([
+                            format!("+ results/{method}/error"),
+                            format!("+ results/{method}/no_estimate"),
+                        ]),
                 ),
+                Spatial2DView::new(format!("{method} confidence"))
+                    .with_origin(format!("results/{method}/confidence"))
+                    .into(),
                 Spatial2DView::new(format!("{method} depth"))
                     .with_origin(format!("world/camera/{REFERENCE_ROLE}"))
                     .with_contents([format!("+ world/camera/{REFERENCE_ROLE}/{method}")])
@@ -399,6 +408,28 @@ impl Viewer {
             &rerun::DepthImage::from_data_type_and_bytes(bytes, size, rerun::datatypes::ChannelDatatype::U16)
                 .with_meter(1000.0)
                 .with_colormap(rerun::components::Colormap::Turbo),
+        )
+    }
+
+    /// A method's per-pixel confidence (0 … 1) as `results/<method>/confidence`, a colour map
+    /// in 1/255 steps (u8, turbo: dark where the method is unsure).
+    pub fn log_confidence(&self, method: &str, size: [u32; 2], confidence: &[f32]) -> Result<(), VizError> {
+        let levels: Vec<u8> = confidence
+            .iter()
+            .map(|c| {
+                if c.is_finite() {
+                    (c.clamp(0.0, 1.0) * 255.0).round() as u8
+                } else {
+                    0
+                }
+            })
+            .collect();
+        self.log(
+            &format!("results/{method}/confidence"),
+            &rerun::DepthImage::from_data_type_and_bytes(levels, size, rerun::datatypes::ChannelDatatype::U8)
+                .with_meter(255.0)
+                .with_colormap(rerun::components::Colormap::Turbo)
+                .with_depth_range([0.0, 1.0]),
         )
     }
 

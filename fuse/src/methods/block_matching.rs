@@ -13,7 +13,7 @@ use crate::fusion::Fusion;
 use crate::image::DisparityImage;
 use crate::postprocess::{WeightedMedian, weighted_median};
 use crate::volume::{BandScratch, CostSpec, PreparedProblem, Problem, band_rows};
-use crate::wta::{SubpixelFit, winner_take_all};
+use crate::wta::{SubpixelFit, winner_take_all_confident};
 
 /// Configuration of block matching.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -86,24 +86,27 @@ impl Method for BlockMatching {
         let prepared = PreparedProblem::new(problem, spec, self.config.fusion)?;
         let (w, h, nd) = (prepared.width(), prepared.height(), prepared.disparities());
         let mut data = vec![f32::INFINITY; w * h];
+        let mut confidence = vec![0.0f32; w * h];
         let band = band_rows(h);
         let bands = h.div_ceil(band);
         let done = AtomicUsize::new(0);
         data.par_chunks_mut(band * w)
+            .zip(confidence.par_chunks_mut(band * w))
             .enumerate()
-            .for_each_init(BandScratch::default, |buffers, (index, out)| {
+            .for_each_init(BandScratch::default, |buffers, (index, (out, sure))| {
                 let start = index * band;
                 let rows = start..start + out.len() / w;
                 // Winners are picked tile row by tile row: no band of costs is ever held.
                 prepared.fused_band_with(rows, buffers, &mut |y, x_start, costs| {
                     let at = (y - start) * w + x_start;
                     let pixels = costs.len() / nd;
-                    winner_take_all(
+                    winner_take_all_confident(
                         costs,
                         nd,
                         problem.min_disparity,
                         self.config.subpixel.then_some(self.config.subpixel_fit),
                         &mut out[at..at + pixels],
+                        &mut sure[at..at + pixels],
                     );
                 });
                 progress((done.fetch_add(1, Ordering::Relaxed) + 1) as f32 / bands as f32);
@@ -112,6 +115,7 @@ impl Method for BlockMatching {
             width: w,
             height: h,
             data,
+            confidence: Some(confidence),
         };
         if self.config.fill_invalid {
             disparity.fill_invalid_from_row_neighbours();
@@ -122,6 +126,7 @@ impl Method for BlockMatching {
         if let Some(filter) = &self.config.weighted_median {
             disparity = weighted_median(&disparity, &problem.reference, filter)?;
         }
+        crate::postprocess::scale_by_local_consistency(&mut disparity);
         Ok(disparity)
     }
 }

@@ -153,6 +153,7 @@ impl Method for GraphCuts {
         if let Some(filter) = &c.weighted_median {
             disparity = weighted_median(&disparity, &problem.reference, filter)?;
         }
+        crate::postprocess::scale_by_local_consistency(&mut disparity);
         progress(1.0);
         Ok(disparity)
     }
@@ -201,13 +202,14 @@ fn upsample_problem(problem: &Problem) -> Result<Problem, FuseError> {
 
 /// Back to the original grid: every other pixel, disparities halved.
 fn downsample_disparity(up: &DisparityImage, width: usize, height: usize) -> DisparityImage {
-    let mut data = Vec::with_capacity(width * height);
-    for y in 0..height {
-        for x in 0..width {
-            data.push(up.data[2 * y * up.width + 2 * x] / 2.0);
-        }
+    let at = |y: usize, x: usize| 2 * y * up.width + 2 * x;
+    let pixels = || (0..height).flat_map(move |y| (0..width).map(move |x| at(y, x)));
+    DisparityImage {
+        width,
+        height,
+        data: pixels().map(|i| up.data[i] / 2.0).collect(),
+        confidence: up.confidence.as_ref().map(|c| pixels().map(|i| c[i]).collect()),
     }
-    DisparityImage { width, height, data }
 }
 
 fn build(
@@ -349,8 +351,11 @@ mod tests {
             width: 3,
             height: 3,
             data: vec![4.0, 0.0, 6.0, 0.0, 0.0, 0.0, 8.0, 0.0, 3.0],
+            confidence: Some(vec![0.1, 0.0, 0.2, 0.0, 0.0, 0.0, 0.3, 0.0, 0.4]),
         };
-        assert_eq!(downsample_disparity(&d, 2, 2).data, vec![2.0, 3.0, 4.0, 1.5]);
+        let down = downsample_disparity(&d, 2, 2);
+        assert_eq!(down.data, vec![2.0, 3.0, 4.0, 1.5]);
+        assert_eq!(down.confidence, Some(vec![0.1, 0.2, 0.3, 0.4]));
     }
     #[test]
     fn a_plane_between_two_integers_gets_its_half_pixel() {

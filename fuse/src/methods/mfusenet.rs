@@ -15,10 +15,12 @@ use serde::{Deserialize, Serialize};
 use super::{Family, Method, MethodEntry, Progress, apply_overrides};
 use crate::FuseError;
 use crate::image::DisparityImage;
-use crate::mfusenet::infer::{DEFAULT_REFINE_REACH, DEFAULT_SUBPIXEL_FIT, DEFAULT_TILE_BUDGET_BYTES, Estimate, infer};
+use crate::mfusenet::infer::{
+    DEFAULT_REFINE_REACH, DEFAULT_SUBPIXEL_FIT, DEFAULT_TILE_BUDGET_BYTES, Estimate, infer_with_confidence,
+};
 use crate::mfusenet::input::{InputSpec, input_volumes_below, ordered_neighbours, views_for};
 use crate::mfusenet::{Network, weights};
-use crate::postprocess::{WeightedMedian, median3x3, weighted_median_with_votes};
+use crate::postprocess::{WeightedMedian, median3x3, scale_by_local_consistency, weighted_median_with_votes};
 use crate::volume::{CostVolume, Problem};
 use crate::wta::{LockingCurve, SubpixelFit};
 
@@ -291,7 +293,7 @@ impl Method for MFuseNet {
         )?;
         let origin = first as f32 - volumes.first().map_or(0, |v| v.min_disparity) as f32;
         progress(0.1);
-        let data = infer(
+        let (data, confidence) = infer_with_confidence(
             net,
             &volumes,
             self.config.tile_budget_mib << 20,
@@ -316,21 +318,63 @@ impl Method for MFuseNet {
             width: problem.reference.width,
             height: problem.reference.height,
             data: data.into_iter().map(|d| (d + origin).clamp(low, high)).collect(),
+            confidence: Some(confidence),
         };
         let disparity = if self.config.median {
             median3x3(&disparity)
         } else {
             disparity
         };
-        Ok(match &self.config.weighted_median {
+        let network = disparity.data.clone();
+        let mut out = match &self.config.weighted_median {
             Some(filter) => {
                 let votes = (self.config.disagreeing_vote < 1.0)
                     .then(|| cost_agreement(&disparity, &volumes, first, self.config.disagreeing_vote));
                 weighted_median_with_votes(&disparity, &problem.reference, filter, votes.as_deref())?
             }
             None => disparity,
-        })
+        };
+        let data = data_support(&out, &volumes, first);
+        if let Some(confidence) = &mut out.confidence {
+            // The network's margin and the inputs' own peak, where the filters kept the network's
+            // answer (within 1 px): docs/experiments.md, "Confidence".
+            for ((c, support), (final_d, network_d)) in
+                confidence.iter_mut().zip(&data).zip(out.data.iter().zip(&network))
+            {
+                let kept = 1.0 - (final_d - network_d).abs().min(1.0);
+                *c = 0.5 * (*c + support) * if kept.is_finite() { kept } else { 0.0 };
+            }
+        }
+        scale_by_local_consistency(&mut out);
+        Ok(out)
     }
+}
+
+/// How well the summed input costs single out each pixel's final disparity:
+/// [`crate::wta::peak_confidence`] of the sum over the neighbours at the nearest slice.
+fn data_support(disparity: &DisparityImage, volumes: &[CostVolume<u8>], first: i64) -> Vec<f32> {
+    let nd = volumes.first().map_or(0, |v| v.disparities);
+    let w = disparity.width;
+    let mut column = vec![0u16; nd];
+    disparity
+        .data
+        .iter()
+        .enumerate()
+        .map(|(i, &d)| {
+            if !d.is_finite() || nd == 0 {
+                return 0.0;
+            }
+            let (x, y) = (i % w, i / w);
+            let at = (f64::from(d) - first as f64).round().clamp(0.0, (nd - 1) as f64) as usize;
+            column.fill(0);
+            for v in volumes {
+                for (c, s) in column.iter_mut().zip(v.costs(x, y)) {
+                    *c += u16::from(*s);
+                }
+            }
+            crate::wta::peak_confidence(&column, at)
+        })
+        .collect()
 }
 
 /// Each pixel's vote for the weighted median: 1 where a local minimum of the summed input
@@ -535,6 +579,7 @@ mod tests {
             width: 5,
             height: 1,
             data: vec![16.0, 16.9, 15.2, 17.5, f32::INFINITY],
+            confidence: None,
         };
         let votes = cost_agreement(&disparity, &volumes, 10, 0.05);
         assert_eq!(votes, vec![1.0, 1.0, 1.0, 0.05, 0.05]);

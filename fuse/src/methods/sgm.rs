@@ -92,7 +92,7 @@ impl Method for Sgm {
             quantise_penalty(self.config.p2, shift),
         );
         let max_cost = spec.max_cost() >> shift;
-        let data = select(
+        let (data, confidence) = select(
             &volume.data,
             w,
             h,
@@ -108,6 +108,7 @@ impl Method for Sgm {
             width: w,
             height: h,
             data,
+            confidence: Some(confidence),
         };
         disparity.fill_invalid_from_row_neighbours();
         if self.config.median {
@@ -116,6 +117,7 @@ impl Method for Sgm {
         if let Some(filter) = &self.config.weighted_median {
             disparity = weighted_median(&disparity, &problem.reference, filter)?;
         }
+        crate::postprocess::scale_by_local_consistency(&mut disparity);
         progress(1.0);
         Ok(disparity)
     }

@@ -52,6 +52,18 @@ pub fn infer(
     estimate: Estimate,
     progress: &dyn Fn(f32),
 ) -> Result<Vec<f32>, Error> {
+    infer_with_confidence(net, volumes, budget_bytes, estimate, progress).map(|(disparity, _)| disparity)
+}
+
+/// [`infer`] that also gives each pixel's confidence: the probability the network puts within
+/// How far its most probable disparity stands out of the rest ([`peak_margin`]).
+pub fn infer_with_confidence(
+    net: &Network,
+    volumes: &[CostVolume<u8>],
+    budget_bytes: usize,
+    estimate: Estimate,
+    progress: &dyn Fn(f32),
+) -> Result<(Vec<f32>, Vec<f32>), Error> {
     let Some(first) = volumes.first() else {
         return Err(Error::InputCount {
             expected: net.views,
@@ -102,6 +114,7 @@ pub fn infer(
         .collect();
     let halo = if whole { 0 } else { HALO };
     let mut disparity = vec![0f32; w * h];
+    let mut confidence = vec![0f32; w * h];
     for (done, &(y0, x0)) in tiles.iter().enumerate() {
         let (y1, x1) = ((y0 + side).min(hp), (x0 + side).min(wp));
         let (ry0, rx0) = (y0.saturating_sub(halo), x0.saturating_sub(halo));
@@ -152,11 +165,12 @@ pub fn infer(
                     value = refined(value, cost, nd, estimate.refine_reach, estimate.fit, estimate.locking);
                 }
                 disparity[y * w + x] = (first.min_disparity as f64 + value) as f32;
+                confidence[y * w + x] = peak_margin(column, nd, skip);
             }
         }
         progress((done + 1) as f32 / tiles.len() as f32);
     }
-    Ok(disparity)
+    Ok((disparity, confidence))
 }
 
 /// How a pixel's disparity is read from the network's distribution. The default is the
@@ -259,6 +273,32 @@ pub fn expected_disparity(logit: impl Fn(usize) -> f32, nd: usize, window: Optio
 /// probable disparity is that close to it: the peak's lower tail, not the context's own modes.
 pub const CONTEXT_TAIL: usize = 2;
 
+/// How much the most probable slice (at or after `first_mode`) stands out of the network's
+/// distribution: `(l₁ − l₂) / (l₁ − l_min)` of the logits, `l₁` the mode's, `l₂` the largest at
+/// least 2 slices away, `l_min` the smallest; 1 for a single peak over a flat floor, 0 where a
+/// second disparity is as likely. Ratios of logit differences do not depend on the softmax's
+/// temperature: the shipped networks' logits reach 10⁵, their softmax is one-hot almost
+/// everywhere, so the probability near the mode would say 1 for every pixel.
+pub fn peak_margin(logit: impl Fn(usize) -> f32, nd: usize, first_mode: usize) -> f32 {
+    let (mode, top) = (first_mode.min(nd.saturating_sub(1))..nd).map(|d| (d, logit(d))).fold(
+        (first_mode, f32::NEG_INFINITY),
+        |best, (d, v)| if v > best.1 { (d, v) } else { best },
+    );
+    let floor = (0..nd).map(&logit).fold(f32::INFINITY, f32::min);
+    let second = (0..nd)
+        .filter(|d| d.abs_diff(mode) >= 2)
+        .map(&logit)
+        .fold(f32::NEG_INFINITY, f32::max);
+    let spread = top - floor;
+    if !(spread > 0.0 && spread.is_finite()) {
+        return 0.0;
+    }
+    if second == f32::NEG_INFINITY {
+        return 1.0;
+    }
+    ((top - second) / spread).clamp(0.0, 1.0)
+}
+
 /// [`expected_disparity`] with the most probable disparity looked for from slice `first_mode`
 /// on only: the slices under it are context, never the mode. A window around the mode reaches
 /// into them; the whole-range sum (`window: None`) takes them only within [`CONTEXT_TAIL`] of
@@ -292,6 +332,20 @@ pub fn expected_disparity_from(
 mod tests {
     use super::*;
     use crate::volume::VolumeSource;
+
+    #[test]
+    fn the_peak_margin_measures_the_searched_mode_against_the_next_best() {
+        let logits = [0.0f32, 5.0, 4.0, 1.0, 3.0, 2.0, 0.0];
+        let logit = |d: usize| logits[d];
+        // Mode 1; the best ≥ 2 away is 4 (3.0); the floor 0: (5 − 3) / 5.
+        assert!((peak_margin(logit, 7, 0) - 0.4).abs() < 1e-6);
+        // With three slices of context the mode is 4: the best ≥ 2 away is 1 (5.0): none.
+        assert_eq!(peak_margin(logit, 7, 3), 0.0);
+        // Scaled logits (the temperature) change nothing; a flat distribution has no peak.
+        assert!((peak_margin(|d| 1e4 * logits[d], 7, 0) - 0.4).abs() < 1e-6);
+        assert_eq!(peak_margin(|_| 1.0, 10, 0), 0.0);
+        assert_eq!(peak_margin(|d| [0.0, 9.0, 1.0][d], 3, 0), 1.0, "nothing 2 slices away");
+    }
 
     #[test]
     fn a_window_keeps_a_second_mode_from_pulling_the_estimate() {
