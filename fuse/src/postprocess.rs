@@ -393,15 +393,15 @@ mod tests {
 
     #[test]
     fn confidence_falls_next_to_a_depth_edge() {
-        // A step from 2 to 6 px at x = 10: pixels within 2 columns of it see a range of 4.
+        // A step from 2 to 6 px at x = 10: the windows of x = 8 … 11 see both sides (range 4).
         let mut d = disparity(20, 5, |x, _| if x < 10 { 2.0 } else { 6.0 });
         d.confidence = Some(vec![0.8; 100]);
         scale_by_local_consistency(&mut d);
         let c = d.confidence.unwrap_or_default();
-        assert_eq!(c[2 * 20 + 3], 0.8, "inside the surface");
-        assert!((c[2 * 20 + 8] - 0.8 / 5.0).abs() < 1e-6, "2 columns from the step");
-        assert!((c[2 * 20 + 12] - 0.8 / 5.0).abs() < 1e-6);
-        assert_eq!(c[2 * 20 + 13], 0.8);
+        assert_eq!(c[2 * 20 + 7], 0.8, "inside the surface");
+        assert!((c[2 * 20 + 8] - 0.8 / 5.0).abs() < 1e-6, "2 columns left of the step");
+        assert!((c[2 * 20 + 11] - 0.8 / 5.0).abs() < 1e-6, "2 columns right of it");
+        assert_eq!(c[2 * 20 + 12], 0.8);
     }
     use super::*;
 
