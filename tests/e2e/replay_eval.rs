@@ -147,8 +147,26 @@ fn replay_writes_result_files_and_a_result_log_other_tools_read() {
         .collect();
     let pngs = names.iter().filter(|n| n.ends_with(".png")).count();
     assert_eq!(
-        pngs, 3,
-        "depth PNG, colour-mapped disparity PNG and error map: {names:?}"
+        pngs, 4,
+        "depth PNG, colour-mapped disparity PNG, error map and confidence: {names:?}"
+    );
+    // The confidence: a 16-bit PNG and a PFM of values in [0, 1], not all alike, and the
+    // sparsification curve in the metrics (its most confident half better than all pixels).
+    let confidence_png = image::open(set_dir.join("bm-heuristic_confidence.png")).unwrap_or_else(|e| panic!("{e}"));
+    assert!(
+        matches!(confidence_png, image::DynamicImage::ImageLuma16(_)),
+        "16-bit grey"
+    );
+    let (_, _, confidence) =
+        viz::files::read_pfm(&set_dir.join("bm-heuristic_confidence.pfm")).unwrap_or_else(|e| panic!("{e}"));
+    assert!(confidence.iter().all(|c| (0.0..=1.0).contains(c)));
+    assert!(confidence.iter().any(|c| *c < 0.5) && confidence.iter().any(|c| *c > 0.5));
+    let top50 = metrics["metrics"]["sparsification"]["avg_err_top50_px"]
+        .as_f64()
+        .unwrap_or_else(|| panic!("no sparsification in {metrics}"));
+    assert!(
+        top50 < metrics["metrics"]["all"]["avg_err"].as_f64().unwrap_or(0.0),
+        "{metrics}"
     );
     assert!(
         names.contains(&"bm-heuristic_error_0.0-4.0px.png".to_owned()),
@@ -182,6 +200,7 @@ fn replay_writes_result_files_and_a_result_log_other_tools_read() {
     for topic in [
         "/results/bm-heuristic/disparity",
         "/results/bm-heuristic/depth",
+        "/results/bm-heuristic/confidence",
         "/results/calibration",
         "/results/summary",
     ] {

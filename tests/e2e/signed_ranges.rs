@@ -10,6 +10,9 @@ use multiscopic_tests::{assert_success, record, record_log, replay, shared_data,
 /// Disparity shift of the converged copy (px).
 const SHIFT: u32 = 8;
 
+/// The simulated converged rig's principal-point shift (px).
+const CONVERGE: u32 = 12;
+
 /// Writes a Middlebury three-view scene cropped to `width − 2·SHIFT` columns: the reference from
 /// column `SHIFT`, the left view from `SHIFT + left`, the right from `SHIFT − right`, so that
 /// every disparity is `d − shift` where `shift = left = right` (0 or SHIFT), with the truth as a
@@ -178,9 +181,10 @@ fn a_converged_capture_carries_its_signed_range_and_scores_as_the_parallel_one()
         "3",
     ];
     let parallel = record_log(dir.path(), "parallel.mcap", &common);
-    // Converged where the disparity is SHIFT px: f·b/z = SHIFT (f from the 60° field of view).
+    // Converged where the disparity is CONVERGE px: f·b/z = CONVERGE (f from the 60° field of
+    // view), nearer than the table (≈ 9 px at this size).
     let focal_px = 160.0 / 30f64.to_radians().tan();
-    let converge_m = (focal_px * 0.02 / f64::from(SHIFT)).to_string();
+    let converge_m = (focal_px * 0.02 / f64::from(CONVERGE)).to_string();
     let mut args = common.to_vec();
     args.extend(["--converge-m", converge_m.as_str()]);
     let converged = record_log(dir.path(), "converged.mcap", &args);
@@ -190,7 +194,7 @@ fn a_converged_capture_carries_its_signed_range_and_scores_as_the_parallel_one()
         .disparity_range
         .unwrap_or_else(|| panic!("a converged capture carries its range"));
     assert!(range.min_disparity < 0, "{range:?}");
-    assert!((converged_set.disparity_offset_px() - f64::from(SHIFT)).abs() < 1e-6);
+    assert!((converged_set.disparity_offset_px() - f64::from(CONVERGE)).abs() < 1e-6);
     // The same scene points, SHIFT px lower, and the same depths.
     let (a, b) = (
         parallel_set.ground_truth_disparity().unwrap_or_default(),
@@ -203,9 +207,9 @@ fn a_converged_capture_carries_its_signed_range_and_scores_as_the_parallel_one()
         .zip(&b)
         .filter(|(p, c)| p.is_finite() && c.is_finite())
         .fold((0usize, 0f64), |(n, s), (p, c)| (n + 1, s + f64::from(p - c)));
-    assert!(count > 0 && (sum / count as f64 - f64::from(SHIFT)).abs() < 1e-3);
-    // The parallel capture searched over the converged range shifted up by SHIFT.
-    let min = (range.min_disparity + SHIFT as i32).to_string();
+    assert!(count > 0 && (sum / count as f64 - f64::from(CONVERGE)).abs() < 1e-3);
+    // The parallel capture searched over the converged range shifted up by CONVERGE.
+    let min = (range.min_disparity + CONVERGE as i32).to_string();
     let methods = "sgm-heuristic,mfusenet";
     let parallel_rows = eval(&[
         parallel.to_str().unwrap_or_default(),

@@ -154,39 +154,32 @@ fn write_png(
 /// Writes depth (m) as a 16-bit PNG in millimetres (0 = unknown, saturating at 65.535 m).
 pub fn write_depth_png_mm(path: &Path, width: usize, height: usize, depth_m: &[f32]) -> Result<(), FileError> {
     check(path, depth_m.len(), width, height)?;
-    let mut bytes = Vec::with_capacity(depth_m.len() * 2);
-    for d in depth_m {
-        let mm = if d.is_finite() && *d > 0.0 {
+    let mm = depth_m.iter().map(|d| {
+        if d.is_finite() && *d > 0.0 {
             (d * 1000.0).round().min(65535.0) as u16
         } else {
             0
-        };
-        bytes.extend_from_slice(&mm.to_be_bytes());
-    }
-    write_png(
-        path,
-        width,
-        height,
-        png::ColorType::Grayscale,
-        png::BitDepth::Sixteen,
-        &bytes,
-    )
+        }
+    });
+    write_gray16(path, width, height, mm)
 }
 
 /// Writes values in [0, 1] (a confidence) as a 16-bit grey PNG: 0 → 0, 1 → 65535; NaN → 0.
 pub fn write_unit_png16(path: &Path, width: usize, height: usize, values: &[f32]) -> Result<(), FileError> {
     check(path, values.len(), width, height)?;
-    let bytes: Vec<u8> = values
-        .iter()
-        .flat_map(|v| {
-            let level = if v.is_finite() {
-                (v.clamp(0.0, 1.0) * 65535.0).round() as u16
-            } else {
-                0
-            };
-            level.to_be_bytes()
-        })
-        .collect();
+    let levels = values.iter().map(|v| {
+        if v.is_finite() {
+            (v.clamp(0.0, 1.0) * 65535.0).round() as u16
+        } else {
+            0
+        }
+    });
+    write_gray16(path, width, height, levels)
+}
+
+/// Writes 16-bit grey levels (row-major, big-endian as PNG stores them).
+fn write_gray16(path: &Path, width: usize, height: usize, levels: impl Iterator<Item = u16>) -> Result<(), FileError> {
+    let bytes: Vec<u8> = levels.flat_map(u16::to_be_bytes).collect();
     write_png(
         path,
         width,

@@ -273,6 +273,14 @@ pub fn expected_disparity(logit: impl Fn(usize) -> f32, nd: usize, window: Optio
 /// probable disparity is that close to it: the peak's lower tail, not the context's own modes.
 pub const CONTEXT_TAIL: usize = 2;
 
+/// The most probable slice at or after `first_mode` (the first of equals) and its logit.
+fn searched_mode(logit: impl Fn(usize) -> f32, nd: usize, first_mode: usize) -> (usize, f32) {
+    (first_mode.min(nd.saturating_sub(1))..nd).map(|d| (d, logit(d))).fold(
+        (first_mode, f32::NEG_INFINITY),
+        |best, (d, v)| if v > best.1 { (d, v) } else { best },
+    )
+}
+
 /// How much the most probable slice (at or after `first_mode`) stands out of the network's
 /// distribution: `(l₁ − l₂) / (l₁ − l_min)` of the logits, `l₁` the mode's, `l₂` the largest at
 /// least 2 slices away, `l_min` the smallest; 1 for a single peak over a flat floor, 0 where a
@@ -280,10 +288,7 @@ pub const CONTEXT_TAIL: usize = 2;
 /// temperature: the shipped networks' logits reach 10⁵, their softmax is one-hot almost
 /// everywhere, so the probability near the mode would say 1 for every pixel.
 pub fn peak_margin(logit: impl Fn(usize) -> f32, nd: usize, first_mode: usize) -> f32 {
-    let (mode, top) = (first_mode.min(nd.saturating_sub(1))..nd).map(|d| (d, logit(d))).fold(
-        (first_mode, f32::NEG_INFINITY),
-        |best, (d, v)| if v > best.1 { (d, v) } else { best },
-    );
+    let (mode, top) = searched_mode(&logit, nd, first_mode);
     let floor = (0..nd).map(&logit).fold(f32::INFINITY, f32::min);
     let second = (0..nd)
         .filter(|d| d.abs_diff(mode) >= 2)
@@ -310,10 +315,7 @@ pub fn expected_disparity_from(
     first_mode: usize,
     window: Option<usize>,
 ) -> f64 {
-    let (mode, _) = (first_mode.min(nd.saturating_sub(1))..nd).map(|d| (d, logit(d))).fold(
-        (first_mode, f32::NEG_INFINITY),
-        |best, (d, v)| if v > best.1 { (d, v) } else { best },
-    );
+    let (mode, _) = searched_mode(&logit, nd, first_mode);
     let range = match window {
         Some(r) => mode.saturating_sub(r)..(mode + r + 1).min(nd),
         None => first_mode.min(mode.saturating_sub(CONTEXT_TAIL))..nd,
