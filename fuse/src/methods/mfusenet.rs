@@ -498,7 +498,8 @@ mod tests {
         // five-view file asks for none (with 4 it fails on mirror-like scenes: held-out simulated
         // 0.245 → 0.936 px) and without context it puts this plane 6 px off: it runs here with
         // the context it needs and is to be retrained with it (docs/experiments.md).
-        let layouts: [(&str, &[[i32; 2]], Option<serde_json::Value>); 3] = [
+        type Layout<'a> = (&'a str, &'a [[i32; 2]], Option<serde_json::Value>);
+        let layouts: [Layout<'_>; 3] = [
             ("stereo", &[[1, 0]], None),
             ("three-view", &[[-1, 0], [1, 0]], None),
             (
