@@ -277,6 +277,10 @@ pub struct TrainSummary {
     pub val_avg_err_px: Option<f64>,
     /// Final validation Bad1 (%).
     pub val_bad1_percent: Option<f64>,
+    /// AvgErr (px) of the winner-take-all of the mean input volume on the validation crops:
+    /// the inputs' own answer, which the network must beat (and a check that the crops'
+    /// targets and volumes agree on where disparity 0 is).
+    pub val_wta_avg_err_px: f64,
     /// Trainable parameters.
     pub parameters: usize,
     /// The weights file written.
@@ -450,9 +454,14 @@ pub fn sample(config: &TrainConfig, index: usize, validation: bool, cache_dir: &
         .problem(0, config.disparities, false)
         .map_err(|source| TrainError::Replay { index, source })?;
     let neighbours = ordered_neighbours(&problem, 4).map_err(|source| TrainError::Fuse { index, source })?;
+    // Samples are in slice coordinates, as `read_sample` gives them back: the first slice (the
+    // context's, under 0) is 0 and the truth is shifted up by the context.
     let volumes = input_volumes_below(&problem, &neighbours, config.input, config.context_below, &|| {})
         .map_err(|source| TrainError::Fuse { index, source })?
-        .0;
+        .0
+        .into_iter()
+        .map(|v| CostVolume { min_disparity: 0, ..v })
+        .collect();
     let below = config.context_below as f32;
     let truth = view_set
         .ground_truth_disparity()
@@ -1051,6 +1060,7 @@ pub fn train(
         dataset_seconds,
         val_avg_err_px: last_validation.map(|v| v.0),
         val_bad1_percent: last_validation.map(|v| v.1),
+        val_wta_avg_err_px: wta_avg,
         parameters: net.parameter_count(),
         weights: weights_out.to_path_buf(),
     };

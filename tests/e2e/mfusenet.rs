@@ -377,6 +377,14 @@ fn training_can_give_its_network_context_below_the_range() {
     let run = train_with(dir.path(), "2", &["--context-below", "4"]);
     assert_eq!(run["config"]["context_below"], 4, "{run}");
     assert!(run["val_avg_err_px"].as_f64().is_some_and(f64::is_finite), "{run}");
+    // The crops' targets count their slices from the context's first, as the volumes do: the
+    // inputs' own winner-take-all lands near them (a target shifted by the context once too
+    // often puts it 4 px off).
+    let wta = run["val_wta_avg_err_px"].as_f64().unwrap_or(f64::NAN);
+    assert!(
+        wta < 2.5,
+        "winner-take-all of the inputs is {wta} px from the targets: {run}"
+    );
     let metadata = &safetensors_header(&dir.path().join("run/mfusenet-3view.safetensors"))["__metadata__"];
     assert_eq!(metadata["context_below"], "4", "{metadata}");
     let samples: Vec<_> = std::fs::read_dir(dir.path().join("dataset"))
