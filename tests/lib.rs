@@ -79,6 +79,15 @@ pub fn replay(args: &[&str]) -> Output {
     run(Command::new(binary("replay")).args(args))
 }
 
+/// Runs `replay eval ARGS --format json -q`, asserts success and returns its rows.
+pub fn eval_json(args: &[&str]) -> Vec<serde_json::Value> {
+    let mut all = vec!["eval", "--format", "json", "-q"];
+    all.extend_from_slice(args);
+    let output = replay(&all);
+    assert_success(&output, "replay eval");
+    serde_json::from_slice(&output.stdout).unwrap_or_else(|e| panic!("replay eval printed no JSON: {e}"))
+}
+
 /// Asserts success and returns stderr for messages.
 pub fn assert_success(output: &Output, what: &str) {
     assert!(

@@ -1,14 +1,6 @@
 //! Depth quality: the paper's claims on real and simulated data, through the real binaries.
 
-use multiscopic_tests::{assert_success, record_log, replay, shared_data, temp_dir};
-
-fn eval_json(args: &[&str]) -> Vec<serde_json::Value> {
-    let mut all = vec!["eval", "--format", "json", "-q"];
-    all.extend_from_slice(args);
-    let output = replay(&all);
-    assert_success(&output, "replay eval");
-    serde_json::from_slice(&output.stdout).unwrap_or_else(|e| panic!("replay eval printed no JSON: {e}"))
-}
+use multiscopic_tests::{assert_success, eval_json, record_log, replay, shared_data, temp_dir};
 
 fn metric(rows: &[serde_json::Value], method: &str, region: &str, field: &str) -> f64 {
     rows.iter()

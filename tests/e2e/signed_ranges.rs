@@ -5,7 +5,7 @@
 
 use std::path::Path;
 
-use multiscopic_tests::{assert_success, record, record_log, replay, shared_data, temp_dir};
+use multiscopic_tests::{assert_success, eval_json as eval, record, record_log, shared_data, temp_dir};
 
 /// Disparity shift of the converged copy (px).
 const SHIFT: u32 = 8;
@@ -53,15 +53,6 @@ fn write_crop(scene: &Path, out: &Path, shift: u32) {
         ),
     )
     .unwrap_or_else(|e| panic!("{e}"));
-}
-
-/// `replay eval … --format json` rows.
-fn eval(args: &[&str]) -> Vec<serde_json::Value> {
-    let mut all = vec!["eval", "--format", "json", "-q"];
-    all.extend_from_slice(args);
-    let output = replay(&all);
-    assert_success(&output, "replay eval");
-    serde_json::from_slice(&output.stdout).unwrap_or_else(|e| panic!("replay eval printed no JSON: {e}"))
 }
 
 /// Per method, the (AvgErr, Bad1) of the scene named `scene`.
