@@ -55,8 +55,8 @@ pub fn infer(
     infer_with_confidence(net, volumes, budget_bytes, estimate, progress).map(|(disparity, _)| disparity)
 }
 
-/// [`infer`] that also gives each pixel's confidence: the probability the network puts within
-/// How far its most probable disparity stands out of the rest ([`peak_margin`]).
+/// [`infer`] that also gives each pixel's confidence: how far its most probable disparity stands
+/// out of the rest ([`peak_margin`]).
 pub fn infer_with_confidence(
     net: &Network,
     volumes: &[CostVolume<u8>],
