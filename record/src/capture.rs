@@ -533,6 +533,8 @@ impl SimulationConfig {
             SceneKind::Toy => "toy",
             SceneKind::Workpiece => "workpiece",
             SceneKind::Random => "random",
+            SceneKind::Clutter => "clutter",
+            SceneKind::Bin => "bin",
         }
     }
 }

@@ -3,8 +3,11 @@
 //!
 //! A scene is plain data (serde), so the effective scene of a recording is attached to the log
 //! as JSON. [`SceneKind`] builds the three built-in families: `toy` (the paper's textured toy
-//! scene), `workpiece` (a reflective metal part on a metal table: the hard case) and `random`
-//! (varied scenes from the seed, the synthetic training set).
+//! scene), `workpiece` (a reflective metal part on a metal table: the hard case), `random`
+//! (varied scenes from the seed, the synthetic training set), `clutter` (what real captures have
+//! and `random` lacks: tall stacks before a far floor, thin rods, natural and low textures;
+//! trained on) and `bin` (parts in a tote: never trained on, the held-out check of how the
+//! networks generalise).
 
 use serde::{Deserialize, Serialize};
 
@@ -30,6 +33,12 @@ pub enum SceneKind {
     Workpiece,
     /// Varied geometry (on a table tilted up to 25°), textures, materials and depth ranges drawn from the seed.
     Random,
+    /// Stacks and towers up to half-way to the camera before a far, often plain floor, thin rods
+    /// and wires, natural textures: large depth jumps and far surfaces, from the seed.
+    Clutter,
+    /// Bin picking: parts (some of metal) heaped in a tote whose walls hide much of them; never
+    /// used for training (the held-out family).
+    Bin,
 }
 
 /// A texture: a function from surface coordinates (m) to albedo.
@@ -300,6 +309,8 @@ impl Scene {
             SceneKind::Toy => toy_scene(seed),
             SceneKind::Workpiece => workpiece_scene(seed),
             SceneKind::Random => random_scene(seed),
+            SceneKind::Clutter => clutter_scene(seed),
+            SceneKind::Bin => bin_scene(seed),
         }
     }
 
@@ -815,6 +826,199 @@ fn random_scene(seed: u64) -> Scene {
     scene
 }
 
+/// `clutter`: what real captures have and the `random` family rarely draws. A far floor (the
+/// start of the range; plain or faintly textured in a third of the scenes), stacks of boxes and
+/// upright cylinders reaching a quarter to a half of the way to the camera (depth jumps of many
+/// disparities at their edges), thin rods and wires floating across them, and mostly natural
+/// (fractal noise) textures with a few low-texture surfaces.
+fn clutter_scene(seed: u64) -> Scene {
+    let mut rng = SplitMix64::new(seed ^ 0x636c_7574);
+    let camera_height_m = rng.range(0.5, 1.2);
+    let mut scene = Scene::empty(SceneKind::Clutter, seed, camera_height_m);
+    let floor = if rng.below(3) == 0 {
+        Material::matte(
+            "plain_floor",
+            Texture::Noise {
+                a: [0.5, 0.5, 0.48],
+                b: [0.56, 0.55, 0.53],
+                scale_m: rng.range(0.02, 0.2),
+                anisotropy: 1.0,
+                seed: rng.next_u64(),
+            },
+        )
+    } else {
+        random_material(&mut rng, "floor", 20)
+    };
+    let floor = scene.add_material(floor);
+    table(&mut scene, floor);
+    scene.add_room();
+    let spread = 0.45 * camera_height_m;
+    let c = WORK_AREA_CENTER_M;
+    let stacks = rng.range_usize(3, 9);
+    for index in 0..stacks {
+        let material = random_material(&mut rng, &format!("stack_material_{index}"), 10);
+        let material = scene.add_material(material);
+        let (x, y) = (c[0] + rng.range(-spread, spread), c[1] + rng.range(-spread, spread));
+        let height = camera_height_m * rng.range(0.1, 0.5);
+        let width = camera_height_m * rng.range(0.03, 0.12);
+        let shape = if rng.below(3) == 0 {
+            Shape::Cylinder {
+                center: [x, y, height / 2.0],
+                axis: [0.0, 0.0, 1.0],
+                radius_m: width,
+                half_length_m: height / 2.0,
+            }
+        } else {
+            Shape::Box {
+                center: [x, y, height / 2.0],
+                half_extents_m: [width, width * rng.range(0.5, 1.5), height / 2.0],
+                yaw_deg: rng.range(0.0, 90.0),
+                tilt_deg: 0.0,
+            }
+        };
+        scene.add(&format!("stack_{index}"), shape, material);
+    }
+    let small = rng.range_usize(4, 16);
+    for index in 0..small {
+        let material = random_material(&mut rng, &format!("part_material_{index}"), 10);
+        let material = scene.add_material(material);
+        let (x, y) = (c[0] + rng.range(-spread, spread), c[1] + rng.range(-spread, spread));
+        let size = camera_height_m * rng.range(0.01, 0.05);
+        let shape = if rng.below(2) == 0 {
+            Shape::Sphere {
+                center: [x, y, size],
+                radius_m: size,
+            }
+        } else {
+            Shape::Box {
+                center: [x, y, size],
+                half_extents_m: [size, size * rng.range(0.5, 2.0), size],
+                yaw_deg: rng.range(0.0, 90.0),
+                tilt_deg: 0.0,
+            }
+        };
+        scene.add(&format!("part_{index}"), shape, material);
+    }
+    let rods = rng.range_usize(2, 8);
+    for index in 0..rods {
+        let material = random_material(&mut rng, &format!("rod_material_{index}"), 0);
+        let material = scene.add_material(material);
+        let (x, y) = (c[0] + rng.range(-spread, spread), c[1] + rng.range(-spread, spread));
+        let yaw = rng.range(0.0, std::f64::consts::TAU);
+        let pitch = rng.range(-0.3, 0.3);
+        scene.add(
+            &format!("rod_{index}"),
+            Shape::Cylinder {
+                center: [x, y, camera_height_m * rng.range(0.02, 0.45)],
+                axis: [yaw.cos() * pitch.cos(), yaw.sin() * pitch.cos(), pitch.sin()],
+                radius_m: rng.range(0.001, 0.005),
+                half_length_m: camera_height_m * rng.range(0.1, 0.4),
+            },
+            material,
+        );
+    }
+    scene.ambient = [rng.range(0.1, 0.3); 3];
+    scene.add_lights(&mut rng);
+    scene
+}
+
+/// `bin`: bin picking. A plastic tote (floor and four walls 12–25 cm high) on a table, 10–30
+/// parts heaped in it (boxes, cylinders, balls; some of metal), the camera 0.5–0.9 m above the
+/// table: the walls hide much of the floor from one view or another. Never used for training.
+fn bin_scene(seed: u64) -> Scene {
+    let mut rng = SplitMix64::new(seed ^ 0x0062_696e);
+    let camera_height_m = rng.range(0.5, 0.9);
+    let mut scene = Scene::empty(SceneKind::Bin, seed, camera_height_m);
+    let concrete = scene.add_material(Material::matte(
+        "concrete",
+        Texture::Noise {
+            a: [0.4, 0.4, 0.38],
+            b: [0.62, 0.6, 0.57],
+            scale_m: 0.03,
+            anisotropy: 1.0,
+            seed: rng.next_u64(),
+        },
+    ));
+    table(&mut scene, concrete);
+    scene.add_room();
+    let tote_colour = [
+        [0.15, 0.3, 0.65],
+        [0.75, 0.2, 0.12],
+        [0.2, 0.2, 0.22],
+        [0.85, 0.65, 0.1],
+    ][rng.below(4) as usize];
+    let tote = scene.add_material(Material::glossy("tote_plastic", Texture::Solid { rgb: tote_colour }));
+    let c = WORK_AREA_CENTER_M;
+    let (half_x, half_y) = (
+        camera_height_m * rng.range(0.22, 0.32),
+        camera_height_m * rng.range(0.16, 0.24),
+    );
+    let wall_height = rng.range(0.12, 0.25);
+    let thickness = 0.008;
+    scene.add(
+        "tote_floor",
+        Shape::Box {
+            center: [c[0], c[1], thickness / 2.0],
+            half_extents_m: [half_x, half_y, thickness / 2.0],
+            yaw_deg: 0.0,
+            tilt_deg: 0.0,
+        },
+        tote,
+    );
+    for (name, center, half) in [
+        ("tote_wall_near", [c[0] - half_x, c[1]], [thickness, half_y]),
+        ("tote_wall_far", [c[0] + half_x, c[1]], [thickness, half_y]),
+        ("tote_wall_left", [c[0], c[1] - half_y], [half_x, thickness]),
+        ("tote_wall_right", [c[0], c[1] + half_y], [half_x, thickness]),
+    ] {
+        scene.add(
+            name,
+            Shape::Box {
+                center: [center[0], center[1], wall_height / 2.0],
+                half_extents_m: [half[0], half[1], wall_height / 2.0],
+                yaw_deg: 0.0,
+                tilt_deg: 0.0,
+            },
+            tote,
+        );
+    }
+    let parts = rng.range_usize(10, 30);
+    for index in 0..parts {
+        let material = random_material(&mut rng, &format!("part_material_{index}"), 5);
+        let material = scene.add_material(material);
+        let x = c[0] + rng.range(-0.85, 0.85) * half_x;
+        let y = c[1] + rng.range(-0.85, 0.85) * half_y;
+        let size = rng.range(0.012, 0.045);
+        // Heaped: later parts lie higher.
+        let z = thickness + size + rng.range(0.0, 0.6) * wall_height * index as f64 / parts as f64;
+        let shape = match rng.below(3) {
+            0 => Shape::Box {
+                center: [x, y, z],
+                half_extents_m: [size * rng.range(0.5, 2.0), size * rng.range(0.5, 1.5), size],
+                yaw_deg: rng.range(0.0, 90.0),
+                tilt_deg: rng.range(-25.0, 25.0),
+            },
+            1 => {
+                let yaw = rng.range(0.0, std::f64::consts::TAU);
+                Shape::Cylinder {
+                    center: [x, y, z],
+                    axis: [yaw.cos(), yaw.sin(), rng.range(-0.3, 0.3)],
+                    radius_m: size * rng.range(0.3, 0.7),
+                    half_length_m: size * rng.range(1.0, 2.5),
+                }
+            }
+            _ => Shape::Sphere {
+                center: [x, y, z],
+                radius_m: size,
+            },
+        };
+        scene.add(&format!("part_{index}"), shape, material);
+    }
+    scene.ambient = [rng.range(0.12, 0.25); 3];
+    scene.add_lights(&mut rng);
+    scene
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -839,6 +1043,24 @@ mod tests {
             .map(|s| Scene::build(SceneKind::Random, s).objects.len())
             .collect();
         assert!(counts.iter().max() > counts.iter().min());
+    }
+
+    #[test]
+    fn clutter_scenes_reach_half_way_to_the_camera_and_bins_have_four_walls() {
+        for seed in 0..10 {
+            let clutter = Scene::build(SceneKind::Clutter, seed);
+            let ratio = clutter.highest_point_m() / clutter.camera_height_m;
+            assert!(
+                (0.1..=0.7).contains(&ratio),
+                "seed {seed}: stacks reach {ratio:.2} of the way"
+            );
+            assert!(clutter.objects.iter().any(|o| o.name.starts_with("rod_")));
+            let bin = Scene::build(SceneKind::Bin, seed);
+            let walls = bin.objects.iter().filter(|o| o.name.starts_with("tote_wall")).count();
+            assert_eq!(walls, 4, "seed {seed}");
+            assert!(bin.objects.iter().filter(|o| o.name.starts_with("part_")).count() >= 10);
+        }
+        assert_ne!(Scene::build(SceneKind::Bin, 1), Scene::build(SceneKind::Bin, 2));
     }
 
     #[test]

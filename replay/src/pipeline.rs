@@ -106,6 +106,9 @@ pub struct MethodResult {
     pub seconds: f64,
     /// Metrics against ground truth (overall, occluded, visible, specular), when known.
     pub regions: Option<RegionMetrics>,
+    /// How the method worked beyond its configuration (`fuse::methods::Method::details`:
+    /// MFuseNet's pyramid level and the range its network saw), `null` when nothing.
+    pub details: serde_json::Value,
 }
 
 impl<'a> PreparedSet<'a> {
@@ -151,6 +154,7 @@ impl<'a> PreparedSet<'a> {
             disparity,
             seconds,
             regions,
+            details: method.details(&self.problem),
         })
     }
 }
@@ -170,6 +174,9 @@ pub struct SetSummary {
     pub num_disparities: usize,
     /// The set's alignment report.
     pub alignment: SetCheck,
+    /// How the method worked beyond its configuration ([`MethodResult::details`]).
+    #[serde(skip_serializing_if = "serde_json::Value::is_null")]
+    pub details: serde_json::Value,
 }
 
 /// `summary.json` of a `replay LOG` run.

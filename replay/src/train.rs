@@ -163,6 +163,15 @@ pub struct TrainConfig {
     /// what to answer where the costs cannot tell. Off in the shipped stereo and five-view files.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub keep_hopeless: bool,
+    /// Exposure differences between the views of a capture: each view's gain is drawn from
+    /// 1 ± this (`record::capture::ErrorInjection::exposure_jitter`), as an auto-exposure camera
+    /// gives; 0 = every view alike (the shipped files).
+    #[serde(default, skip_serializing_if = "is_zero_f64")]
+    pub exposure_jitter: f64,
+}
+
+fn is_zero_f64(x: &f64) -> bool {
+    *x == 0.0
 }
 
 fn is_zero_usize(n: &usize) -> bool {
@@ -197,6 +206,7 @@ impl Default for TrainConfig {
             context_below: 0,
             flips: false,
             keep_hopeless: false,
+            exposure_jitter: 0.0,
             scenes: vec![
                 SceneKind::Random,
                 SceneKind::Random,
@@ -318,6 +328,20 @@ impl TrainConfig {
                 "a multiple of 4 leaving at least 8 disparities",
             );
         }
+        if self.scenes.is_empty() || self.scenes.contains(&SceneKind::Bin) {
+            return bad(
+                "scenes",
+                format!("{:?}", self.scenes),
+                "one or more families, never `bin` (the held-out family, for checking generalisation)",
+            );
+        }
+        if !(0.0..0.5).contains(&self.exposure_jitter) {
+            return bad(
+                "exposure_jitter",
+                self.exposure_jitter.to_string(),
+                "a relative gain spread from 0 to below 0.5",
+            );
+        }
         if !self.context_below.is_multiple_of(4) || self.context_below > weights::MAX_CONTEXT_BELOW {
             return bad(
                 "context_below",
@@ -370,6 +394,9 @@ impl TrainConfig {
         if self.context_below > 0 {
             key["context_below"] = self.context_below.into();
         }
+        if self.exposure_jitter > 0.0 {
+            key["exposure_jitter"] = self.exposure_jitter.into();
+        }
         let key = key.to_string();
         // FNV-1a.
         key.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| {
@@ -397,6 +424,10 @@ impl TrainConfig {
             width: self.resolution[0],
             height: self.resolution[1],
             samples_per_pixel: self.samples_per_pixel,
+            errors: record::capture::ErrorInjection {
+                exposure_jitter: self.exposure_jitter,
+                ..Default::default()
+            },
             ..SimulationConfig::default()
         }
     }

@@ -19,6 +19,7 @@ use crate::mfusenet::infer::{
     DEFAULT_REFINE_REACH, DEFAULT_SUBPIXEL_FIT, DEFAULT_TILE_BUDGET_BYTES, Estimate, infer_with_confidence,
 };
 use crate::mfusenet::input::{InputSpec, input_volumes_below, ordered_neighbours, views_for};
+use crate::mfusenet::pyramid::{Band, DEFAULT_MAX_DIRECT_DISPARITIES, band_minimum, downsampled, pyramid_factor};
 use crate::mfusenet::{Network, weights};
 use crate::postprocess::{WeightedMedian, median3x3, scale_by_local_consistency, weighted_median_with_votes};
 use crate::volume::{CostVolume, Problem};
@@ -114,6 +115,12 @@ pub struct MFuseNetConfig {
     /// logits are averaged, at twice the network's time (`mfusenet::input::flip_axes`,
     /// `mfusenet::infer::Estimate`).
     pub flips: bool,
+    /// The widest range (disparities) the network is run on at full size. A wider one goes
+    /// coarse to fine (`mfusenet::pyramid`): the network on the set reduced by the smallest
+    /// integer factor that brings the range to 32 disparities, the depth it was trained on
+    /// (64 → 1/2, 96 → 1/3, 128 → 1/4), then the minimum of the summed input costs at full size
+    /// within ± factor px of its answer. `replay` logs the level and range the network saw.
+    pub max_direct_disparities: usize,
 }
 
 impl Default for MFuseNetConfig {
@@ -133,6 +140,7 @@ impl Default for MFuseNetConfig {
             disagreeing_vote: 0.05,
             room_below: None,
             flips: false,
+            max_direct_disparities: DEFAULT_MAX_DIRECT_DISPARITIES,
         }
     }
 }
@@ -231,6 +239,125 @@ impl Method for MFuseNet {
 
     fn run(&self, problem: &Problem, progress: Progress<'_>) -> Result<DisparityImage, FuseError> {
         problem.validate()?;
+        self.validate_config()?;
+        let factor = pyramid_factor(problem.num_disparities, self.config.max_direct_disparities);
+        if factor == 1 {
+            let estimate = self.network_estimate(problem, progress)?;
+            return self.finish(problem, estimate);
+        }
+        // Coarse to fine (`mfusenet::pyramid`): the network on the reduced set, whose range fits
+        // its training, then the band around its answer at full size.
+        let coarse = downsampled(problem, factor);
+        let estimate = self.network_estimate(&coarse, &|f| progress(0.5 * f))?;
+        let coarse_out = self.finish(&coarse, estimate)?;
+        let loaded = self.network_for(problem)?;
+        let neighbours = ordered_neighbours(problem, loaded.net.views)?;
+        let (volumes, first) = input_volumes_below(
+            problem,
+            &neighbours,
+            self.config.input.unwrap_or(loaded.input),
+            0,
+            &|| {},
+        )?;
+        progress(0.9);
+        let band = Band {
+            factor,
+            half_width: factor as f64,
+            fit: self.config.subpixel_fit,
+            locking: None,
+        };
+        let disparity = band_minimum(
+            &coarse_out,
+            &volumes,
+            first,
+            (problem.reference.width, problem.reference.height),
+            band,
+        );
+        self.finish(
+            problem,
+            NetworkEstimate {
+                disparity,
+                volumes,
+                first,
+            },
+        )
+    }
+
+    fn details(&self, problem: &Problem) -> serde_json::Value {
+        let factor = pyramid_factor(problem.num_disparities, self.config.max_direct_disparities);
+        let level = if factor == 1 {
+            problem.clone()
+        } else {
+            downsampled(problem, factor)
+        };
+        let Ok(loaded) = self.network_for(&level) else {
+            return serde_json::Value::Null;
+        };
+        let (min_disparity, num_disparities) = widened_range((level.min_disparity, level.num_disparities))
+            .unwrap_or((level.min_disparity, level.num_disparities));
+        let room_below = self.config.room_below.unwrap_or(loaded.context_below);
+        serde_json::json!({
+            "network": match loaded.views { 1 => "stereo", 2 => "three-view", _ => "five-view" },
+            "scale": format!("1/{factor}"),
+            "network_width": level.reference.width,
+            "network_height": level.reference.height,
+            "network_min_disparity": i64::from(min_disparity) - room_below as i64,
+            "network_num_disparities": num_disparities + room_below,
+            "full_size_band_px": (factor > 1).then_some(factor),
+        })
+    }
+}
+
+/// What the network gives before the post-processing: the disparity (in the problem's range)
+/// with the network's confidence, and the input volumes it was read from.
+struct NetworkEstimate {
+    disparity: DisparityImage,
+    volumes: Vec<CostVolume<u8>>,
+    /// The disparity of the volumes' first slice.
+    first: i64,
+}
+
+impl MFuseNet {
+    /// The configuration's checks, before minutes of work.
+    fn validate_config(&self) -> Result<(), FuseError> {
+        if !(self.config.refine_reach >= 0.0 && self.config.refine_reach.is_finite()) {
+            return Err(FuseError::Config {
+                field: "refine_reach",
+                value: self.config.refine_reach.to_string(),
+                reason: "a distance in pixels, 0 or more",
+            });
+        }
+        if !(0.0..=1.0).contains(&self.config.locking_strength) {
+            return Err(FuseError::Config {
+                field: "locking_strength",
+                value: self.config.locking_strength.to_string(),
+                reason: "a share of the locking correction from 0 to 1",
+            });
+        }
+        if let Some(filter) = &self.config.weighted_median {
+            filter.validate()?;
+        }
+        if !(0.0..=1.0).contains(&self.config.disagreeing_vote) {
+            return Err(FuseError::Config {
+                field: "disagreeing_vote",
+                value: self.config.disagreeing_vote.to_string(),
+                reason: "a vote weight from 0 to 1",
+            });
+        }
+        if let Some(room_below) = self.config.room_below
+            && room_below > weights::MAX_CONTEXT_BELOW
+        {
+            return Err(FuseError::Config {
+                field: "room_below",
+                value: room_below.to_string(),
+                reason: "at most 16 disparities of context below the range",
+            });
+        }
+        Ok(())
+    }
+
+    /// The network over the problem's whole range at the problem's size.
+    fn network_estimate(&self, problem: &Problem, progress: Progress<'_>) -> Result<NetworkEstimate, FuseError> {
         let requested = (problem.min_disparity, problem.num_disparities);
         let widened;
         let problem = match widened_range(requested) {
@@ -247,39 +374,7 @@ impl Method for MFuseNet {
         let loaded = self.network_for(problem)?;
         let net = &loaded.net;
         let neighbours = ordered_neighbours(problem, net.views)?;
-        if !(self.config.refine_reach >= 0.0 && self.config.refine_reach.is_finite()) {
-            return Err(FuseError::Config {
-                field: "refine_reach",
-                value: self.config.refine_reach.to_string(),
-                reason: "a distance in pixels, 0 or more",
-            });
-        }
-        if !(0.0..=1.0).contains(&self.config.locking_strength) {
-            return Err(FuseError::Config {
-                field: "locking_strength",
-                value: self.config.locking_strength.to_string(),
-                reason: "a share of the locking correction from 0 to 1",
-            });
-        }
-        // The post-processing's parameters too, before the network's minutes of work.
-        if let Some(filter) = &self.config.weighted_median {
-            filter.validate()?;
-        }
-        if !(0.0..=1.0).contains(&self.config.disagreeing_vote) {
-            return Err(FuseError::Config {
-                field: "disagreeing_vote",
-                value: self.config.disagreeing_vote.to_string(),
-                reason: "a vote weight from 0 to 1",
-            });
-        }
         let room_below = self.config.room_below.unwrap_or(loaded.context_below);
-        if room_below > weights::MAX_CONTEXT_BELOW {
-            return Err(FuseError::Config {
-                field: "room_below",
-                value: room_below.to_string(),
-                reason: "at most 16 disparities of context below the range",
-            });
-        }
         // Cost volumes: about a tenth of the work; the network the rest.
         let (volumes, first) = input_volumes_below(
             problem,
@@ -311,12 +406,26 @@ impl Method for MFuseNet {
         )?;
         // Back into the requested range when it was widened.
         let (low, high) = (requested.0 as f32, requested.0 as f32 + (requested.1 - 1) as f32);
-        let disparity = DisparityImage {
-            width: problem.reference.width,
-            height: problem.reference.height,
-            data: data.into_iter().map(|d| (d + origin).clamp(low, high)).collect(),
-            confidence: Some(confidence),
-        };
+        Ok(NetworkEstimate {
+            disparity: DisparityImage {
+                width: problem.reference.width,
+                height: problem.reference.height,
+                data: data.into_iter().map(|d| (d + origin).clamp(low, high)).collect(),
+                confidence: Some(confidence),
+            },
+            volumes,
+            first,
+        })
+    }
+
+    /// The post-processing: the median, the weighted median with the votes of the input costs,
+    /// and the confidence from the network's margin, the inputs' peak and what the filters kept.
+    fn finish(&self, problem: &Problem, estimate: NetworkEstimate) -> Result<DisparityImage, FuseError> {
+        let NetworkEstimate {
+            disparity,
+            volumes,
+            first,
+        } = estimate;
         let disparity = if self.config.median {
             median3x3(&disparity)
         } else {
@@ -448,7 +557,11 @@ mod tests {
     /// A fronto-parallel textured plane at integer disparity `d` seen by the neighbours at
     /// `offsets`, searched over `min_disparity .. min_disparity + 32`.
     fn plane(offsets: &[[i32; 2]], d: i32, min_disparity: i32) -> Problem {
-        let (w, h) = (96, 64);
+        plane_sized(offsets, d, (min_disparity, 32), (96, 64))
+    }
+
+    /// [`plane`] over `(min_disparity, num_disparities)` in a `(w, h)` image.
+    fn plane_sized(offsets: &[[i32; 2]], d: i32, range: (i32, usize), (w, h): (usize, usize)) -> Problem {
         // Blobs of a few pixels (hashed 3×3 cells, smoothed by the bilinear lookup): texture the
         // networks' census costs see at every scale they were trained on.
         let cell = |x: i64, y: i64| {
@@ -487,9 +600,46 @@ mod tests {
                     baseline_ratio: 1.0,
                 })
                 .collect(),
-            min_disparity,
-            num_disparities: 32,
+            min_disparity: range.0,
+            num_disparities: range.1,
         }
+    }
+
+    #[test]
+    fn a_wide_range_goes_coarse_to_fine_and_finds_a_plane_far_up_it() {
+        // 0..96 → the network at 1/3 size over 0..33, then ± 3 px at full size.
+        let offsets = [[-1, 0], [1, 0]];
+        let problem = plane_sized(&offsets, 61, (0, 96), (240, 120));
+        let method = crate::methods::build("mfusenet", None).unwrap_or_else(|e| panic!("{e}"));
+        let details = method.details(&problem);
+        assert_eq!(details["scale"], "1/3", "{details}");
+        assert_eq!(details["network_width"], 80, "{details}");
+        assert_eq!(
+            details["network_num_disparities"].as_u64().map(|n| n >= 32),
+            Some(true),
+            "{details}"
+        );
+        let out = method.run(&problem, &|_| {}).unwrap_or_else(|e| panic!("{e}"));
+        // The pixels both neighbours see (61 px from either border).
+        let w = problem.reference.width;
+        let errors: Vec<f32> = out
+            .data
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| (61..w - 61).contains(&(i % w)))
+            .map(|(_, e)| (e - 61.0).abs())
+            .collect();
+        assert!(errors.len() > 10_000, "{} pixels", errors.len());
+        let mean = errors.iter().sum::<f32>() / errors.len() as f32;
+        let bad = errors.iter().filter(|e| **e > 1.0).count();
+        assert!(
+            mean < 0.25 && bad * 100 < errors.len(),
+            "AvgErr {mean:.3} px, {bad} of {} pixels off by > 1 px",
+            errors.len()
+        );
+        // Within the direct limit, the network runs at full size and says so.
+        let narrow = plane(&offsets, 10, 0);
+        assert_eq!(method.details(&narrow)["scale"], "1/1");
     }
 
     #[test]

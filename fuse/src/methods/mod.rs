@@ -25,6 +25,12 @@ pub trait Method: Send + Sync {
     fn config_json(&self) -> serde_json::Value;
     /// Computes the disparity of the reference view (`f32::INFINITY` = no estimate).
     fn run(&self, problem: &Problem, progress: Progress<'_>) -> Result<DisparityImage, FuseError>;
+    /// How the method will work on `problem` beyond its configuration, as JSON for run summaries
+    /// and logs (MFuseNet: the pyramid level and the range its network sees); `null` when there
+    /// is nothing to add.
+    fn details(&self, _problem: &Problem) -> serde_json::Value {
+        serde_json::Value::Null
+    }
 }
 
 /// Builds a method from its default configuration with optional JSON overrides.

@@ -4,10 +4,12 @@
 //! - [`network`]: the layers and their wiring, eval (BatchNorm folded) and train mode with the
 //!   backward pass, PyTorch's parameter names.
 //! - [`weights`]: safetensors files with the reference `state_dict`'s names and shapes.
+//! - [`pyramid`]: coarse to fine for ranges wider than the networks were trained on.
 
 pub mod infer;
 pub mod input;
 pub mod network;
+pub mod pyramid;
 pub mod train;
 pub mod weights;
 

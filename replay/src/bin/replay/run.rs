@@ -208,6 +208,14 @@ pub fn run(args: &RunArgs, quiet: bool) -> Result<Outcome> {
                 })
                 .with_context(|| format!("set {}: {}", set.index, method.name()))?;
             progress.finish_and_clear();
+            if let Some(details) = result.details.as_object() {
+                let pairs: Vec<String> = details
+                    .iter()
+                    .filter(|(_, v)| !v.is_null())
+                    .map(|(k, v)| format!("{k} {}", v.as_str().map_or_else(|| v.to_string(), str::to_owned)))
+                    .collect();
+                info!("set {} {}: {}", set.index, method.name(), pairs.join(", "));
+            }
             let outputs = write_set_outputs(&args.out, set, method.name(), &result.disparity, result.regions)?;
             match result.regions.map(|r| r.all) {
                 Some(m) => info!(
@@ -251,6 +259,7 @@ pub fn run(args: &RunArgs, quiet: bool) -> Result<Outcome> {
                 min_disparity: prepared.min_disparity,
                 num_disparities: nd,
                 alignment: alignment.clone(),
+                details: result.details.clone(),
             };
             if let Some(result_log) = result_log.as_mut() {
                 result_log.write_set(

@@ -8,6 +8,7 @@ use anyhow::{Context, Result};
 use clap::Args;
 use fuse::mfusenet::input::InputSpec;
 use record::cli::{Outcome, UsageError, progress_bar};
+use record::scene::SceneKind;
 use replay::train::{BaselineDraw, TrainConfig, TrainPaths, calibrate_locking, train, variant_name};
 use tracing::info;
 
@@ -116,6 +117,19 @@ pub struct TrainArgs {
     /// metadata (or write --weights-out; the tensors are unchanged). README, "Pixel locking".
     #[arg(long, value_name = "FILE")]
     calibrate: Option<PathBuf>,
+    /// Scene families of the captures, used in turn (comma-separated; `bin` is held out of
+    /// training: it is the check of how the networks do on a family they never saw).
+    #[arg(
+        long,
+        value_enum,
+        value_delimiter = ',',
+        default_value = "random,random,toy,workpiece"
+    )]
+    scenes: Vec<SceneKind>,
+    /// Exposure differences between the views: each view's gain drawn from 1 ± this (e.g. 0.1),
+    /// as an auto-exposure camera gives; 0 = all alike.
+    #[arg(long, value_name = "SPREAD", default_value_t = 0.0)]
+    exposure_jitter: f64,
     /// Steps between validations.
     #[arg(long, default_value_t = TrainConfig::default().validate_every)]
     validate_every: u64,
@@ -163,6 +177,8 @@ impl TrainArgs {
             context_below: self.context_below,
             flips: self.flips,
             keep_hopeless: self.keep_hopeless,
+            scenes: self.scenes.clone(),
+            exposure_jitter: self.exposure_jitter,
             input: InputSpec {
                 block_radius: self.input_block_radius,
                 ..InputSpec::default()

@@ -1,0 +1,281 @@
+//! Coarse-to-fine MFuseNet for wide disparity ranges and large images (the paper's rig: 1920×1080
+//! with 128 disparities): the networks were trained on 32 disparities, so a range far wider than
+//! that is searched in two steps.
+//!
+//! 1. The set is reduced by an integer `factor` (box averages of `factor × factor` pixels, every
+//!    view alike): disparities shrink by the same factor, so the network sees a range that fits
+//!    its training ([`pyramid_factor`], [`downsampled`]).
+//! 2. At full size, each pixel's disparity is the minimum of the neighbours' summed input costs
+//!    (the network's own inputs, computed at full size) within a band of `± factor` px around the
+//!    coarse answers of its 3 × 3 nearest coarse pixels (so that a depth edge may take either
+//!    side), sub-pixel from the fit through those costs ([`band_minimum`]).
+//!
+//! Measured against the network over the whole range at full size in docs/experiments.md
+//! ("Coarse-to-fine MFuseNet").
+
+use crate::image::{DisparityImage, Image};
+use crate::mfusenet::infer::refined;
+use crate::volume::{CostVolume, Neighbour, Problem};
+use crate::wta::{LockingCurve, SubpixelFit};
+
+/// The disparities a reduced level is made to fit: the depth the shipped networks were
+/// trained on.
+pub const NETWORK_DISPARITIES: usize = 32;
+
+/// The default widest range the network is run on at full size; wider ranges go coarse to fine.
+pub const DEFAULT_MAX_DIRECT_DISPARITIES: usize = 48;
+
+/// The reduction for a range of `num_disparities`: 1 (full size) up to `max_direct`, else the
+/// smallest integer that brings the range to at most [`NETWORK_DISPARITIES`] (64 → 2, 96 → 3,
+/// 128 → 4).
+pub fn pyramid_factor(num_disparities: usize, max_direct: usize) -> usize {
+    if num_disparities <= max_direct.max(1) {
+        1
+    } else {
+        num_disparities.div_ceil(NETWORK_DISPARITIES).max(2)
+    }
+}
+
+/// `image` reduced by `factor`: each output pixel the mean of its `factor × factor` block (the
+/// last row and column of blocks may be partial).
+pub fn box_downsampled(image: &Image, factor: usize) -> Image {
+    let factor = factor.max(1);
+    let (w, h, c) = (image.width, image.height, image.channels);
+    let (cw, ch) = (w.div_ceil(factor), h.div_ceil(factor));
+    let mut data = vec![0u8; cw * ch * c];
+    for cy in 0..ch {
+        let rows = cy * factor..((cy + 1) * factor).min(h);
+        for cx in 0..cw {
+            let cols = cx * factor..((cx + 1) * factor).min(w);
+            let count = (rows.len() * cols.len()) as u32;
+            for k in 0..c {
+                let sum: u32 = rows
+                    .clone()
+                    .flat_map(|y| cols.clone().map(move |x| (y * w + x) * c + k))
+                    .map(|i| u32::from(image.data[i]))
+                    .sum();
+                data[(cy * cw + cx) * c + k] = ((sum + count / 2) / count) as u8;
+            }
+        }
+    }
+    Image {
+        width: cw,
+        height: ch,
+        channels: c,
+        data,
+    }
+}
+
+/// The problem reduced by `factor`: every view box-averaged, the range scaled to cover the
+/// requested one (its first disparity rounded down, its last up).
+pub fn downsampled(problem: &Problem, factor: usize) -> Problem {
+    let f = i32::try_from(factor.max(1)).unwrap_or(i32::MAX);
+    let first = problem.min_disparity.div_euclid(f);
+    let last =
+        (problem.end_disparity() - 1).div_euclid(f) + i32::from((problem.end_disparity() - 1).rem_euclid(f) != 0);
+    Problem {
+        reference: box_downsampled(&problem.reference, factor),
+        neighbours: problem
+            .neighbours
+            .iter()
+            .map(|n| Neighbour {
+                image: box_downsampled(&n.image, factor),
+                ..n.clone()
+            })
+            .collect(),
+        min_disparity: first,
+        num_disparities: usize::try_from(last - first + 1).unwrap_or(1),
+    }
+}
+
+/// How the full-size disparity is read in the band the coarse answer leaves.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Band {
+    /// The reduction the coarse answer was made at.
+    pub factor: usize,
+    /// Half the band's width around each coarse candidate (px at full size).
+    pub half_width: f64,
+    /// The sub-pixel fit through the summed costs at the chosen integer.
+    pub fit: SubpixelFit,
+    /// Its pixel-locking correction.
+    pub locking: Option<LockingCurve>,
+}
+
+/// The full-size disparity (and the coarse confidence, nearest coarse pixel) from a coarse
+/// answer: per pixel, the minimum of the summed `volumes` (`first` = the disparity of their first
+/// slice) over the slices within `band.half_width` px of `factor ×` any finite coarse answer in
+/// the 3 × 3 coarse pixels around it, refined by the fit there. A pixel without a finite coarse
+/// answer nearby, or whose band misses the volumes, is `f32::INFINITY`.
+pub fn band_minimum(
+    coarse: &DisparityImage,
+    volumes: &[CostVolume<u8>],
+    first: i64,
+    (width, height): (usize, usize),
+    band: Band,
+) -> DisparityImage {
+    let nd = volumes.first().map_or(0, |v| v.disparities);
+    let f = band.factor.max(1);
+    let (cw, ch) = (coarse.width, coarse.height);
+    let mut data = vec![f32::INFINITY; width * height];
+    let mut confidence = vec![0.0f32; width * height];
+    let mut sums = vec![0u32; nd];
+    let mut allowed = vec![false; nd];
+    for y in 0..height {
+        let cy = (y / f).min(ch.saturating_sub(1));
+        for x in 0..width {
+            let cx = (x / f).min(cw.saturating_sub(1));
+            let i = y * width + x;
+            if let Some(c) = &coarse.confidence {
+                confidence[i] = c[cy * cw + cx];
+            }
+            allowed.fill(false);
+            let mut any = false;
+            for ny in cy.saturating_sub(1)..(cy + 2).min(ch) {
+                for nx in cx.saturating_sub(1)..(cx + 2).min(cw) {
+                    let d = coarse.data[ny * cw + nx];
+                    if !d.is_finite() {
+                        continue;
+                    }
+                    let centre = f64::from(d) * f as f64 - first as f64;
+                    let lo = (centre - band.half_width).ceil().max(0.0);
+                    let hi = (centre + band.half_width).floor().min(nd as f64 - 1.0);
+                    if lo > hi {
+                        continue;
+                    }
+                    for a in &mut allowed[lo as usize..=hi as usize] {
+                        *a = true;
+                        any = true;
+                    }
+                }
+            }
+            if !any {
+                continue;
+            }
+            sums.fill(0);
+            for v in volumes {
+                for (s, c) in sums.iter_mut().zip(v.costs(x, y)) {
+                    *s += u32::from(*c);
+                }
+            }
+            let best = (0..nd).filter(|k| allowed[*k]).min_by_key(|k| sums[*k]).unwrap_or(0);
+            let d = refined(best as f64, |k| f64::from(sums[k]), nd, 0.0, band.fit, band.locking);
+            data[i] = (d + first as f64) as f32;
+        }
+    }
+    DisparityImage {
+        width,
+        height,
+        data,
+        confidence: Some(confidence),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::volume::VolumeSource;
+
+    #[test]
+    fn wide_ranges_are_brought_to_the_networks_depth() {
+        assert_eq!(pyramid_factor(24, 48), 1);
+        assert_eq!(pyramid_factor(48, 48), 1);
+        assert_eq!(pyramid_factor(49, 48), 2);
+        assert_eq!(pyramid_factor(64, 48), 2);
+        assert_eq!(pyramid_factor(96, 48), 3);
+        assert_eq!(pyramid_factor(128, 48), 4);
+        assert_eq!(pyramid_factor(256, 48), 8);
+        // No direct run at all: every range goes through a level of at least half size.
+        assert_eq!(pyramid_factor(16, 0), 2);
+    }
+
+    #[test]
+    fn a_box_average_keeps_a_constant_image_and_averages_partial_blocks() {
+        let image = Image::gray(5, 3, (0..15).map(|i| (i * 10) as u8).collect()).unwrap_or_else(|e| panic!("{e}"));
+        let small = box_downsampled(&image, 2);
+        assert_eq!((small.width, small.height), (3, 2));
+        // Blocks: {0,10,50,60} → 30; {20,30,70,80} → 50; {40,90} → 65; {100,110} → 105; …
+        assert_eq!(small.data, vec![30, 50, 65, 105, 125, 140]);
+        let flat = Image::gray(7, 7, vec![77; 49]).unwrap_or_else(|e| panic!("{e}"));
+        assert!(box_downsampled(&flat, 3).data.iter().all(|v| *v == 77));
+    }
+
+    #[test]
+    fn the_reduced_range_covers_the_requested_one_signed_or_not() {
+        let problem = |min_disparity, num_disparities| Problem {
+            reference: Image::gray(8, 8, vec![0; 64]).unwrap_or_else(|e| panic!("{e}")),
+            neighbours: Vec::new(),
+            min_disparity,
+            num_disparities,
+        };
+        let range = |p: Problem| (p.min_disparity, p.num_disparities);
+        // 0..128 at 1/4: 0..=32 (127/4 rounded up).
+        assert_eq!(range(downsampled(&problem(0, 128), 4)), (0, 33));
+        // −10..=53 at 1/2: −5..=27.
+        assert_eq!(range(downsampled(&problem(-10, 64), 2)), (-5, 33));
+        // −11..=52 at 1/3: −4 (−11/3 rounded down) ..= 18 (52/3 rounded up).
+        assert_eq!(range(downsampled(&problem(-11, 64), 3)), (-4, 23));
+    }
+
+    #[test]
+    fn the_band_finds_the_costs_minimum_near_the_coarse_answer_and_not_a_deeper_one_outside() {
+        // 8 × 4 pixels, 40 slices from disparity 10; every pixel's costs have their deepest
+        // minimum at slice 35 (disparity 45) and a shallower V at slice 21.4 (disparity 31.4).
+        let (w, h, nd) = (8, 4, 40);
+        let costs: Vec<u8> = (0..nd)
+            .map(|k| {
+                let v = (20.0 * (k as f64 - 21.4).abs()).min(200.0);
+                if k == 35 { 0 } else { v as u8 + 10 }
+            })
+            .collect();
+        let volume = CostVolume {
+            width: w,
+            height: h,
+            min_disparity: 10,
+            disparities: nd,
+            data: (0..w * h).flat_map(|_| costs.clone()).collect(),
+            max_cost: 255,
+            source: VolumeSource::Neighbour {
+                role: "right".into(),
+                offset: [1, 0],
+            },
+        };
+        // A coarse answer at half size: 15.5 → 31 px at full size.
+        let coarse = DisparityImage {
+            width: 4,
+            height: 2,
+            data: vec![15.5; 8],
+            confidence: Some(vec![0.75; 8]),
+        };
+        let band = Band {
+            factor: 2,
+            half_width: 2.0,
+            fit: SubpixelFit::Equiangular,
+            locking: None,
+        };
+        let out = band_minimum(&coarse, &[volume], 10, (w, h), band);
+        for d in &out.data {
+            assert!((d - 31.4).abs() < 0.05, "{d}");
+        }
+        assert_eq!(out.confidence, Some(vec![0.75; w * h]));
+        // With the coarse answers unknown, so is every pixel.
+        let unknown = DisparityImage {
+            data: vec![f32::INFINITY; 8],
+            ..coarse
+        };
+        let volumes = [CostVolume {
+            width: w,
+            height: h,
+            min_disparity: 10,
+            disparities: nd,
+            data: vec![0; w * h * nd],
+            max_cost: 255,
+            source: VolumeSource::Fused(crate::fusion::Fusion::Mean),
+        }];
+        assert!(
+            band_minimum(&unknown, &volumes, 10, (w, h), band)
+                .data
+                .iter()
+                .all(|d| d.is_infinite())
+        );
+    }
+}
