@@ -178,9 +178,12 @@ pub fn markdown(rows: &[EvalRow]) -> String {
     out
 }
 
-/// The table as CSV (one row per method and scene, plus the mean).
+/// The table as CSV (one row per method and scene, plus the mean; the change against the
+/// stereo method and the sparsification curve on the mean row only).
 pub fn csv(rows: &[EvalRow]) -> String {
-    let mut out = String::from("method,scene,rms,avg_err,bad_0_5,bad_1,bad_2,pixels,missing,avg_err_change_percent\n");
+    let mut out = String::from(
+        "method,scene,rms,avg_err,bad_0_5,bad_1,bad_2,pixels,missing,avg_err_change_percent,avg_err_top50,avg_err_top75,avg_err_top90\n",
+    );
     for r in rows {
         for (scene, m) in r
             .scenes
@@ -188,8 +191,15 @@ pub fn csv(rows: &[EvalRow]) -> String {
             .map(|(s, m)| (s.as_str(), m))
             .chain(std::iter::once(("mean", &r.mean)))
         {
+            let curve = match (&r.sparsification, scene == "mean") {
+                (Some(c), true) => format!(
+                    "{:.4},{:.4},{:.4}",
+                    c.avg_err_top50_px, c.avg_err_top75_px, c.avg_err_top90_px
+                ),
+                _ => ",,".to_owned(),
+            };
             out.push_str(&format!(
-                "{},{},{:.4},{:.4},{:.3},{:.3},{:.3},{},{},{}\n",
+                "{},{},{:.4},{:.4},{:.3},{:.3},{:.3},{},{},{},{curve}\n",
                 r.method,
                 scene,
                 m.rms,
@@ -213,6 +223,50 @@ pub fn csv(rows: &[EvalRow]) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_csv_has_a_value_for_every_column_and_the_curve_on_the_mean_row() {
+        let metrics = Metrics {
+            rms: 1.0,
+            avg_err: 0.5,
+            bad_0_5: 10.0,
+            bad_1: 5.0,
+            bad_2: 2.0,
+            pixels: 100,
+            missing: 0,
+            bias: 0.0,
+        };
+        let row = EvalRow {
+            method: "mfusenet".into(),
+            mean: metrics,
+            occluded: None,
+            specular: None,
+            scenes: vec![("Aloe".into(), metrics), ("Baby1".into(), metrics)],
+            sparsification: Some(Sparsification {
+                avg_err_top50_px: 0.1,
+                avg_err_top75_px: 0.2,
+                avg_err_top90_px: 0.3,
+                oracle_avg_err_px: [0.0; 3],
+            }),
+            baseline: None,
+            avg_err_change_percent: None,
+            rms_change_percent: None,
+            seconds: 1.0,
+        };
+        let table = csv(&[row]);
+        let lines: Vec<&str> = table.lines().collect();
+        assert_eq!(lines.len(), 4, "{table}");
+        let columns = lines[0].split(',').count();
+        for line in &lines {
+            assert_eq!(line.split(',').count(), columns, "{line}");
+        }
+        assert!(
+            lines[3].starts_with("mfusenet,mean,") && lines[3].ends_with(",0.1000,0.2000,0.3000"),
+            "{}",
+            lines[3]
+        );
+        assert!(lines[1].ends_with(",,,"), "{}", lines[1]);
+    }
 
     #[test]
     fn baselines_are_the_family_stereo_method() {
