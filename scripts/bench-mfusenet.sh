@@ -4,7 +4,8 @@
 #     seven dev scenes, 32 disparities): seconds per scene and peak RSS;
 #  2. one training step on the shipped weights' crops (128 × 128 × 32 for N = 1, 2; 96 × 96 × 32 for
 #     N = 4; `replay train`, 20 steps);
-#  3. with --full: five-view 1920×1080 with 128 disparities (record + replay mfusenet): time and peak RSS.
+#  3. with --full: five-view 1920×1080 with 128 disparities (record + replay mfusenet, which goes
+#     coarse to fine there): time and peak RSS.
 #  4. the PyTorch peer (`scripts/bench-pytorch.py`: the reference network, same shapes, this host)
 #     when TORCH_PYTHON names a Python with torch and safetensors (e.g. `python3 -m venv
 #     .venv-torch && .venv-torch/bin/pip install torch safetensors`: about a minute, 5.4 GB with
