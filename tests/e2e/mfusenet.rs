@@ -464,12 +464,20 @@ fn training_can_give_its_network_context_below_the_range() {
 #[test]
 fn a_wide_range_goes_coarse_to_fine_and_the_summary_says_what_the_network_saw() {
     // A 60 mm baseline at 320×240 puts the toy scene at about 27–40 px; searched over 0..64, the
-    // network runs at half size over 0..33 and the full-size band is ± 2 px.
+    // network runs at half size over 0..33 with 4 slices of context below (−4..33) and the
+    // full-size band is ± 2 px.
     let dir = temp_dir();
     let log = record_log(
         dir.path(),
         "wide.mcap",
-        &["--resolution", "320x240", "--baseline-mm", "60", "--samples-per-pixel", "1"],
+        &[
+            "--resolution",
+            "320x240",
+            "--baseline-mm",
+            "60",
+            "--samples-per-pixel",
+            "1",
+        ],
     );
     let out = dir.path().join("results");
     let output = replay(&[
@@ -484,7 +492,7 @@ fn a_wide_range_goes_coarse_to_fine_and_the_summary_says_what_the_network_saw() 
     assert_success(&output, "replay --method mfusenet,sgm-heuristic --num-disparities 64");
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(
-        stderr.contains("scale 1/2") && stderr.contains("network_num_disparities 33"),
+        stderr.contains("scale 1/2") && stderr.contains("network_min_disparity -4, network_num_disparities 37"),
         "the log names the level and range the network saw: {stderr}"
     );
     let summary = read_summary(&out);
@@ -497,7 +505,11 @@ fn a_wide_range_goes_coarse_to_fine_and_the_summary_says_what_the_network_saw() 
     // SGM has nothing to add.
     assert!(sets[1].get("details").is_none(), "{summary}");
     let avg = |set: &serde_json::Value| set["outputs"]["metrics"]["all"]["avg_err"].as_f64().unwrap_or(f64::NAN);
-    println!("0..64: mfusenet AvgErr {:.3} px, sgm-heuristic {:.3} px", avg(&sets[0]), avg(&sets[1]));
+    println!(
+        "0..64: mfusenet AvgErr {:.3} px, sgm-heuristic {:.3} px",
+        avg(&sets[0]),
+        avg(&sets[1])
+    );
     assert!(avg(&sets[0]) < 1.0, "{summary}");
     assert!(avg(&sets[0]) <= avg(&sets[1]) + 0.05, "{summary}");
 }

@@ -652,11 +652,7 @@ mod tests {
         let layouts: [Layout<'_>; 3] = [
             ("stereo", &[[1, 0]], None),
             ("three-view", &[[-1, 0], [1, 0]], None),
-            (
-                "five-view",
-                &[[-1, 0], [1, 0], [0, -1], [0, 1]],
-                None,
-            ),
+            ("five-view", &[[-1, 0], [1, 0], [0, -1], [0, 1]], None),
         ];
         for (name, offsets, config) in layouts {
             // A far wall at the start of an unsigned range, and of a converged rig's signed one.
