@@ -1280,6 +1280,45 @@ mod tests {
     }
 
     #[test]
+    fn the_held_out_family_and_bad_exposure_spreads_are_refused() {
+        let ok = TrainConfig {
+            scenes: vec![SceneKind::Random, SceneKind::Clutter],
+            exposure_jitter: 0.1,
+            ..TrainConfig::default()
+        };
+        assert!(ok.validate().is_ok());
+        for bad in [
+            TrainConfig {
+                scenes: vec![SceneKind::Random, SceneKind::Bin],
+                ..TrainConfig::default()
+            },
+            TrainConfig {
+                scenes: Vec::new(),
+                ..TrainConfig::default()
+            },
+            TrainConfig {
+                exposure_jitter: 0.6,
+                ..TrainConfig::default()
+            },
+        ] {
+            let error = bad.validate().map(|()| String::new()).unwrap_or_else(|e| e.to_string());
+            assert!(
+                error.contains("scenes") || error.contains("exposure_jitter"),
+                "{error:?}"
+            );
+        }
+        // The jitter changes the data (its key), a run without it keeps the old key.
+        assert_ne!(
+            ok.data_key(),
+            TrainConfig {
+                exposure_jitter: 0.0,
+                ..ok.clone()
+            }
+            .data_key()
+        );
+    }
+
+    #[test]
     fn inputs_that_agree_with_the_truth_are_not_hopeless() {
         let right = example(|_| 6.0, 6.0);
         assert!(winner_take_all_errors(&right).iter().all(|e| *e < 1e-6));
