@@ -11,7 +11,7 @@
 //!    side), sub-pixel from the fit through those costs ([`band_minimum`]).
 //!
 //! Measured against the network over the whole range at full size in docs/experiments.md
-//! ("Coarse-to-fine MFuseNet").
+//! ("Coarse to fine for wide ranges").
 
 use crate::image::{DisparityImage, Image};
 use crate::mfusenet::infer::refined;
