@@ -19,7 +19,9 @@ use crate::mfusenet::infer::{
     DEFAULT_REFINE_REACH, DEFAULT_SUBPIXEL_FIT, DEFAULT_TILE_BUDGET_BYTES, Estimate, infer_with_confidence,
 };
 use crate::mfusenet::input::{InputSpec, input_volumes_below, ordered_neighbours, views_for};
-use crate::mfusenet::pyramid::{Band, DEFAULT_MAX_DIRECT_DISPARITIES, band_minimum, downsampled, pyramid_factor};
+use crate::mfusenet::pyramid::{
+    Band, DEFAULT_MAX_DIRECT_DISPARITIES, band_minimum, downsampled, pyramid_factor, reduced_range,
+};
 use crate::mfusenet::{Network, weights};
 use crate::postprocess::{WeightedMedian, median3x3, scale_by_local_consistency, weighted_median_with_votes};
 use crate::volume::{CostVolume, Problem};
@@ -286,22 +288,22 @@ impl Method for MFuseNet {
 
     fn details(&self, problem: &Problem) -> serde_json::Value {
         let factor = pyramid_factor(problem.num_disparities, self.config.max_direct_disparities);
-        let level = if factor == 1 {
-            problem.clone()
-        } else {
-            downsampled(problem, factor)
-        };
-        let Ok(loaded) = self.network_for(&level) else {
+        // The level's size and range, without making it.
+        let (width, height) = (
+            problem.reference.width.div_ceil(factor),
+            problem.reference.height.div_ceil(factor),
+        );
+        let range = reduced_range(problem, factor);
+        let Ok(loaded) = self.network_for(problem) else {
             return serde_json::Value::Null;
         };
-        let (min_disparity, num_disparities) = widened_range((level.min_disparity, level.num_disparities))
-            .unwrap_or((level.min_disparity, level.num_disparities));
+        let (min_disparity, num_disparities) = widened_range(range).unwrap_or(range);
         let room_below = self.config.room_below.unwrap_or(loaded.context_below);
         serde_json::json!({
             "network": match loaded.views { 1 => "stereo", 2 => "three-view", _ => "five-view" },
             "scale": format!("1/{factor}"),
-            "network_width": level.reference.width,
-            "network_height": level.reference.height,
+            "network_width": width,
+            "network_height": height,
             "network_min_disparity": i64::from(min_disparity) - room_below as i64,
             "network_num_disparities": num_disparities + room_below,
             "full_size_band_px": (factor > 1).then_some(factor),

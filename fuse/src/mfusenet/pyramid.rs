@@ -66,13 +66,19 @@ pub fn box_downsampled(image: &Image, factor: usize) -> Image {
     }
 }
 
-/// The problem reduced by `factor`: every view box-averaged, the range scaled to cover the
-/// requested one (its first disparity rounded down, its last up).
-pub fn downsampled(problem: &Problem, factor: usize) -> Problem {
+/// The range `(first disparity, count)` covering `problem`'s at 1/`factor` size: its first
+/// disparity rounded down, its last up.
+pub fn reduced_range(problem: &Problem, factor: usize) -> (i32, usize) {
     let f = i32::try_from(factor.max(1)).unwrap_or(i32::MAX);
     let first = problem.min_disparity.div_euclid(f);
     let last =
         (problem.end_disparity() - 1).div_euclid(f) + i32::from((problem.end_disparity() - 1).rem_euclid(f) != 0);
+    (first, usize::try_from(last - first + 1).unwrap_or(1))
+}
+
+/// The problem reduced by `factor`: every view box-averaged, the range [`reduced_range`].
+pub fn downsampled(problem: &Problem, factor: usize) -> Problem {
+    let (min_disparity, num_disparities) = reduced_range(problem, factor);
     Problem {
         reference: box_downsampled(&problem.reference, factor),
         neighbours: problem
@@ -83,8 +89,8 @@ pub fn downsampled(problem: &Problem, factor: usize) -> Problem {
                 ..n.clone()
             })
             .collect(),
-        min_disparity: first,
-        num_disparities: usize::try_from(last - first + 1).unwrap_or(1),
+        min_disparity,
+        num_disparities,
     }
 }
 
