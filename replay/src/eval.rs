@@ -10,7 +10,7 @@ use serde::Serialize;
 
 use crate::ReplayError;
 use crate::pipeline::{PreparedSet, RunOptions};
-use crate::regions::Sparsification;
+use crate::regions::{RankedErrors, Sparsification};
 use crate::viewset::ViewSet;
 
 /// One method's row of the table.
@@ -29,6 +29,9 @@ pub struct EvalRow {
     /// The sparsification curve averaged over the scenes (AvgErr of the most confident 50, 75
     /// and 90 % of each scene's pixels).
     pub sparsification: Option<Sparsification>,
+    /// The curve of every scene's pixels pooled and ranked together: what one confidence
+    /// threshold for all scenes keeps (a scene the method finds hard gives up more pixels).
+    pub sparsification_pooled: Option<Sparsification>,
     /// The stereo method compared against.
     pub baseline: Option<String>,
     /// Relative change of AvgErr against the baseline (%; negative = better).
@@ -77,6 +80,7 @@ pub fn evaluate_sets(
         let mut occluded = Vec::new();
         let mut specular = Vec::new();
         let mut curves = Vec::new();
+        let mut pooled = RankedErrors::default();
         let started = Instant::now();
         for set in sets {
             if set.ground_truth_depth_m.is_none() {
@@ -92,7 +96,16 @@ pub fn evaluate_sets(
                     rectify: options.rectify,
                 },
             )?;
-            if let Some(metrics) = prepared.run(method.as_ref(), &|_| {})?.regions {
+            let result = prepared.run(method.as_ref(), &|_| {})?;
+            if let (Some(confidence), Some(truth)) = (&result.disparity.confidence, set.ground_truth_disparity()) {
+                pooled.extend(RankedErrors::new(
+                    &result.disparity.data,
+                    confidence,
+                    &truth,
+                    prepared.num_disparities as f64,
+                ));
+            }
+            if let Some(metrics) = result.regions {
                 scenes.push((set.name.clone(), metrics.all));
                 occluded.extend(metrics.occluded);
                 specular.extend(metrics.specular);
@@ -111,6 +124,11 @@ pub fn evaluate_sets(
                 // Only when every scene has a curve, so that the mean is over the same scenes.
                 sparsification: if curves.len() == per_scene.len() {
                     Sparsification::average(&curves)
+                } else {
+                    None
+                },
+                sparsification_pooled: if curves.len() == per_scene.len() {
+                    pooled.curve()
                 } else {
                     None
                 },
@@ -145,9 +163,9 @@ fn region(metrics: Option<Metrics>) -> String {
 /// The table as Markdown.
 pub fn markdown(rows: &[EvalRow]) -> String {
     let mut out = String::from(
-        "| method | scenes | RMS | AvgErr | Bad0.5 (%) | Bad1 (%) | Bad2 (%) | AvgErr vs stereo | RMS vs stereo | AvgErr occluded | AvgErr specular | AvgErr most confident 50 / 75 / 90 % | time (s) |\n",
+        "| method | scenes | RMS | AvgErr | Bad0.5 (%) | Bad1 (%) | Bad2 (%) | AvgErr vs stereo | RMS vs stereo | AvgErr occluded | AvgErr specular | AvgErr most confident 50 / 75 / 90 % | most confident 75 % ÷ all, per scene / pooled | time (s) |\n",
     );
-    out.push_str("|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
+    out.push_str("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
     for r in rows {
         let sparsification = r.sparsification.map_or_else(
             || "–".to_owned(),
@@ -158,8 +176,11 @@ pub fn markdown(rows: &[EvalRow]) -> String {
                 )
             },
         );
+        let ratio =
+            |curve: Option<Sparsification>| curve.map_or_else(|| "–".to_owned(), |c| format!("{:.2}", c.top75_ratio()));
+        let ratios = format!("{} / {}", ratio(r.sparsification), ratio(r.sparsification_pooled));
         out.push_str(&format!(
-            "| {} | {} | {:.3} | {:.3} | {:.2} | {:.2} | {:.2} | {} | {} | {} | {} | {} | {:.1} |\n",
+            "| {} | {} | {:.3} | {:.3} | {:.2} | {:.2} | {:.2} | {} | {} | {} | {} | {} | {} | {:.1} |\n",
             r.method,
             r.scenes.len(),
             r.mean.rms,
@@ -172,6 +193,7 @@ pub fn markdown(rows: &[EvalRow]) -> String {
             region(r.occluded),
             region(r.specular),
             sparsification,
+            ratios,
             r.seconds
         ));
     }
@@ -179,10 +201,11 @@ pub fn markdown(rows: &[EvalRow]) -> String {
 }
 
 /// The table as CSV (one row per method and scene, plus the mean; the change against the
-/// stereo method and the sparsification curve on the mean row only).
+/// stereo method and the sparsification curves, averaged per scene and pooled, on the mean row
+/// only).
 pub fn csv(rows: &[EvalRow]) -> String {
     let mut out = String::from(
-        "method,scene,rms,avg_err,bad_0_5,bad_1,bad_2,pixels,missing,avg_err_change_percent,avg_err_top50,avg_err_top75,avg_err_top90\n",
+        "method,scene,rms,avg_err,bad_0_5,bad_1,bad_2,pixels,missing,avg_err_change_percent,avg_err_top50,avg_err_top75,avg_err_top90,pooled_avg_err_top50,pooled_avg_err_top75,pooled_avg_err_top90,pooled_avg_err_all\n",
     );
     for r in rows {
         for (scene, m) in r
@@ -191,13 +214,21 @@ pub fn csv(rows: &[EvalRow]) -> String {
             .map(|(s, m)| (s.as_str(), m))
             .chain(std::iter::once(("mean", &r.mean)))
         {
-            let curve = match (&r.sparsification, scene == "mean") {
+            let mut curve = match (&r.sparsification, scene == "mean") {
                 (Some(c), true) => format!(
                     "{:.4},{:.4},{:.4}",
                     c.avg_err_top50_px, c.avg_err_top75_px, c.avg_err_top90_px
                 ),
                 _ => ",,".to_owned(),
             };
+            curve.push(',');
+            curve.push_str(&match (&r.sparsification_pooled, scene == "mean") {
+                (Some(c), true) => format!(
+                    "{:.4},{:.4},{:.4},{:.4}",
+                    c.avg_err_top50_px, c.avg_err_top75_px, c.avg_err_top90_px, c.avg_err_all_px
+                ),
+                _ => ",,,".to_owned(),
+            });
             out.push_str(&format!(
                 "{},{},{:.4},{:.4},{:.3},{:.3},{:.3},{},{},{},{curve}\n",
                 r.method,
@@ -246,6 +277,14 @@ mod tests {
                 avg_err_top50_px: 0.1,
                 avg_err_top75_px: 0.2,
                 avg_err_top90_px: 0.3,
+                avg_err_all_px: 0.5,
+                oracle_avg_err_px: [0.0; 3],
+            }),
+            sparsification_pooled: Some(Sparsification {
+                avg_err_top50_px: 0.15,
+                avg_err_top75_px: 0.25,
+                avg_err_top90_px: 0.35,
+                avg_err_all_px: 0.5,
                 oracle_avg_err_px: [0.0; 3],
             }),
             baseline: None,
@@ -253,7 +292,7 @@ mod tests {
             rms_change_percent: None,
             seconds: 1.0,
         };
-        let table = csv(&[row]);
+        let table = csv(std::slice::from_ref(&row));
         let lines: Vec<&str> = table.lines().collect();
         assert_eq!(lines.len(), 4, "{table}");
         let columns = lines[0].split(',').count();
@@ -261,11 +300,16 @@ mod tests {
             assert_eq!(line.split(',').count(), columns, "{line}");
         }
         assert!(
-            lines[3].starts_with("mfusenet,mean,") && lines[3].ends_with(",0.1000,0.2000,0.3000"),
+            lines[3].starts_with("mfusenet,mean,")
+                && lines[3].ends_with(",0.1000,0.2000,0.3000,0.1500,0.2500,0.3500,0.5000"),
             "{}",
             lines[3]
         );
-        assert!(lines[1].ends_with(",,,"), "{}", lines[1]);
+        assert!(lines[1].ends_with(",,,,,,,"), "{}", lines[1]);
+        assert!(
+            markdown(&[row]).contains("| 0.40 / 0.50 |"),
+            "the ratios per scene and pooled"
+        );
     }
 
     #[test]

@@ -60,19 +60,26 @@ pub struct Sparsification {
     pub avg_err_top75_px: f64,
     /// The most confident 90 %.
     pub avg_err_top90_px: f64,
+    /// All the pixels ranked (the curve's end).
+    #[serde(default)]
+    pub avg_err_all_px: f64,
     /// The same shares of the pixels ranked by their true error (the best any confidence could
     /// do): 50, 75 and 90 %.
     pub oracle_avg_err_px: [f64; 3],
 }
 
-impl Sparsification {
-    /// The shares of the pixels kept, in the order of the fields.
-    pub const SHARES: [f64; 3] = [0.5, 0.75, 0.9];
+/// Pixels' errors (px) with their confidence, to be ranked: one scene's, or several scenes'
+/// pooled, as a robot with one confidence threshold for every scene keeps them.
+#[derive(Debug, Clone, Default)]
+pub struct RankedErrors {
+    pairs: Vec<(f32, f64)>,
+}
 
-    /// The curve of `estimate` against `truth` (NaN = unknown) ranked by `confidence`; a pixel
-    /// without an estimate counts as an error of `missing_error_px`. `None` without pixels.
-    pub fn measure(estimate: &[f32], confidence: &[f32], truth: &[f32], missing_error_px: f64) -> Option<Self> {
-        let mut ranked: Vec<(f32, f64)> = estimate
+impl RankedErrors {
+    /// The errors of `estimate` against `truth` (NaN = unknown) with their `confidence`; a pixel
+    /// without an estimate counts as an error of `missing_error_px`.
+    pub fn new(estimate: &[f32], confidence: &[f32], truth: &[f32], missing_error_px: f64) -> Self {
+        let pairs = estimate
             .iter()
             .zip(confidence)
             .zip(truth)
@@ -86,32 +93,64 @@ impl Sparsification {
                 (*c, error)
             })
             .collect();
-        if ranked.is_empty() {
+        Self { pairs }
+    }
+
+    /// Adds another scene's pixels.
+    pub fn extend(&mut self, other: Self) {
+        self.pairs.extend(other.pairs);
+    }
+
+    /// The curve over every pixel held, ranked by confidence (stable: ties keep their order).
+    /// `None` without pixels.
+    pub fn curve(mut self) -> Option<Sparsification> {
+        if self.pairs.is_empty() {
             return None;
         }
-        ranked.sort_by(|a, b| b.0.total_cmp(&a.0));
+        self.pairs.sort_by(|a, b| b.0.total_cmp(&a.0));
+        let count = self.pairs.len();
         let mean_of_first = |errors: &mut dyn Iterator<Item = f64>, share: f64| {
-            let kept = ((ranked.len() as f64 * share).round() as usize).max(1);
+            let kept = ((count as f64 * share).round() as usize).max(1);
             errors.take(kept).sum::<f64>() / kept as f64
         };
-        let [top50, top75, top90] = Self::SHARES.map(|share| mean_of_first(&mut ranked.iter().map(|(_, e)| *e), share));
-        let mut errors: Vec<f64> = ranked.iter().map(|(_, e)| *e).collect();
+        let [top50, top75, top90] =
+            Sparsification::SHARES.map(|share| mean_of_first(&mut self.pairs.iter().map(|(_, e)| *e), share));
+        let mut errors: Vec<f64> = self.pairs.iter().map(|(_, e)| *e).collect();
         errors.sort_by(f64::total_cmp);
-        Some(Self {
+        Some(Sparsification {
             avg_err_top50_px: top50,
             avg_err_top75_px: top75,
             avg_err_top90_px: top90,
-            oracle_avg_err_px: Self::SHARES.map(|share| mean_of_first(&mut errors.iter().copied(), share)),
+            avg_err_all_px: errors.iter().sum::<f64>() / count as f64,
+            oracle_avg_err_px: Sparsification::SHARES.map(|share| mean_of_first(&mut errors.iter().copied(), share)),
         })
+    }
+}
+
+impl Sparsification {
+    /// The shares of the pixels kept, in the order of the fields.
+    pub const SHARES: [f64; 3] = [0.5, 0.75, 0.9];
+
+    /// The curve of `estimate` against `truth` (NaN = unknown) ranked by `confidence`; a pixel
+    /// without an estimate counts as an error of `missing_error_px`. `None` without pixels.
+    pub fn measure(estimate: &[f32], confidence: &[f32], truth: &[f32], missing_error_px: f64) -> Option<Self> {
+        RankedErrors::new(estimate, confidence, truth, missing_error_px).curve()
+    }
+
+    /// The AvgErr of the most confident 75 % ÷ that of all pixels (0.5: they err half as much).
+    pub fn top75_ratio(&self) -> f64 {
+        self.avg_err_top75_px / self.avg_err_all_px
     }
 
     /// The mean curve of several scenes.
     pub fn average(curves: &[Self]) -> Option<Self> {
         let n = curves.len() as f64;
+        let mean = |field: fn(&Self) -> f64| curves.iter().map(field).sum::<f64>() / n;
         (!curves.is_empty()).then(|| Self {
-            avg_err_top50_px: curves.iter().map(|c| c.avg_err_top50_px).sum::<f64>() / n,
-            avg_err_top75_px: curves.iter().map(|c| c.avg_err_top75_px).sum::<f64>() / n,
-            avg_err_top90_px: curves.iter().map(|c| c.avg_err_top90_px).sum::<f64>() / n,
+            avg_err_top50_px: mean(|c| c.avg_err_top50_px),
+            avg_err_top75_px: mean(|c| c.avg_err_top75_px),
+            avg_err_top90_px: mean(|c| c.avg_err_top90_px),
+            avg_err_all_px: mean(|c| c.avg_err_all_px),
             oracle_avg_err_px: [0, 1, 2].map(|k| curves.iter().map(|c| c.oracle_avg_err_px[k]).sum::<f64>() / n),
         })
     }
@@ -169,6 +208,33 @@ mod tests {
         assert_eq!(worse.avg_err_top50_px, 2.5);
         assert_eq!(worse.oracle_avg_err_px, curve.oracle_avg_err_px);
         assert_eq!(Sparsification::measure(&[1.0], &[1.0], &[f32::NAN], 3.0), None);
+    }
+
+    #[test]
+    fn pooled_scenes_give_up_the_hard_scene_first() {
+        // An easy scene, sure of itself, errs 0 and 1 px; a hard one, unsure, errs 4 and 6 px.
+        let truth = [0.0; 2];
+        let easy = RankedErrors::new(&[0.0, 1.0], &[0.9, 0.8], &truth, 9.0);
+        let hard = RankedErrors::new(&[4.0, 6.0], &[0.3, 0.2], &truth, 9.0);
+        let per_scene = Sparsification::average(&[
+            easy.clone().curve().unwrap_or_else(|| panic!("easy")),
+            hard.clone().curve().unwrap_or_else(|| panic!("hard")),
+        ])
+        .unwrap_or_else(|| panic!("average"));
+        assert_eq!(
+            per_scene.avg_err_top50_px, 2.0,
+            "each scene keeps its better half: (0 + 4) / 2"
+        );
+        assert_eq!(per_scene.avg_err_all_px, 2.75);
+        let mut pooled = easy;
+        pooled.extend(hard);
+        let pooled = pooled.curve().unwrap_or_else(|| panic!("pooled"));
+        assert_eq!(
+            pooled.avg_err_top50_px, 0.5,
+            "one threshold keeps the easy scene's two pixels"
+        );
+        assert_eq!(pooled.avg_err_all_px, 2.75);
+        assert!((pooled.top75_ratio() - (5.0 / 3.0) / 2.75).abs() < 1e-12);
     }
 
     #[test]
