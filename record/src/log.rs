@@ -3,7 +3,9 @@
 //! Every topic is documented in ARCHITECTURE.md. Foxglove protobuf schemas are used wherever one
 //! exists; the capture events are JSON with a JSON schema. Chunks are zstd-compressed, with
 //! message and chunk indexes, statistics and CRCs; [`LogWriter::finish`] writes the summary.
-//! [`OutputFile`] makes files appear only when complete (temporary name, then rename).
+//! Every set ends its chunk and is flushed; [`OutputFile`] makes files appear only when complete
+//! (temporary name, then rename) and its [`SyncedWriter`] syncs each set to the disk, so a crash
+//! or a power cut loses only the set in flight (`replay recover` finishes the temporary file).
 
 use std::collections::{BTreeMap, HashMap};
 use std::fs::File;
@@ -528,7 +530,9 @@ impl<W: Write + Seek> LogWriter<W> {
     }
 
     /// Writes one complete set: arm motion, then per view the transforms, image, calibration,
-    /// ground truth, commanded pose and the capture event, all in time order.
+    /// ground truth, commanded pose and the capture event, all in time order; then ends the
+    /// chunk and flushes it, so that every set written is whole on disk before the next starts
+    /// (the chunk size still bounds a huge set's chunks).
     pub fn write_set(
         &mut self,
         set: &CapturedSet,
@@ -558,7 +562,13 @@ impl<W: Write + Seek> LogWriter<W> {
         for sample in motion {
             self.write_arm_state(sample.time_nanos, sample, flange_from_camera)?;
         }
-        Ok(())
+        self.end_set()
+    }
+
+    /// Ends the chunk (so that it holds whole sets: a crash later cannot tear this one) and
+    /// flushes it to the writer, which for a [`SyncedWriter`] also syncs it to the disk.
+    fn end_set(&mut self) -> Result<(), LogError> {
+        self.writer.flush().map_err(Self::mcap_error("end of set"))
     }
 
     fn check_len(
@@ -752,9 +762,43 @@ pub fn encode_png_rgb8(
     Ok(out)
 }
 
+/// The writer of an [`OutputFile`]: buffered, and each `flush` (the log writer's at every set's
+/// end, and at its finish) also syncs the data to the disk (`fdatasync`).
+#[derive(Debug)]
+pub struct SyncedWriter {
+    inner: BufWriter<File>,
+}
+
+impl Write for SyncedWriter {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        self.inner.write(buf)
+    }
+
+    fn write_all(&mut self, buf: &[u8]) -> std::io::Result<()> {
+        self.inner.write_all(buf)
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.inner.flush()?;
+        self.inner.get_ref().sync_data()
+    }
+}
+
+impl Seek for SyncedWriter {
+    fn seek(&mut self, position: std::io::SeekFrom) -> std::io::Result<u64> {
+        self.inner.seek(position)
+    }
+}
+
+/// Syncs a directory, so that a file created or renamed in it survives a power cut.
+fn sync_directory(directory: &Path) -> std::io::Result<()> {
+    File::open(directory)?.sync_all()
+}
+
 /// An output file that appears under its final name only when committed: it is written under a
 /// hidden temporary name in the same directory and renamed atomically by [`OutputFile::commit`];
-/// dropped without a commit, the temporary file is removed.
+/// dropped without a commit, the temporary file is removed, unless [`OutputFile::keep`] said
+/// that it holds something worth recovering.
 #[derive(Debug)]
 pub struct OutputFile {
     final_path: PathBuf,
@@ -763,8 +807,9 @@ pub struct OutputFile {
 }
 
 impl OutputFile {
-    /// Creates the temporary file next to `final_path`.
-    pub fn create(final_path: &Path) -> Result<(Self, BufWriter<File>), LogError> {
+    /// Creates the temporary file next to `final_path` (and syncs the directory, so that the
+    /// file's name survives a power cut too).
+    pub fn create(final_path: &Path) -> Result<(Self, SyncedWriter), LogError> {
         let directory = match final_path.parent() {
             Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
             _ => PathBuf::from("."),
@@ -790,23 +835,43 @@ impl OutputFile {
             path: temp_path.clone(),
             source,
         })?;
+        sync_directory(&directory).map_err(|source| LogError::Io {
+            action: "cannot sync the output directory",
+            path: directory.clone(),
+            source,
+        })?;
         Ok((
             Self {
                 final_path: final_path.to_path_buf(),
                 temp_path,
                 committed: false,
             },
-            BufWriter::with_capacity(1 << 20, file),
+            SyncedWriter {
+                inner: BufWriter::with_capacity(1 << 20, file),
+            },
         ))
     }
 
-    /// Flushes, syncs and renames the file to its final name.
-    pub fn commit(mut self, writer: BufWriter<File>) -> Result<PathBuf, LogError> {
+    /// The temporary file being written.
+    pub fn temp_path(&self) -> &Path {
+        &self.temp_path
+    }
+
+    /// Leaves the temporary file in place (it holds sets that `replay recover` can finish) and
+    /// returns its path.
+    pub fn keep(mut self) -> PathBuf {
+        self.committed = true;
+        self.temp_path.clone()
+    }
+
+    /// Flushes, syncs and renames the file to its final name, then syncs the directory.
+    pub fn commit(mut self, writer: SyncedWriter) -> Result<PathBuf, LogError> {
         let io = |action| {
             let path = self.temp_path.clone();
             move |source| LogError::Io { action, path, source }
         };
         let file = writer
+            .inner
             .into_inner()
             .map_err(|e| e.into_error())
             .map_err(io("cannot flush"))?;
@@ -814,6 +879,13 @@ impl OutputFile {
         drop(file);
         std::fs::rename(&self.temp_path, &self.final_path).map_err(io("cannot rename into place"))?;
         self.committed = true;
+        if let Some(directory) = self.final_path.parent().filter(|p| !p.as_os_str().is_empty()) {
+            sync_directory(directory).map_err(|source| LogError::Io {
+                action: "cannot sync the output directory",
+                path: directory.to_path_buf(),
+                source,
+            })?;
+        }
         Ok(self.final_path.clone())
     }
 }

@@ -19,6 +19,21 @@ pub enum SessionError {
     /// Writing the log failed.
     #[error(transparent)]
     Log(#[from] LogError),
+    /// Writing failed (a full disk, a file-size limit, an I/O error) after some sets were safe.
+    #[error(
+        "writing the log failed while {stage}; {safe_sets} complete set(s) were synced to disk before that and are kept in '{kept}' (`replay recover` finishes it)"
+    )]
+    WriteFailed {
+        /// What was being written.
+        stage: String,
+        /// Sets completely written and synced.
+        safe_sets: u32,
+        /// The temporary file left in place.
+        kept: PathBuf,
+        /// Cause.
+        #[source]
+        source: LogError,
+    },
     /// Serialising the configuration or scene failed.
     #[error("cannot serialise {what}")]
     Json {
@@ -73,13 +88,43 @@ pub fn record_simulation(
     let scene =
         serde_json::to_vec_pretty(sim.scene()).map_err(|source| SessionError::Json { what: "scene", source })?;
     log.attach("scene.json", "application/json", sim.time_nanos(), &scene)?;
+    let mut metadata = BTreeMap::new();
+    metadata.insert("tool".to_owned(), "record".to_owned());
+    metadata.insert("tool_version".to_owned(), TOOL_VERSION.to_owned());
+    metadata.insert("source".to_owned(), "simulation".to_owned());
+    metadata.insert("seed".to_owned(), config.seed.to_string());
+    metadata.insert("config".to_owned(), json("configuration", &config)?);
+    metadata.insert(
+        "hand_eye_flange_from_camera".to_owned(),
+        json("hand-eye transform", &PoseJson::from(sim.hand_eye_believed()))?,
+    );
+    metadata.insert("requested_sets".to_owned(), config.captures.to_string());
+    // Written first too, so that a log cut by a crash still says how it was made; the record
+    // at the end (same name, read last) adds how many sets were completed.
+    log.write_metadata(METADATA_NAME, metadata.clone())?;
     let mut completed = 0u32;
+    let failed = |stage: String, completed: u32, file: OutputFile, source: LogError| {
+        if completed == 0 {
+            // Nothing worth recovering: the temporary file goes.
+            drop(file);
+            SessionError::Log(source)
+        } else {
+            SessionError::WriteFailed {
+                stage,
+                safe_sets: completed,
+                kept: file.keep(),
+                source,
+            }
+        }
+    };
     for index in 0..config.captures {
         let Some(set) = sim.capture_set(index, stop, |view| on_view(index, view))? else {
             break;
         };
         let hand_eye = *sim.hand_eye_believed();
-        log.write_set(&set, Some(&hand_eye))?;
+        if let Err(source) = log.write_set(&set, Some(&hand_eye)) {
+            return Err(failed(format!("writing set {index}"), completed, file, source));
+        }
         completed += 1;
         on_set(&set);
         if stop.load(Ordering::SeqCst) {
@@ -95,20 +140,12 @@ pub fn record_simulation(
         // Stopped before anything was complete: the temporary file is removed on drop.
         return Ok(outcome(None));
     }
-    let mut metadata = BTreeMap::new();
-    metadata.insert("tool".to_owned(), "record".to_owned());
-    metadata.insert("tool_version".to_owned(), TOOL_VERSION.to_owned());
-    metadata.insert("source".to_owned(), "simulation".to_owned());
-    metadata.insert("seed".to_owned(), config.seed.to_string());
-    metadata.insert("config".to_owned(), json("configuration", &config)?);
-    metadata.insert(
-        "hand_eye_flange_from_camera".to_owned(),
-        json("hand-eye transform", &PoseJson::from(sim.hand_eye_believed()))?,
-    );
-    metadata.insert("requested_sets".to_owned(), config.captures.to_string());
     metadata.insert("completed_sets".to_owned(), completed.to_string());
     metadata.insert("interrupted".to_owned(), (completed < config.captures).to_string());
-    log.write_metadata(METADATA_NAME, metadata)?;
-    let writer = log.finish()?;
+    let finished = log.write_metadata(METADATA_NAME, metadata).and_then(|()| log.finish());
+    let writer = match finished {
+        Ok(writer) => writer,
+        Err(source) => return Err(failed("writing the summary".into(), completed, file, source)),
+    };
     Ok(outcome(Some(file.commit(writer)?)))
 }

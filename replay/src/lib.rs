@@ -4,6 +4,9 @@
 //!
 //! - [`check`]: alignment checks of each set against the ideal rig;
 //! - [`log`]: reading a log into [`viewset::ViewSet`]s (recovering what a cut-off log holds);
+//! - [`salvage`]: the record walk under it that reads a cut chunk as far as it goes and skips a
+//!   corrupt one;
+//! - [`recover`]: `replay recover`, what survived rewritten as a finished log;
 //! - [`dataset`]: image-set folders (the Middlebury layout) as view sets, through `record import`;
 //! - [`eval`]: methods over many sets, the paper's table;
 //! - [`outputs`]: result files per set.
@@ -15,7 +18,9 @@ pub mod foreign;
 pub mod log;
 pub mod outputs;
 pub mod pipeline;
+pub mod recover;
 pub mod regions;
+pub mod salvage;
 pub mod train;
 pub mod viewer;
 pub mod viewset;

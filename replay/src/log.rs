@@ -25,8 +25,11 @@ pub struct LogContents {
     pub incomplete_sets: Vec<(u32, String)>,
     /// Messages read.
     pub messages: usize,
-    /// Why the scan stopped early, when it did (a cut-off or corrupted file).
+    /// Where and why the file ends early, when it does (cut off by a crash, or never finished).
     pub truncation: Option<String>,
+    /// Chunks left out because they are corrupt (a CRC mismatch, a stream that does not
+    /// decompress); their sets are in `incomplete_sets`.
+    pub bad_chunks: Vec<String>,
     /// Metadata records.
     pub metadata: BTreeMap<String, BTreeMap<String, String>>,
 }
@@ -92,121 +95,92 @@ pub fn read_capture_events(mcap_bytes: &[u8]) -> Result<Vec<CaptureEvent>, Repla
     Ok(events)
 }
 
-/// MCAP magic bytes at both ends of a file.
-const MCAP_MAGIC: &[u8] = b"\x89MCAP0\r\n";
-/// Opcode of a chunk record.
-const CHUNK_OPCODE: u8 = 0x06;
-/// Largest uncompressed chunk accepted (a corrupt size field must not become an allocation).
-const MAX_CHUNK_UNCOMPRESSED_BYTES: u64 = 4 << 30;
-
-/// The longest prefix of `bytes` made of whole, plausible records, and why the rest was cut
-/// (a record running past the end of the file, or a chunk claiming an impossible size). The
-/// `mcap` reader allocates a chunk's claimed size before checking it, so a corrupt size field
-/// would abort the process; this walk over the record framing prevents that.
-fn plausible_prefix(bytes: &[u8]) -> (&[u8], Option<String>) {
-    if bytes.len() < MCAP_MAGIC.len() || &bytes[..MCAP_MAGIC.len()] != MCAP_MAGIC {
-        return (bytes, None);
-    }
-    let mut at = MCAP_MAGIC.len();
-    while at + 9 <= bytes.len() {
-        let opcode = bytes[at];
-        let mut length = [0u8; 8];
-        length.copy_from_slice(&bytes[at + 1..at + 9]);
-        let length = u64::from_le_bytes(length);
-        let body = at + 9;
-        if length > (bytes.len() - body) as u64 {
-            return (
-                &bytes[..at],
-                Some(format!("record at byte {at} runs past the end of the file (cut off)")),
-            );
-        }
-        if opcode == CHUNK_OPCODE && length >= 24 {
-            let mut size = [0u8; 8];
-            size.copy_from_slice(&bytes[body + 16..body + 24]);
-            let uncompressed = u64::from_le_bytes(size);
-            if uncompressed > MAX_CHUNK_UNCOMPRESSED_BYTES || uncompressed > 4096 * length.max(1) {
-                return (
-                    &bytes[..at],
-                    Some(format!(
-                        "chunk at byte {at} claims {uncompressed} bytes uncompressed (corrupt)"
-                    )),
-                );
-            }
-        }
-        at = body + length as usize;
-        if opcode == 0x02 {
-            // Footer: the file ends here (plus the closing magic).
-            return (bytes, None);
-        }
-    }
-    (bytes, None)
-}
-
-/// Largest record accepted: a corrupt length must fail, not allocate.
+/// Largest record accepted by the indexed reader: a corrupt length must fail, not allocate.
 fn record_length_limit(file_len: usize) -> usize {
     (file_len.saturating_mul(64)).clamp(256 << 20, 2 << 30)
 }
 
-/// Scans messages in file order, handing those whose topic `wanted` accepts to `on_message`.
-/// Returns the message count and, when the file ends early or is corrupt, the reason. Uses the
-/// `mcap` crate's sans-I/O reader with a record-length limit and chunk CRC checks, so corrupt
-/// lengths and sizes end the scan instead of exhausting memory.
+/// What a linear scan found beyond the messages.
+#[derive(Default)]
+struct ScanDamage {
+    /// Where and why the file ends early.
+    cut: Option<String>,
+    /// Chunks left out, each with the sets its capture events named (read from the untrusted
+    /// chunk when it still decompresses).
+    bad_chunks: Vec<(String, Vec<(u32, String)>)>,
+}
+
+/// Scans messages in file order ([`crate::salvage::walk`]: a cut chunk is read as far as it
+/// goes, a chunk whose CRC fails is left out), handing those whose topic `wanted` accepts to
+/// `on_message`. Returns the message count and the damage found.
 fn scan(
     bytes: &[u8],
     wanted: impl Fn(&str, &str) -> bool,
     mut on_message: impl FnMut(&str, &str, u64, &[u8]) -> Result<(), ReplayError>,
-) -> Result<(usize, Option<String>), ReplayError> {
-    use mcap::sans_io::{LinearReadEvent, LinearReader, LinearReaderOptions};
-    if bytes.len() < MCAP_MAGIC.len() || &bytes[..MCAP_MAGIC.len()] != MCAP_MAGIC {
-        return Err(ReplayError::Mcap {
-            source: mcap::McapError::BadMagic,
-        });
-    }
-    let (bytes, cut) = plausible_prefix(bytes);
-    let mut reader = LinearReader::new_with_options(
-        LinearReaderOptions::default()
-            .with_record_length_limit(record_length_limit(bytes.len()))
-            .with_validate_chunk_crcs(true)
-            .with_prevalidate_chunk_crcs(true),
-    );
-    let mut remaining = bytes;
+) -> Result<(usize, ScanDamage), ReplayError> {
+    use mcap::records::Record;
     let mut topics: HashMap<u16, (String, u16)> = HashMap::new();
     let mut schemas: HashMap<u16, String> = HashMap::new();
     let mut count = 0;
-    while let Some(event) = reader.next_event() {
-        let event = match event {
-            Ok(event) => event,
-            Err(error) => return Ok((count, Some(cut.unwrap_or_else(|| error.to_string())))),
-        };
-        match event {
-            LinearReadEvent::ReadRequest(need) => {
-                let len = need.min(remaining.len());
-                reader.insert(len).copy_from_slice(&remaining[..len]);
-                reader.notify_read(len);
-                remaining = &remaining[len..];
+    // Sets named by capture events of untrusted chunks, in walk order.
+    let mut untrusted_sets: Vec<(u32, String)> = Vec::new();
+    let report = crate::salvage::walk(bytes, |record, trusted| {
+        match record {
+            Record::Schema { header, .. } if trusted => {
+                schemas.insert(header.id, header.name.clone());
             }
-            LinearReadEvent::Record { data, opcode } => match mcap::parse_record(opcode, data) {
-                Ok(mcap::records::Record::Schema { header, .. }) => {
-                    schemas.insert(header.id, header.name.clone());
-                }
-                Ok(mcap::records::Record::Channel(channel)) => {
-                    topics.insert(channel.id, (channel.topic.clone(), channel.schema_id));
-                }
-                Ok(mcap::records::Record::Message { header, data }) => {
-                    count += 1;
-                    if let Some((topic, schema_id)) = topics.get(&header.channel_id) {
-                        let schema = schemas.get(schema_id).map_or("", String::as_str);
-                        if wanted(topic, schema) {
-                            on_message(topic, schema, header.log_time, &data)?;
-                        }
+            Record::Channel(channel) if trusted => {
+                topics.insert(channel.id, (channel.topic.clone(), channel.schema_id));
+            }
+            Record::Message { header, data } => {
+                let Some((topic, schema_id)) = topics.get(&header.channel_id) else {
+                    return Ok(());
+                };
+                if !trusted {
+                    if topic == CAPTURE_EVENTS_TOPIC
+                        && let Ok(event) = serde_json::from_slice::<CaptureEvent>(&data)
+                        && !untrusted_sets.iter().any(|(i, _)| *i == event.set_index)
+                    {
+                        untrusted_sets.push((event.set_index, event.set_name));
                     }
+                    return Ok(());
                 }
-                Ok(_) => {}
-                Err(error) => return Ok((count, Some(cut.unwrap_or_else(|| error.to_string())))),
-            },
+                count += 1;
+                let schema = schemas.get(schema_id).map_or("", String::as_str);
+                if wanted(topic, schema) {
+                    on_message(topic, schema, header.log_time, &data)?;
+                }
+            }
+            _ => {}
         }
+        Ok(())
+    })
+    .map_err(|error| match error {
+        crate::salvage::WalkError::NotMcap { .. } => ReplayError::Mcap {
+            source: mcap::McapError::BadMagic,
+        },
+        crate::salvage::WalkError::Handler(error) => error,
+    })?;
+    // Attribute the untrusted sets to the bad chunks by time (a chunk's sets lie in its span).
+    let mut damage = ScanDamage {
+        cut: report.cut.map(|cut| cut.to_string()),
+        bad_chunks: Vec::new(),
+    };
+    for chunk in &report.bad_chunks {
+        damage.bad_chunks.push((
+            format!(
+                "the chunk at byte {} (messages {} … {} ns) is corrupt ({}) and was left out",
+                chunk.at_byte, chunk.message_time_nanos.0, chunk.message_time_nanos.1, chunk.reason
+            ),
+            Vec::new(),
+        ));
     }
-    Ok((count, cut))
+    if let Some((_, sets)) = damage.bad_chunks.first_mut() {
+        // Which chunk an untrusted event came from is not tracked per chunk; with one bad chunk
+        // (the usual case) they are its sets, with several they are listed on the first.
+        sets.extend(untrusted_sets);
+    }
+    Ok((count, damage))
 }
 
 /// Reads the messages of `wanted` channels with log times in `range` through the summary's chunk
@@ -367,8 +341,8 @@ pub fn read_log_in(bytes: &[u8], range: &TimeRange) -> Result<LogContents, Repla
             .map(|second| first.and_then(|a| second.map(|b| a + b)))
         })
     };
-    let (messages, truncation) = match indexed {
-        Some(result) => (result?, None),
+    let (messages, damage) = match indexed {
+        Some(result) => (result?, ScanDamage::default()),
         None => {
             // No usable summary (or it contradicted the file): start over with a linear scan.
             collected = Collected::default();
@@ -382,25 +356,22 @@ pub fn read_log_in(bytes: &[u8], range: &TimeRange) -> Result<LogContents, Repla
         payloads,
         foreign,
     } = collected;
-    if messages == 0
-        && let Some(reason) = &truncation
-    {
-        return Err(ReplayError::Mcap {
-            source: mcap::McapError::Io(std::io::Error::new(std::io::ErrorKind::InvalidData, reason.clone())),
-        });
-    }
+    let truncation = damage.cut;
+    let damaged = truncation.is_some() || !damage.bad_chunks.is_empty();
+    let bad_chunks: Vec<String> = damage.bad_chunks.iter().map(|(reason, _)| reason.clone()).collect();
     if events.is_empty() && foreign.has_images() {
         // A cut-off log may have lost what the inference needs: report, do not fail.
-        let (sets, incomplete_sets) = match (foreign.infer_sets(&payloads), &truncation) {
+        let (sets, incomplete_sets) = match (foreign.infer_sets(&payloads), damaged) {
             (Ok(sets), _) => (sets, Vec::new()),
-            (Err(error), Some(_)) => (Vec::new(), vec![(0, error.to_string())]),
-            (Err(error), None) => return Err(error),
+            (Err(error), true) => (Vec::new(), vec![(0, error.to_string())]),
+            (Err(error), false) => return Err(error),
         };
         return Ok(LogContents {
             sets,
             incomplete_sets,
             messages,
             truncation,
+            bad_chunks,
             metadata: read_metadata(bytes),
         });
     }
@@ -418,29 +389,80 @@ pub fn read_log_in(bytes: &[u8], range: &TimeRange) -> Result<LogContents, Repla
         }
         match assemble_set(index, &events, &payloads) {
             Ok(set) => sets.push(set),
-            Err(error) if truncation.is_some() => incomplete_sets.push((index, error.to_string())),
+            Err(error) if damaged => incomplete_sets.push((index, error.to_string())),
             Err(error) => return Err(error),
         }
     }
+    // Sets whose messages were all in a corrupt chunk: named from its capture events.
+    for (reason, lost) in &damage.bad_chunks {
+        for (index, name) in lost {
+            if !sets.iter().any(|s| s.index == *index) && !incomplete_sets.iter().any(|(i, _)| i == index) {
+                incomplete_sets.push((*index, format!("'{name}' lost: {reason}")));
+            }
+        }
+    }
+    incomplete_sets.sort_by_key(|(index, _)| *index);
     Ok(LogContents {
         sets,
         incomplete_sets,
         messages,
         truncation,
+        bad_chunks,
         metadata: read_metadata(bytes),
     })
 }
 
+/// The metadata records: through the summary's index when the log has one, else by walking the
+/// file (a log cut before its summary keeps the records written before the cut).
 fn read_metadata(bytes: &[u8]) -> BTreeMap<String, BTreeMap<String, String>> {
     let mut out = BTreeMap::new();
-    if let Ok(Some(summary)) = mcap::Summary::read(bytes) {
-        for index in &summary.metadata_indexes {
-            if let Ok(record) = mcap::read::metadata(bytes, index) {
-                out.insert(record.name.clone(), record.metadata.clone());
-            }
-        }
+    if let Ok(Some(summary)) = mcap::Summary::read(bytes)
+        && summary
+            .metadata_indexes
+            .iter()
+            .all(|index| match mcap::read::metadata(bytes, index) {
+                Ok(record) => {
+                    out.insert(record.name.clone(), record.metadata.clone());
+                    true
+                }
+                Err(_) => false,
+            })
+    {
+        return out;
     }
+    out.clear();
+    // A file that is not MCAP at all has no metadata; the message scan reports it.
+    let _not_mcap = crate::salvage::walk(bytes, |record, trusted| -> Result<(), std::convert::Infallible> {
+        if let (mcap::records::Record::Metadata(metadata), true) = (record, trusted) {
+            out.insert(metadata.name, metadata.metadata);
+        }
+        Ok(())
+    });
     out
+}
+
+impl LogContents {
+    /// Whether anything of the log was lost (a cut, a corrupt chunk, an incomplete set).
+    pub fn lost_anything(&self) -> bool {
+        self.truncation.is_some() || !self.bad_chunks.is_empty() || !self.incomplete_sets.is_empty()
+    }
+
+    /// One line per thing lost: where the file was cut, each corrupt chunk, each incomplete set.
+    pub fn damage(&self) -> Vec<String> {
+        let mut lines = Vec::new();
+        if let Some(cut) = &self.truncation {
+            lines.push(format!(
+                "the log is {cut}; every complete message before it was kept ({} messages, {} complete set(s))",
+                self.messages,
+                self.sets.len()
+            ));
+        }
+        lines.extend(self.bad_chunks.iter().cloned());
+        for (set, reason) in &self.incomplete_sets {
+            lines.push(format!("set {set} is incomplete and skipped: {reason}"));
+        }
+        lines
+    }
 }
 
 fn decode_error<'a>(set: u32, topic: &'a str, schema: &'static str) -> impl Fn(prost::DecodeError) -> ReplayError + 'a {

@@ -185,7 +185,7 @@ pub const RESULT_SUMMARY_TOPIC: &str = "/results/summary";
 /// Writes results as a new log: the inputs' metadata records, then per set (at the reference
 /// image's log time) the disparity, depth, colour map, calibration and a JSON summary.
 pub struct ResultLog {
-    writer: record::log::LogWriter<std::io::BufWriter<std::fs::File>>,
+    writer: record::log::LogWriter<record::log::SyncedWriter>,
     file: record::log::OutputFile,
 }
 

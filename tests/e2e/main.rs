@@ -1,6 +1,7 @@
 //! End-to-end tests: they run the real binaries and read what they write, with our own reader
 //! and with the reference Python clients.
 
+mod crash_safety;
 mod mfusenet;
 mod record_cli;
 mod record_geometry;

@@ -8,7 +8,6 @@ use record::cli::Outcome;
 use tracing::warn;
 
 /// Arguments of `replay check`.
-/// Arguments of `replay check`.
 #[derive(Debug, Args)]
 pub struct CheckArgs {
     /// The log to check.
@@ -31,6 +30,9 @@ pub struct CheckArgs {
 pub fn run(args: &CheckArgs) -> Result<Outcome> {
     let contents = replay::log::read_log_file_in(&args.log, args.start, args.end)
         .with_context(|| format!("reading {}", args.log.display()))?;
+    for line in contents.damage() {
+        warn!("{}: {line}", args.log.display());
+    }
     let checks: Vec<replay::check::SetCheck> = contents
         .sets
         .iter()
@@ -52,7 +54,7 @@ pub fn run(args: &CheckArgs) -> Result<Outcome> {
         .iter()
         .filter(|c| c.status == replay::check::Status::Fail)
         .count();
-    if failed > 0 || contents.truncation.is_some() || !contents.incomplete_sets.is_empty() {
+    if failed > 0 || contents.lost_anything() {
         if failed > 0 {
             warn!("{failed} of {} set(s) failed the alignment check", checks.len());
         }

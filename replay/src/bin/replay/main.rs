@@ -7,6 +7,7 @@
 mod check;
 mod demo;
 mod eval;
+mod recover;
 mod run;
 mod train;
 
@@ -34,6 +35,7 @@ static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
     replay capture.mcap --method mfusenet --config '{\"flips\": true}'   the network and its mirror image averaged (twice the time)\n  \
     replay capture.mcap --method sgm-heuristic --config '{\"weighted_median\": {}}'   depth edges snapped to colour edges (mfusenet's default)\n  \
     replay --list-methods\n  \
+    replay recover .capture.mcap.partial-4242 -o capture.mcap   finish what a crash left\n  \
     replay eval ../shared/data/middlebury2006-third-dev --methods sgm-stereo,sgm-heuristic,mfusenet-stereo,mfusenet\n  \
     replay train --views 2                               train the three-view network on simulated captures")]
 struct Cli {
@@ -55,6 +57,9 @@ enum Command {
     Eval(eval::EvalArgs),
     /// Check the alignment of every view set of a log (exit 3 when a set fails).
     Check(check::CheckArgs),
+    /// Write what survived of a cut or corrupt log (e.g. the recorder's temporary file after a
+    /// crash) as a finished, indexed log, and say what was lost (exit 3 when something was).
+    Recover(recover::RecoverArgs),
     /// The one-command demo: record a simulated five-view capture, replay it with the best
     /// method, write the results (and the log) into one folder.
     Demo(demo::DemoArgs),
@@ -78,6 +83,7 @@ fn main() -> ExitCode {
             Some(Command::Eval(args)) => eval::run(args),
             Some(Command::Demo(args)) => demo::run(args, cli.quiet),
             Some(Command::Check(args)) => check::run(args),
+            Some(Command::Recover(args)) => recover::run(args),
             Some(Command::Train(args)) => train::run(args, cli.quiet),
             None => run::run(&cli.run, cli.quiet),
         }

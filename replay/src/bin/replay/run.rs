@@ -90,16 +90,14 @@ pub fn run(args: &RunArgs, quiet: bool) -> Result<Outcome> {
     let started = Instant::now();
     let contents = replay::log::read_log_file_in(log, args.start, args.end)
         .with_context(|| format!("reading {}", log.display()))?;
-    if let Some(reason) = &contents.truncation {
-        warn!(
-            "{} is cut off or corrupt after {} messages ({reason}); recovered {} complete set(s)",
-            log.display(),
-            contents.messages,
-            contents.sets.len()
-        );
+    for line in contents.damage() {
+        warn!("{}: {line}", log.display());
     }
-    for (set, reason) in &contents.incomplete_sets {
-        warn!("set {set} is incomplete and skipped: {reason}");
+    if contents.lost_anything() {
+        warn!(
+            "`replay recover {} -o FIXED.mcap` writes what survived as a finished log",
+            log.display()
+        );
     }
     let sets: Vec<&ViewSet> = contents
         .sets
@@ -311,7 +309,7 @@ pub fn run(args: &RunArgs, quiet: bool) -> Result<Outcome> {
     std::fs::write(&summary_path, serde_json::to_string_pretty(&summary)?)
         .with_context(|| format!("writing {}", summary_path.display()))?;
     info!("wrote {}", summary_path.display());
-    if contents.truncation.is_some() || !contents.incomplete_sets.is_empty() || viewer_lost {
+    if contents.lost_anything() || viewer_lost {
         return Ok(Outcome::Incomplete);
     }
     Ok(Outcome::Complete)

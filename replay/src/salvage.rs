@@ -1,0 +1,312 @@
+//! A walk over a log's records that keeps everything a damaged file still holds.
+//!
+//! The `mcap` crate's readers stop at the first bad record: a chunk cut by a crash is dropped
+//! whole, and a chunk whose CRC fails ends the read. [`walk`] instead goes record by record:
+//! - a chunk that runs past the end of the file (the recorder was killed while writing it) is
+//!   decompressed as far as its bytes go (streaming zstd), and every complete record in it kept;
+//! - a chunk whose CRC fails, or that does not decompress, is skipped with a [`BadChunk`] note
+//!   (its records are still offered as untrusted, so that a reader can name the sets it lost);
+//! - a top-level record cut off ends the walk with a [`Cut`] saying where.
+//!
+//! Nothing is allocated beyond what the file's bytes can hold: a chunk's claimed size is a limit,
+//! never an allocation.
+
+use std::io::Read;
+
+use mcap::records::Record;
+
+/// MCAP magic bytes at both ends of a file.
+pub const MCAP_MAGIC: &[u8] = b"\x89MCAP0\r\n";
+const FOOTER_OPCODE: u8 = 0x02;
+const CHUNK_OPCODE: u8 = 0x06;
+/// Largest uncompressed chunk accepted (a corrupt size field must not become an allocation).
+const MAX_CHUNK_UNCOMPRESSED_BYTES: u64 = 4 << 30;
+/// A record's framing: opcode (1 byte) and length (8 bytes).
+const RECORD_HEADER_BYTES: usize = 9;
+
+/// Where and why a log ends early.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Cut {
+    /// Byte offset of the first record that could not be read whole.
+    pub at_byte: u64,
+    /// The file's length.
+    pub file_bytes: u64,
+    /// What was found there.
+    pub reason: String,
+    /// Complete records recovered from a chunk cut at the end (0 when the cut is elsewhere).
+    pub records_from_cut_chunk: usize,
+}
+
+impl std::fmt::Display for Cut {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "cut at byte {} of {}: {}",
+            self.at_byte, self.file_bytes, self.reason
+        )?;
+        if self.records_from_cut_chunk > 0 {
+            write!(
+                f,
+                " ({} complete records recovered from the cut chunk)",
+                self.records_from_cut_chunk
+            )?;
+        }
+        Ok(())
+    }
+}
+
+/// A chunk whose records were not trusted.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct BadChunk {
+    /// Byte offset of the chunk record.
+    pub at_byte: u64,
+    /// Log time of its first and last message (ns), as its header claims.
+    pub message_time_nanos: (u64, u64),
+    /// Why: a CRC mismatch, or a stream that does not decompress.
+    pub reason: String,
+}
+
+/// What a walk found.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct WalkReport {
+    /// Records handed over as trusted.
+    pub records: usize,
+    /// Chunks skipped.
+    pub bad_chunks: Vec<BadChunk>,
+    /// Where the file ends early, if it does.
+    pub cut: Option<Cut>,
+    /// Whether the file has a footer (it was finished; its summary may be used).
+    pub finished: bool,
+}
+
+/// Errors a walk cannot go past.
+#[derive(Debug, thiserror::Error)]
+pub enum WalkError<E> {
+    /// Not an MCAP file at all.
+    #[error("not an MCAP log: the file does not start with the MCAP magic ({bytes} bytes)")]
+    NotMcap {
+        /// The file's length.
+        bytes: usize,
+    },
+    /// The caller's handler failed.
+    #[error(transparent)]
+    Handler(E),
+}
+
+fn u64_at(bytes: &[u8], at: usize) -> Option<u64> {
+    let slice = bytes.get(at..at.checked_add(8)?)?;
+    let mut array = [0u8; 8];
+    array.copy_from_slice(slice);
+    Some(u64::from_le_bytes(array))
+}
+
+fn u32_at(bytes: &[u8], at: usize) -> Option<u32> {
+    let slice = bytes.get(at..at.checked_add(4)?)?;
+    let mut array = [0u8; 4];
+    array.copy_from_slice(slice);
+    Some(u32::from_le_bytes(array))
+}
+
+/// A chunk's header fields and where its compressed records start within the record body.
+struct ChunkFrame<'a> {
+    start_time: u64,
+    end_time: u64,
+    uncompressed_size: u64,
+    uncompressed_crc: u32,
+    compression: &'a [u8],
+    /// The compressed records present (all of them, or those before the cut).
+    records: &'a [u8],
+    /// Whether every compressed byte the header announces is present.
+    whole: bool,
+}
+
+/// Parses a chunk's header from `body` (possibly cut short). `None` when not even the header is
+/// there.
+fn chunk_frame(body: &[u8]) -> Option<ChunkFrame<'_>> {
+    let start_time = u64_at(body, 0)?;
+    let end_time = u64_at(body, 8)?;
+    let uncompressed_size = u64_at(body, 16)?;
+    let uncompressed_crc = u32_at(body, 24)?;
+    let name_len = u32_at(body, 28)? as usize;
+    let name_end = 32usize.checked_add(name_len)?;
+    let compression = body.get(32..name_end)?;
+    let compressed_size = u64_at(body, name_end)?;
+    let records_start = name_end + 8;
+    let available = body.len().saturating_sub(records_start);
+    let whole = compressed_size <= available as u64;
+    let take = if whole { compressed_size as usize } else { available };
+    Some(ChunkFrame {
+        start_time,
+        end_time,
+        uncompressed_size,
+        uncompressed_crc,
+        compression,
+        records: body.get(records_start..records_start + take)?,
+        whole,
+    })
+}
+
+/// Decompresses as much of `records` as decodes, up to `limit` bytes. The error, if any, says
+/// why it stopped early.
+fn decompress(compression: &[u8], records: &[u8], limit: u64) -> (Vec<u8>, Option<String>) {
+    match compression {
+        b"" => {
+            let take = records.len().min(usize::try_from(limit).unwrap_or(usize::MAX));
+            (records[..take].to_vec(), None)
+        }
+        b"zstd" => {
+            let mut out = Vec::with_capacity(records.len().saturating_mul(4).min(limit as usize));
+            let decoder = match zstd::stream::read::Decoder::with_buffer(records) {
+                Ok(decoder) => decoder,
+                Err(error) => return (out, Some(error.to_string())),
+            };
+            match decoder.take(limit).read_to_end(&mut out) {
+                Ok(_) => (out, None),
+                Err(error) => (out, Some(error.to_string())),
+            }
+        }
+        other => (
+            Vec::new(),
+            Some(format!(
+                "compression '{}' is not supported",
+                String::from_utf8_lossy(other)
+            )),
+        ),
+    }
+}
+
+/// Hands every complete record of `records` (a chunk's decompressed contents) to `on_record`;
+/// returns how many there were and whether the last one was cut.
+fn walk_inner<E>(
+    records: &[u8],
+    trusted: bool,
+    on_record: &mut impl FnMut(Record<'_>, bool) -> Result<(), E>,
+) -> Result<(usize, bool), E> {
+    let mut at = 0usize;
+    let mut count = 0;
+    while at < records.len() {
+        let Some(length) = u64_at(records, at + 1) else {
+            return Ok((count, true));
+        };
+        let body = at + RECORD_HEADER_BYTES;
+        let Some(end) = usize::try_from(length).ok().and_then(|l| body.checked_add(l)) else {
+            return Ok((count, true));
+        };
+        let Some(data) = records.get(body..end) else {
+            return Ok((count, true));
+        };
+        // A record the `mcap` crate cannot parse inside a chunk is skipped, like an unknown
+        // opcode.
+        if let Ok(record) = mcap::parse_record(records[at], data) {
+            on_record(record, trusted)?;
+            count += 1;
+        }
+        at = end;
+    }
+    Ok((count, false))
+}
+
+/// Walks `bytes` (a whole or damaged MCAP file), handing every record it can read to
+/// `on_record(record, trusted)`: schemas, channels, messages (chunked or not), attachments,
+/// metadata, and the summary's records when the file was finished. Records of a bad chunk come
+/// with `trusted = false`.
+pub fn walk<E>(
+    bytes: &[u8],
+    mut on_record: impl FnMut(Record<'_>, bool) -> Result<(), E>,
+) -> Result<WalkReport, WalkError<E>> {
+    if bytes.len() < MCAP_MAGIC.len() || &bytes[..MCAP_MAGIC.len()] != MCAP_MAGIC {
+        return Err(WalkError::NotMcap { bytes: bytes.len() });
+    }
+    let mut report = WalkReport::default();
+    let file_bytes = bytes.len() as u64;
+    let mut at = MCAP_MAGIC.len();
+    while at < bytes.len() {
+        let cut = |reason: String, records: usize| Cut {
+            at_byte: at as u64,
+            file_bytes,
+            reason,
+            records_from_cut_chunk: records,
+        };
+        let opcode = bytes[at];
+        let Some(length) = u64_at(bytes, at + 1) else {
+            if bytes[at..] != MCAP_MAGIC[..bytes.len() - at] {
+                report.cut = Some(cut("a record's header is cut off".into(), 0));
+            } else {
+                report.cut = Some(cut("the closing magic is cut off".into(), 0));
+            }
+            break;
+        };
+        let body = at + RECORD_HEADER_BYTES;
+        let available = bytes.len() - body;
+        let whole = length <= available as u64;
+        let data = &bytes[body..body + if whole { length as usize } else { available }];
+        if opcode == CHUNK_OPCODE {
+            let Some(frame) = chunk_frame(data) else {
+                report.cut = Some(cut("a chunk's header is cut off".into(), 0));
+                break;
+            };
+            let limit = frame.uncompressed_size.min(MAX_CHUNK_UNCOMPRESSED_BYTES);
+            let (records, error) = decompress(frame.compression, frame.records, limit);
+            if frame.whole && whole {
+                let crc_ok = frame.uncompressed_crc == 0 || crc32fast::hash(&records) == frame.uncompressed_crc;
+                let complete = records.len() as u64 == frame.uncompressed_size;
+                let trusted = error.is_none() && crc_ok && complete;
+                let (count, _) = walk_inner(&records, trusted, &mut on_record).map_err(WalkError::Handler)?;
+                if trusted {
+                    report.records += count;
+                } else {
+                    report.bad_chunks.push(BadChunk {
+                        at_byte: at as u64,
+                        message_time_nanos: (frame.start_time, frame.end_time),
+                        reason: match error {
+                            Some(e) => format!("does not decompress: {e}"),
+                            None if !complete => format!(
+                                "holds {} bytes uncompressed, its header says {}",
+                                records.len(),
+                                frame.uncompressed_size
+                            ),
+                            None => "CRC mismatch".to_owned(),
+                        },
+                    });
+                }
+            } else {
+                // Cut inside the chunk: keep the complete records that decompress.
+                let (count, _) = walk_inner(&records, true, &mut on_record).map_err(WalkError::Handler)?;
+                report.records += count;
+                report.cut = Some(cut(
+                    format!(
+                        "a chunk (messages {} … {} ns) is cut after {} of its {} compressed bytes",
+                        frame.start_time,
+                        frame.end_time,
+                        frame.records.len(),
+                        u64_at(data, 32 + frame.compression.len()).unwrap_or(0)
+                    ),
+                    count,
+                ));
+                break;
+            }
+        } else if !whole {
+            report.cut = Some(cut(
+                format!("a record (opcode 0x{opcode:02x}, {length} bytes) runs past the end of the file"),
+                0,
+            ));
+            break;
+        } else if opcode == FOOTER_OPCODE {
+            report.finished = true;
+            break;
+        } else if let Ok(record) = mcap::parse_record(opcode, data) {
+            on_record(record, true).map_err(WalkError::Handler)?;
+            report.records += 1;
+        }
+        at = body + length as usize;
+    }
+    if !report.finished && report.cut.is_none() {
+        report.cut = Some(Cut {
+            at_byte: file_bytes,
+            file_bytes,
+            reason: "the file ends after a whole record but has no footer (the recording did not finish)".into(),
+            records_from_cut_chunk: 0,
+        });
+    }
+    Ok(report)
+}

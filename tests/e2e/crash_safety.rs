@@ -1,0 +1,292 @@
+//! Logs that survive a crash: every cut of a recording keeps the sets completed before it,
+//! `replay recover` finishes what is left, and a recorder killed with SIGKILL loses only the set
+//! in flight.
+
+use std::io::{BufRead, BufReader};
+use std::path::Path;
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use multiscopic_tests::{binary, python_with_mcap, record_log, replay, run, temp_dir};
+
+/// The byte offsets where each chunk record ends, in file order (from the summary).
+fn chunk_ends(bytes: &[u8]) -> Vec<usize> {
+    let summary = mcap::Summary::read(bytes)
+        .unwrap_or_else(|e| panic!("summary: {e}"))
+        .unwrap_or_else(|| panic!("the finished log has no summary"));
+    let mut ends: Vec<usize> = summary
+        .chunk_indexes
+        .iter()
+        .map(|c| (c.chunk_start_offset + c.chunk_length) as usize)
+        .collect();
+    ends.sort_unstable();
+    ends
+}
+
+/// Complete sets per the reference Python reader (CRCs checked): capture events grouped by set,
+/// a set counting when all its views are there.
+fn python_complete_sets(path: &Path) -> (Vec<u64>, serde_json::Value) {
+    let script = r#"
+import json, sys
+from collections import defaultdict
+from mcap.reader import make_reader
+with open(sys.argv[1], "rb") as f:
+    reader = make_reader(f, validate_crcs=True)
+    summary = reader.get_summary()
+    views = defaultdict(set); expected = {}
+    for schema, channel, message in reader.iter_messages(topics=["/capture/events"]):
+        event = json.loads(message.data)
+        views[event["set_index"]].add(event["role"]); expected[event["set_index"]] = event["views_in_set"]
+    metadata = sorted(m.name for m in reader.iter_metadata())
+    attachments = sorted(a.name for a in reader.iter_attachments())
+print(json.dumps({"complete": sorted(i for i in views if len(views[i]) == expected[i]),
+                  "chunks": len(summary.chunk_indexes), "metadata": metadata, "attachments": attachments}))
+"#;
+    let output = run(Command::new(python_with_mcap()).args(["-c", script]).arg(path));
+    assert!(
+        output.status.success(),
+        "the Python mcap reader rejects {}: {}",
+        path.display(),
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let report: serde_json::Value =
+        serde_json::from_slice(&output.stdout).unwrap_or_else(|e| panic!("python printed no JSON: {e}"));
+    let complete = report["complete"]
+        .as_array()
+        .unwrap_or_else(|| panic!("{report}"))
+        .iter()
+        .filter_map(serde_json::Value::as_u64)
+        .collect();
+    (complete, report)
+}
+
+#[test]
+fn every_cut_keeps_the_sets_completed_before_it_and_recover_finishes_them() {
+    let dir = temp_dir();
+    let log = record_log(
+        dir.path(),
+        "six.mcap",
+        &["--resolution", "320x240", "--captures", "6", "--samples-per-pixel", "1"],
+    );
+    let bytes = std::fs::read(&log).unwrap_or_else(|e| panic!("{e}"));
+    let ends = chunk_ends(&bytes);
+    assert_eq!(ends.len(), 6, "one chunk per set: {ends:?}");
+    // Every 4 KiB, and every byte within 64 of each chunk's end.
+    let mut cuts: Vec<usize> = (1..bytes.len() / 4096).map(|k| k * 4096).collect();
+    for end in &ends {
+        cuts.extend(end.saturating_sub(64)..(end + 65).min(bytes.len()));
+    }
+    cuts.sort_unstable();
+    cuts.dedup();
+    let expected = |cut: usize| ends.iter().filter(|end| **end <= cut).count();
+    let started = Instant::now();
+    let failures: Vec<String> = std::thread::scope(|scope| {
+        let workers: Vec<_> = (0..2)
+            .map(|worker| {
+                let (cuts, bytes) = (&cuts, &bytes);
+                scope.spawn(move || {
+                    let mut failures = Vec::new();
+                    for cut in cuts.iter().skip(worker).step_by(2) {
+                        match replay::log::read_log(&bytes[..*cut]) {
+                            Ok(contents) => {
+                                let got: Vec<u32> = contents.sets.iter().map(|s| s.index).collect();
+                                let want: Vec<u32> = (0..expected(*cut) as u32).collect();
+                                if got != want || contents.truncation.is_none() {
+                                    failures.push(format!(
+                                        "cut {cut}: sets {got:?}, expected {want:?}, truncation {:?}",
+                                        contents.truncation
+                                    ));
+                                }
+                            }
+                            Err(error) => failures.push(format!("cut {cut}: error {error}")),
+                        }
+                    }
+                    failures
+                })
+            })
+            .collect();
+        workers
+            .into_iter()
+            .flat_map(|w| w.join().unwrap_or_else(|_| vec!["a reader thread panicked".into()]))
+            .collect()
+    });
+    println!(
+        "{} cuts of a {}-byte log read in {:.1} s; chunk ends {ends:?}",
+        cuts.len(),
+        bytes.len(),
+        started.elapsed().as_secs_f64()
+    );
+    assert!(
+        failures.is_empty(),
+        "{} cuts wrong, e.g. {:?}",
+        failures.len(),
+        &failures[..failures.len().min(5)]
+    );
+
+    // Through the binaries: check says what was kept (exit 3), recover writes a finished log
+    // that the reference reader reads with its CRCs, holding exactly the complete sets.
+    for cut in [9000, ends[1] - 1, ends[1], ends[1] + 200, (ends[3] + ends[4]) / 2] {
+        let path = dir.path().join(format!("cut-{cut}.mcap"));
+        std::fs::write(&path, &bytes[..cut]).unwrap_or_else(|e| panic!("{e}"));
+        let path_text = path.to_str().unwrap_or_default();
+        let check = replay(&["check", path_text, "--json"]);
+        assert_eq!(
+            check.status.code(),
+            Some(3),
+            "check of cut {cut}: {}",
+            String::from_utf8_lossy(&check.stderr)
+        );
+        let stderr = String::from_utf8_lossy(&check.stderr);
+        assert!(stderr.contains("is cut at byte"), "where the log was cut: {stderr}");
+        let sets: Vec<serde_json::Value> =
+            serde_json::from_slice(&check.stdout).unwrap_or_else(|e| panic!("check --json: {e}"));
+        assert_eq!(sets.len(), expected(cut), "cut {cut}");
+        let fixed = dir.path().join(format!("fixed-{cut}.mcap"));
+        let recover = replay(&["recover", path_text, "-o", fixed.to_str().unwrap_or_default()]);
+        assert_eq!(
+            recover.status.code(),
+            Some(3),
+            "recover of cut {cut}: {}",
+            String::from_utf8_lossy(&recover.stderr)
+        );
+        let (complete, report) = python_complete_sets(&fixed);
+        assert_eq!(
+            complete,
+            (0..expected(cut) as u64).collect::<Vec<_>>(),
+            "cut {cut}: {report}"
+        );
+        if expected(cut) > 0 {
+            // Written before the first set: the scene and how the recording was made.
+            assert_eq!(report["attachments"], serde_json::json!(["scene.json"]), "{report}");
+            assert_eq!(
+                report["metadata"],
+                serde_json::json!(["multiscopic.recording"]),
+                "{report}"
+            );
+        }
+        // The recovered log is whole: replayed again, nothing is lost.
+        let again = replay(&["check", fixed.to_str().unwrap_or_default()]);
+        println!(
+            "cut {cut}: {} set(s) kept, the recovered log re-checked with exit {:?} (3 where it keeps an incomplete set)",
+            expected(cut),
+            again.status.code()
+        );
+        assert!(
+            matches!(again.status.code(), Some(0 | 3)),
+            "{}",
+            String::from_utf8_lossy(&again.stderr)
+        );
+    }
+}
+
+#[test]
+fn a_corrupt_chunk_loses_its_set_only() {
+    let dir = temp_dir();
+    let log = record_log(
+        dir.path(),
+        "three.mcap",
+        &["--resolution", "160x120", "--captures", "3", "--samples-per-pixel", "1"],
+    );
+    let mut bytes = std::fs::read(&log).unwrap_or_else(|e| panic!("{e}"));
+    let summary = mcap::Summary::read(&bytes)
+        .unwrap_or_else(|e| panic!("{e}"))
+        .unwrap_or_else(|| panic!("no summary"));
+    let mut chunks: Vec<_> = summary.chunk_indexes.iter().collect();
+    chunks.sort_by_key(|c| c.chunk_start_offset);
+    assert_eq!(chunks.len(), 3);
+    // Flip a byte in the middle of the second chunk's compressed records.
+    let middle = (chunks[1].chunk_start_offset + chunks[1].chunk_length / 2) as usize;
+    bytes[middle] ^= 0x55;
+    let bad = dir.path().join("bad.mcap");
+    std::fs::write(&bad, &bytes).unwrap_or_else(|e| panic!("{e}"));
+    let contents = replay::log::read_log(&bytes).unwrap_or_else(|e| panic!("{e}"));
+    let kept: Vec<u32> = contents.sets.iter().map(|s| s.index).collect();
+    assert_eq!(kept, vec![0, 2], "the corrupt chunk's set only is lost");
+    assert_eq!(contents.bad_chunks.len(), 1, "{:?}", contents.bad_chunks);
+    let check = replay(&["check", bad.to_str().unwrap_or_default()]);
+    assert_eq!(check.status.code(), Some(3));
+    let stderr = String::from_utf8_lossy(&check.stderr);
+    assert!(
+        stderr.contains("is corrupt") && stderr.contains("set 1"),
+        "the warning names the chunk and its set: {stderr}"
+    );
+}
+
+/// Sets the recorder had reported done when it was killed, and the temporary file it left.
+fn record_and_kill(dir: &Path, after: Duration) -> (usize, std::path::PathBuf) {
+    let output = dir.join("killed.mcap");
+    let mut child = Command::new(binary("record"))
+        .args([
+            "--resolution",
+            "640x480",
+            "--captures",
+            "6",
+            "--samples-per-pixel",
+            "1",
+            "-o",
+        ])
+        .arg(&output)
+        .env("RUST_LOG", "info")
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap_or_else(|e| panic!("record: {e}"));
+    let stderr = child.stderr.take().unwrap_or_else(|| panic!("no stderr"));
+    let (sender, receiver) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+            if line.contains(" done (") {
+                let _ = sender.send(());
+            }
+        }
+    });
+    std::thread::sleep(after);
+    child.kill().unwrap_or_else(|e| panic!("kill: {e}"));
+    let _ = child.wait();
+    // Lines logged before the kill; give the reader thread a moment to drain the pipe.
+    std::thread::sleep(Duration::from_millis(100));
+    let done = receiver.try_iter().count();
+    let partial = std::fs::read_dir(dir)
+        .unwrap_or_else(|e| panic!("{e}"))
+        .filter_map(Result::ok)
+        .map(|e| e.path())
+        .find(|p| {
+            p.file_name()
+                .is_some_and(|n| n.to_string_lossy().starts_with(".killed.mcap.partial-"))
+        });
+    (done, partial.unwrap_or_else(|| output.clone()))
+}
+
+#[test]
+fn a_recorder_killed_mid_run_leaves_every_set_it_reported_done() {
+    // SIGKILL at three instants: early, mid-run, late (the sets take about a second each here).
+    for (k, millis) in [700u64, 2500, 4500].into_iter().enumerate() {
+        let dir = temp_dir();
+        let (done, left) = record_and_kill(dir.path(), Duration::from_millis(millis));
+        if !left.exists() {
+            assert_eq!(done, 0, "the recorder reported {done} set(s) done but left no file");
+            continue;
+        }
+        let fixed = dir.path().join(format!("fixed-{k}.mcap"));
+        let recover = replay(&[
+            "recover",
+            left.to_str().unwrap_or_default(),
+            "-o",
+            fixed.to_str().unwrap_or_default(),
+        ]);
+        let finished_anyway = !left.file_name().is_some_and(|n| n.to_string_lossy().starts_with('.'));
+        assert!(
+            matches!(recover.status.code(), Some(0 | 3)),
+            "recover: {}",
+            String::from_utf8_lossy(&recover.stderr)
+        );
+        let (complete, report) = python_complete_sets(&fixed);
+        println!(
+            "killed after {millis} ms: {done} set(s) reported done, {} recovered{}",
+            complete.len(),
+            if finished_anyway { " (it had finished)" } else { "" }
+        );
+        assert!(complete.len() >= done, "lost a set reported done: {report}");
+        assert_eq!(complete, (0..complete.len() as u64).collect::<Vec<_>>());
+    }
+}
