@@ -290,3 +290,39 @@ fn a_recorder_killed_mid_run_leaves_every_set_it_reported_done() {
         assert_eq!(complete, (0..complete.len() as u64).collect::<Vec<_>>());
     }
 }
+
+#[test]
+fn a_full_disk_exits_1_naming_the_file_and_the_sets_safe_in_it() {
+    let dir = temp_dir();
+    let out = dir.path().join("full.mcap");
+    // A 3 MB file-size limit stands in for a full disk: with SIGXFSZ ignored the write fails with
+    // EFBIG, as it would with ENOSPC. The first 320×240 set (about 1.1 MB) fits, the second not.
+    let output = run(Command::new("bash")
+        .arg("-c")
+        .arg("trap '' XFSZ; ulimit -f 3000; exec \"$0\" --resolution 320x240 --captures 6 --samples-per-pixel 1 -o \"$1\"")
+        .arg(binary("record"))
+        .arg(&out));
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert_eq!(output.status.code(), Some(1), "{stderr}");
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    let safe: usize = stderr
+        .split(" complete set(s) were synced to disk")
+        .next()
+        .and_then(|head| head.rsplit(' ').next())
+        .and_then(|n| n.parse().ok())
+        .unwrap_or_else(|| panic!("the error says how many sets are safe: {stderr}"));
+    assert!(safe >= 1, "{stderr}");
+    let kept = std::fs::read_dir(dir.path())
+        .unwrap_or_else(|e| panic!("{e}"))
+        .filter_map(Result::ok)
+        .map(|e| e.path())
+        .find(|p| p.file_name().is_some_and(|n| n.to_string_lossy().starts_with(".full.mcap.partial-")))
+        .unwrap_or_else(|| panic!("the temporary file is kept: {stderr}"));
+    assert!(stderr.contains(&*kept.to_string_lossy()), "the error names the file: {stderr}");
+    assert!(!out.exists(), "no file under the final name");
+    let fixed = dir.path().join("fixed.mcap");
+    let recover = replay(&["recover", kept.to_str().unwrap_or_default(), "-o", fixed.to_str().unwrap_or_default()]);
+    assert_eq!(recover.status.code(), Some(3), "{}", String::from_utf8_lossy(&recover.stderr));
+    let (complete, report) = python_complete_sets(&fixed);
+    assert_eq!(complete, (0..safe as u64).collect::<Vec<_>>(), "{report}");
+}
