@@ -21,10 +21,35 @@ pub const DIRECTION_ERROR_LIMITS_DEG: (f64, f64) = (0.5, 2.0);
 pub const OUT_OF_PLANE_LIMITS: (f64, f64) = (0.02, 0.04);
 /// Relative rotation (deg).
 pub const ROTATION_LIMITS_DEG: (f64, f64) = (0.1, 0.3);
-/// Worst epipolar error over the image and depth range (px).
-pub const EPIPOLAR_LIMITS_PX: (f64, f64) = (1.0, 2.0);
-/// Residual perpendicular shift measured in the images (px).
-pub const IMAGE_SHIFT_LIMITS_PX: (f64, f64) = (1.0, 2.0);
+/// Default limits (px) of the worst epipolar error over the image and depth range, and of the
+/// residual perpendicular shift measured in the images: warn from 0.5 px (the precision every
+/// method is judged at, Bad0.5), fail from 1.5 px.
+pub const DEFAULT_PIXEL_LIMITS: PixelLimits = PixelLimits {
+    warn_px: 0.5,
+    fail_px: 1.5,
+};
+
+/// Where a pixel error (the predicted epipolar error, the measured image shift) starts to warn and
+/// to fail.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct PixelLimits {
+    /// Warn from this many pixels.
+    pub warn_px: f64,
+    /// Fail from this many pixels.
+    pub fail_px: f64,
+}
+
+impl Default for PixelLimits {
+    fn default() -> Self {
+        DEFAULT_PIXEL_LIMITS
+    }
+}
+
+impl PixelLimits {
+    fn pair(self) -> (f64, f64) {
+        (self.warn_px, self.fail_px)
+    }
+}
 /// Depth range assumed when the set has no ground truth (m).
 pub const DEFAULT_DEPTH_RANGE_M: (f64, f64) = (0.3, 2.0);
 /// Perpendicular shifts tried by the image-based estimate (px, each side).
@@ -33,6 +58,9 @@ const IMAGE_SHIFT_SEARCH_PX: i32 = 3;
 const IMAGE_BLOCK_RADIUS: i32 = 3;
 /// Sample pixels per axis of the image-based estimate.
 const IMAGE_SAMPLES_PER_AXIS: usize = 40;
+/// Smallest gap (px) between the mean disparities of the near and far halves of the samples for
+/// the image-based estimate to fit a shift that grows with disparity.
+const MIN_DISPARITY_SPREAD_PX: f64 = 2.0;
 
 /// Verdict of one measurement.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Serialize)]
@@ -47,9 +75,9 @@ pub enum Status {
 }
 
 fn grade(value: f64, (warn, fail): (f64, f64)) -> Status {
-    if !value.is_finite() || value > fail {
+    if !value.is_finite() || value >= fail {
         Status::Fail
-    } else if value > warn {
+    } else if value >= warn {
         Status::Warn
     } else {
         Status::Ok
@@ -93,6 +121,10 @@ pub struct NeighbourCheck {
     pub epipolar_error_px: Measure,
     /// Perpendicular shift that best aligns the images (px), when the images allow an estimate.
     pub image_shift_px: Option<Measure>,
+    /// The worst epipolar error from the true poses (px), when the log has them (simulation):
+    /// what the two estimates above should catch. Not graded.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub true_epipolar_error_px: Option<f64>,
     /// Worst of the above.
     pub status: Status,
 }
@@ -133,10 +165,16 @@ pub fn depth_range(set: &ViewSet) -> (f64, f64) {
 
 /// Worst perpendicular-to-search-line error (px) of a neighbour over a 5×5 grid of pixels and the
 /// ends of the depth range.
-fn epipolar_error(set: &ViewSet, neighbour: &View, depth_range: (f64, f64)) -> f64 {
+fn epipolar_error(
+    set: &ViewSet,
+    neighbour: &View,
+    depth_range: (f64, f64),
+    reference_pose: &nalgebra::Isometry3<f64>,
+    neighbour_pose: &nalgebra::Isometry3<f64>,
+) -> f64 {
     let k = k_matrix(&set.reference);
     let k_inv = k.try_inverse().unwrap_or_else(Matrix3::identity);
-    let relative = set.reference.world_from_camera.inverse() * neighbour.world_from_camera;
+    let relative = reference_pose.inverse() * neighbour_pose;
     let direction = Vector2::new(f64::from(neighbour.offset[0]), f64::from(neighbour.offset[1]));
     let along = direction.normalize();
     let perpendicular = Vector2::new(-along.y, along.x);
@@ -172,10 +210,40 @@ fn luma(view: &View) -> Vec<f32> {
         .collect()
 }
 
-/// The perpendicular shift (px) that best aligns a neighbour with the reference when the
-/// disparity along the search line is free: for each candidate shift, the best block cost over
-/// the disparities, summed over textured sample pixels; the minimum refined by a parabola.
-fn image_shift(set: &ViewSet, neighbour: &View, num_disparities: usize) -> Option<f64> {
+/// The perpendicular shift (px) that best aligns a group of sample pixels: for each candidate
+/// shift, the sum of the samples' best block costs over the disparities; the minimum refined by
+/// equiangular lines.
+fn pooled_shift(samples: &[Vec<f32>]) -> Option<f64> {
+    let mut totals = vec![0.0f64; (2 * IMAGE_SHIFT_SEARCH_PX + 1) as usize];
+    for best_per_shift in samples {
+        for (total, b) in totals.iter_mut().zip(best_per_shift) {
+            *total += f64::from(*b);
+        }
+    }
+    let (best, _) = totals.iter().enumerate().min_by(|a, b| a.1.total_cmp(b.1))?;
+    let mut shift = best as f64 - f64::from(IMAGE_SHIFT_SEARCH_PX);
+    if best > 0 && best + 1 < totals.len() {
+        // Equiangular lines: block SAD sums are V-shaped at their minimum, and a parabola would
+        // pull the shift toward the nearest integer.
+        let (l, c, r) = (totals[best - 1], totals[best], totals[best + 1]);
+        let rise = l.max(r) - c;
+        if rise > 0.0 {
+            shift += (0.5 * (l - r) / rise).clamp(-0.5, 0.5);
+        }
+    }
+    Some(shift)
+}
+
+/// The worst perpendicular shift (px) between a neighbour and the reference over the disparities
+/// of `depth_range`, measured in the images with the disparity along the search line free.
+///
+/// A rotation about the axis across the search line shifts every pixel alike; a displacement
+/// off the search line's direction (a hand-eye rotation: the poses look ideal) shifts each pixel
+/// in proportion to its disparity. So the textured sample pixels are split at their median
+/// disparity, each half's pooled shift measured ([`pooled_shift`]), and the line through the two
+/// evaluated at both ends of the set's disparity range; with too little disparity spread, the
+/// one pooled shift is the answer.
+fn image_shift(set: &ViewSet, neighbour: &View, num_disparities: usize, depth_range: (f64, f64)) -> Option<f64> {
     let (w, h) = (set.width() as i32, set.height() as i32);
     let reference = luma(&set.reference);
     let other = luma(neighbour);
@@ -183,8 +251,8 @@ fn image_shift(set: &ViewSet, neighbour: &View, num_disparities: usize) -> Optio
     let (ox, oy) = (neighbour.offset[0], neighbour.offset[1]);
     let (px, py) = (-oy.signum(), ox.signum());
     let margin = IMAGE_BLOCK_RADIUS + IMAGE_SHIFT_SEARCH_PX + 1;
-    let mut totals = vec![0.0f64; (2 * IMAGE_SHIFT_SEARCH_PX + 1) as usize];
-    let mut used = 0usize;
+    // Per textured sample: its best block cost at each shift, and the disparity of its best match.
+    let mut samples: Vec<(u32, Vec<f32>)> = Vec::new();
     for sy in 0..IMAGE_SAMPLES_PER_AXIS {
         for sx in 0..IMAGE_SAMPLES_PER_AXIS {
             let x = margin + ((w - 2 * margin) as usize * sx / IMAGE_SAMPLES_PER_AXIS) as i32;
@@ -194,7 +262,8 @@ fn image_shift(set: &ViewSet, neighbour: &View, num_disparities: usize) -> Optio
             if gradient < 8.0 {
                 continue;
             }
-            let mut best_per_shift = Vec::with_capacity(totals.len());
+            let mut best_per_shift = Vec::with_capacity((2 * IMAGE_SHIFT_SEARCH_PX + 1) as usize);
+            let mut best_overall = (f32::MAX, 0u32);
             for shift in -IMAGE_SHIFT_SEARCH_PX..=IMAGE_SHIFT_SEARCH_PX {
                 let mut best = f32::MAX;
                 for d in 0..num_disparities as i32 {
@@ -213,34 +282,46 @@ fn image_shift(set: &ViewSet, neighbour: &View, num_disparities: usize) -> Optio
                         }
                     }
                     best = best.min(sad);
+                    if sad < best_overall.0 {
+                        best_overall = (sad, d as u32);
+                    }
                 }
                 best_per_shift.push(best);
             }
             if best_per_shift.iter().all(|b| *b < f32::MAX) {
-                for (total, b) in totals.iter_mut().zip(&best_per_shift) {
-                    *total += f64::from(*b);
-                }
-                used += 1;
+                samples.push((best_overall.1, best_per_shift));
             }
         }
     }
-    if used < 20 {
+    if samples.len() < 20 {
         return None;
     }
-    let (best, _) = totals.iter().enumerate().min_by(|a, b| a.1.total_cmp(b.1))?;
-    let mut shift = best as f64 - f64::from(IMAGE_SHIFT_SEARCH_PX);
-    if best > 0 && best + 1 < totals.len() {
-        let (l, c, r) = (totals[best - 1], totals[best], totals[best + 1]);
-        let curvature = l - 2.0 * c + r;
-        if curvature > 0.0 {
-            shift += (0.5 * (l - r) / curvature).clamp(-0.5, 0.5);
-        }
+    let whole: Vec<Vec<f32>> = samples.iter().map(|(_, c)| c.clone()).collect();
+    let constant = pooled_shift(&whole)?;
+    // Disparity along the search line per unit of grid offset at the ends of the depth range.
+    let scale = f64::from(ox.abs().max(oy.abs()));
+    let focal_baseline = set.reference.camera.fx * set.baseline_m * scale;
+    let (d_near, d_far) = (focal_baseline / depth_range.0, focal_baseline / depth_range.1);
+    samples.sort_by_key(|(d, _)| *d);
+    let (low, high) = samples.split_at(samples.len() / 2);
+    let mean_disparity =
+        |group: &[(u32, Vec<f32>)]| group.iter().map(|(d, _)| f64::from(*d)).sum::<f64>() / group.len() as f64;
+    let (d_low, d_high) = (mean_disparity(low), mean_disparity(high));
+    // Too little spread to see a slope (a fronto-parallel scene): the constant shift.
+    if d_high - d_low < MIN_DISPARITY_SPREAD_PX || low.len() < 10 {
+        return Some(constant);
     }
-    Some(shift)
+    let group = |g: &[(u32, Vec<f32>)]| pooled_shift(&g.iter().map(|(_, c)| c.clone()).collect::<Vec<_>>());
+    let (s_low, s_high) = (group(low)?, group(high)?);
+    let slope = (s_high - s_low) / (d_high - d_low);
+    let at_disparity = |d: f64| s_low + slope * (d - d_low);
+    let ends = [at_disparity(d_near), at_disparity(d_far)];
+    ends.into_iter().max_by(|a, b| a.abs().total_cmp(&b.abs()))
 }
 
-/// Checks one set; `num_disparities` bounds the image-based search.
-pub fn check_set(set: &ViewSet, num_disparities: usize) -> SetCheck {
+/// Checks one set; `num_disparities` bounds the image-based search, `limits` grade the epipolar
+/// error and the image shift.
+pub fn check_set(set: &ViewSet, num_disparities: usize, limits: PixelLimits) -> SetCheck {
     let range = depth_range(set);
     let neighbours: Vec<NeighbourCheck> = set
         .neighbours
@@ -263,9 +344,18 @@ pub fn check_set(set: &ViewSet, num_disparities: usize) -> SetCheck {
                 Measure::new(direction_error, DIRECTION_ERROR_LIMITS_DEG),
                 out_of_plane,
                 Measure::new(rotation_deg, ROTATION_LIMITS_DEG),
-                Measure::new(epipolar_error(set, n, range), EPIPOLAR_LIMITS_PX),
+                Measure::new(
+                    epipolar_error(set, n, range, &set.reference.world_from_camera, &n.world_from_camera),
+                    limits.pair(),
+                ),
             ];
-            let image_shift_px = image_shift(set, n, num_disparities).map(|s| Measure::new(s, IMAGE_SHIFT_LIMITS_PX));
+            let image_shift_px = image_shift(set, n, num_disparities, range).map(|s| Measure::new(s, limits.pair()));
+            let true_epipolar_error_px = set
+                .reference
+                .true_world_from_camera
+                .as_ref()
+                .zip(n.true_world_from_camera.as_ref())
+                .map(|(reference, neighbour)| epipolar_error(set, n, range, reference, neighbour));
             let status = measures
                 .iter()
                 .map(|m| m.status)
@@ -281,6 +371,7 @@ pub fn check_set(set: &ViewSet, num_disparities: usize) -> SetCheck {
                 rotation_deg: measures[3],
                 epipolar_error_px: measures[4],
                 image_shift_px,
+                true_epipolar_error_px,
                 status,
             }
         })

@@ -118,7 +118,7 @@ impl<'a> PreparedSet<'a> {
         // The image-based shift search must reach the disparities searched.
         let end = min_disparity.saturating_add(i32::try_from(num_disparities).unwrap_or(i32::MAX));
         let reach = min_disparity.unsigned_abs().max(end.unsigned_abs()) as usize;
-        let alignment = check_set(set, reach);
+        let alignment = check_set(set, reach, crate::check::PixelLimits::default());
         let selected = set.with_neighbours(&options.neighbours)?;
         let problem = selected.problem(min_disparity, num_disparities, options.rectify)?;
         Ok(Self {

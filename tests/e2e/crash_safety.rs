@@ -316,13 +316,29 @@ fn a_full_disk_exits_1_naming_the_file_and_the_sets_safe_in_it() {
         .unwrap_or_else(|e| panic!("{e}"))
         .filter_map(Result::ok)
         .map(|e| e.path())
-        .find(|p| p.file_name().is_some_and(|n| n.to_string_lossy().starts_with(".full.mcap.partial-")))
+        .find(|p| {
+            p.file_name()
+                .is_some_and(|n| n.to_string_lossy().starts_with(".full.mcap.partial-"))
+        })
         .unwrap_or_else(|| panic!("the temporary file is kept: {stderr}"));
-    assert!(stderr.contains(&*kept.to_string_lossy()), "the error names the file: {stderr}");
+    assert!(
+        stderr.contains(&*kept.to_string_lossy()),
+        "the error names the file: {stderr}"
+    );
     assert!(!out.exists(), "no file under the final name");
     let fixed = dir.path().join("fixed.mcap");
-    let recover = replay(&["recover", kept.to_str().unwrap_or_default(), "-o", fixed.to_str().unwrap_or_default()]);
-    assert_eq!(recover.status.code(), Some(3), "{}", String::from_utf8_lossy(&recover.stderr));
+    let recover = replay(&[
+        "recover",
+        kept.to_str().unwrap_or_default(),
+        "-o",
+        fixed.to_str().unwrap_or_default(),
+    ]);
+    assert_eq!(
+        recover.status.code(),
+        Some(3),
+        "{}",
+        String::from_utf8_lossy(&recover.stderr)
+    );
     let (complete, report) = python_complete_sets(&fixed);
     assert_eq!(complete, (0..safe as u64).collect::<Vec<_>>(), "{report}");
 }

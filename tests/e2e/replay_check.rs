@@ -106,3 +106,51 @@ fn rectify_recovers_depth_quality_lost_to_a_rolled_view() {
     println!("1° roll on the left view: AvgErr {raw:.3} raw, {rectified:.3} rectified");
     assert!(rectified < raw, "rectify did not help: {rectified} ≥ {raw}");
 }
+
+#[test]
+fn half_a_pixel_of_epipolar_error_warns_and_the_limits_are_configurable() {
+    let dir = temp_dir();
+    // A 0.1° roll of the left view: about 0.55 px of epipolar error at the image's left and right
+    // edges (640 px wide).
+    let log = record_log(
+        dir.path(),
+        "roll.mcap",
+        &["--resolution", "640x360", "--rotation-error", "left:z:0.1"],
+    );
+    let log = log.to_str().unwrap_or_default();
+    let left = |extra: &[&str]| {
+        let mut args = vec!["check", log, "--json", "-q"];
+        args.extend_from_slice(extra);
+        let output = replay(&args);
+        let json: serde_json::Value =
+            serde_json::from_slice(&output.stdout).unwrap_or_else(|e| panic!("replay check printed no JSON: {e}"));
+        let left = json[0]["neighbours"]
+            .as_array()
+            .and_then(|n| n.iter().find(|v| v["role"] == "left"))
+            .cloned()
+            .unwrap_or_else(|| panic!("no left view in {json}"));
+        (output.status.code(), left)
+    };
+    let (code, view) = left(&[]);
+    let epipolar = view["epipolar_error_px"]["value"].as_f64().unwrap_or(f64::NAN);
+    let truth = view["true_epipolar_error_px"].as_f64().unwrap_or(f64::NAN);
+    println!("0.1° roll: epipolar {epipolar:.3} px (true {truth:.3}), {view}");
+    assert!((0.5..1.5).contains(&epipolar), "{view}");
+    assert!(
+        (epipolar - truth).abs() < 0.05,
+        "the logged poses hold the roll: {view}"
+    );
+    assert_eq!(view["status"], "warn", "{view}");
+    assert_eq!(code, Some(0), "a warning alone does not fail the check");
+    let (_, relaxed) = left(&["--warn-px", "1", "--fail-px", "2"]);
+    assert_eq!(relaxed["epipolar_error_px"]["status"], "ok", "{relaxed}");
+    let (_, strict) = left(&["--warn-px", "0.2", "--fail-px", "0.4"]);
+    assert_eq!(strict["status"], "fail", "{strict}");
+    let usage = replay(&["check", log, "--warn-px", "2", "--fail-px", "1"]);
+    assert_eq!(
+        usage.status.code(),
+        Some(2),
+        "a failure limit below the warning one is a usage error: {}",
+        String::from_utf8_lossy(&usage.stderr)
+    );
+}

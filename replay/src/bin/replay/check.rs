@@ -18,6 +18,12 @@ pub struct CheckArgs {
     /// Disparities searched by the image-based shift estimate (default: as for replay).
     #[arg(long)]
     num_disparities: Option<usize>,
+    /// Warn from this predicted epipolar error or measured image shift (px).
+    #[arg(long, value_name = "PX", default_value_t = replay::check::DEFAULT_PIXEL_LIMITS.warn_px)]
+    warn_px: f64,
+    /// Fail from this predicted epipolar error or measured image shift (px).
+    #[arg(long, value_name = "PX", default_value_t = replay::check::DEFAULT_PIXEL_LIMITS.fail_px)]
+    fail_px: f64,
     /// Only images logged at least this many seconds after the log's first message.
     #[arg(long, value_name = "SECS")]
     start: Option<f64>,
@@ -30,6 +36,17 @@ pub struct CheckArgs {
 pub fn run(args: &CheckArgs) -> Result<Outcome> {
     let contents = replay::log::read_log_file_in(&args.log, args.start, args.end)
         .with_context(|| format!("reading {}", args.log.display()))?;
+    if !(args.warn_px > 0.0 && args.fail_px >= args.warn_px) {
+        return Err(record::cli::UsageError(format!(
+            "--warn-px {} and --fail-px {} must be positive, the second at least the first",
+            args.warn_px, args.fail_px
+        ))
+        .into());
+    }
+    let limits = replay::check::PixelLimits {
+        warn_px: args.warn_px,
+        fail_px: args.fail_px,
+    };
     for line in contents.damage() {
         warn!("{}: {line}", args.log.display());
     }
@@ -40,6 +57,7 @@ pub fn run(args: &CheckArgs) -> Result<Outcome> {
             replay::check::check_set(
                 set,
                 args.num_disparities.unwrap_or_else(|| set.default_num_disparities()),
+                limits,
             )
         })
         .collect();
