@@ -284,3 +284,80 @@ pub fn f32_pixels(image: &RawImage) -> Vec<f32> {
 pub fn temp_dir() -> tempfile::TempDir {
     tempfile::tempdir().unwrap_or_else(|e| panic!("cannot create a temporary directory: {e}"))
 }
+
+/// The largest single allocation made by the current thread since [`allocations::reset`]: the
+/// fuzz targets check that no input makes a reader allocate more than its size allows. Counted
+/// by the test binary's global allocator (the system allocator, with a per-thread maximum).
+pub mod allocations {
+    use std::alloc::{GlobalAlloc, Layout, System};
+    use std::cell::Cell;
+
+    thread_local! {
+        static LARGEST: Cell<usize> = const { Cell::new(0) };
+    }
+
+    /// Starts counting afresh on this thread.
+    pub fn reset() {
+        let _ = LARGEST.try_with(|l| l.set(0));
+    }
+
+    /// The largest allocation (bytes) on this thread since the last [`reset`].
+    pub fn largest() -> usize {
+        LARGEST.try_with(Cell::get).unwrap_or(0)
+    }
+
+    thread_local! {
+        static IN_TRAP: Cell<bool> = const { Cell::new(false) };
+    }
+
+    fn note(size: usize) {
+        // `try_with`: during a thread's teardown the slot may be gone; nothing is counted then.
+        let _ = LARGEST.try_with(|l| l.set(l.get().max(size)));
+        // FUZZ_TRAP_BYTES=N prints where an allocation over N bytes comes from (debugging a
+        // fuzz finding); the guard keeps the backtrace's own allocations out.
+        if size > (1 << 30) && IN_TRAP.try_with(|t| !t.replace(true)).unwrap_or(false) {
+            if std::env::var_os("FUZZ_TRAP_BYTES").is_some() {
+                eprintln!(
+                    "allocation of {size} bytes at\n{}",
+                    std::backtrace::Backtrace::force_capture()
+                );
+            }
+            let _ = IN_TRAP.try_with(|t| t.set(false));
+        }
+    }
+
+    /// The system allocator, noting each request's size.
+    pub struct Counting;
+
+    // SAFETY: every call is forwarded unchanged to `System`, which upholds `GlobalAlloc`'s
+    // contract; the bookkeeping only reads the layout and touches a const-initialised
+    // thread-local `Cell` (no allocation, no destructor).
+    #[allow(unsafe_code)]
+    unsafe impl GlobalAlloc for Counting {
+        unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+            note(layout.size());
+            // SAFETY: forwarded with the caller's layout.
+            unsafe { System.alloc(layout) }
+        }
+
+        unsafe fn alloc_zeroed(&self, layout: Layout) -> *mut u8 {
+            note(layout.size());
+            // SAFETY: forwarded with the caller's layout.
+            unsafe { System.alloc_zeroed(layout) }
+        }
+
+        unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+            // SAFETY: `ptr` came from `System` with this layout.
+            unsafe { System.dealloc(ptr, layout) }
+        }
+
+        unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+            note(new_size);
+            // SAFETY: forwarded unchanged.
+            unsafe { System.realloc(ptr, layout, new_size) }
+        }
+    }
+
+    #[global_allocator]
+    static GLOBAL: Counting = Counting;
+}

@@ -802,7 +802,7 @@ fn first_channel<T: Copy + Into<f64>>(raw: &[T], channels: usize) -> Vec<f64> {
 
 /// Reads a ground-truth file as raw values (see the module docs for the formats); unknown =
 /// `NaN`.
-fn read_ground_truth(path: &Path) -> Result<(u32, u32, Vec<f64>), ImportError> {
+pub fn read_ground_truth(path: &Path) -> Result<(u32, u32, Vec<f64>), ImportError> {
     let extension = path
         .extension()
         .map(|e| e.to_string_lossy().to_ascii_lowercase())

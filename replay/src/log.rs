@@ -52,9 +52,7 @@ pub fn read_log_file_in(
     };
     let file = std::fs::File::open(path).map_err(io)?;
     let bytes = map_read_only(&file).map_err(io)?;
-    let origin = mcap::Summary::read(&bytes)
-        .ok()
-        .flatten()
+    let origin = crate::salvage::trusted_summary(&bytes)
         .and_then(|s| s.stats.map(|stats| stats.message_start_time))
         .unwrap_or(0);
     let at = |secs: f64| origin.saturating_add((secs.max(0.0) * 1e9) as u64);
@@ -193,7 +191,7 @@ fn scan_indexed(
     mut on_message: impl FnMut(&str, &str, u64, &[u8]) -> Result<(), ReplayError>,
 ) -> Option<Result<usize, ReplayError>> {
     use mcap::sans_io::{IndexedReadEvent, IndexedReader, IndexedReaderOptions};
-    let summary = mcap::Summary::read(bytes).ok().flatten()?;
+    let summary = crate::salvage::trusted_summary(bytes)?;
     if summary.chunk_indexes.is_empty() {
         return None;
     }
@@ -416,7 +414,7 @@ pub fn read_log_in(bytes: &[u8], range: &TimeRange) -> Result<LogContents, Repla
 /// file (a log cut before its summary keeps the records written before the cut).
 fn read_metadata(bytes: &[u8]) -> BTreeMap<String, BTreeMap<String, String>> {
     let mut out = BTreeMap::new();
-    if let Ok(Some(summary)) = mcap::Summary::read(bytes)
+    if let Some(summary) = crate::salvage::trusted_summary(bytes)
         && summary
             .metadata_indexes
             .iter()
@@ -524,6 +522,17 @@ fn decode_png(data: &[u8]) -> Result<(u32, u32, Vec<u8>), String> {
     decoder.set_transformations(png::Transformations::EXPAND | png::Transformations::STRIP_16);
     let mut reader = decoder.read_info().map_err(|e| e.to_string())?;
     let size = reader.output_buffer_size().ok_or("image too large")?;
+    // Deflate expands at most about 1032 : 1; a header claiming more than the bytes can hold is
+    // corrupt, and must not become an allocation.
+    if size > data.len().saturating_mul(1032).saturating_add(1 << 20) {
+        let info = reader.info();
+        return Err(format!(
+            "the PNG header claims {}x{} ({size} bytes), more than its {} bytes can hold",
+            info.width,
+            info.height,
+            data.len()
+        ));
+    }
     let mut buffer = vec![0; size];
     let info = reader.next_frame(&mut buffer).map_err(|e| e.to_string())?;
     buffer.truncate(info.buffer_size());
@@ -551,7 +560,8 @@ fn raw_to_rgb(set: u32, topic: &str, raw: &RawImage) -> Result<Vec<u8>, ReplayEr
             });
         }
     };
-    if step < w * channels || raw.data.len() < step * h.saturating_sub(1) + w * channels {
+    let row_bytes = w.saturating_mul(channels);
+    if step < row_bytes || raw.data.len() < step.saturating_mul(h.saturating_sub(1)).saturating_add(row_bytes) {
         return Err(ReplayError::BadField {
             set,
             topic: topic.to_owned(),
@@ -583,7 +593,8 @@ fn decode_depth(set: u32, topic: &str, data: &[u8], size: (u32, u32)) -> Result<
             encoding: raw.encoding,
         });
     }
-    if (raw.width, raw.height) != size || raw.data.len() < (raw.width * raw.height * 4) as usize {
+    let pixels = (raw.width as usize).saturating_mul(raw.height as usize);
+    if (raw.width, raw.height) != size || raw.data.len() < pixels.saturating_mul(4) {
         return Err(ReplayError::BadField {
             set,
             topic: topic.to_owned(),
@@ -599,7 +610,7 @@ fn decode_depth(set: u32, topic: &str, data: &[u8], size: (u32, u32)) -> Result<
         });
     }
     let step = (raw.step as usize).max(raw.width as usize * 4);
-    let mut depth = Vec::with_capacity((raw.width * raw.height) as usize);
+    let mut depth = Vec::with_capacity(pixels);
     for row in 0..raw.height as usize {
         for b in raw.data[row * step..row * step + raw.width as usize * 4].chunks_exact(4) {
             let z = f32::from_le_bytes([b[0], b[1], b[2], b[3]]);

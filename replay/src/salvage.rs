@@ -21,6 +21,9 @@ const FOOTER_OPCODE: u8 = 0x02;
 const CHUNK_OPCODE: u8 = 0x06;
 /// Largest uncompressed chunk accepted (a corrupt size field must not become an allocation).
 const MAX_CHUNK_UNCOMPRESSED_BYTES: u64 = 4 << 30;
+/// The most a chunk is believed to expand (zstd of our logs stays far below; a corrupt stream
+/// must not become a huge allocation).
+const MAX_COMPRESSION_RATIO: u64 = 4096;
 /// A record's framing: opcode (1 byte) and length (8 bytes).
 const RECORD_HEADER_BYTES: usize = 9;
 
@@ -53,6 +56,39 @@ impl std::fmt::Display for Cut {
         }
         Ok(())
     }
+}
+
+/// The file's summary section, read by the `mcap` crate only when its footer is in place, its
+/// records' lengths stay within the file and its CRC (when written) matches: the crate allocates
+/// what a record claims before checking it, so a flipped bit in a length must not reach it.
+pub fn trusted_summary(bytes: &[u8]) -> Option<mcap::Summary> {
+    // Footer: opcode, length 20, summary start, summary offset start, summary CRC; then the magic.
+    let footer_at = bytes.len().checked_sub(MCAP_MAGIC.len() + RECORD_HEADER_BYTES + 20)?;
+    if bytes.len() < 2 * MCAP_MAGIC.len() + RECORD_HEADER_BYTES + 20
+        || &bytes[bytes.len() - MCAP_MAGIC.len()..] != MCAP_MAGIC
+        || bytes[footer_at] != FOOTER_OPCODE
+        || u64_at(bytes, footer_at + 1)? != 20
+    {
+        return None;
+    }
+    let summary_start = usize::try_from(u64_at(bytes, footer_at + RECORD_HEADER_BYTES)?).ok()?;
+    if summary_start == 0 || summary_start < MCAP_MAGIC.len() || summary_start > footer_at {
+        return None;
+    }
+    let crc = u32_at(bytes, footer_at + RECORD_HEADER_BYTES + 16)?;
+    // The CRC covers the summary section and the footer up to its CRC field.
+    if crc != 0 && crc32fast::hash(&bytes[summary_start..footer_at + RECORD_HEADER_BYTES + 16]) != crc {
+        return None;
+    }
+    let mut at = summary_start;
+    while at < footer_at {
+        let length = usize::try_from(u64_at(bytes, at + 1)?).ok()?;
+        at = at.checked_add(RECORD_HEADER_BYTES)?.checked_add(length)?;
+    }
+    if at != footer_at {
+        return None;
+    }
+    mcap::Summary::read(bytes).ok().flatten()
 }
 
 /// A chunk whose records were not trusted.
@@ -155,7 +191,8 @@ fn decompress(compression: &[u8], records: &[u8], limit: u64) -> (Vec<u8>, Optio
             (records[..take].to_vec(), None)
         }
         b"zstd" => {
-            let mut out = Vec::with_capacity(records.len().saturating_mul(4).min(limit as usize));
+            // The limit is the claimed size when that is plausible: one allocation, no doubling.
+            let mut out = Vec::with_capacity(usize::try_from(limit).unwrap_or(0));
             let decoder = match zstd::stream::read::Decoder::with_buffer(records) {
                 Ok(decoder) => decoder,
                 Err(error) => return (out, Some(error.to_string())),
@@ -173,6 +210,77 @@ fn decompress(compression: &[u8], records: &[u8], limit: u64) -> (Vec<u8>, Optio
             )),
         ),
     }
+}
+
+/// Reads `count`-byte length prefixes through a record body, checking that each field fits.
+struct Fields<'a> {
+    body: &'a [u8],
+    at: usize,
+}
+
+impl Fields<'_> {
+    fn skip(&mut self, bytes: usize) -> Option<()> {
+        self.at = self.at.checked_add(bytes).filter(|end| *end <= self.body.len())?;
+        Some(())
+    }
+
+    /// A field with a 4-byte length prefix (a string, a schema's data).
+    fn prefixed32(&mut self) -> Option<()> {
+        let length = u32_at(self.body, self.at)? as usize;
+        self.skip(4)?;
+        self.skip(length)
+    }
+
+    /// A string → string map: its 4-byte byte length, then prefixed keys and values within it.
+    fn map(&mut self) -> Option<()> {
+        let length = u32_at(self.body, self.at)? as usize;
+        self.skip(4)?;
+        let end = self.at.checked_add(length).filter(|end| *end <= self.body.len())?;
+        while self.at < end {
+            self.prefixed32()?;
+            self.prefixed32()?;
+        }
+        (self.at == end).then_some(())
+    }
+}
+
+/// Whether a record is one the walk hands over (schema, channel, message, attachment, metadata)
+/// and the length prefixes inside it stay within its body: the `mcap` crate allocates what a
+/// prefix claims before checking it, so a flipped bit must be caught here.
+fn fields_fit(opcode: u8, body: &[u8]) -> bool {
+    let mut f = Fields { body, at: 0 };
+    let fits = match opcode {
+        // Schema: id, name, encoding, data.
+        0x03 => f
+            .skip(2)
+            .and_then(|()| f.prefixed32())
+            .and_then(|()| f.prefixed32())
+            .and_then(|()| f.prefixed32()),
+        // Channel: id, schema id, topic, message encoding, metadata.
+        0x04 => f
+            .skip(4)
+            .and_then(|()| f.prefixed32())
+            .and_then(|()| f.prefixed32())
+            .and_then(|()| f.map()),
+        // Attachment: log time, create time, name, media type, data (8-byte length), CRC.
+        0x09 => f
+            .skip(16)
+            .and_then(|()| f.prefixed32())
+            .and_then(|()| f.prefixed32())
+            .and_then(|()| {
+                let length = usize::try_from(u64_at(f.body, f.at)?).ok()?;
+                f.skip(8)?;
+                f.skip(length)
+            })
+            .and_then(|()| f.skip(4)),
+        // Metadata: name, map.
+        0x0C => f.prefixed32().and_then(|()| f.map()),
+        // Message: channel id, sequence, log time, publish time, then the payload.
+        0x05 => f.skip(22),
+        // Everything else (header, indexes, statistics, summary offsets, …) is not handed over.
+        _ => None,
+    };
+    fits.is_some()
 }
 
 /// Hands every complete record of `records` (a chunk's decompressed contents) to `on_record`;
@@ -197,7 +305,9 @@ fn walk_inner<E>(
         };
         // A record the `mcap` crate cannot parse inside a chunk is skipped, like an unknown
         // opcode.
-        if let Ok(record) = mcap::parse_record(records[at], data) {
+        if fields_fit(records[at], data)
+            && let Ok(record) = mcap::parse_record(records[at], data)
+        {
             on_record(record, trusted)?;
             count += 1;
         }
@@ -207,8 +317,8 @@ fn walk_inner<E>(
 }
 
 /// Walks `bytes` (a whole or damaged MCAP file), handing every record it can read to
-/// `on_record(record, trusted)`: schemas, channels, messages (chunked or not), attachments,
-/// metadata, and the summary's records when the file was finished. Records of a bad chunk come
+/// `on_record(record, trusted)`: schemas, channels, messages (chunked or not), attachments and
+/// metadata, including the summary's schemas and channels when the file was finished. Records of a bad chunk come
 /// with `trusted = false`.
 pub fn walk<E>(
     bytes: &[u8],
@@ -245,7 +355,11 @@ pub fn walk<E>(
                 report.cut = Some(cut("a chunk's header is cut off".into(), 0));
                 break;
             };
-            let limit = frame.uncompressed_size.min(MAX_CHUNK_UNCOMPRESSED_BYTES);
+            // What the header claims, within what the compressed bytes can hold.
+            let limit = frame
+                .uncompressed_size
+                .min(MAX_CHUNK_UNCOMPRESSED_BYTES)
+                .min((frame.records.len() as u64).saturating_mul(MAX_COMPRESSION_RATIO) + (64 << 10));
             let (records, error) = decompress(frame.compression, frame.records, limit);
             if frame.whole && whole {
                 let crc_ok = frame.uncompressed_crc == 0 || crc32fast::hash(&records) == frame.uncompressed_crc;
@@ -294,7 +408,9 @@ pub fn walk<E>(
         } else if opcode == FOOTER_OPCODE {
             report.finished = true;
             break;
-        } else if let Ok(record) = mcap::parse_record(opcode, data) {
+        } else if fields_fit(opcode, data)
+            && let Ok(record) = mcap::parse_record(opcode, data)
+        {
             on_record(record, true).map_err(WalkError::Handler)?;
             report.records += 1;
         }

@@ -104,10 +104,17 @@ pub fn read_pfm(path: &Path) -> Result<(usize, usize, Vec<f32>), FileError> {
     let height: usize = fields[2].parse().map_err(|_| bad("bad height"))?;
     let scale: f32 = fields[3].parse().map_err(|_| bad("bad scale"))?;
     let body = &bytes[header_end..];
-    if body.len() < width * height * 4 {
+    let Some(size) = width
+        .checked_mul(height)
+        .and_then(|n| n.checked_mul(4))
+        .filter(|n| *n > 0)
+    else {
+        return Err(bad("bad width or height"));
+    };
+    if body.len() < size {
         return Err(bad("truncated data"));
     }
-    let mut rows: Vec<Vec<f32>> = body[..width * height * 4]
+    let mut rows: Vec<Vec<f32>> = body[..size]
         .chunks_exact(width * 4)
         .map(|row| {
             row.chunks_exact(4)
