@@ -192,7 +192,13 @@ fn scan_indexed(
 ) -> Option<Result<usize, ReplayError>> {
     use mcap::sans_io::{IndexedReadEvent, IndexedReader, IndexedReaderOptions};
     let summary = crate::salvage::trusted_summary(bytes)?;
-    if summary.chunk_indexes.is_empty() {
+    // The indexed reader allocates each chunk's claimed size: an implausible one (or a chunk
+    // outside the file) sends the read to the linear scan, which bounds what it decompresses.
+    let plausible = |c: &mcap::records::ChunkIndex| {
+        c.uncompressed_size <= c.compressed_size.saturating_mul(4096).saturating_add(64 << 10)
+            && c.chunk_start_offset.saturating_add(c.chunk_length) <= bytes.len() as u64
+    };
+    if summary.chunk_indexes.is_empty() || !summary.chunk_indexes.iter().all(plausible) {
         return None;
     }
     let channels: HashMap<u16, (String, String)> = summary
@@ -418,12 +424,12 @@ fn read_metadata(bytes: &[u8]) -> BTreeMap<String, BTreeMap<String, String>> {
         && summary
             .metadata_indexes
             .iter()
-            .all(|index| match mcap::read::metadata(bytes, index) {
-                Ok(record) => {
-                    out.insert(record.name.clone(), record.metadata.clone());
+            .all(|index| match crate::salvage::record_at(bytes, index.offset) {
+                Some(mcap::records::Record::Metadata(record)) => {
+                    out.insert(record.name, record.metadata);
                     true
                 }
-                Err(_) => false,
+                _ => false,
             })
     {
         return out;

@@ -91,6 +91,20 @@ pub fn trusted_summary(bytes: &[u8]) -> Option<mcap::Summary> {
     mcap::Summary::read(bytes).ok().flatten()
 }
 
+/// The record at `offset` (e.g. from a summary's metadata index), parsed only when its framing
+/// and its length prefixes fit in the file.
+pub fn record_at(bytes: &[u8], offset: u64) -> Option<Record<'_>> {
+    let at = usize::try_from(offset).ok()?;
+    let opcode = *bytes.get(at)?;
+    let length = usize::try_from(u64_at(bytes, at.checked_add(1)?)?).ok()?;
+    let body_start = at.checked_add(RECORD_HEADER_BYTES)?;
+    let body = bytes.get(body_start..body_start.checked_add(length)?)?;
+    if !fields_fit(opcode, body) {
+        return None;
+    }
+    mcap::parse_record(opcode, body).ok()
+}
+
 /// A chunk whose records were not trusted.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct BadChunk {

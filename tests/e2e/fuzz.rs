@@ -140,6 +140,12 @@ fn with_file(dir: &Path, name: &str, data: &[u8]) -> PathBuf {
 fn the_log_reader_and_foreign_set_assembly_survive_mutated_logs() {
     fuzz("read_log", &[corpus("five.mcap"), corpus("foreign.mcap")], |data| {
         let _ = replay::log::read_log(data);
+        // A time window goes through the summary's indexes when the summary holds.
+        let window = replay::log::TimeRange {
+            start_nanos: 1_577_836_800_000_000_000,
+            end_nanos: 1_577_836_805_000_000_000,
+        };
+        let _ = replay::log::read_log_in(data, &window);
     });
 }
 
