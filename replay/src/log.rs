@@ -600,25 +600,30 @@ fn decode_depth(set: u32, topic: &str, data: &[u8], size: (u32, u32)) -> Result<
         });
     }
     let pixels = (raw.width as usize).saturating_mul(raw.height as usize);
-    if (raw.width, raw.height) != size || raw.data.len() < pixels.saturating_mul(4) {
+    let row_bytes = (raw.width as usize).saturating_mul(4);
+    let step = (raw.step as usize).max(row_bytes);
+    let needed = step
+        .saturating_mul((raw.height as usize).saturating_sub(1))
+        .saturating_add(row_bytes);
+    if (raw.width, raw.height) != size || raw.data.len() < needed {
         return Err(ReplayError::BadField {
             set,
             topic: topic.to_owned(),
             field: "width/height/data",
             value: format!(
-                "{}x{} with {} bytes, image is {}x{}",
+                "{}x{} with step {} and {} bytes, image is {}x{}",
                 raw.width,
                 raw.height,
+                raw.step,
                 raw.data.len(),
                 size.0,
                 size.1
             ),
         });
     }
-    let step = (raw.step as usize).max(raw.width as usize * 4);
     let mut depth = Vec::with_capacity(pixels);
     for row in 0..raw.height as usize {
-        for b in raw.data[row * step..row * step + raw.width as usize * 4].chunks_exact(4) {
+        for b in raw.data[row * step..row * step + row_bytes].chunks_exact(4) {
             let z = f32::from_le_bytes([b[0], b[1], b[2], b[3]]);
             if !z.is_finite() || z < 0.0 {
                 return Err(ReplayError::BadField {
@@ -698,7 +703,11 @@ fn assemble_set(
             if let Some(topic) = &event.surface_topic {
                 let raw: RawImage = prost::Message::decode(payload(payloads, index, event, topic)?)
                     .map_err(decode_error(index, topic, "foxglove.RawImage"))?;
-                surface = Some(raw.data.to_vec());
+                // Surface classes are optional evaluation data: a mask of another size is
+                // left out rather than misread.
+                if raw.data.len() == (width as usize).saturating_mul(height as usize) {
+                    surface = Some(raw.data.to_vec());
+                }
             }
         }
         views.push(View {
