@@ -58,8 +58,8 @@ const IMAGE_SHIFT_SEARCH_PX: i32 = 3;
 const IMAGE_BLOCK_RADIUS: i32 = 3;
 /// Sample pixels per axis of the image-based estimate.
 const IMAGE_SAMPLES_PER_AXIS: usize = 40;
-/// Smallest gap (px) between the mean disparities of the near and far halves of the samples for
-/// the image-based estimate to fit a shift that grows with disparity.
+/// Smallest standard deviation (px) of the samples' disparities for the image-based estimate to
+/// fit a shift that grows with disparity.
 const MIN_DISPARITY_SPREAD_PX: f64 = 2.0;
 
 /// Verdict of one measurement.
@@ -239,10 +239,10 @@ fn pooled_shift(samples: &[Vec<f32>]) -> Option<f64> {
 ///
 /// A rotation about the axis across the search line shifts every pixel alike; a displacement
 /// off the search line's direction (a hand-eye rotation: the poses look ideal) shifts each pixel
-/// in proportion to its disparity. So the textured sample pixels are split at their median
-/// disparity, each half's pooled shift measured ([`pooled_shift`]), and the line through the two
-/// evaluated at both ends of the set's disparity range; with too little disparity spread, the
-/// one pooled shift is the answer.
+/// in proportion to its disparity. So each textured sample pixel gives its own shift at its best
+/// match, a line `shift = a + b·d` is fitted through them (Tukey's biweight, robust to wrong
+/// matches) and evaluated at both ends of the set's disparity range; with too little disparity
+/// spread, the shift pooled over every sample ([`pooled_shift`]) is the answer.
 fn image_shift(set: &ViewSet, neighbour: &View, num_disparities: usize, depth_range: (f64, f64)) -> Option<f64> {
     let (w, h) = (set.width() as i32, set.height() as i32);
     let reference = luma(&set.reference);
@@ -302,21 +302,50 @@ fn image_shift(set: &ViewSet, neighbour: &View, num_disparities: usize, depth_ra
     let scale = f64::from(ox.abs().max(oy.abs()));
     let focal_baseline = set.reference.camera.fx * set.baseline_m * scale;
     let (d_near, d_far) = (focal_baseline / depth_range.0, focal_baseline / depth_range.1);
-    samples.sort_by_key(|(d, _)| *d);
-    let (low, high) = samples.split_at(samples.len() / 2);
-    let mean_disparity =
-        |group: &[(u32, Vec<f32>)]| group.iter().map(|(d, _)| f64::from(*d)).sum::<f64>() / group.len() as f64;
-    let (d_low, d_high) = (mean_disparity(low), mean_disparity(high));
+    // Each sample's own shift at its best match, then a line shift = a + b·d through them,
+    // robust to wrong matches (Tukey's biweight, re-weighted a few times).
+    let points: Vec<(f64, f64)> = samples
+        .iter()
+        .filter_map(|(d, costs)| pooled_shift(std::slice::from_ref(costs)).map(|s| (f64::from(*d), s)))
+        .collect();
+    let mean = |values: &mut dyn Iterator<Item = f64>| {
+        let (sum, n) = values.fold((0.0, 0usize), |(s, n), v| (s + v, n + 1));
+        sum / n.max(1) as f64
+    };
+    let d_mean = mean(&mut points.iter().map(|p| p.0));
+    let d_spread = mean(&mut points.iter().map(|p| (p.0 - d_mean).powi(2))).sqrt();
     // Too little spread to see a slope (a fronto-parallel scene): the constant shift.
-    if d_high - d_low < MIN_DISPARITY_SPREAD_PX || low.len() < 10 {
+    if d_spread < MIN_DISPARITY_SPREAD_PX || points.len() < 20 {
         return Some(constant);
     }
-    let group = |g: &[(u32, Vec<f32>)]| pooled_shift(&g.iter().map(|(_, c)| c.clone()).collect::<Vec<_>>());
-    let (s_low, s_high) = (group(low)?, group(high)?);
-    let slope = (s_high - s_low) / (d_high - d_low);
-    let at_disparity = |d: f64| s_low + slope * (d - d_low);
-    let ends = [at_disparity(d_near), at_disparity(d_far)];
-    ends.into_iter().max_by(|a, b| a.abs().total_cmp(&b.abs()))
+    let mut weights = vec![1.0f64; points.len()];
+    let (mut a, mut b) = (constant, 0.0);
+    for _ in 0..5 {
+        let total: f64 = weights.iter().sum();
+        if total <= 0.0 {
+            break;
+        }
+        let dm = points.iter().zip(&weights).map(|(p, w)| w * p.0).sum::<f64>() / total;
+        let sm = points.iter().zip(&weights).map(|(p, w)| w * p.1).sum::<f64>() / total;
+        let sxx: f64 = points.iter().zip(&weights).map(|(p, w)| w * (p.0 - dm).powi(2)).sum();
+        let sxy: f64 = points
+            .iter()
+            .zip(&weights)
+            .map(|(p, w)| w * (p.0 - dm) * (p.1 - sm))
+            .sum();
+        b = if sxx > 0.0 { sxy / sxx } else { 0.0 };
+        a = sm - b * dm;
+        let mut residuals: Vec<f64> = points.iter().map(|p| (p.1 - a - b * p.0).abs()).collect();
+        let mut sorted = residuals.clone();
+        sorted.sort_by(f64::total_cmp);
+        let scale = (1.4826 * sorted[sorted.len() / 2]).max(0.05) * 4.685;
+        for (w, r) in weights.iter_mut().zip(residuals.drain(..)) {
+            let u = r / scale;
+            *w = if u < 1.0 { (1.0 - u * u).powi(2) } else { 0.0 };
+        }
+    }
+    let ends = [a + b * d_near, a + b * d_far];
+    ends.into_iter().max_by(|x, y| x.abs().total_cmp(&y.abs()))
 }
 
 /// Checks one set; `num_disparities` bounds the image-based search, `limits` grade the epipolar
