@@ -294,19 +294,26 @@ impl LogOptions {
         self
     }
 
-    /// Starts a log on any seekable writer.
-    pub fn create<W: Write + Seek>(self, writer: W) -> Result<LogWriter<W>, LogError> {
-        let options = mcap::WriteOptions::new()
+    /// The `mcap` writer settings of every log: zstd chunks of this size and level, indexes,
+    /// statistics and every CRC; `library` names the writing tool. Also for tools that copy
+    /// records as they are (`replay recover`).
+    pub fn mcap_options(&self, library: String) -> mcap::WriteOptions {
+        mcap::WriteOptions::new()
             .compression(Some(mcap::Compression::Zstd))
             .compression_level(self.zstd_level)
             .compression_threads(0)
             .chunk_size(Some(self.chunk_size))
             .profile("")
-            .library(format!("multiscopic-record {}", crate::TOOL_VERSION))
+            .library(library)
             .calculate_chunk_crcs(true)
             .calculate_data_section_crc(true)
             .calculate_summary_section_crc(true)
-            .calculate_attachment_crcs(true);
+            .calculate_attachment_crcs(true)
+    }
+
+    /// Starts a log on any seekable writer.
+    pub fn create<W: Write + Seek>(self, writer: W) -> Result<LogWriter<W>, LogError> {
+        let options = self.mcap_options(format!("multiscopic-record {}", crate::TOOL_VERSION));
         let writer = options.create(writer).map_err(|source| LogError::Mcap {
             topic: "header".into(),
             source,

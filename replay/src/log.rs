@@ -106,6 +106,8 @@ struct ScanDamage {
     /// Chunks left out, each with the sets its capture events named (read from the untrusted
     /// chunk when it still decompresses).
     bad_chunks: Vec<(String, Vec<(u32, String)>)>,
+    /// The metadata records met on the way (`None` when the scan did not run).
+    metadata: Option<BTreeMap<String, BTreeMap<String, String>>>,
 }
 
 /// Scans messages in file order ([`crate::salvage::walk`]: a cut chunk is read as far as it
@@ -120,8 +122,9 @@ fn scan(
     let mut topics: HashMap<u16, (String, u16)> = HashMap::new();
     let mut schemas: HashMap<u16, String> = HashMap::new();
     let mut count = 0;
-    // Sets named by capture events of untrusted chunks, in walk order.
-    let mut untrusted_sets: Vec<(u32, String)> = Vec::new();
+    // Capture events of untrusted chunks: set index, name and log time.
+    let mut untrusted_events: Vec<(u32, String, u64)> = Vec::new();
+    let mut metadata = BTreeMap::new();
     let report = crate::salvage::walk(bytes, |record, trusted| {
         match record {
             Record::Schema { header, .. } if trusted => {
@@ -130,6 +133,9 @@ fn scan(
             Record::Channel(channel) if trusted => {
                 topics.insert(channel.id, (channel.topic.clone(), channel.schema_id));
             }
+            Record::Metadata(record) if trusted => {
+                metadata.insert(record.name, record.metadata);
+            }
             Record::Message { header, data } => {
                 let Some((topic, schema_id)) = topics.get(&header.channel_id) else {
                     return Ok(());
@@ -137,9 +143,8 @@ fn scan(
                 if !trusted {
                     if topic == CAPTURE_EVENTS_TOPIC
                         && let Ok(event) = serde_json::from_slice::<CaptureEvent>(&data)
-                        && !untrusted_sets.iter().any(|(i, _)| *i == event.set_index)
                     {
-                        untrusted_sets.push((event.set_index, event.set_name));
+                        untrusted_events.push((event.set_index, event.set_name, header.log_time));
                     }
                     return Ok(());
                 }
@@ -159,25 +164,30 @@ fn scan(
         },
         crate::salvage::WalkError::Handler(error) => error,
     })?;
-    // Attribute the untrusted sets to the bad chunks by time (a chunk's sets lie in its span).
-    let mut damage = ScanDamage {
+    // Each bad chunk's sets: those of the untrusted capture events within its time span.
+    let bad_chunks = report
+        .bad_chunks
+        .iter()
+        .map(|chunk| {
+            let (start, end) = chunk.message_time_nanos;
+            let mut sets: Vec<(u32, String)> = Vec::new();
+            for (index, name, time) in &untrusted_events {
+                if (start..=end).contains(time) && !sets.iter().any(|(i, _)| i == index) {
+                    sets.push((*index, name.clone()));
+                }
+            }
+            let reason = format!(
+                "the chunk at byte {} (messages {start} … {end} ns) is corrupt ({}) and was left out",
+                chunk.at_byte, chunk.reason
+            );
+            (reason, sets)
+        })
+        .collect();
+    let damage = ScanDamage {
         cut: report.cut.map(|cut| cut.to_string()),
-        bad_chunks: Vec::new(),
+        bad_chunks,
+        metadata: Some(metadata),
     };
-    for chunk in &report.bad_chunks {
-        damage.bad_chunks.push((
-            format!(
-                "the chunk at byte {} (messages {} … {} ns) is corrupt ({}) and was left out",
-                chunk.at_byte, chunk.message_time_nanos.0, chunk.message_time_nanos.1, chunk.reason
-            ),
-            Vec::new(),
-        ));
-    }
-    if let Some((_, sets)) = damage.bad_chunks.first_mut() {
-        // Which chunk an untrusted event came from is not tracked per chunk; with one bad chunk
-        // (the usual case) they are its sets, with several they are listed on the first.
-        sets.extend(untrusted_sets);
-    }
     Ok((count, damage))
 }
 
@@ -345,7 +355,7 @@ pub fn read_log_in(bytes: &[u8], range: &TimeRange) -> Result<LogContents, Repla
             .map(|second| first.and_then(|a| second.map(|b| a + b)))
         })
     };
-    let (messages, damage) = match indexed {
+    let (messages, mut damage) = match indexed {
         Some(result) => (result?, ScanDamage::default()),
         None => {
             // No usable summary (or it contradicted the file): start over with a linear scan.
@@ -376,7 +386,7 @@ pub fn read_log_in(bytes: &[u8], range: &TimeRange) -> Result<LogContents, Repla
             messages,
             truncation,
             bad_chunks,
-            metadata: read_metadata(bytes),
+            metadata: read_metadata(bytes, damage.metadata.take()),
         });
     }
     let mut by_set: BTreeMap<u32, Vec<CaptureEvent>> = BTreeMap::new();
@@ -412,13 +422,17 @@ pub fn read_log_in(bytes: &[u8], range: &TimeRange) -> Result<LogContents, Repla
         messages,
         truncation,
         bad_chunks,
-        metadata: read_metadata(bytes),
+        metadata: read_metadata(bytes, damage.metadata.take()),
     })
 }
 
-/// The metadata records: through the summary's index when the log has one, else by walking the
-/// file (a log cut before its summary keeps the records written before the cut).
-fn read_metadata(bytes: &[u8]) -> BTreeMap<String, BTreeMap<String, String>> {
+/// The metadata records: through the summary's index when the log has one, else those the linear
+/// scan met (`scanned`), else by walking the file (a log cut before its summary keeps the records
+/// written before the cut).
+fn read_metadata(
+    bytes: &[u8],
+    scanned: Option<BTreeMap<String, BTreeMap<String, String>>>,
+) -> BTreeMap<String, BTreeMap<String, String>> {
     let mut out = BTreeMap::new();
     if let Some(summary) = crate::salvage::trusted_summary(bytes)
         && summary
@@ -433,6 +447,9 @@ fn read_metadata(bytes: &[u8]) -> BTreeMap<String, BTreeMap<String, String>> {
             })
     {
         return out;
+    }
+    if let Some(scanned) = scanned {
+        return scanned;
     }
     out.clear();
     // A file that is not MCAP at all has no metadata; the message scan reports it.

@@ -11,7 +11,7 @@ use std::path::{Path, PathBuf};
 
 use mcap::records::Record;
 
-use crate::salvage::{BadChunk, Cut, WalkError, walk};
+use crate::salvage::{BadChunk, WalkError, walk};
 
 /// Errors of a recovery.
 #[derive(Debug, thiserror::Error)]
@@ -90,10 +90,6 @@ impl RecoverReport {
     }
 }
 
-fn describe_cut(cut: &Cut) -> String {
-    cut.to_string()
-}
-
 fn describe_bad_chunk(chunk: &BadChunk) -> String {
     format!(
         "chunk at byte {} (messages {} … {} ns): {}",
@@ -112,16 +108,8 @@ pub fn recover_file(input: &Path, output: &Path) -> Result<RecoverReport, Recove
         let path = output.to_path_buf();
         move |source| RecoverError::Write { path, what, source }
     };
-    let options = mcap::WriteOptions::new()
-        .compression(Some(mcap::Compression::Zstd))
-        .compression_level(record::log::DEFAULT_ZSTD_LEVEL)
-        .compression_threads(0)
-        .chunk_size(Some(record::log::DEFAULT_CHUNK_SIZE))
-        .library(format!("multiscopic-replay-recover {}", env!("CARGO_PKG_VERSION")))
-        .calculate_chunk_crcs(true)
-        .calculate_data_section_crc(true)
-        .calculate_summary_section_crc(true)
-        .calculate_attachment_crcs(true);
+    let options = record::log::LogOptions::new()
+        .mcap_options(format!("multiscopic-replay-recover {}", env!("CARGO_PKG_VERSION")));
     let mut mcap = options.create(writer).map_err(write_error("header".into()))?;
     let mut report = RecoverReport {
         output: output.to_path_buf(),
@@ -188,7 +176,7 @@ pub fn recover_file(input: &Path, output: &Path) -> Result<RecoverReport, Recove
         Err(WalkError::Handler(error)) => return Err(error),
     };
     report.input_finished = walked.finished;
-    report.cut = walked.cut.as_ref().map(describe_cut);
+    report.cut = walked.cut.as_ref().map(ToString::to_string);
     report.bad_chunks = walked.bad_chunks.iter().map(describe_bad_chunk).collect();
     mcap.finish().map_err(write_error("summary".into()))?;
     let writer = mcap.into_inner();

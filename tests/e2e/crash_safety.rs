@@ -26,23 +26,8 @@ fn chunk_ends(bytes: &[u8]) -> Vec<usize> {
 /// Complete sets per the reference Python reader (CRCs checked): capture events grouped by set,
 /// a set counting when all its views are there.
 fn python_complete_sets(path: &Path) -> (Vec<u64>, serde_json::Value) {
-    let script = r#"
-import json, sys
-from collections import defaultdict
-from mcap.reader import make_reader
-with open(sys.argv[1], "rb") as f:
-    reader = make_reader(f, validate_crcs=True)
-    summary = reader.get_summary()
-    views = defaultdict(set); expected = {}
-    for schema, channel, message in reader.iter_messages(topics=["/capture/events"]):
-        event = json.loads(message.data)
-        views[event["set_index"]].add(event["role"]); expected[event["set_index"]] = event["views_in_set"]
-    metadata = sorted(m.name for m in reader.iter_metadata())
-    attachments = sorted(a.name for a in reader.iter_attachments())
-print(json.dumps({"complete": sorted(i for i in views if len(views[i]) == expected[i]),
-                  "chunks": len(summary.chunk_indexes), "metadata": metadata, "attachments": attachments}))
-"#;
-    let output = run(Command::new(python_with_mcap()).args(["-c", script]).arg(path));
+    let script = multiscopic_tests::workspace_root().join("tests/python/complete_sets.py");
+    let output = run(Command::new(python_with_mcap()).arg(script).arg(path));
     assert!(
         output.status.success(),
         "the Python mcap reader rejects {}: {}",
