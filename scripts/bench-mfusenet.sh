@@ -10,7 +10,7 @@
 #     when TORCH_PYTHON names a Python with torch and safetensors (e.g. `python3 -m venv
 #     .venv-torch && .venv-torch/bin/pip install torch safetensors`: about a minute, 5.4 GB with
 #     its CUDA libraries); else the issue's figures stand (12.7–13.0 s on AMD EPYC hosts, 14.0 s on
-#     Intel; PyTorch 2.15 measured 9.3 s on the AMD host of the README's table).
+#     Intel; PyTorch 2.15 measured 9.3 s on the AMD host of docs/benchmarks.md's table).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 cargo build --release -q -p record -p replay
@@ -35,7 +35,7 @@ fi
 for views in 1 2 4; do
     crop=128
     [ "$views" = 4 ] && crop=96
-    $R train --views "$views" --steps 20 --crop "$crop" --train-sets 4 --val-sets 1 --validate-every 1000 \
+    $R train --views "$views" --steps 20 --crop-px "$crop" --train-sets 4 --val-sets 1 --validate-every 1000 \
         --dir "$T/train-$views" --dataset-dir "$T/dataset" -q
     python3 -c "import json;d=json.load(open('$T/train-$views/training.json'));print(f\"training step N=$views, ${crop}x${crop}x32 crop: {d['train_seconds']/d['steps_done']:.3f} s\")"
 done

@@ -9,7 +9,7 @@
 # which `replay train` never draws (training uses seeds 1..=train_sets, validation 1_000_001..).
 # SCENES (a multiple of 4) = half random scenes (the first seeds from 900 the arm can reach), a
 # quarter toy scenes (seeds 904, 905, then 908 up) and a quarter workpieces of mirror-like metal
-# (906, 907, then 908 up). The default 8 are the set the README's table was first measured on;
+# (906, 907, then 908 up). The default 8 are the set docs/results.md's table was first measured on;
 # every larger set contains them.
 set -euo pipefail
 cd "$(dirname "$0")/.."

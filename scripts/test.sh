@@ -10,7 +10,8 @@
 #     (apt-get as root, or through `sudo -n`); without it the two viewer tests fail with
 #     "Failed to get render context", so a missing package stops the script here with that reason;
 #   - ./.venv with the Python reference clients (mcap, safetensors, numpy, rerun-sdk) from
-#     tests/python/requirements.txt.
+#     tests/python/requirements.txt;
+#   - tests/js/node_modules with Foxglove's MCAP reader (@mcap/core), when npm is installed.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -36,6 +37,15 @@ if [ ! -x .venv/bin/python ]; then
     python3 -m venv .venv
 fi
 .venv/bin/python -m pip install --quiet --disable-pip-version-check -r tests/python/requirements.txt
+
+echo "== Foxglove's MCAP reader (@mcap/core) in tests/js/node_modules"
+if command -v npm >/dev/null 2>&1; then
+    if [ ! -d tests/js/node_modules/@mcap/core ]; then
+        npm ci --prefix tests/js --silent --no-audit --no-fund
+    fi
+else
+    echo "npm is not installed: the tests that read logs with Foxglove's reader say so and skip it" >&2
+fi
 
 echo "== toolchain"
 cargo --version

@@ -16,14 +16,14 @@ cp target/release/replay train/replay-bin
 common=(--train-sets 100 --val-sets 6)
 # Stage 1: from a random initialisation, baselines uniform in 6-28 mm.
 first() { # views name steps crop
-    train/replay-bin train --views "$1" --steps "$3" --crop "$4" "${common[@]}" \
+    train/replay-bin train --views "$1" --steps "$3" --crop-px "$4" "${common[@]}" \
         --baseline-mm 6,28 --baseline-draw uniform --dir "train/$2"
 }
 # Later stages: from the previous stage's weights at half the learning rate, on captures whose
 # baselines are drawn log-uniformly from 3-30 mm (small disparities, as in far backgrounds, as
 # common as large ones).
 tune() { # views name steps crop from-dir to-dir [more options]
-    train/replay-bin train --views "$1" --steps "$3" --crop "$4" "${common[@]}" \
+    train/replay-bin train --views "$1" --steps "$3" --crop-px "$4" "${common[@]}" \
         --baseline-mm 3,30 --baseline-draw log-uniform --learning-rate 0.00025 \
         --init-weights "train/$5/$2.safetensors" --dir "train/$6" "${@:7}"
 }

@@ -167,6 +167,47 @@ pub fn python_with_mcap() -> PathBuf {
     }
 }
 
+/// Foxglove's MCAP reader (`@mcap/core`, the library the Foxglove app reads logs with, through
+/// `tests/js/read_mcap.mjs`) on a log: its report (messages per topic, chunks, attachments and
+/// metadata through the summary, every chunk's CRC checked), or its error. `None`, with the
+/// reason printed, where Node.js is not installed; its packages are installed into
+/// `tests/js/node_modules` on first use (`npm ci`), and a failure to do so fails the test.
+pub fn foxglove_read(log: &Path) -> Option<Result<serde_json::Value, String>> {
+    static READY: OnceLock<Result<bool, String>> = OnceLock::new();
+    let js = workspace_root().join("tests/js");
+    let ready = READY.get_or_init(|| {
+        if Command::new("node").arg("--version").output().is_err() {
+            return Ok(false);
+        }
+        if !js.join("node_modules/@mcap/core").exists() {
+            let installed = Command::new("npm")
+                .current_dir(&js)
+                .args(["ci", "--silent", "--no-audit", "--no-fund"])
+                .status()
+                .is_ok_and(|s| s.success());
+            if !installed {
+                return Err(format!("`npm ci` in {} failed", js.display()));
+            }
+        }
+        Ok(true)
+    });
+    match ready {
+        Ok(false) => {
+            println!("skipped: Foxglove's reader needs Node.js (`node` is not installed)");
+            None
+        }
+        Err(message) => panic!("Foxglove's MCAP reader is missing: {message}; scripts/test.sh installs it"),
+        Ok(true) => {
+            let output = run(Command::new("node").arg(js.join("read_mcap.mjs")).arg(log));
+            Some(if output.status.success() {
+                serde_json::from_slice(&output.stdout).map_err(|e| format!("read_mcap.mjs printed no JSON: {e}"))
+            } else {
+                Err(String::from_utf8_lossy(&output.stderr).into_owned())
+            })
+        }
+    }
+}
+
 /// The Rerun CLI of the same environment (`rerun-sdk==0.36.3`), with analytics off.
 pub fn rerun_cli() -> Command {
     let python = python_with_mcap();
@@ -278,6 +319,45 @@ pub fn f32_pixels(image: &RawImage) -> Vec<f32> {
         .chunks_exact(4)
         .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
         .collect()
+}
+
+/// Copies a log without its capture events: a "foreign" log whose sets must be inferred from
+/// the poses.
+pub fn strip_capture_events(from: &Path, to: &Path) {
+    let bytes = std::fs::read(from).unwrap_or_else(|e| panic!("{e}"));
+    let file = std::io::BufWriter::new(std::fs::File::create(to).unwrap_or_else(|e| panic!("{e}")));
+    let mut writer = mcap::WriteOptions::new().create(file).unwrap_or_else(|e| panic!("{e}"));
+    let mut channels = std::collections::HashMap::new();
+    for message in mcap::MessageStream::new(&bytes).unwrap_or_else(|e| panic!("{e}")) {
+        let message = message.unwrap_or_else(|e| panic!("{e}"));
+        if message.channel.topic == CAPTURE_EVENTS_TOPIC {
+            continue;
+        }
+        let id = *channels.entry(message.channel.topic.clone()).or_insert_with(|| {
+            let schema = message.channel.schema.as_ref().unwrap_or_else(|| panic!("no schema"));
+            let schema_id = writer
+                .add_schema(&schema.name, &schema.encoding, &schema.data)
+                .unwrap_or_else(|e| panic!("{e}"));
+            writer
+                .add_channel(
+                    schema_id,
+                    &message.channel.topic,
+                    &message.channel.message_encoding,
+                    &BTreeMap::new(),
+                )
+                .unwrap_or_else(|e| panic!("{e}"))
+        });
+        let header = mcap::records::MessageHeader {
+            channel_id: id,
+            sequence: message.sequence,
+            log_time: message.log_time,
+            publish_time: message.publish_time,
+        };
+        writer
+            .write_to_known_channel(&header, &message.data)
+            .unwrap_or_else(|e| panic!("{e}"));
+    }
+    writer.finish().unwrap_or_else(|e| panic!("{e}"));
 }
 
 /// A fresh temporary directory.

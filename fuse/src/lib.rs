@@ -97,6 +97,15 @@ pub enum FuseError {
         /// What is allowed.
         reason: &'static str,
     },
+    /// JSON overrides that do not fit a configuration's fields, or a configuration that does
+    /// not serialise.
+    #[error("method configuration {value} does not fit: {reason}")]
+    ConfigJson {
+        /// The overrides (or the method whose configuration failed).
+        value: String,
+        /// What serde said.
+        reason: String,
+    },
     /// The MFuseNet network or its weights.
     #[error(transparent)]
     MFuseNet(#[from] mfusenet::Error),

@@ -82,7 +82,7 @@ pub struct WeightedMedian {
 }
 
 impl Default for WeightedMedian {
-    /// Chosen on `middlebury2006-third-dev` and the held-out simulated captures (README,
+    /// Chosen on `middlebury2006-third-dev` and the held-out simulated captures (docs/methods.md,
     /// "Weighted median").
     fn default() -> Self {
         Self {

@@ -11,7 +11,6 @@
 
 pub mod camera;
 pub mod capture;
-pub mod cli;
 pub mod import;
 pub mod live;
 pub mod log;

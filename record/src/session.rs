@@ -1,6 +1,7 @@
-//! A whole simulated recording to a file: the scene attachment, the sets as they complete, the
-//! metadata with the effective configuration, and the atomic commit. Used by the `record`
-//! binary and by `replay demo`.
+//! A whole recording to a file: for a simulation, the scene attachment, the sets as they
+//! complete, the metadata with the effective configuration, and the atomic commit
+//! ([`record_simulation`], used by `record` and `replay demo`); for an import, every set read
+//! before the log is started, so that a bad file leaves nothing behind ([`record_import`]).
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -34,6 +35,18 @@ pub enum SessionError {
         #[source]
         source: LogError,
     },
+    /// Reading an image set to import failed.
+    #[error("importing '{}'", dir.display())]
+    Import {
+        /// The set's folder.
+        dir: PathBuf,
+        /// Cause.
+        #[source]
+        source: Box<crate::import::ImportError>,
+    },
+    /// Planning an import failed (the folder, its description or the flags).
+    #[error(transparent)]
+    Plan(Box<crate::import::ImportError>),
     /// Serialising the configuration or scene failed.
     #[error("cannot serialise {what}")]
     Json {
@@ -148,4 +161,58 @@ pub fn record_simulation(
         Err(source) => return Err(failed("writing the summary".into(), completed, file, source)),
     };
     Ok(outcome(Some(file.commit(writer)?)))
+}
+
+/// What an import produced.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ImportOutcome {
+    /// The finished log.
+    pub path: PathBuf,
+    /// The sets it holds, in order.
+    pub sets: Vec<CapturedSet>,
+}
+
+/// Imports the image sets under `dir` (one set, or one per sub-folder; see
+/// [`crate::import::plan_import`]) into the log `output`. A search range given here
+/// (`min_disparity`, `num_disparities`) overrides the folder's description. Every set is read before the log is started; `on_set`
+/// follows each set read.
+pub fn record_import(
+    dir: &Path,
+    settings: &crate::import::ImportOverrides,
+    min_disparity: Option<i32>,
+    num_disparities: Option<u32>,
+    output: &Path,
+    mut on_set: impl FnMut(&CapturedSet),
+) -> Result<ImportOutcome, SessionError> {
+    let mut plan = crate::import::plan_import(dir, settings).map_err(|e| SessionError::Plan(Box::new(e)))?;
+    for (_, config) in &mut plan {
+        config.min_disparity = min_disparity.or(config.min_disparity);
+        config.num_disparities = num_disparities.or(config.num_disparities);
+    }
+    let mut sets = Vec::with_capacity(plan.len());
+    for (index, (set_dir, config)) in plan.iter().enumerate() {
+        let set = crate::import::import_set(set_dir, index as u32, config).map_err(|source| SessionError::Import {
+            dir: set_dir.clone(),
+            source: Box::new(source),
+        })?;
+        on_set(&set);
+        sets.push(set);
+    }
+    let (file, writer) = OutputFile::create(output)?;
+    let mut log = LogOptions::new().create(writer)?;
+    for set in &sets {
+        log.write_set(set, None)?;
+    }
+    let configs: Vec<_> = plan.iter().map(|(_, config)| config).collect();
+    let metadata = BTreeMap::from([
+        ("tool".to_owned(), "record import".to_owned()),
+        ("tool_version".to_owned(), TOOL_VERSION.to_owned()),
+        ("source".to_owned(), format!("import:{}", dir.display())),
+        ("config".to_owned(), json("the import configuration", &configs)?),
+        ("completed_sets".to_owned(), sets.len().to_string()),
+    ]);
+    log.write_metadata(METADATA_NAME, metadata)?;
+    let writer = log.finish()?;
+    let path = file.commit(writer)?;
+    Ok(ImportOutcome { path, sets })
 }

@@ -251,6 +251,48 @@ pub fn csv(rows: &[EvalRow]) -> String {
     out
 }
 
+/// The view sets of `replay eval`'s inputs: a folder is read as `record import` reads it (with
+/// `dataset`'s settings), a file as a log whose sets are renamed `STEM/SET` so that several logs
+/// keep apart in the table.
+pub fn read_inputs(
+    inputs: &[std::path::PathBuf],
+    dataset: &record::import::ImportOverrides,
+) -> Result<Vec<ViewSet>, ReplayError> {
+    let mut sets = Vec::new();
+    for input in inputs {
+        if input.is_dir() {
+            sets.extend(crate::dataset::read_dataset_with(input, dataset)?);
+            continue;
+        }
+        let contents = crate::log::read_log_file(input)?;
+        let stem = input
+            .file_stem()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        for mut set in contents.sets {
+            set.name = format!("{stem}/{}", set.name);
+            sets.push(set);
+        }
+    }
+    Ok(sets)
+}
+
+/// Writes `eval.md`, `eval.csv` and `eval.json` into `dir`.
+pub fn write_tables(dir: &std::path::Path, rows: &[EvalRow]) -> Result<(), ReplayError> {
+    let io = |path: std::path::PathBuf| move |source| ReplayError::Io { path, source };
+    std::fs::create_dir_all(dir).map_err(io(dir.to_path_buf()))?;
+    let files = [
+        ("eval.md", markdown(rows)),
+        ("eval.csv", csv(rows)),
+        ("eval.json", serde_json::to_string_pretty(rows)?),
+    ];
+    for (name, text) in files {
+        let path = dir.join(name);
+        std::fs::write(&path, text).map_err(io(path.clone()))?;
+    }
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

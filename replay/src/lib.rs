@@ -8,11 +8,14 @@
 //!   corrupt one;
 //! - [`recover`]: `replay recover`, what survived rewritten as a finished log;
 //! - [`dataset`]: image-set folders (the Middlebury layout) as view sets, through `record import`;
+//! - [`demo`]: the one-command demo's capture;
 //! - [`eval`]: methods over many sets, the paper's table;
+//! - [`run`]: `replay LOG`, every method on every set, with its files, viewer and summary;
 //! - [`outputs`]: result files per set.
 
 pub mod check;
 pub mod dataset;
+pub mod demo;
 pub mod eval;
 pub mod foreign;
 pub mod log;
@@ -20,6 +23,7 @@ pub mod outputs;
 pub mod pipeline;
 pub mod recover;
 pub mod regions;
+pub mod run;
 pub mod salvage;
 pub mod train;
 pub mod viewer;
@@ -159,4 +163,33 @@ pub enum ReplayError {
     /// Importing a dataset folder failed.
     #[error(transparent)]
     Import(#[from] record::import::ImportError),
+    /// The log holds no complete set, or none of those asked for.
+    #[error("{} holds no complete view set to replay", path.display())]
+    NoSets {
+        /// The log.
+        path: std::path::PathBuf,
+    },
+    /// A method failed on a set.
+    #[error("set {set}: {method}")]
+    InSet {
+        /// Set.
+        set: u32,
+        /// Method.
+        method: String,
+        /// Cause.
+        #[source]
+        source: Box<ReplayError>,
+    },
+    /// A method's configuration does not serialise.
+    #[error("method configuration")]
+    MethodConfig(#[source] fuse::FuseError),
+    /// Writing a result file failed.
+    #[error(transparent)]
+    Files(#[from] viz::files::FileError),
+    /// Writing the result log failed.
+    #[error("writing the result log")]
+    ResultLog(#[from] record::log::LogError),
+    /// A summary could not be serialised.
+    #[error("serialising a summary")]
+    Json(#[from] serde_json::Error),
 }

@@ -206,11 +206,16 @@ pub fn log_costs(viewer: &Viewer, set: &ViewSet, problem: &Problem, occluded: Op
     };
     let shift = quantisation_shift(spec.max_cost());
     let refs: Vec<&Neighbour> = small_problem.neighbours.iter().collect();
-    let Ok(mut volumes) = neighbour_volumes(&small_problem, &refs, spec, shift, &|| {}) else {
-        return Ok(());
+    let mut volumes = match neighbour_volumes(&small_problem, &refs, spec, shift, &|| {}) {
+        Ok(volumes) => volumes,
+        Err(e) => {
+            tracing::warn!("Rerun: the cost volumes are not shown: {e}");
+            return Ok(());
+        }
     };
-    if let Ok(prepared) = PreparedProblem::new(&small_problem, spec, Fusion::Heuristic) {
-        volumes.insert(0, prepared.fused_volume(shift, &|| {}));
+    match PreparedProblem::new(&small_problem, spec, Fusion::Heuristic) {
+        Ok(prepared) => volumes.insert(0, prepared.fused_volume(shift, &|| {})),
+        Err(e) => tracing::warn!("Rerun: the fused cost volume is not shown: {e}"),
     }
     tracing::debug!(
         "rerun costs: volumes computed in {:.3} s",

@@ -4,13 +4,15 @@
 //!
 //! `FUZZ_CASES` sets the cases per target (default 2,000: a few seconds in all;
 //! `scripts/fuzz.sh` runs a longer campaign). The corpus files themselves are replayed first.
+//! The two logs of the corpus are remade, after a change of the log format, by
+//! `cargo test -p multiscopic-tests --test e2e -- --ignored make_the_log_corpus`.
 
 use std::path::{Path, PathBuf};
 
 use proptest::prelude::*;
 use proptest::test_runner::{Config, TestRunner};
 
-use multiscopic_tests::workspace_root;
+use multiscopic_tests::{temp_dir, workspace_root};
 
 /// Largest single allocation allowed for an input of `len` bytes: the readers may decompress
 /// (a chunk up to 4096 × its compressed size) and build images and networks, never more.
@@ -136,6 +138,28 @@ fn with_file(dir: &Path, name: &str, data: &[u8]) -> PathBuf {
     path
 }
 
+/// Writes `tests/corpus/five.mcap` (a two-set five-view capture, 48×32) and `foreign.mcap` (the
+/// same without capture events, so the reader must infer its sets from the poses).
+#[test]
+#[ignore = "writes tests/corpus: run by hand after a change of the log format"]
+fn make_the_log_corpus() {
+    let dir = temp_dir();
+    let five = multiscopic_tests::record_log(
+        dir.path(),
+        "five.mcap",
+        &["--captures", "2", "--resolution", "48x32", "--samples-per-pixel", "1"],
+    );
+    let corpus = workspace_root().join("tests/corpus");
+    std::fs::copy(&five, corpus.join("five.mcap")).unwrap_or_else(|e| panic!("{e}"));
+    multiscopic_tests::strip_capture_events(&five, &corpus.join("foreign.mcap"));
+    let contents = replay::log::read_log_file(&corpus.join("foreign.mcap")).unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(
+        contents.sets.len(),
+        2,
+        "the foreign log's sets are inferred from the poses"
+    );
+}
+
 #[test]
 fn the_log_reader_and_foreign_set_assembly_survive_mutated_logs() {
     fuzz("read_log", &[corpus("five.mcap"), corpus("foreign.mcap")], |data| {
@@ -151,7 +175,7 @@ fn the_log_reader_and_foreign_set_assembly_survive_mutated_logs() {
 
 #[test]
 fn ground_truth_readers_survive_mutated_files() {
-    let dir = multiscopic_tests::temp_dir();
+    let dir = temp_dir();
     for name in ["gt.pfm", "gt.pgm", "gt.png"] {
         fuzz(name, &[corpus(name)], |data| {
             let path = with_file(dir.path(), name, data);
@@ -162,7 +186,7 @@ fn ground_truth_readers_survive_mutated_files() {
 
 #[test]
 fn the_dataset_description_and_method_configs_survive_mutated_text() {
-    let dir = multiscopic_tests::temp_dir();
+    let dir = temp_dir();
     fuzz("multiscopic.toml", &[corpus("multiscopic.toml")], |data| {
         let path = with_file(dir.path(), "multiscopic.toml", data);
         let _ = record::import::read_description(&path);

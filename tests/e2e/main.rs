@@ -2,6 +2,7 @@
 //! and with the reference Python clients.
 
 mod crash_safety;
+mod docs;
 mod fuzz;
 mod mfusenet;
 mod record_cli;

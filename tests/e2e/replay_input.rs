@@ -225,43 +225,6 @@ fn random_bytes_and_truncations_never_panic_the_reader() {
 }
 
 /// A copy of a log without its capture events: what another recorder would write.
-fn strip_capture_events(from: &Path, to: &Path) {
-    let bytes = std::fs::read(from).unwrap_or_else(|e| panic!("{e}"));
-    let file = std::io::BufWriter::new(std::fs::File::create(to).unwrap_or_else(|e| panic!("{e}")));
-    let mut writer = mcap::WriteOptions::new().create(file).unwrap_or_else(|e| panic!("{e}"));
-    let mut channels = std::collections::HashMap::new();
-    for message in mcap::MessageStream::new(&bytes).unwrap_or_else(|e| panic!("{e}")) {
-        let message = message.unwrap_or_else(|e| panic!("{e}"));
-        if message.channel.topic == record::log::CAPTURE_EVENTS_TOPIC {
-            continue;
-        }
-        let id = *channels.entry(message.channel.topic.clone()).or_insert_with(|| {
-            let schema = message.channel.schema.as_ref().unwrap_or_else(|| panic!("no schema"));
-            let schema_id = writer
-                .add_schema(&schema.name, &schema.encoding, &schema.data)
-                .unwrap_or_else(|e| panic!("{e}"));
-            writer
-                .add_channel(
-                    schema_id,
-                    &message.channel.topic,
-                    &message.channel.message_encoding,
-                    &std::collections::BTreeMap::new(),
-                )
-                .unwrap_or_else(|e| panic!("{e}"))
-        });
-        let header = mcap::records::MessageHeader {
-            channel_id: id,
-            sequence: message.sequence,
-            log_time: message.log_time,
-            publish_time: message.publish_time,
-        };
-        writer
-            .write_to_known_channel(&header, &message.data)
-            .unwrap_or_else(|e| panic!("{e}"));
-    }
-    writer.finish().unwrap_or_else(|e| panic!("{e}"));
-}
-
 #[test]
 fn foreign_logs_without_capture_events_get_their_sets_from_the_poses() {
     let dir = temp_dir();
@@ -271,7 +234,7 @@ fn foreign_logs_without_capture_events_get_their_sets_from_the_poses() {
         &["--resolution", "160x90", "--samples-per-pixel", "1", "--captures", "3"],
     );
     let foreign = dir.path().join("foreign.mcap");
-    strip_capture_events(&ours, &foreign);
+    multiscopic_tests::strip_capture_events(&ours, &foreign);
     let contents = replay::log::read_log_file(&foreign).unwrap_or_else(|e| panic!("{e}"));
     let original = replay::log::read_log_file(&ours).unwrap_or_else(|e| panic!("{e}"));
     assert_eq!(contents.sets.len(), 3, "sets inferred from the poses");

@@ -74,8 +74,8 @@ impl Method for BlockMatching {
         self.name
     }
 
-    fn config_json(&self) -> serde_json::Value {
-        serde_json::to_value(&self.config).unwrap_or_default()
+    fn config_json(&self) -> Result<serde_json::Value, FuseError> {
+        super::config_json(self.name(), &self.config)
     }
 
     fn run(&self, problem: &Problem, progress: Progress<'_>) -> Result<DisparityImage, FuseError> {

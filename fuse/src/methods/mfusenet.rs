@@ -84,7 +84,7 @@ pub struct MFuseNetConfig {
     /// With the refined estimate: how much of the `locking` correction to apply, from 0 (the
     /// fit's own offset) to 1 (the whole curve, what the simulated training captures call
     /// for). Real images lock less than our renders: on Middlebury 0.5 gave AvgErr 0.303 →
-    /// 0.293 px with Bad0.5 8.15 → 8.34 %, the whole curve 0.294 px with 8.58 % (README,
+    /// 0.293 px with Bad0.5 8.15 → 8.34 %, the whole curve 0.294 px with 8.58 % (docs/methods.md,
     /// "Pixel locking").
     pub locking_strength: f64,
     /// A 3×3 median on the result, as block matching and SGM do (shipped three-view network:
@@ -96,13 +96,13 @@ pub struct MFuseNetConfig {
     /// the network, seeing only cost volumes, cannot place. On by default (about 5 % of the
     /// time; the classical methods have it opt-in, their speed is held against OpenCV's):
     /// Middlebury three-view 0.346 → 0.305 px, Bad1 5.89 → 4.94 % (without the votes);
-    /// held-out simulated five-view 0.295 → 0.278 px (README, "Weighted median").
+    /// held-out simulated five-view 0.295 → 0.278 px (docs/methods.md, "Weighted median").
     pub weighted_median: Option<WeightedMedian>,
     /// In the weighted median, the vote of a pixel whose estimate the input costs do not back
     /// (no local minimum of the summed input costs within 1 px of it), relative to one they do:
     /// where the network and the data disagree, the pixel's neighbours of the same colour that
     /// agree decide. 1 = every pixel alike. Middlebury 0.305 → 0.303 px, Bad1 4.94 → 4.85 %;
-    /// held-out simulated five-view 0.278 → 0.265 px (README, "Weighted median").
+    /// held-out simulated five-view 0.278 → 0.265 px (docs/methods.md, "Weighted median").
     pub disagreeing_vote: f32,
     /// The network sees this many disparities under the searched range as well (negative ones
     /// included), so that answers at the range's start are not in its first slices, where it
@@ -236,8 +236,8 @@ impl Method for MFuseNet {
         self.name
     }
 
-    fn config_json(&self) -> serde_json::Value {
-        serde_json::to_value(&self.config).unwrap_or_default()
+    fn config_json(&self) -> Result<serde_json::Value, FuseError> {
+        super::config_json(self.name(), &self.config)
     }
 
     fn run(&self, problem: &Problem, progress: Progress<'_>) -> Result<DisparityImage, FuseError> {

@@ -22,7 +22,7 @@ pub trait Method: Send + Sync {
     /// Registry name (`bm-heuristic`, …).
     fn name(&self) -> &str;
     /// The effective configuration, as JSON (for run summaries).
-    fn config_json(&self) -> serde_json::Value;
+    fn config_json(&self) -> Result<serde_json::Value, FuseError>;
     /// Computes the disparity of the reference view (`f32::INFINITY` = no estimate).
     fn run(&self, problem: &Problem, progress: Progress<'_>) -> Result<DisparityImage, FuseError>;
     /// How the method will work on `problem` beyond its configuration, as JSON for run summaries
@@ -115,10 +115,9 @@ pub fn apply_overrides<C: Serialize + DeserializeOwned>(
     let Some(overrides) = overrides else {
         return Ok(config);
     };
-    let mut value = serde_json::to_value(&config).map_err(|e| FuseError::Config {
-        field: "config",
-        value: String::new(),
-        reason: leak(e.to_string()),
+    let mut value = serde_json::to_value(&config).map_err(|e| FuseError::ConfigJson {
+        value: "the defaults".to_owned(),
+        reason: e.to_string(),
     })?;
     match (value.as_object_mut(), overrides.as_object()) {
         (Some(base), Some(changes)) => {
@@ -141,16 +140,18 @@ pub fn apply_overrides<C: Serialize + DeserializeOwned>(
             });
         }
     }
-    serde_json::from_value(value).map_err(|e| FuseError::Config {
-        field: "config",
+    serde_json::from_value(value).map_err(|e| FuseError::ConfigJson {
         value: overrides.to_string(),
-        reason: leak(e.to_string()),
+        reason: e.to_string(),
     })
 }
 
-fn leak(message: String) -> &'static str {
-    // Configuration errors are rare and end the run; a leaked message keeps the error type simple.
-    Box::leak(message.into_boxed_str())
+/// A method's configuration as JSON ([`Method::config_json`]).
+pub fn config_json<C: Serialize>(method: &str, config: &C) -> Result<serde_json::Value, FuseError> {
+    serde_json::to_value(config).map_err(|e| FuseError::ConfigJson {
+        value: method.to_owned(),
+        reason: e.to_string(),
+    })
 }
 
 #[cfg(test)]
@@ -181,11 +182,12 @@ mod tests {
     #[test]
     fn each_family_fits_its_sub_pixel_curve_and_a_configuration_chooses() {
         use crate::wta::SubpixelFit;
-        // Measured (README, Sub-pixel fit): the lines for SGM's census sums and MFuseNet's
+        // Measured (docs/methods.md, "Sub-pixel fit"): the lines for SGM's census sums and MFuseNet's
         // refined estimate over them, the parabola for block matching's BT sums.
         let fit = |name: &str, overrides: Option<&serde_json::Value>| {
             build(name, overrides)
-                .map(|m| m.config_json()["subpixel_fit"].clone())
+                .and_then(|m| m.config_json())
+                .map(|c| c["subpixel_fit"].clone())
                 .unwrap_or_else(|e| panic!("{name}: {e}"))
         };
         for (name, expected) in [

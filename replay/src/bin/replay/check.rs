@@ -4,7 +4,7 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result};
 use clap::Args;
-use record::cli::Outcome;
+use cli::Outcome;
 use tracing::warn;
 
 /// Arguments of `replay check`.
@@ -37,7 +37,7 @@ pub fn run(args: &CheckArgs) -> Result<Outcome> {
     let contents = replay::log::read_log_file_in(&args.log, args.start, args.end)
         .with_context(|| format!("reading {}", args.log.display()))?;
     if !(args.warn_px > 0.0 && args.fail_px >= args.warn_px) {
-        return Err(record::cli::UsageError(format!(
+        return Err(cli::UsageError(format!(
             "--warn-px {} and --fail-px {} must be positive, the second at least the first",
             args.warn_px, args.fail_px
         ))

@@ -2,10 +2,9 @@
 
 use std::path::PathBuf;
 
-use anyhow::{Context, Result};
+use anyhow::Result;
 use clap::Args;
-use record::cli::{Outcome, UsageError, progress_bar};
-use tracing::info;
+use cli::{Outcome, UsageError, progress_bar};
 
 use crate::run::RunArgs;
 
@@ -42,20 +41,6 @@ pub struct DemoArgs {
     resolution: String,
 }
 
-/// Writes `DIR/.gitignore` ignoring everything in `DIR` (as Cargo does for `target/`), unless the
-/// folder already has one: the demo's outputs are results, never work to commit.
-fn ignore_in_git(dir: &std::path::Path) -> Result<()> {
-    let path = dir.join(".gitignore");
-    if !path.exists() {
-        std::fs::write(
-            &path,
-            "# Written by `replay demo`: its outputs are results, not sources.\n*\n",
-        )
-        .with_context(|| format!("writing {}", path.display()))?;
-    }
-    Ok(())
-}
-
 /// Runs `replay demo`.
 pub fn run(args: &DemoArgs, quiet: bool) -> Result<Outcome> {
     let (width, height) = args
@@ -71,60 +56,30 @@ pub fn run(args: &DemoArgs, quiet: bool) -> Result<Outcome> {
         height,
         ..record::capture::SimulationConfig::default()
     };
-    std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
-    ignore_in_git(&args.out)?;
-    let log = args.out.join("capture.mcap");
-    let mut sim = record::capture::Simulation::new(config.clone()).map_err(|e| UsageError(e.to_string()))?;
-    let range = sim.working_disparity_range();
-    let (min_disparity, num_disparities) = (range.min_disparity, range.num_disparities.unwrap_or(16) as usize);
-    info!(
-        "disparities {min_disparity}..{} px from the working depth (table at {:.2} m, objects up to {:.2} m above it)",
-        min_disparity + num_disparities as i32,
-        sim.scene().camera_height_m,
-        sim.scene().highest_point_m()
-    );
     let views = config.rig.capture_order().len() as u64 * u64::from(config.captures);
     let progress = progress_bar(views, quiet, "views");
-    info!(
-        "recording a simulated {} capture of the {} scene → {}",
-        config.rig.name(),
-        config.scene_name(),
-        log.display()
-    );
-    let stop = std::sync::atomic::AtomicBool::new(false);
-    let mut log_layout = None;
-    let recorded = record::session::record_simulation(
-        &mut sim,
-        &log,
-        record::log::DEFAULT_ZSTD_LEVEL,
-        &stop,
-        |set, view| {
-            progress.set_message(format!("rendering set {set} view {}", view.role));
-            progress.inc(1);
-        },
-        |set| {
-            log_layout.get_or_insert_with(|| record::live::log_layout(set));
-        },
-    )?;
+    let capture = replay::demo::record_capture(config, &args.out, |set, role| {
+        progress.set_message(format!("rendering set {set} view {role}"));
+        progress.inc(1);
+    })
+    .map_err(|e| match e {
+        replay::demo::DemoError::Config(_) => UsageError(format!("{e:#}")).into(),
+        e => anyhow::Error::new(e),
+    })?;
     progress.finish_and_clear();
-    if recorded.path.is_none() {
-        anyhow::bail!("the recording produced no complete set");
-    }
-    // The capture's own layout, for `rerun demo/capture.mcap demo/capture.rbl`.
-    let layout_lost = log_layout.is_some_and(|layout| !record::cli::write_log_layout(&log, &layout));
-    info!(
-        "outputs go to {} (git-ignored through {})",
-        args.out.display(),
-        args.out.join(".gitignore").display()
-    );
+    let rerun = if args.rerun.is_empty() {
+        vec!["save".to_owned(), args.out.join("demo.rrd").display().to_string()]
+    } else {
+        args.rerun.clone()
+    };
     let outcome = crate::run::run(
         &RunArgs {
-            log: Some(log),
+            log: Some(capture.log),
             method: args.method.clone(),
             config: None,
             out: args.out.join("results"),
-            num_disparities: Some(num_disparities),
-            min_disparity: Some(min_disparity),
+            num_disparities: Some(capture.num_disparities),
+            min_disparity: Some(capture.min_disparity),
             sets: Vec::new(),
             start: None,
             end: None,
@@ -132,13 +87,13 @@ pub fn run(args: &DemoArgs, quiet: bool) -> Result<Outcome> {
             rectify: true,
             out_mcap: None,
             weights: None,
-            rerun: if args.rerun.is_empty() {
-                vec!["save".to_owned(), args.out.join("demo.rrd").display().to_string()]
-            } else {
-                args.rerun.clone()
-            },
+            rerun,
         },
         quiet,
     )?;
-    Ok(if layout_lost { Outcome::Incomplete } else { outcome })
+    Ok(if capture.layout_lost {
+        Outcome::Incomplete
+    } else {
+        outcome
+    })
 }

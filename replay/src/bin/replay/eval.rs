@@ -1,13 +1,11 @@
 //! `replay eval INPUTS…`: the paper's table over logs and dataset folders.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
-use anyhow::{Context, Result};
+use anyhow::Result;
 use clap::{Args, ValueEnum};
-use record::cli::{Outcome, UsageError, progress_bar};
+use cli::{Outcome, UsageError, progress_bar};
 use replay::eval::{csv, evaluate_sets, markdown};
-use replay::log::read_log_file;
-use replay::viewset::ViewSet;
 use tracing::info;
 
 /// Table formats.
@@ -62,46 +60,23 @@ pub struct EvalArgs {
     dataset: record::import::ImportOverrides,
 }
 
-fn read_inputs(inputs: &[PathBuf], dataset: &record::import::ImportOverrides) -> Result<Vec<ViewSet>> {
-    let mut sets = Vec::new();
-    for input in inputs {
-        if input.is_dir() {
-            match replay::dataset::read_dataset_with(input, dataset) {
-                Ok(read) => sets.extend(read),
-                Err(replay::ReplayError::Import(e)) if e.is_usage() => {
-                    return Err(UsageError(format!("{}: {e}", input.display())).into());
-                }
-                Err(e) => return Err(anyhow::Error::new(e).context(format!("reading dataset {}", input.display()))),
-            }
-        } else {
-            let contents = read_log_file(input).with_context(|| format!("reading {}", input.display()))?;
-            let name = input
-                .file_stem()
-                .map(|s| s.to_string_lossy().into_owned())
-                .unwrap_or_default();
-            for mut set in contents.sets {
-                set.name = format!("{name}/{}", set.name);
-                sets.push(set);
-            }
-        }
-    }
-    Ok(sets)
-}
-
 /// Runs `replay eval`.
-pub fn run(args: &EvalArgs) -> Result<Outcome> {
+pub fn run(args: &EvalArgs, quiet: bool) -> Result<Outcome> {
     for name in &args.methods {
         if !fuse::methods::registry().iter().any(|e| e.name == name) {
             return Err(UsageError(format!("unknown method '{name}' (see --list-methods)")).into());
         }
     }
     let overrides = crate::parse_overrides(args.config.as_deref())?;
-    let sets = read_inputs(&args.inputs, &args.dataset)?;
+    let sets = replay::eval::read_inputs(&args.inputs, &args.dataset).map_err(|e| match e {
+        replay::ReplayError::Import(e) if e.is_usage() => UsageError(e.to_string()).into(),
+        e => anyhow::Error::new(e),
+    })?;
     let with_truth = sets.iter().filter(|s| s.ground_truth_depth_m.is_some()).count();
     if with_truth == 0 {
         anyhow::bail!("none of the {} view sets has ground truth", sets.len());
     }
-    let progress = progress_bar((args.methods.len() * with_truth) as u64, false, "runs");
+    let progress = progress_bar((args.methods.len() * with_truth) as u64, quiet, "runs");
     let options = replay::eval::EvalOptions {
         num_disparities: args.num_disparities,
         min_disparity: args.min_disparity,
@@ -122,16 +97,8 @@ pub fn run(args: &EvalArgs) -> Result<Outcome> {
         TableFormat::Json => println!("{}", serde_json::to_string_pretty(&rows)?),
     }
     if let Some(dir) = &args.out {
-        write_tables(dir, &rows, &table)?;
+        replay::eval::write_tables(dir, &rows)?;
+        info!("wrote eval.md, eval.csv and eval.json to {}", dir.display());
     }
     Ok(Outcome::Complete)
-}
-
-fn write_tables(dir: &Path, rows: &[replay::eval::EvalRow], table: &str) -> Result<()> {
-    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-    std::fs::write(dir.join("eval.md"), table)?;
-    std::fs::write(dir.join("eval.csv"), csv(rows))?;
-    std::fs::write(dir.join("eval.json"), serde_json::to_string_pretty(rows)?)?;
-    info!("wrote eval.md, eval.csv and eval.json to {}", dir.display());
-    Ok(())
 }

@@ -15,7 +15,7 @@ use std::process::ExitCode;
 
 use anyhow::Result;
 use clap::{Parser, Subcommand};
-use record::cli::{Outcome, UsageError, exit_code, init_logging, parse_args};
+use cli::{Outcome, UsageError, exit_code, init_logging, parse_args};
 
 /// mimalloc keeps the network's large, short-lived tensors' pages between layers (glibc maps and
 /// unmaps every allocation over 32 MB and faults and zeroes it again): MFuseNet 5 % faster on a
@@ -80,7 +80,7 @@ fn main() -> ExitCode {
         Ok(Outcome::Complete)
     } else {
         match &cli.command {
-            Some(Command::Eval(args)) => eval::run(args),
+            Some(Command::Eval(args)) => eval::run(args, cli.quiet),
             Some(Command::Demo(args)) => demo::run(args, cli.quiet),
             Some(Command::Check(args)) => check::run(args),
             Some(Command::Recover(args)) => recover::run(args),

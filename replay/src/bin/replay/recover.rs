@@ -4,7 +4,7 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result};
 use clap::Args;
-use record::cli::Outcome;
+use cli::Outcome;
 use tracing::{info, warn};
 
 /// Arguments of `replay recover`.

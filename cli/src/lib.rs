@@ -1,11 +1,14 @@
 //! What the `record` and `replay` binaries share: exit codes, usage errors, logging set-up,
-//! progress bars, the mapping from a run's outcome to the process exit code, and the viewer layout
-//! written beside a log.
+//! progress bars, the Ctrl-C flag, the mapping from a run's outcome to the process exit code, and
+//! the report of the viewer layout written beside a log. Libraries never depend on it.
 
 use std::path::Path;
 use std::process::ExitCode;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 
-use indicatif::{ProgressBar, ProgressStyle};
+pub use indicatif::ProgressBar;
+use indicatif::ProgressStyle;
 
 /// Exit code of an error.
 pub const EXIT_ERROR: u8 = 1;
@@ -79,10 +82,11 @@ pub fn progress_bar(total: u64, quiet: bool, unit: &str) -> ProgressBar {
     bar
 }
 
-/// Writes the viewer layout beside the log (`record::live::write_log_blueprint`) and says how to
-/// open both, or logs why it could not; false when it failed (the run then exits 3).
-pub fn write_log_layout(log_path: &Path, layout: &viz::log_blueprint::LogLayout) -> bool {
-    match crate::live::write_log_blueprint(log_path, layout) {
+/// Reports the viewer layout written beside a log (`record::live::write_log_blueprint`'s
+/// result): how to open both, or why it could not be written; false when it failed (the run
+/// then exits 3).
+pub fn report_log_layout(log_path: &Path, written: Result<std::path::PathBuf, impl std::fmt::Display>) -> bool {
+    match written {
         Ok(blueprint) => {
             tracing::info!(
                 "open it in Rerun with its layout: rerun {} {}",
@@ -96,4 +100,25 @@ pub fn write_log_layout(log_path: &Path, layout: &viz::log_blueprint::LogLayout)
             false
         }
     }
+}
+
+/// A flag that the first Ctrl-C raises (printing `first`, so that the run can finish what it
+/// has); a second one prints `abort` and exits 130 at once.
+pub fn interrupt_flag(first: &'static str, abort: &'static str) -> Arc<AtomicBool> {
+    let stop = Arc::new(AtomicBool::new(false));
+    let presses = AtomicU32::new(0);
+    let flag = Arc::clone(&stop);
+    let installed = ctrlc::set_handler(move || {
+        if presses.fetch_add(1, Ordering::SeqCst) == 0 {
+            flag.store(true, Ordering::SeqCst);
+            eprintln!("\n{first}");
+        } else {
+            eprintln!("\n{abort}");
+            std::process::exit(130);
+        }
+    });
+    if let Err(error) = installed {
+        tracing::warn!("Ctrl-C handler not installed: {error}");
+    }
+    stop
 }

@@ -1,0 +1,62 @@
+//! `replay train`'s options as the library's training configuration (usage errors for what
+//! does not parse or validate).
+
+use anyhow::Result;
+use cli::UsageError;
+use fuse::mfusenet::input::InputSpec;
+use replay::train::TrainConfig;
+
+use super::options::TrainArgs;
+
+impl TrainArgs {
+    /// The training configuration the options ask for.
+    pub(crate) fn config(&self) -> Result<TrainConfig> {
+        let usage = |m: String| -> anyhow::Error { UsageError(m).into() };
+        let (w, h) = self
+            .resolution
+            .split_once('x')
+            .and_then(|(w, h)| Some((w.parse().ok()?, h.parse().ok()?)))
+            .ok_or_else(|| usage(format!("--resolution {}: expected WxH, e.g. 448x336", self.resolution)))?;
+        let (lo, hi) = self
+            .baseline_mm
+            .split_once(',')
+            .and_then(|(a, b)| Some((a.parse().ok()?, b.parse().ok()?)))
+            .ok_or_else(|| {
+                usage(format!(
+                    "--baseline-mm {}: expected LOW,HIGH, e.g. 3,30",
+                    self.baseline_mm
+                ))
+            })?;
+        let config = TrainConfig {
+            views: self.views.parse().unwrap_or(2),
+            steps: self.steps,
+            crop: self.crop_px,
+            disparities: self.disparities,
+            learning_rate: self.learning_rate,
+            seed: self.seed,
+            train_sets: self.train_sets,
+            val_sets: self.val_sets,
+            resolution: [w, h],
+            baseline_mm: [lo, hi],
+            baseline_draw: self.baseline_draw,
+            checkpoint_every: self.checkpoint_every.max(1),
+            validate_every: self.validate_every.max(1),
+            init_weights: self.init_weights.clone(),
+            disparity_shift: self.disparity_shift,
+            recalibrate_every: self.recalibrate_every,
+            statistics_momentum: self.statistics_momentum,
+            context_below: self.context_below,
+            flips: self.flips,
+            keep_hopeless: self.keep_hopeless,
+            scenes: self.scenes.clone(),
+            exposure_jitter: self.exposure_jitter,
+            input: InputSpec {
+                block_radius: self.input_block_radius,
+                ..InputSpec::default()
+            },
+            ..TrainConfig::default()
+        };
+        config.validate().map_err(|e| usage(e.to_string()))?;
+        Ok(config)
+    }
+}
