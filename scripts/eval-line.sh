@@ -48,10 +48,10 @@ for name, views in rows:
         m, o = r["mean"], r["occluded"]
         key = (ref, r["method"])
         if name.endswith("-3"):
-            base[key] = (m["avg_err"], o["avg_err"])
+            base[key] = (m["avg_err_px"], o["avg_err_px"])
         b = base.get(key)
         change = lambda now, then: f"{100 * (now - then) / then:+.1f} %" if then else "–"
-        print(f"| view{ref[1:]} | {views.replace('view', 'v')} | {r['method']} | {m['rms']:.3f} | {m['avg_err']:.3f} | "
-              f"{m['bad_1']:.2f} | {change(m['avg_err'], b[0]) if b else '–'} | {o['avg_err']:.3f} | {o['bad_1']:.2f} | "
-              f"{change(o['avg_err'], b[1]) if b else '–'} |")
+        print(f"| view{ref[1:]} | {views.replace('view', 'v')} | {r['method']} | {m['rms']:.3f} | {m['avg_err_px']:.3f} | "
+              f"{m['bad_1']:.2f} | {change(m['avg_err_px'], b[0]) if b else '–'} | {o['avg_err_px']:.3f} | {o['bad_1']:.2f} | "
+              f"{change(o['avg_err_px'], b[1]) if b else '–'} |")
 PY

@@ -50,6 +50,6 @@ for log in ("toy", "workpiece"):
             x, y = a[field], b[field]
             change = f" ({100 * (y - x) / x:+.0f} %)" if x else ""
             return f"{fmt.format(x)} → {fmt.format(y)}{change}"
-        print(f"| {log} | {m} | {cell('mean', 'avg_err')} | {cell('mean', 'bad_1', '{:.2f}')} | "
-              f"{cell('occluded', 'avg_err')} | {cell('specular', 'avg_err')} |")
+        print(f"| {log} | {m} | {cell('mean', 'avg_err_px')} | {cell('mean', 'bad_1', '{:.2f}')} | "
+              f"{cell('occluded', 'avg_err_px')} | {cell('specular', 'avg_err_px')} |")
 PY

@@ -51,5 +51,5 @@ print("|---|---|---|---|---|---|---|---|")
 for file, views in (("stereo", 2), ("three", 3), ("five", 5)):
     for row in json.load(open(f"{out}/{file}.json")):
         m, o, s = row["mean"], row["occluded"], row["specular"]
-        print(f"| {row['method']} | {views} | {m['avg_err']:.3f} | {m['bad_1']:.2f} | {o['avg_err']:.3f} | {o['bad_1']:.2f} | {s['avg_err']:.3f} | {s['bad_1']:.2f} |")
+        print(f"| {row['method']} | {views} | {m['avg_err_px']:.3f} | {m['bad_1']:.2f} | {o['avg_err_px']:.3f} | {o['bad_1']:.2f} | {s['avg_err_px']:.3f} | {s['bad_1']:.2f} |")
 PY

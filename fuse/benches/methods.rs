@@ -12,7 +12,7 @@ use criterion::{Criterion, criterion_group, criterion_main};
 use fuse::{Image, Neighbour, Problem};
 
 /// A pseudo-random texture on a slanted plane, seen from the centre and four neighbours.
-fn problem(width: usize, height: usize, disparities: usize) -> Problem {
+fn problem(width: usize, height: usize, num_disparities: usize) -> Problem {
     let texture = |u: f64, v: f64| -> [u8; 3] {
         let h = ((u * 12.9898 + v * 78.233).sin() * 43758.5453).fract().abs();
         let g = (128.0 + 100.0 * (u * 0.37).sin() * (v * 0.23).cos() + 27.0 * h) as u8;
@@ -44,7 +44,7 @@ fn problem(width: usize, height: usize, disparities: usize) -> Problem {
             neighbour("bottom", [0, 1]),
         ],
         min_disparity: 0,
-        num_disparities: disparities,
+        num_disparities,
     }
 }
 
@@ -103,7 +103,7 @@ fn mfusenet(c: &mut Criterion) {
     group.finish();
 }
 
-/// Graph cuts on a 160×120 slanted plane with 32 disparities: stereo against three and five
+/// Graph cuts on a 160×120 slanted plane with 32 num_disparities: stereo against three and five
 /// views (the cuts dominate), and the max-flow alone on a 4-connected grid with random terminals.
 fn graph_cuts(c: &mut Criterion) {
     let five = problem(160, 120, 32);

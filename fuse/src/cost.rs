@@ -218,14 +218,14 @@ pub fn pixel_cost_tile(
     y: usize,
     xs: Range<isize>,
     min_disparity: i32,
-    disparities: usize,
+    num_disparities: usize,
     out: &mut [u8],
 ) {
     let width = reference.image.width;
     let height = neighbour.image.height as isize;
     let channels = reference.image.channels;
     let (ox, oy) = (offset[0] as isize, offset[1] as isize);
-    for (costs, x) in out.chunks_exact_mut(disparities).zip(xs) {
+    for (costs, x) in out.chunks_exact_mut(num_disparities).zip(xs) {
         let x = x.clamp(0, width as isize - 1) as usize;
         let base_qx = x as isize - ox * min_disparity as isize;
         let base_qy = y as isize - oy * min_disparity as isize;
@@ -352,34 +352,37 @@ pub struct ValidDisparities {
     by_column: Vec<(usize, usize)>,
     /// `[first, end)` allowed by the row, per reference row.
     by_row: Vec<(usize, usize)>,
-    disparities: usize,
+    num_disparities: usize,
 }
 
 impl ValidDisparities {
     /// Tabulates the valid disparities of a neighbour at `offset` (see [`mark_invalid`]).
     pub fn new(offset: [i32; 2], size: (usize, usize), disparity_axis: (i32, usize), baseline_ratio: f32) -> Self {
-        let (min_disparity, disparities) = disparity_axis;
+        let (min_disparity, num_disparities) = disparity_axis;
         let interval = |position: usize, step: i32, limit: usize| {
             let inside = |d: usize| {
                 let disparity = (min_disparity as f32 + d as f32) * baseline_ratio;
                 let q = (position as f32 - step as f32 * disparity).round();
                 q >= 0.0 && q < limit as f32
             };
-            let first = (0..disparities).find(|d| inside(*d)).unwrap_or(disparities);
-            let end = (first..disparities).rev().find(|d| inside(*d)).map_or(first, |d| d + 1);
+            let first = (0..num_disparities).find(|d| inside(*d)).unwrap_or(num_disparities);
+            let end = (first..num_disparities)
+                .rev()
+                .find(|d| inside(*d))
+                .map_or(first, |d| d + 1);
             (first, end)
         };
         Self {
             by_column: (0..size.0).map(|x| interval(x, offset[0], size.0)).collect(),
             by_row: (0..size.1).map(|y| interval(y, offset[1], size.1)).collect(),
-            disparities,
+            num_disparities,
         }
     }
 
     /// Sets to [`INVALID_COST`] the costs (`[x][d]`, columns `x_start ..` of row `y`) whose
     /// correspondence leaves the neighbour image.
     pub fn mark(&self, costs: &mut [u16], (x_start, y): (usize, usize)) {
-        let nd = self.disparities;
+        let nd = self.num_disparities;
         let (row_first, row_end) = self.by_row[y];
         let columns = &self.by_column[x_start..];
         for (costs, &(column_first, column_end)) in costs.chunks_exact_mut(nd).zip(columns) {
@@ -417,16 +420,16 @@ struct ResampleRun {
 
 impl DisparityResampler {
     /// `None` when `ratio` is 1 (nothing to resample).
-    pub fn new(min_disparity: i32, disparities: usize, ratio: f32) -> Option<Self> {
-        if (ratio - 1.0).abs() < 1e-6 || disparities == 0 {
+    pub fn new(min_disparity: i32, num_disparities: usize, ratio: f32) -> Option<Self> {
+        if (ratio - 1.0).abs() < 1e-6 || num_disparities == 0 {
             return None;
         }
-        let table: Vec<(usize, usize, u32)> = (0..disparities)
+        let table: Vec<(usize, usize, u32)> = (0..num_disparities)
             .map(|d| {
                 let source = ((min_disparity as f32 + d as f32) * ratio - min_disparity as f32)
-                    .clamp(0.0, (disparities - 1) as f32);
+                    .clamp(0.0, (num_disparities - 1) as f32);
                 let lower = source.floor() as usize;
-                let upper = (lower + 1).min(disparities - 1);
+                let upper = (lower + 1).min(num_disparities - 1);
                 (lower, upper, ((source - lower as f32) * 256.0).round() as u32)
             })
             .collect();

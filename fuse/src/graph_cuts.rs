@@ -704,7 +704,7 @@ impl KzEnergy {
             let v = self.smoothness(p1, direction, usize::from(l1));
             graph.add_potts(o1, o2, v);
         }
-        // Different disparities: an active (p1, d1) next to the inactive (p2, d1), and vice versa.
+        // Different num_disparities: an active (p1, d1) next to the inactive (p2, d1), and vice versa.
         if l1 != l2 && is_var(o1) && self.allowed(p2, usize::from(l1)) {
             graph.add_unary(o1, self.smoothness(p1, direction, usize::from(l1)), 0);
         }

@@ -132,15 +132,15 @@ pub fn pixel_cost_tile_lines(
     y: usize,
     xs: Range<isize>,
     min_disparity: i32,
-    disparities: usize,
+    num_disparities: usize,
     out: &mut [u8],
 ) {
     let image = reference.image();
     let (width, channels) = (image.width, image.channels);
-    for (costs, x) in out.chunks_exact_mut(disparities).zip(xs) {
+    for (costs, x) in out.chunks_exact_mut(num_disparities).zip(xs) {
         let x = x.clamp(0, width as isize - 1) as usize;
         let start = lines.base(x, y).saturating_add_signed(min_disparity as isize);
-        let range = start..start + disparities;
+        let range = start..start + num_disparities;
         let p = (y * width + x) * channels;
         match (cost, channels) {
             (PixelCost::AbsoluteDifference, 1) => {

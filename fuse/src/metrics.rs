@@ -12,7 +12,8 @@ pub struct Metrics {
     /// Root-mean-square error (px).
     pub rms: f64,
     /// Mean absolute error (px).
-    pub avg_err: f64,
+    #[serde(alias = "avg_err")]
+    pub avg_err_px: f64,
     /// % of pixels with error > 0.5 px.
     pub bad_0_5: f64,
     /// % of pixels with error > 1 px.
@@ -69,7 +70,7 @@ pub fn evaluate(
         let percent = |c: usize| 100.0 * c as f64 / n as f64;
         Metrics {
             rms: (sum_sq / n as f64).sqrt(),
-            avg_err: sum_abs / n as f64,
+            avg_err_px: sum_abs / n as f64,
             bad_0_5: percent(bad[0]),
             bad_1: percent(bad[1]),
             bad_2: percent(bad[2]),
@@ -85,7 +86,7 @@ pub fn average(scenes: &[Metrics]) -> Option<Metrics> {
     let n = scenes.len() as f64;
     (!scenes.is_empty()).then(|| Metrics {
         rms: scenes.iter().map(|m| m.rms).sum::<f64>() / n,
-        avg_err: scenes.iter().map(|m| m.avg_err).sum::<f64>() / n,
+        avg_err_px: scenes.iter().map(|m| m.avg_err_px).sum::<f64>() / n,
         bad_0_5: scenes.iter().map(|m| m.bad_0_5).sum::<f64>() / n,
         bad_1: scenes.iter().map(|m| m.bad_1).sum::<f64>() / n,
         bad_2: scenes.iter().map(|m| m.bad_2).sum::<f64>() / n,
@@ -105,7 +106,7 @@ mod tests {
         let estimate = [10.0f32, 10.6, 11.5, 13.0, 99.0];
         let m = evaluate(&estimate, &gt, None, 64.0).unwrap_or_else(|| panic!("no pixels"));
         assert_eq!(m.pixels, 4);
-        assert!((m.avg_err - (0.0 + 0.6 + 1.5 + 3.0) / 4.0).abs() < 1e-6);
+        assert!((m.avg_err_px - (0.0 + 0.6 + 1.5 + 3.0) / 4.0).abs() < 1e-6);
         assert!((m.bad_0_5 - 75.0).abs() < 1e-9);
         assert!((m.bad_1 - 50.0).abs() < 1e-9);
         assert!((m.bad_2 - 25.0).abs() < 1e-9);
@@ -113,10 +114,10 @@ mod tests {
         let rms = ((0.36f64 + 2.25 + 9.0) / 4.0).sqrt();
         assert!((m.rms - rms).abs() < 1e-5);
         let missing = evaluate(&[f32::INFINITY], &[5.0], None, 32.0).unwrap_or_else(|| panic!("no pixels"));
-        assert_eq!((missing.missing, missing.avg_err), (1, 32.0));
+        assert_eq!((missing.missing, missing.avg_err_px), (1, 32.0));
         // A converged rig's truths are signed: 0 and negative disparities are known values.
         let signed = evaluate(&[-2.5, 0.5], &[-3.0, 0.0], None, 32.0).unwrap_or_else(|| panic!("no pixels"));
         assert_eq!(signed.pixels, 2);
-        assert!((signed.avg_err - 0.5).abs() < 1e-6);
+        assert!((signed.avg_err_px - 0.5).abs() < 1e-6);
     }
 }

@@ -132,13 +132,13 @@ pub fn aggregate(
     volume: &[u8],
     width: usize,
     height: usize,
-    disparities: usize,
+    num_disparities: usize,
     max_cost: u32,
     p1: u16,
     p2: u16,
 ) -> Vec<u16> {
     let penalties = Penalties::new(max_cost, p1, p2);
-    passes(volume, width, height, disparities, &penalties, None)
+    passes(volume, width, height, num_disparities, &penalties, None)
 }
 
 /// [`aggregate`] on a [`CostVolume`]: the eight paths' summed costs, a volume of the same
@@ -149,7 +149,7 @@ pub fn aggregate_volume(volume: &CostVolume<u8>, p1: u16, p2: u16) -> CostVolume
         &volume.data,
         volume.width,
         volume.height,
-        volume.disparities,
+        volume.num_disparities,
         &penalties,
         None,
     );
@@ -157,7 +157,7 @@ pub fn aggregate_volume(volume: &CostVolume<u8>, p1: u16, p2: u16) -> CostVolume
         width: volume.width,
         height: volume.height,
         min_disparity: volume.min_disparity,
-        disparities: volume.disparities,
+        num_disparities: volume.num_disparities,
         data,
         max_cost: 8 * (u32::from(penalties.cap) + u32::from(p2)),
         source: volume.source.clone(),
@@ -173,7 +173,7 @@ pub fn select(
     volume: &[u8],
     width: usize,
     height: usize,
-    disparities: usize,
+    num_disparities: usize,
     max_cost: u32,
     (p1, p2): (u16, u16),
     min_disparity: i32,
@@ -186,7 +186,7 @@ pub fn select(
         subpixel,
         out: &mut out,
     };
-    passes(volume, width, height, disparities, &penalties, Some(selection));
+    passes(volume, width, height, num_disparities, &penalties, Some(selection));
     out.chunks_exact(2).map(|pair| (pair[0], pair[1])).unzip()
 }
 
@@ -588,7 +588,7 @@ mod tests {
         volume: &[u8],
         width: usize,
         height: usize,
-        disparities: usize,
+        num_disparities: usize,
         max_cost: u32,
         p1: u16,
         p2: u16,
@@ -596,7 +596,7 @@ mod tests {
         let shift = cost_shift(max_cost, u32::from(p2));
         let cap = ((max_cost >> shift).min(u32::from(INVALID_COST) - 1)) as u16;
         assert_eq!(cap, Penalties::new(max_cost, p1, p2).cap);
-        let nd = disparities;
+        let nd = num_disparities;
         let row_len = width * nd;
         let mut sum = vec![0u16; volume.len()];
         for forward in [true, false] {

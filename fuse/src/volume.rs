@@ -127,7 +127,7 @@ pub struct CostVolume<T> {
     /// Disparity of the first slice (signed).
     pub min_disparity: i32,
     /// Disparities per pixel.
-    pub disparities: usize,
+    pub num_disparities: usize,
     /// `height × width × disparities` costs.
     pub data: Vec<T>,
     /// Largest valid cost.
@@ -139,8 +139,8 @@ pub struct CostVolume<T> {
 impl<T> CostVolume<T> {
     /// The costs of pixel `(x, y)` over the disparities.
     pub fn costs(&self, x: usize, y: usize) -> &[T] {
-        let at = (y * self.width + x) * self.disparities;
-        &self.data[at..at + self.disparities]
+        let at = (y * self.width + x) * self.num_disparities;
+        &self.data[at..at + self.num_disparities]
     }
 }
 
@@ -180,16 +180,16 @@ pub struct CostSpec {
     /// Per-pixel dissimilarity.
     pub pixel: PixelCost,
     /// Aggregation block radius ρ: costs are summed over `(2ρ+1)²` pixels.
-    pub block_radius: usize,
+    pub block_radius_px: usize,
 }
 
 impl CostSpec {
     /// Checks the radii.
     pub fn validate(&self) -> Result<(), FuseError> {
-        if self.block_radius > MAX_BLOCK_RADIUS {
+        if self.block_radius_px > MAX_BLOCK_RADIUS {
             return Err(FuseError::Config {
-                field: "block_radius",
-                value: self.block_radius.to_string(),
+                field: "block_radius_px",
+                value: self.block_radius_px.to_string(),
                 reason: "must be ≤ 7 (costs are u16)",
             });
         }
@@ -211,7 +211,7 @@ impl CostSpec {
             PixelCost::AbsoluteDifference | PixelCost::BirchfieldTomasi => 255,
             PixelCost::Census { radius } => ((2 * radius + 1) * (2 * radius + 1) - 1) as u32,
         };
-        let side = 2 * self.block_radius as u32 + 1;
+        let side = 2 * self.block_radius_px as u32 + 1;
         per_pixel * side * side
     }
 }
@@ -222,8 +222,8 @@ impl CostSpec {
 const TILE_CELLS: usize = 8192;
 
 /// Columns per tile for `disparities`.
-fn tile_columns(disparities: usize) -> usize {
-    (TILE_CELLS / disparities.max(1)).clamp(16, 1024)
+fn tile_columns(num_disparities: usize) -> usize {
+    (TILE_CELLS / num_disparities.max(1)).clamp(16, 1024)
 }
 
 /// Rows per band of parallel work for an image `height` rows high: a few bands per worker
@@ -282,7 +282,7 @@ pub struct PreparedProblem {
     width: usize,
     height: usize,
     min_disparity: i32,
-    disparities: usize,
+    num_disparities: usize,
     spec: CostSpec,
     fusion: Fusion,
     /// The neighbours by side for the heuristic (whose sides count once, by their minimum); one
@@ -312,7 +312,7 @@ impl PreparedProblem {
             width: problem.reference.width,
             height: problem.reference.height,
             min_disparity: problem.min_disparity,
-            disparities: problem.num_disparities,
+            num_disparities: problem.num_disparities,
             spec,
             fusion,
         })
@@ -360,8 +360,8 @@ impl PreparedProblem {
     }
 
     /// Disparities per pixel.
-    pub fn disparities(&self) -> usize {
-        self.disparities
+    pub fn num_disparities(&self) -> usize {
+        self.num_disparities
     }
 
     /// Pixel costs of one neighbour for reference row `y` (clamped into the image), columns `xs`.
@@ -375,7 +375,7 @@ impl PreparedProblem {
                 y,
                 xs,
                 self.min_disparity,
-                self.disparities,
+                self.num_disparities,
                 out,
             ),
             None => pixel_cost_tile(
@@ -386,7 +386,7 @@ impl PreparedProblem {
                 y,
                 xs,
                 self.min_disparity,
-                self.disparities,
+                self.num_disparities,
                 out,
             ),
         }
@@ -407,7 +407,7 @@ impl PreparedProblem {
         if rows.is_empty() {
             return;
         }
-        let (w, nd, r) = (self.width, self.disparities, self.spec.block_radius);
+        let (w, nd, r) = (self.width, self.num_disparities, self.spec.block_radius_px);
         let window = 2 * r + 1;
         let tile = tile_columns(nd);
         let BandScratch {
@@ -504,8 +504,8 @@ impl PreparedProblem {
 
     /// [`Self::fused_band`] reusing a worker's buffers.
     pub fn fused_band_into(&self, rows: Range<usize>, out: &mut [u16], buffers: &mut BandScratch) {
-        let row_len = self.width * self.disparities;
-        let (first, nd) = (rows.start, self.disparities);
+        let row_len = self.width * self.num_disparities;
+        let (first, nd) = (rows.start, self.num_disparities);
         self.fused_band_with(rows, buffers, &mut |y, x_start, costs| {
             let at = (y - first) * row_len + x_start * nd;
             out[at..at + costs.len()].copy_from_slice(costs);
@@ -515,9 +515,9 @@ impl PreparedProblem {
     /// The whole fused volume `[y][x][d]` for global optimisers, quantised to bytes by `shift`
     /// ([`crate::sgm::quantise`]) and computed band-parallel; `on_band` is called after each band.
     pub fn fused_volume(&self, shift: u32, on_band: &(dyn Fn() + Sync)) -> CostVolume<u8> {
-        let row_len = self.width * self.disparities;
+        let row_len = self.width * self.num_disparities;
         let band = band_rows(self.height);
-        let nd = self.disparities;
+        let nd = self.num_disparities;
         let mut volume = vec![0u8; self.height * row_len];
         volume.par_chunks_mut(band * row_len).enumerate().for_each_init(
             BandScratch::default,
@@ -535,7 +535,7 @@ impl PreparedProblem {
             width: self.width,
             height: self.height,
             min_disparity: self.min_disparity,
-            disparities: nd,
+            num_disparities: nd,
             data: volume,
             max_cost: (self.spec.max_cost() >> shift).min(u32::from(crate::sgm::INVALID_QUANTISED) - 1),
             source: VolumeSource::Fused(self.fusion),
@@ -545,8 +545,8 @@ impl PreparedProblem {
 
 /// Sums `2r+1` neighbouring columns of `column_sums` (`[x][d]`, `r` extra columns on each side)
 /// into `out` (`[x][d]` for the inner columns).
-fn horizontal_block_sums(column_sums: &[u16], out: &mut [u16], disparities: usize, r: usize) {
-    let nd = disparities;
+fn horizontal_block_sums(column_sums: &[u16], out: &mut [u16], num_disparities: usize, r: usize) {
+    let nd = num_disparities;
     let columns = out.len() / nd;
     let (first, rest) = out.split_at_mut(nd.min(out.len()));
     first.fill(0);
@@ -587,7 +587,7 @@ mod tests {
         let (min_d, nd, r) = (
             problem.min_disparity,
             problem.num_disparities,
-            spec.block_radius as isize,
+            spec.block_radius_px as isize,
         );
         let reference = PreparedView::new(problem.reference.clone(), spec.pixel);
         let per_neighbour: Vec<Vec<u16>> = problem
@@ -686,21 +686,21 @@ mod tests {
                 (
                     CostSpec {
                         pixel: PixelCost::BirchfieldTomasi,
-                        block_radius: 2,
+                        block_radius_px: 2,
                     },
                     Fusion::Heuristic,
                 ),
                 (
                     CostSpec {
                         pixel: PixelCost::Census { radius: 1 },
-                        block_radius: 1,
+                        block_radius_px: 1,
                     },
                     Fusion::Mean,
                 ),
                 (
                     CostSpec {
                         pixel: PixelCost::AbsoluteDifference,
-                        block_radius: 0,
+                        block_radius_px: 0,
                     },
                     Fusion::Stereo,
                 ),

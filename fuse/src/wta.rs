@@ -163,24 +163,24 @@ fn solve<const N: usize>(mut a: [[f64; N]; N], mut b: [f64; N]) -> Option<[f64; 
 /// whose best cost is [`INVALID_COST`] get `f32::INFINITY`.
 pub fn winner_take_all(
     costs: &[u16],
-    disparities: usize,
+    num_disparities: usize,
     min_disparity: i32,
     subpixel: Option<SubpixelFit>,
     out: &mut [f32],
 ) {
-    winners(costs, disparities, min_disparity, subpixel, out, None);
+    winners(costs, num_disparities, min_disparity, subpixel, out, None);
 }
 
 /// [`winner_take_all`] that also writes each pixel's [`peak_confidence`] into `confidence`.
 pub fn winner_take_all_confident(
     costs: &[u16],
-    disparities: usize,
+    num_disparities: usize,
     min_disparity: i32,
     subpixel: Option<SubpixelFit>,
     out: &mut [f32],
     confidence: &mut [f32],
 ) {
-    winners(costs, disparities, min_disparity, subpixel, out, Some(confidence));
+    winners(costs, num_disparities, min_disparity, subpixel, out, Some(confidence));
 }
 
 /// The confidence of the winner `best` of one pixel's costs, in [0, 1]: `1 − c₁/c₂`, where `c₁` is
@@ -210,13 +210,13 @@ pub fn peak_confidence(costs: &[u16], best: usize) -> f32 {
 
 fn winners(
     costs: &[u16],
-    disparities: usize,
+    num_disparities: usize,
     min_disparity: i32,
     subpixel: Option<SubpixelFit>,
     out: &mut [f32],
     mut confidence: Option<&mut [f32]>,
 ) {
-    for (i, (pixel, c)) in out.iter_mut().zip(costs.chunks_exact(disparities)).enumerate() {
+    for (i, (pixel, c)) in out.iter_mut().zip(costs.chunks_exact(num_disparities)).enumerate() {
         // Cost and disparity packed into one u32 (cost high): one vectorised min finds the
         // smallest cost at its first disparity.
         let packed = c
@@ -236,7 +236,7 @@ fn winners(
         let mut delta = 0.0f32;
         if let Some(fit) = subpixel
             && best > 0
-            && best + 1 < disparities
+            && best + 1 < num_disparities
             && c[best - 1] != INVALID_COST
             && c[best + 1] != INVALID_COST
         {

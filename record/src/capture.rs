@@ -479,7 +479,7 @@ impl Simulation {
             joint_velocities: [0.0; 6],
             base_from_flange,
         });
-        let world_from_camera_true = base_from_flange * self.hand_eye_true;
+        let true_world_from_camera = base_from_flange * self.hand_eye_true;
         let world_from_camera = base_from_flange * self.hand_eye_believed;
         let view_index = u64::from(set) << 8
             | self
@@ -508,7 +508,7 @@ impl Simulation {
         let shift = self.principal_point_shift_px();
         camera.cx += f64::from(slot.grid_offset[0]) * shift;
         camera.cy += f64::from(slot.grid_offset[1]) * shift;
-        let rendered = self.prepared.render(&camera, &world_from_camera_true, &settings);
+        let rendered = self.prepared.render(&camera, &true_world_from_camera, &settings);
         Ok(CapturedView {
             role: slot.role.to_owned(),
             grid_offset: slot.grid_offset,
@@ -518,7 +518,7 @@ impl Simulation {
             depth_m: Some(rendered.depth_m),
             surface_class: Some(rendered.surface_class),
             world_from_camera,
-            world_from_camera_true: Some(world_from_camera_true),
+            true_world_from_camera: Some(true_world_from_camera),
             commanded_world_from_camera: Some(commanded),
             joints: Some(reached_joints),
             exposure_gain: gain,
@@ -629,9 +629,9 @@ mod tests {
         });
         let mut sim = Simulation::new(config).unwrap();
         let set = sim.capture_set(0, &AtomicBool::new(false), |_| {}).unwrap().unwrap();
-        let center = set.views[0].world_from_camera_true.unwrap();
+        let center = set.views[0].true_world_from_camera.unwrap();
         for view in &set.views {
-            let relative = center.inverse() * view.world_from_camera_true.unwrap();
+            let relative = center.inverse() * view.true_world_from_camera.unwrap();
             let expected = Vector3::new(f64::from(view.grid_offset[0]), f64::from(view.grid_offset[1]), 0.0) * 0.02;
             assert!(
                 (relative.translation.vector - expected).norm() < 1e-9,

@@ -502,12 +502,23 @@ impl ImportError {
     }
 }
 
-fn file_name(name: &str) -> String {
-    if Path::new(name).extension().is_some() {
-        name.to_owned()
-    } else {
-        format!("{name}.png")
+/// Extensions tried, in order, for a view or ground-truth name given without one.
+const IMAGE_EXTENSIONS: [&str; 9] = ["png", "ppm", "pgm", "pfm", "jpg", "jpeg", "tif", "tiff", "bmp"];
+
+/// The file a view or ground-truth name stands for in `dir`: the name itself when such a file
+/// exists (`im0.png`, or a stem with dots such as `scene1.row3.col3.ppm`), else the name with
+/// the first image extension that exists (`view1` → `view1.png`, `scene1.row3.col3` →
+/// `scene1.row3.col3.ppm`), else the name with `.png` (for the error message).
+fn file_in(dir: &Path, name: &str) -> PathBuf {
+    let exact = dir.join(name);
+    if exact.is_file() {
+        return exact;
     }
+    IMAGE_EXTENSIONS
+        .iter()
+        .map(|ext| dir.join(format!("{name}.{ext}")))
+        .find(|p| p.is_file())
+        .unwrap_or_else(|| dir.join(format!("{name}.png")))
 }
 
 impl ImportConfig {
@@ -657,7 +668,7 @@ pub fn plan_import(dir: &Path, overrides: &ImportOverrides) -> Result<Vec<(PathB
     };
     let top = description(dir)?;
     let top_config = overrides.apply(top.as_ref().unwrap_or(&ImportConfig::default()))?;
-    let holds_set = |d: &Path, config: &ImportConfig| config.views.iter().any(|v| d.join(file_name(&v.file)).is_file());
+    let holds_set = |d: &Path, config: &ImportConfig| config.views.iter().any(|v| file_in(d, &v.file).is_file());
     if holds_set(dir, &top_config) {
         return Ok(vec![(dir.to_path_buf(), top_config)]);
     }
@@ -692,7 +703,11 @@ pub fn plan_import(dir: &Path, overrides: &ImportOverrides) -> Result<Vec<(PathB
             expected: top_config
                 .views
                 .iter()
-                .map(|v| file_name(&v.file))
+                .map(|v| {
+                    file_in(dir, &v.file)
+                        .file_name()
+                        .map_or_else(|| v.file.clone(), |n| n.to_string_lossy().into_owned())
+                })
                 .collect::<Vec<_>>()
                 .join(", "),
         });
@@ -926,7 +941,7 @@ pub fn import_set(dir: &Path, index: u32, config: &ImportConfig) -> Result<Captu
         .views
         .iter()
         .map(|view| {
-            let path = dir.join(file_name(&view.file));
+            let path = file_in(dir, &view.file);
             read_rgb(&path).map(|image| (path, image))
         })
         .collect::<Result<Vec<_>, _>>()?;
@@ -986,7 +1001,7 @@ pub fn import_set(dir: &Path, index: u32, config: &ImportConfig) -> Result<Captu
     let baseline_m = baseline_mm / 1000.0;
     let depth = match &config.ground_truth {
         Some(name) => {
-            let path = dir.join(file_name(name));
+            let path = file_in(dir, name);
             let (w, h, values) = read_ground_truth(&path)?;
             if (w, h) != (width, height) {
                 return Err(ImportError::SizeMismatch {
@@ -1034,7 +1049,7 @@ pub fn import_set(dir: &Path, index: u32, config: &ImportConfig) -> Result<Captu
                 depth_m: None,
                 surface_class: None,
                 world_from_camera: Isometry3::translation(dx * baseline_m, dy * baseline_m, 0.0),
-                world_from_camera_true: None,
+                true_world_from_camera: None,
                 commanded_world_from_camera: None,
                 joints: None,
                 exposure_gain: 1.0,
@@ -1068,6 +1083,28 @@ pub fn import_set(dir: &Path, index: u32, config: &ImportConfig) -> Result<Captu
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_view_name_finds_its_file_with_or_without_extension_and_with_dots_in_its_stem() {
+        let dir = tempfile::tempdir().unwrap_or_else(|e| panic!("{e}"));
+        for name in ["scene1.row3.col3.ppm", "view0.png", "disp.pfm"] {
+            std::fs::write(dir.path().join(name), b"x").unwrap_or_else(|e| panic!("{e}"));
+        }
+        let found = |name: &str| {
+            file_in(dir.path(), name)
+                .file_name()
+                .map(|n| n.to_string_lossy().into_owned())
+        };
+        assert_eq!(found("scene1.row3.col3.ppm").as_deref(), Some("scene1.row3.col3.ppm"));
+        assert_eq!(found("scene1.row3.col3").as_deref(), Some("scene1.row3.col3.ppm"));
+        assert_eq!(found("view0").as_deref(), Some("view0.png"));
+        assert_eq!(found("disp").as_deref(), Some("disp.pfm"));
+        assert_eq!(
+            found("missing").as_deref(),
+            Some("missing.png"),
+            "the name in the error"
+        );
+    }
 
     #[test]
     fn view_specs_parse_and_print() {

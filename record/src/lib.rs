@@ -73,7 +73,7 @@ pub struct CapturedView {
     /// Camera pose as the system knows it (arm forward kinematics and the hand-eye estimate).
     pub world_from_camera: Isometry3<f64>,
     /// The true camera pose the image was rendered from (simulation only).
-    pub world_from_camera_true: Option<Isometry3<f64>>,
+    pub true_world_from_camera: Option<Isometry3<f64>>,
     /// The pose the planner commanded.
     pub commanded_world_from_camera: Option<Isometry3<f64>>,
     /// Joint positions at the capture.

@@ -717,7 +717,7 @@ impl<W: Write + Seek> LogWriter<W> {
             surface_topic: surface,
             world_from_camera: (&view.world_from_camera).into(),
             commanded_world_from_camera: view.commanded_world_from_camera.as_ref().map(Into::into),
-            true_world_from_camera: view.world_from_camera_true.as_ref().map(Into::into),
+            true_world_from_camera: view.true_world_from_camera.as_ref().map(Into::into),
             joint_positions_rad: view.joints,
             exposure_gain: view.exposure_gain,
             disparity_range: set.disparity_range,

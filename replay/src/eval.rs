@@ -144,7 +144,8 @@ pub fn evaluate_sets(
         if let Some(baseline) = baseline_of(&row.method)
             && let Some(base) = snapshot.iter().find(|r| r.method == baseline)
         {
-            row.avg_err_change_percent = Some(100.0 * (row.mean.avg_err - base.mean.avg_err) / base.mean.avg_err);
+            row.avg_err_change_percent =
+                Some(100.0 * (row.mean.avg_err_px - base.mean.avg_err_px) / base.mean.avg_err_px);
             row.rms_change_percent = Some(100.0 * (row.mean.rms - base.mean.rms) / base.mean.rms);
             row.baseline = Some(baseline);
         }
@@ -157,7 +158,7 @@ fn change(value: Option<f64>) -> String {
 }
 
 fn region(metrics: Option<Metrics>) -> String {
-    metrics.map_or_else(|| "–".to_owned(), |m| format!("{:.3}", m.avg_err))
+    metrics.map_or_else(|| "–".to_owned(), |m| format!("{:.3}", m.avg_err_px))
 }
 
 /// The table as Markdown.
@@ -184,7 +185,7 @@ pub fn markdown(rows: &[EvalRow]) -> String {
             r.method,
             r.scenes.len(),
             r.mean.rms,
-            r.mean.avg_err,
+            r.mean.avg_err_px,
             r.mean.bad_0_5,
             r.mean.bad_1,
             r.mean.bad_2,
@@ -205,7 +206,7 @@ pub fn markdown(rows: &[EvalRow]) -> String {
 /// only).
 pub fn csv(rows: &[EvalRow]) -> String {
     let mut out = String::from(
-        "method,scene,rms,avg_err,bad_0_5,bad_1,bad_2,pixels,missing,avg_err_change_percent,avg_err_top50,avg_err_top75,avg_err_top90,pooled_avg_err_top50,pooled_avg_err_top75,pooled_avg_err_top90,pooled_avg_err_all\n",
+        "method,scene,rms,avg_err_px,bad_0_5,bad_1,bad_2,pixels,missing,avg_err_change_percent,avg_err_top50,avg_err_top75,avg_err_top90,pooled_avg_err_top50,pooled_avg_err_top75,pooled_avg_err_top90,pooled_avg_err_all\n",
     );
     for r in rows {
         for (scene, m) in r
@@ -234,7 +235,7 @@ pub fn csv(rows: &[EvalRow]) -> String {
                 r.method,
                 scene,
                 m.rms,
-                m.avg_err,
+                m.avg_err_px,
                 m.bad_0_5,
                 m.bad_1,
                 m.bad_2,
@@ -301,7 +302,7 @@ mod tests {
     fn the_csv_has_a_value_for_every_column_and_the_curve_on_the_mean_row() {
         let metrics = Metrics {
             rms: 1.0,
-            avg_err: 0.5,
+            avg_err_px: 0.5,
             bad_0_5: 10.0,
             bad_1: 5.0,
             bad_2: 2.0,

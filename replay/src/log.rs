@@ -783,7 +783,7 @@ mod tests {
             depth_m: Some(vec![0.5; 12]),
             surface_class: None,
             world_from_camera: nalgebra::Isometry3::translation(f64::from(dx) * 0.02, 0.0, 0.0),
-            world_from_camera_true: None,
+            true_world_from_camera: None,
             commanded_world_from_camera: None,
             joints: None,
             exposure_gain: 1.0,

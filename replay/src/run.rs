@@ -178,7 +178,7 @@ fn report_result(set: &ViewSet, method: &str, result: &crate::pipeline::MethodRe
     match result.regions.map(|r| r.all) {
         Some(m) => info!(
             "{head} — AvgErr {:.3} px, RMS {:.3}, Bad1 {:.2} % → {}",
-            m.avg_err,
+            m.avg_err_px,
             m.rms,
             m.bad_1,
             dir.display()

@@ -92,9 +92,11 @@ pub struct TrainConfig {
     /// Optimiser steps.
     pub steps: u64,
     /// Side of the square training crops (px, a multiple of 4).
-    pub crop: usize,
+    #[serde(alias = "crop")]
+    pub crop_px: usize,
     /// Disparities of the training volumes (a multiple of 4).
-    pub disparities: usize,
+    #[serde(alias = "disparities")]
+    pub num_disparities: usize,
     /// Adam's learning rate (divided by 4 for the last quarter of the steps).
     pub learning_rate: f32,
     /// Seed of scenes, weights and crops.
@@ -191,8 +193,8 @@ impl Default for TrainConfig {
         Self {
             views: 2,
             steps: 3000,
-            crop: 64,
-            disparities: 32,
+            crop_px: 64,
+            num_disparities: 32,
             learning_rate: 5e-4,
             seed: 1,
             train_sets: 40,
@@ -311,17 +313,17 @@ impl TrainConfig {
         if !matches!(self.views, 1 | 2 | 4) {
             return bad("views", self.views.to_string(), "1, 2 or 4");
         }
-        if self.crop < 16
-            || !self.crop.is_multiple_of(4)
-            || self.crop as u32 > self.resolution[0].min(self.resolution[1])
+        if self.crop_px < 16
+            || !self.crop_px.is_multiple_of(4)
+            || self.crop_px as u32 > self.resolution[0].min(self.resolution[1])
         {
             return bad(
-                "crop",
-                self.crop.to_string(),
+                "crop_px",
+                self.crop_px.to_string(),
                 "a multiple of 4, ≥ 16, within the resolution",
             );
         }
-        if !self.disparity_shift.is_multiple_of(4) || self.disparity_shift + 8 > self.disparities {
+        if !self.disparity_shift.is_multiple_of(4) || self.disparity_shift + 8 > self.num_disparities {
             return bad(
                 "disparity_shift",
                 self.disparity_shift.to_string(),
@@ -356,8 +358,12 @@ impl TrainConfig {
                 "in [0, 1): 0 = frozen statistics",
             );
         }
-        if self.disparities < 4 || !self.disparities.is_multiple_of(4) {
-            return bad("disparities", self.disparities.to_string(), "a multiple of 4, ≥ 4");
+        if self.num_disparities < 4 || !self.num_disparities.is_multiple_of(4) {
+            return bad(
+                "num_disparities",
+                self.num_disparities.to_string(),
+                "a multiple of 4, ≥ 4",
+            );
         }
         if self.train_sets == 0 || self.val_sets == 0 || self.scenes.is_empty() {
             return bad("train_sets/val_sets/scenes", String::new(), "at least one each");
@@ -368,10 +374,10 @@ impl TrainConfig {
         Ok(())
     }
 
-    /// Disparity slices of the dataset's volumes and of every crop: the range plus the context
+    /// Disparity slices of the dataset's volumes and of every crop_px: the range plus the context
     /// below it.
     pub fn depth(&self) -> usize {
-        self.disparities + self.context_below
+        self.num_disparities + self.context_below
     }
 
     /// A hash of everything that makes the dataset (seed, captures, volumes): cached samples
@@ -384,7 +390,7 @@ impl TrainConfig {
             "baseline_draw": self.baseline_draw,
             "scenes": self.scenes,
             "samples_per_pixel": self.samples_per_pixel,
-            "disparities": self.disparities,
+            "disparities": self.num_disparities,
             "input": self.input,
             "steps_per_unit": fuse::mfusenet::input::STEPS_PER_UNIT,
             // Bumped when `record`'s scene generator changes what a seed draws.
@@ -482,7 +488,7 @@ pub fn sample(config: &TrainConfig, index: usize, validation: bool, cache_dir: &
     };
     let view_set = ViewSet::from_captured(&set).map_err(|source| TrainError::Replay { index, source })?;
     let problem = view_set
-        .problem(0, config.disparities, false)
+        .problem(0, config.num_disparities, false)
         .map_err(|source| TrainError::Replay { index, source })?;
     let neighbours = ordered_neighbours(&problem, 4).map_err(|source| TrainError::Fuse { index, source })?;
     // Samples are in slice coordinates, as `read_sample` gives them back: the first slice (the
@@ -510,7 +516,7 @@ fn write_sample(sample: &Sample, path: &Path) -> Result<(), TrainError> {
     let truth: Vec<u8> = sample.truth.iter().flat_map(|t| t.to_le_bytes()).collect();
     let mut views = Vec::new();
     for (i, volume) in sample.volumes.iter().enumerate() {
-        let view = TensorView::new(Dtype::U8, vec![v.height, v.width, v.disparities], &volume.data)
+        let view = TensorView::new(Dtype::U8, vec![v.height, v.width, v.num_disparities], &volume.data)
             .map_err(|e| file_error(path, e.to_string()))?;
         views.push((format!("volume.{i}"), view));
     }
@@ -527,7 +533,7 @@ fn write_sample(sample: &Sample, path: &Path) -> Result<(), TrainError> {
     std::fs::rename(&temporary, path).map_err(|e| file_error(path, e.to_string()))
 }
 
-fn read_sample(bytes: &[u8], disparities: usize) -> Option<Sample> {
+fn read_sample(bytes: &[u8], num_disparities: usize) -> Option<Sample> {
     let tensors = SafeTensors::deserialize(bytes).ok()?;
     let truth_view = tensors.tensor("truth").ok()?;
     let (height, width) = (*truth_view.shape().first()?, *truth_view.shape().get(1)?);
@@ -545,14 +551,14 @@ fn read_sample(bytes: &[u8], disparities: usize) -> Option<Sample> {
     let mut volumes = Vec::new();
     for (i, (role, offset)) in roles.iter().enumerate() {
         let view = tensors.tensor(&format!("volume.{i}")).ok()?;
-        if view.shape() != [height, width, disparities] {
+        if view.shape() != [height, width, num_disparities] {
             return None;
         }
         volumes.push(CostVolume {
             width,
             height,
             min_disparity: 0,
-            disparities,
+            num_disparities,
             data: view.data().to_vec(),
             max_cost: 255,
             source: VolumeSource::Neighbour {
@@ -566,7 +572,7 @@ fn read_sample(bytes: &[u8], disparities: usize) -> Option<Sample> {
 
 /// Validation crops: the centre `side × side` (largest multiple of 4 that fits, at most 160)
 /// of every validation sample.
-pub fn validation_examples(samples: &[Sample], views: usize, disparities: usize) -> Vec<Example> {
+pub fn validation_examples(samples: &[Sample], views: usize, num_disparities: usize) -> Vec<Example> {
     samples
         .iter()
         .map(|s| {
@@ -577,7 +583,7 @@ pub fn validation_examples(samples: &[Sample], views: usize, disparities: usize)
                 &s.truth,
                 ((h - side) / 2, (w - side) / 2),
                 (side, side),
-                disparities,
+                num_disparities,
             )
         })
         .collect()
@@ -672,7 +678,7 @@ pub fn fit_locking(samples: &[Sample], views: usize) -> Option<LockingCurve> {
 pub fn locking_pairs(samples: &[Sample], views: usize) -> impl Iterator<Item = (f64, f64)> + '_ {
     samples.iter().flat_map(move |sample| {
         let volumes = sample.for_views(views);
-        let (w, depth) = (volumes[0].width, volumes[0].disparities);
+        let (w, depth) = (volumes[0].width, volumes[0].num_disparities);
         sample.truth.iter().enumerate().filter_map(move |(pixel, &t)| {
             let d = t.round();
             if !(t > 0.0 && d >= 1.0 && d + 1.0 < depth as f32) {
@@ -950,7 +956,7 @@ pub fn train(
     let started = Instant::now();
     let session_start_step = adam.step;
     let mut recent: Vec<f32> = history.iter().rev().take(50).map(|r: &CurveRow| r.loss).collect();
-    let mut last_validation = history.iter().rev().find_map(|r| r.val_avg_err.zip(r.val_bad1));
+    let mut last_validation = history.iter().rev().find_map(|r| r.val_avg_err_px.zip(r.val_bad1));
     // The last validation with both estimates and its step, reused for the metadata.
     let mut last_estimates: Option<(u64, Validation)> = None;
     let info_for = |seconds: f64| {
@@ -986,7 +992,7 @@ pub fn train(
         let mut row = CurveRow {
             step: done,
             loss,
-            val_avg_err: None,
+            val_avg_err_px: None,
             val_bad1: None,
         };
         if done % config.validate_every == 0 || done == config.steps {
@@ -1001,7 +1007,7 @@ pub fn train(
             );
             last_estimates = Some((done, estimates));
             let (avg, bad1) = estimates.soft_argmin;
-            row.val_avg_err = Some(avg);
+            row.val_avg_err_px = Some(avg);
             row.val_bad1 = Some(bad1);
             last_validation = Some((avg, bad1));
         }
@@ -1035,7 +1041,7 @@ pub fn train(
             _ => "left,right,top,bottom",
         },
     );
-    info.set("disparities_trained", config.disparities.to_string());
+    info.set("disparities_trained", config.num_disparities.to_string());
     info.set(
         "input_normalisation",
         "per neighbour: census 7x7 block-summed, SGM 8 paths; (S - min_d S) / (8 P2), steps of 1/128, max 255 steps; tensor = byte / 128",
@@ -1112,12 +1118,12 @@ fn random_crop(config: &TrainConfig, samples: &[Sample], rng: &mut Rng) -> Examp
     for _ in 0..8 {
         let s = &samples[rng.below(samples.len())];
         let (w, h) = (s.volumes[0].width, s.volumes[0].height);
-        let (y0, x0) = (rng.below(h - config.crop + 1), rng.below(w - config.crop + 1));
+        let (y0, x0) = (rng.below(h - config.crop_px + 1), rng.below(w - config.crop_px + 1));
         let mut e = crop(
             &s.for_views(config.views),
             &s.truth,
             (y0, x0),
-            (config.crop, config.crop),
+            (config.crop_px, config.crop_px),
             config.depth(),
         );
         if config.disparity_shift > 0 {
@@ -1146,7 +1152,7 @@ fn random_crop(config: &TrainConfig, samples: &[Sample], rng: &mut Rng) -> Examp
     })
 }
 
-/// Whether training takes this crop: ground truth on more than half its pixels, and inputs
+/// Whether training takes this crop_px: ground truth on more than half its pixels, and inputs
 /// that are not hopeless unless the configuration keeps those.
 fn acceptable(config: &TrainConfig, example: &Example) -> bool {
     example.mask.iter().filter(|m| **m).count() * 2 > example.mask.len() && (config.keep_hopeless || !hopeless(example))
@@ -1198,7 +1204,7 @@ pub fn variant_name(views: usize) -> &'static str {
 struct CurveRow {
     step: u64,
     loss: f32,
-    val_avg_err: Option<f64>,
+    val_avg_err_px: Option<f64>,
     val_bad1: Option<f64>,
 }
 
@@ -1213,7 +1219,7 @@ fn read_curves(path: &Path, up_to: u64) -> Vec<CurveRow> {
             Some(CurveRow {
                 step: f.first()?.parse().ok()?,
                 loss: f.get(1)?.parse().ok()?,
-                val_avg_err: f.get(2).and_then(|v| v.parse().ok()),
+                val_avg_err_px: f.get(2).and_then(|v| v.parse().ok()),
                 val_bad1: f.get(3).and_then(|v| v.parse().ok()),
             })
         })
@@ -1229,7 +1235,7 @@ fn write_curves(files: &RunFiles, history: &[CurveRow]) -> Result<(), TrainError
             "{},{:.6},{},{}\n",
             r.step,
             r.loss,
-            opt(r.val_avg_err),
+            opt(r.val_avg_err_px),
             opt(r.val_bad1)
         ));
     }
@@ -1244,7 +1250,7 @@ fn write_curves(files: &RunFiles, history: &[CurveRow]) -> Result<(), TrainError
         }
     }
     for r in history {
-        if let (Some(avg), Some(bad1)) = (r.val_avg_err, r.val_bad1) {
+        if let (Some(avg), Some(bad1)) = (r.val_avg_err_px, r.val_bad1) {
             series.entry("val/avg_err_px").or_default().push((r.step as i64, avg));
             series
                 .entry("val/bad1_percent")
@@ -1356,7 +1362,7 @@ mod tests {
                 width: w,
                 height: h,
                 min_disparity: 0,
-                disparities: nd,
+                num_disparities: nd,
                 data: truth
                     .iter()
                     .flat_map(|t| (0..nd).map(move |d| (20.0 * (d as f32 - t).abs().powi(power)).min(255.0) as u8))

@@ -177,7 +177,7 @@ pub fn log_costs(viewer: &Viewer, set: &ViewSet, problem: &Problem, occluded: Op
     let (sw, sh, snd) = (reference.width, reference.height, nd.div_ceil(factor));
     let spec = CostSpec {
         pixel: PixelCost::BirchfieldTomasi,
-        block_radius: 4,
+        block_radius_px: 4,
     };
     let neighbours: Vec<Neighbour> = problem
         .neighbours
@@ -222,7 +222,7 @@ pub fn log_costs(viewer: &Viewer, set: &ViewSet, problem: &Problem, occluded: Op
         started.elapsed().as_secs_f64()
     );
     // Mean cost per block pixel, in the units of the pixel cost.
-    let block_pixels = ((2 * spec.block_radius + 1) * (2 * spec.block_radius + 1)) as f32;
+    let block_pixels = ((2 * spec.block_radius_px + 1) * (2 * spec.block_radius_px + 1)) as f32;
     let unit = (1u32 << shift) as f32 / block_pixels;
     for volume in &volumes {
         let name = match &volume.source {
@@ -278,11 +278,11 @@ pub fn log_result(
         viewer.log_metrics(
             method,
             &[
-                ("avg_err_px", m.all.avg_err),
+                ("avg_err_px", m.all.avg_err_px),
                 ("rms_px", m.all.rms),
                 ("bad1_percent", m.all.bad_1),
-                ("avg_err_occluded_px", m.occluded.map_or(f64::NAN, |o| o.avg_err)),
-                ("avg_err_specular_px", m.specular.map_or(f64::NAN, |s| s.avg_err)),
+                ("avg_err_occluded_px", m.occluded.map_or(f64::NAN, |o| o.avg_err_px)),
+                ("avg_err_specular_px", m.specular.map_or(f64::NAN, |s| s.avg_err_px)),
             ],
         )?;
     }

@@ -59,7 +59,7 @@ fn view_from_captured(view: &CapturedView) -> View {
         camera: view.camera,
         rgb: view.rgb.clone(),
         world_from_camera: view.world_from_camera,
-        true_world_from_camera: view.world_from_camera_true,
+        true_world_from_camera: view.true_world_from_camera,
         capture_time_nanos: view.capture_time_nanos,
         joints: view.joints,
     }

@@ -55,7 +55,9 @@ fn replay_runs_mfusenet_and_names_bad_weight_files() {
             .as_array()
             .and_then(|sets| sets.iter().find(|s| s["method"] == method))
             .unwrap_or_else(|| panic!("no {method} in {summary}"));
-        let avg = set["outputs"]["metrics"]["all"]["avg_err"].as_f64().unwrap_or(f64::NAN);
+        let avg = set["outputs"]["metrics"]["all"]["avg_err_px"]
+            .as_f64()
+            .unwrap_or(f64::NAN);
         println!("{method}: AvgErr {avg:.3} px");
         assert!(avg.is_finite() && avg < 3.0, "{method}: AvgErr {avg}");
         let files = set["outputs"]["files"].as_array().map_or(0, Vec::len);
@@ -79,7 +81,7 @@ fn replay_runs_mfusenet_and_names_bad_weight_files() {
     assert_eq!(flipped["config"]["flips"], true, "{flipped}");
     // The image-guided weighted median is MFuseNet's default, with its parameters recorded.
     assert_eq!(flipped["config"]["weighted_median"]["radius_px"], 10, "{flipped}");
-    let avg = flipped["sets"][0]["outputs"]["metrics"]["all"]["avg_err"]
+    let avg = flipped["sets"][0]["outputs"]["metrics"]["all"]["avg_err_px"]
         .as_f64()
         .unwrap_or(f64::NAN);
     println!("mfusenet with flips: AvgErr {avg:.3} px");
@@ -504,7 +506,11 @@ fn a_wide_range_goes_coarse_to_fine_and_the_summary_says_what_the_network_saw() 
     assert_eq!(details["full_size_band_px"], 2, "{summary}");
     // SGM has nothing to add.
     assert!(sets[1].get("details").is_none(), "{summary}");
-    let avg = |set: &serde_json::Value| set["outputs"]["metrics"]["all"]["avg_err"].as_f64().unwrap_or(f64::NAN);
+    let avg = |set: &serde_json::Value| {
+        set["outputs"]["metrics"]["all"]["avg_err_px"]
+            .as_f64()
+            .unwrap_or(f64::NAN)
+    };
     println!(
         "0..64: mfusenet AvgErr {:.3} px, sgm-heuristic {:.3} px",
         avg(&sets[0]),

@@ -140,7 +140,15 @@ fn injected_errors_land_on_the_named_view_only() {
         ],
     );
     let log = Log::read(&path);
-    for r in relative_poses(&log, 0, false) {
+    let poses = relative_poses(&log, 0, false);
+    let mut roles: Vec<&str> = poses.iter().map(|r| r.role.as_str()).collect();
+    roles.sort_unstable();
+    assert_eq!(
+        roles,
+        ["bottom", "center", "left", "right", "top"],
+        "every view's pose is checked"
+    );
+    for r in &poses {
         match r.role.as_str() {
             "left" => {
                 assert!((r.rotation_deg - 0.5).abs() < 1e-6, "left roll {}", r.rotation_deg);

@@ -146,7 +146,9 @@ fn warping_side_views_with_ground_truth_reproduces_the_centre() {
         if rig == "line5" {
             assert_eq!(offsets, [[-2, 0], [-1, 0], [0, 0], [1, 0], [2, 0]]);
         }
-        for event in events.iter().filter(|e| e.role != "center") {
+        let sides: Vec<_> = events.iter().filter(|e| e.role != "center").collect();
+        assert_eq!(sides.len(), 4, "{scene} {rig}: four side views");
+        for event in sides {
             let side = load(&log, &event.role, event.capture_time_nanos);
             let (error, count) = warp_error(&center, &side, event.grid_offset, focal_px, event.baseline_m, 0.0);
             let (shifted_error, _) = warp_error(&center, &side, event.grid_offset, focal_px, event.baseline_m, 2.0);

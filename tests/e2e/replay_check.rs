@@ -69,7 +69,13 @@ fn hand_eye_error_shows_in_the_images_only() {
         &["--hand-eye-error-deg", "0,0,3", "--repeatability-mm", "0"],
         "hand_eye.mcap",
     );
-    for n in json[0]["neighbours"].as_array().into_iter().flatten() {
+    let neighbours = json[0]["neighbours"].as_array().cloned().unwrap_or_default();
+    assert_eq!(
+        neighbours.len(),
+        4,
+        "every neighbour of the five-view set is checked: {json}"
+    );
+    for n in &neighbours {
         let epipolar = n["epipolar_error_px"]["value"].as_f64().unwrap_or(f64::NAN);
         let shift = n["image_shift_px"]["value"].as_f64().unwrap_or(f64::NAN);
         // 3° of mount rotation turn a 20 mm move by 1 mm sideways: f·1 mm / 0.55 m ≈ 1.5 px at 640 px.
@@ -86,7 +92,7 @@ fn rectify_recovers_depth_quality_lost_to_a_rolled_view() {
         "rolled.mcap",
         &["--resolution", "640x360", "--rotation-error", "left:z:1"],
     );
-    let avg_err = |extra: &[&str]| {
+    let avg_err_px = |extra: &[&str]| {
         let mut all = vec![
             "eval",
             log.to_str().unwrap_or_default(),
@@ -100,9 +106,9 @@ fn rectify_recovers_depth_quality_lost_to_a_rolled_view() {
         let output = replay(&all);
         assert_success(&output, "replay eval");
         let rows: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap_or_else(|e| panic!("{e}"));
-        rows[0]["mean"]["avg_err"].as_f64().unwrap_or(f64::NAN)
+        rows[0]["mean"]["avg_err_px"].as_f64().unwrap_or(f64::NAN)
     };
-    let (raw, rectified) = (avg_err(&[]), avg_err(&["--rectify"]));
+    let (raw, rectified) = (avg_err_px(&[]), avg_err_px(&["--rectify"]));
     println!("1° roll on the left view: AvgErr {raw:.3} raw, {rectified:.3} rectified");
     assert!(rectified < raw, "rectify did not help: {rectified} ≥ {raw}");
 }

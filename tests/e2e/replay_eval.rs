@@ -22,7 +22,7 @@ fn middlebury_multiscopic_beats_stereo_and_opencv_sgbm() {
         "--methods",
         "bm-stereo,bm-heuristic,sgm-stereo,sgm-heuristic",
     ]);
-    let avg = |m: &str| metric(&rows, m, "mean", "avg_err");
+    let avg = |m: &str| metric(&rows, m, "mean", "avg_err_px");
     println!(
         "AvgErr bm-stereo {:.3} bm-heuristic {:.3} sgm-stereo {:.3} sgm-heuristic {:.3}; sgm-heuristic Bad1 {:.2} %",
         avg("bm-stereo"),
@@ -83,9 +83,9 @@ fn five_views_beat_three_which_beat_stereo_most_in_occlusions() {
         let method = format!("{family}-heuristic");
         let stereo = format!("{family}-stereo");
         let (s, t, f) = (
-            metric(&five, &stereo, "mean", "avg_err"),
-            metric(&three, &method, "mean", "avg_err"),
-            metric(&five, &method, "mean", "avg_err"),
+            metric(&five, &stereo, "mean", "avg_err_px"),
+            metric(&three, &method, "mean", "avg_err_px"),
+            metric(&five, &method, "mean", "avg_err_px"),
         );
         println!("{family}: AvgErr stereo {s:.3}, three-view {t:.3}, five-view {f:.3}");
         assert!(
@@ -93,7 +93,7 @@ fn five_views_beat_three_which_beat_stereo_most_in_occlusions() {
             "{family}: five-view {f} < three-view {t} < stereo {s} does not hold"
         );
         let occluded_gain =
-            1.0 - metric(&five, &method, "occluded", "avg_err") / metric(&five, &stereo, "occluded", "avg_err");
+            1.0 - metric(&five, &method, "occluded", "avg_err_px") / metric(&five, &stereo, "occluded", "avg_err_px");
         let overall_gain = 1.0 - f / s;
         println!(
             "{family}: five-view vs stereo, AvgErr −{:.0} % overall, −{:.0} % in occlusions",
@@ -140,7 +140,9 @@ fn replay_writes_result_files_and_a_result_log_other_tools_read() {
         serde_json::from_slice(&std::fs::read(set_dir.join("bm-heuristic_metrics.json")).unwrap_or_default())
             .unwrap_or_else(|e| panic!("metrics.json: {e}"));
     assert!(
-        metrics["metrics"]["all"]["avg_err"].as_f64().is_some_and(|e| e < 2.0),
+        metrics["metrics"]["all"]["avg_err_px"]
+            .as_f64()
+            .is_some_and(|e| e < 2.0),
         "{metrics}"
     );
     let names: Vec<String> = std::fs::read_dir(&set_dir)
@@ -169,7 +171,7 @@ fn replay_writes_result_files_and_a_result_log_other_tools_read() {
         .as_f64()
         .unwrap_or_else(|| panic!("no sparsification in {metrics}"));
     assert!(
-        top50 < metrics["metrics"]["all"]["avg_err"].as_f64().unwrap_or(0.0),
+        top50 < metrics["metrics"]["all"]["avg_err_px"].as_f64().unwrap_or(0.0),
         "{metrics}"
     );
     assert!(
@@ -273,12 +275,12 @@ fn graph_cuts_leave_occlusions_unmatched_and_five_views_beat_stereo() {
     ]);
     assert_eq!(metric(&five, "gc-heuristic", "mean", "missing"), 0.0, "filled");
     let (stereo, multi) = (
-        metric(&five, "gc-stereo", "mean", "avg_err"),
-        metric(&five, "gc-heuristic", "mean", "avg_err"),
+        metric(&five, "gc-stereo", "mean", "avg_err_px"),
+        metric(&five, "gc-heuristic", "mean", "avg_err_px"),
     );
     let (stereo_occluded, multi_occluded) = (
-        metric(&five, "gc-stereo", "occluded", "avg_err"),
-        metric(&five, "gc-heuristic", "occluded", "avg_err"),
+        metric(&five, "gc-stereo", "occluded", "avg_err_px"),
+        metric(&five, "gc-heuristic", "occluded", "avg_err_px"),
     );
     println!("gc AvgErr stereo {stereo:.3} five-view {multi:.3}; occluded {stereo_occluded:.3} -> {multi_occluded:.3}");
     assert!(
@@ -304,12 +306,12 @@ fn a_line_of_five_runs_through_every_method_against_its_three_view_subset() {
     for entry in fuse::methods::registry() {
         let m = entry.name;
         let (l, t) = (
-            metric(&line, m, "mean", "avg_err"),
-            metric(&three, m, "mean", "avg_err"),
+            metric(&line, m, "mean", "avg_err_px"),
+            metric(&three, m, "mean", "avg_err_px"),
         );
         let (lo, to) = (
-            metric(&line, m, "occluded", "avg_err"),
-            metric(&three, m, "occluded", "avg_err"),
+            metric(&line, m, "occluded", "avg_err_px"),
+            metric(&three, m, "occluded", "avg_err_px"),
         );
         println!("{m}: AvgErr line of five {l:.3} (occluded {lo:.3}), three-view subset {t:.3} (occluded {to:.3})");
         assert!(l.is_finite() && t.is_finite(), "{m}: no result");
@@ -319,7 +321,7 @@ fn a_line_of_five_runs_through_every_method_against_its_three_view_subset() {
             assert_ne!(l, t, "{m}: the views at ±2 baselines were not used");
             // … and a multiscopic method on five views still beats its family's stereo.
             if let Some(stereo) = fuse::methods::stereo_baseline_of(m) {
-                let s = metric(&line, stereo, "occluded", "avg_err");
+                let s = metric(&line, stereo, "occluded", "avg_err_px");
                 assert!(
                     lo < s,
                     "{m}: occluded AvgErr {lo} on five views is not below {stereo}'s {s}"

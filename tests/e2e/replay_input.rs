@@ -22,7 +22,7 @@ fn view(role: &str, dx: i32, time: u64, size: (u32, u32)) -> CapturedView {
         depth_m: (dx == 0).then(|| vec![0.5; pixels]),
         surface_class: None,
         world_from_camera: nalgebra::Isometry3::translation(f64::from(dx) * 0.02, 0.0, 0.0),
-        world_from_camera_true: None,
+        true_world_from_camera: None,
         commanded_world_from_camera: None,
         joints: None,
         exposure_gain: 1.0,
@@ -238,6 +238,7 @@ fn foreign_logs_without_capture_events_get_their_sets_from_the_poses() {
     let contents = replay::log::read_log_file(&foreign).unwrap_or_else(|e| panic!("{e}"));
     let original = replay::log::read_log_file(&ours).unwrap_or_else(|e| panic!("{e}"));
     assert_eq!(contents.sets.len(), 3, "sets inferred from the poses");
+    assert_eq!(original.sets.len(), 3, "sets logged");
     for (inferred, logged) in contents.sets.iter().zip(&original.sets) {
         assert_eq!(
             inferred.reference.rgb, logged.reference.rgb,

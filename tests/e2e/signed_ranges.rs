@@ -71,7 +71,7 @@ fn scene_metrics(rows: &[serde_json::Value], scene: &str) -> Vec<(String, f64, f
             let value = |f: &str| metrics[f].as_f64().unwrap_or_else(|| panic!("no {f} in {metrics}"));
             (
                 row["method"].as_str().unwrap_or_default().to_owned(),
-                value("avg_err"),
+                value("avg_err_px"),
                 value("bad_1"),
             )
         })
@@ -148,7 +148,7 @@ fn a_dev_scene_shifted_below_zero_scores_as_its_unshifted_crop() {
         .find(|m| m.0 == "sgm-heuristic")
         .map_or(f64::NAN, |m| m.1);
     for rows in [&from_log, &from_flags] {
-        let avg = rows[0]["mean"]["avg_err"].as_f64().unwrap_or(f64::NAN);
+        let avg = rows[0]["mean"]["avg_err_px"].as_f64().unwrap_or(f64::NAN);
         assert!(
             (avg - sgm).abs() < 1e-9,
             "sgm-heuristic through the log: {avg}, from the folder {sgm}"
@@ -211,7 +211,7 @@ fn a_converged_capture_carries_its_signed_range_and_scores_as_the_parallel_one()
     ]);
     let converged_rows = eval(&[converged.to_str().unwrap_or_default(), "--methods", methods]);
     for (p, c) in parallel_rows.iter().zip(&converged_rows) {
-        let avg = |row: &serde_json::Value| row["mean"]["avg_err"].as_f64().unwrap_or(f64::NAN);
+        let avg = |row: &serde_json::Value| row["mean"]["avg_err_px"].as_f64().unwrap_or(f64::NAN);
         println!(
             "{}: AvgErr parallel {:.4} px, converged {:.4} px",
             p["method"],

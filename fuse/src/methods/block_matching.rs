@@ -24,7 +24,8 @@ pub struct BlockMatchingConfig {
     /// Per-pixel cost.
     pub cost: PixelCost,
     /// Block radius ρ (block side 2ρ+1).
-    pub block_radius: usize,
+    #[serde(alias = "block_radius")]
+    pub block_radius_px: usize,
     /// Sub-pixel refinement of the winners.
     pub subpixel: bool,
     /// The curve whose vertex is the sub-pixel disparity: `parabola` (default; measured best on
@@ -46,7 +47,7 @@ impl Default for BlockMatchingConfig {
         Self {
             fusion: Fusion::Heuristic,
             cost: PixelCost::BirchfieldTomasi,
-            block_radius: 4,
+            block_radius_px: 4,
             subpixel: true,
             subpixel_fit: SubpixelFit::Parabola,
             fill_invalid: true,
@@ -81,10 +82,10 @@ impl Method for BlockMatching {
     fn run(&self, problem: &Problem, progress: Progress<'_>) -> Result<DisparityImage, FuseError> {
         let spec = CostSpec {
             pixel: self.config.cost,
-            block_radius: self.config.block_radius,
+            block_radius_px: self.config.block_radius_px,
         };
         let prepared = PreparedProblem::new(problem, spec, self.config.fusion)?;
-        let (w, h, nd) = (prepared.width(), prepared.height(), prepared.disparities());
+        let (w, h, nd) = (prepared.width(), prepared.height(), prepared.num_disparities());
         let mut data = vec![f32::INFINITY; w * h];
         let mut confidence = vec![0.0f32; w * h];
         let band = band_rows(h);

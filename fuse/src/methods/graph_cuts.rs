@@ -47,11 +47,12 @@ pub struct GraphCutsConfig {
     pub max_rounds: usize,
     /// Fill occluded pixels with the smaller neighbouring valid disparity on the row.
     pub fill_occlusions: bool,
-    /// Sub-pixel disparities: a parabola through the fused costs at `d − 1`, `d`, `d + 1`
+    /// Sub-pixel num_disparities: a parabola through the fused costs at `d − 1`, `d`, `d + 1`
     /// summed over this radius's window (pixels of the same surface only, see
     /// [`KzEnergy::subpixel_disparity`]); `0` = integer disparities, as the paper and the IPOL
     /// program give.
-    pub subpixel_radius: usize,
+    #[serde(alias = "subpixel_radius")]
+    pub subpixel_radius_px: usize,
     /// An image-guided weighted median after the rest (`postprocess::WeightedMedian`; `{}` =
     /// its defaults, `null` = none): depth edges snap to the reference's colour edges.
     pub weighted_median: Option<WeightedMedian>,
@@ -74,7 +75,7 @@ impl Default for GraphCutsConfig {
             max_rounds: 2,
             weighted_median: None,
             fill_occlusions: false,
-            subpixel_radius: DEFAULT_SUBPIXEL_RADIUS,
+            subpixel_radius_px: DEFAULT_SUBPIXEL_RADIUS,
         }
     }
 }
@@ -139,8 +140,8 @@ impl Method for GraphCuts {
             done += 1;
             progress(0.05 + 0.9 * (done as f32 / expected).min(1.0));
         });
-        let mut disparity = if c.subpixel_radius > 0 {
-            energy.subpixel_disparity(c.subpixel_radius)
+        let mut disparity = if c.subpixel_radius_px > 0 {
+            energy.subpixel_disparity(c.subpixel_radius_px)
         } else {
             energy.disparity()
         };
@@ -224,10 +225,10 @@ fn build(
         },
         overrides,
     )?;
-    if config.subpixel_radius > MAX_SUBPIXEL_RADIUS {
+    if config.subpixel_radius_px > MAX_SUBPIXEL_RADIUS {
         return Err(FuseError::Config {
-            field: "subpixel_radius",
-            value: config.subpixel_radius.to_string(),
+            field: "subpixel_radius_px",
+            value: config.subpixel_radius_px.to_string(),
             reason: "at most 32 (a 65 × 65 window; 0 = integer labels)",
         });
     }
@@ -330,12 +331,12 @@ mod tests {
                 ..
             })
         ));
-        let wide = super::super::build("gc-min", Some(&serde_json::json!({"subpixel_radius": 33})))
+        let wide = super::super::build("gc-min", Some(&serde_json::json!({"subpixel_radius_px": 33})))
             .and_then(|m| m.run(&problem, &|_| {}));
         assert!(matches!(
             wide,
             Err(FuseError::Config {
-                field: "subpixel_radius",
+                field: "subpixel_radius_px",
                 ..
             })
         ));
@@ -382,7 +383,7 @@ mod tests {
                 .collect();
             interior.iter().map(|v| (v - 3.5).abs()).sum::<f32>() / interior.len() as f32
         };
-        let integer = error(serde_json::json!({"subpixel_radius": 0}));
+        let integer = error(serde_json::json!({"subpixel_radius_px": 0}));
         let subpixel = error(serde_json::json!({}));
         assert!((integer - 0.5).abs() < 0.05, "integer labels are 3 or 4: {integer}");
         assert!(subpixel < 0.15, "sub-pixel error {subpixel} (integer {integer})");

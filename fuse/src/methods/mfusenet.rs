@@ -462,7 +462,7 @@ impl MFuseNet {
 /// How well the summed input costs single out each pixel's final disparity:
 /// [`crate::wta::peak_confidence`] of the sum over the neighbours at the nearest slice.
 fn data_support(disparity: &DisparityImage, volumes: &[CostVolume<u8>], first: i64) -> Vec<f32> {
-    let nd = volumes.first().map_or(0, |v| v.disparities);
+    let nd = volumes.first().map_or(0, |v| v.num_disparities);
     let w = disparity.width;
     let mut column = vec![0u16; nd];
     disparity
@@ -490,7 +490,7 @@ fn data_support(disparity: &DisparityImage, volumes: &[CostVolume<u8>], first: i
 /// costs lies within 1 px of its disparity (the network and the data agree), else
 /// `disagreeing`. `first` is the disparity of the volumes' first slice.
 fn cost_agreement(disparity: &DisparityImage, volumes: &[CostVolume<u8>], first: i64, disagreeing: f32) -> Vec<f32> {
-    let nd = volumes.first().map_or(0, |v| v.disparities);
+    let nd = volumes.first().map_or(0, |v| v.num_disparities);
     let w = disparity.width;
     disparity
         .data
@@ -511,7 +511,7 @@ fn cost_agreement(disparity: &DisparityImage, volumes: &[CostVolume<u8>], first:
 
 /// The fewest disparities the networks see: the depth the shipped weights were trained on. A
 /// narrower search range gives the network a volume shape it never saw (the demo's 16
-/// disparities: Bad1 16 % against 2 % over 32), so the costs are computed over this many
+/// num_disparities: Bad1 16 % against 2 % over 32), so the costs are computed over this many
 /// around the requested range, and the result clamped back into it.
 pub const MIN_NETWORK_DISPARITIES: usize = 32;
 
@@ -713,7 +713,7 @@ mod tests {
             width: 5,
             height: 1,
             min_disparity: 0,
-            disparities: nd,
+            num_disparities: nd,
             data: (0..5)
                 .flat_map(|_| (0..nd as i32).map(move |k| (10 * (k - 6).abs() + tilt * k + 20) as u8))
                 .collect(),

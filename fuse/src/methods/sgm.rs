@@ -23,7 +23,8 @@ pub struct SgmConfig {
     /// Per-pixel cost.
     pub cost: PixelCost,
     /// Block radius of the cost aggregation before SGM (0 = pixel-wise).
-    pub block_radius: usize,
+    #[serde(alias = "block_radius")]
+    pub block_radius_px: usize,
     /// Penalty for a ±1 disparity change between neighbouring pixels (in cost units).
     pub p1: u16,
     /// Penalty for larger disparity changes.
@@ -47,7 +48,7 @@ impl Default for SgmConfig {
         Self {
             fusion: Fusion::Heuristic,
             cost: PixelCost::Census { radius: 3 },
-            block_radius: 3,
+            block_radius_px: 3,
             p1: 300,
             p2: 3000,
             subpixel: true,
@@ -76,10 +77,10 @@ impl Method for Sgm {
     fn run(&self, problem: &Problem, progress: Progress<'_>) -> Result<DisparityImage, FuseError> {
         let spec = CostSpec {
             pixel: self.config.cost,
-            block_radius: self.config.block_radius,
+            block_radius_px: self.config.block_radius_px,
         };
         let prepared = PreparedProblem::new(problem, spec, self.config.fusion)?;
-        let (w, h, nd) = (prepared.width(), prepared.height(), prepared.disparities());
+        let (w, h, nd) = (prepared.width(), prepared.height(), prepared.num_disparities());
         let bands = h.div_ceil(band_rows(h));
         let done = AtomicUsize::new(0);
         // Cost volume: the first half of the work; aggregation the rest.

@@ -31,8 +31,8 @@ fn round4(n: usize) -> usize {
 
 /// The side of a square tile core (a multiple of 4, at least 16) whose padded region fits
 /// `budget_bytes` at `disparities` slices.
-pub fn tile_side(views: usize, disparities: usize, budget_bytes: usize) -> usize {
-    let voxels = budget_bytes / bytes_per_voxel(views) / round4(disparities).max(1);
+pub fn tile_side(views: usize, num_disparities: usize, budget_bytes: usize) -> usize {
+    let voxels = budget_bytes / bytes_per_voxel(views) / round4(num_disparities).max(1);
     let region = (voxels as f64).sqrt() as usize;
     (region.saturating_sub(2 * HALO) / 4 * 4).max(16)
 }
@@ -70,7 +70,7 @@ pub fn infer_with_confidence(
             got: 0,
         });
     };
-    let (w, h, nd) = (first.width, first.height, first.disparities);
+    let (w, h, nd) = (first.width, first.height, first.num_disparities);
     if volumes.len() != net.views {
         return Err(Error::InputCount {
             expected: net.views,
@@ -78,9 +78,9 @@ pub fn infer_with_confidence(
         });
     }
     for v in volumes {
-        if (v.width, v.height, v.disparities) != (w, h, nd) || v.data.len() != w * h * nd || w * h * nd == 0 {
+        if (v.width, v.height, v.num_disparities) != (w, h, nd) || v.data.len() != w * h * nd || w * h * nd == 0 {
             return Err(Error::InputShape {
-                shape: [1, v.disparities, v.height, v.width],
+                shape: [1, v.num_disparities, v.height, v.width],
             });
         }
     }
@@ -88,7 +88,7 @@ pub fn infer_with_confidence(
     if skip >= nd {
         return Err(Error::ContextBelow {
             context_below: skip,
-            disparities: nd,
+            num_disparities: nd,
         });
     }
     // Test-time flips: the mirror that maps this set's neighbours onto themselves.
@@ -417,7 +417,7 @@ mod tests {
             width: w,
             height: h,
             min_disparity: 3,
-            disparities: nd,
+            num_disparities: nd,
             data: (0..w * h * nd)
                 .map(|i| {
                     (((i / nd) % w) * 7 + ((i / nd) / w) * 3 + (i % nd) * (11 + seed) + seed * 5 + (i * i) % 13) as u8
@@ -492,7 +492,7 @@ mod tests {
                 error,
                 Some(Error::ContextBelow {
                     context_below: 10,
-                    disparities: 10
+                    num_disparities: 10
                 })
             ),
             "{error:?}"
@@ -507,7 +507,7 @@ mod tests {
             width: w,
             height: h,
             min_disparity: 2,
-            disparities: nd,
+            num_disparities: nd,
             data: (0..w * h * nd)
                 .map(|i| {
                     let (p, d) = (i / nd, i % nd);

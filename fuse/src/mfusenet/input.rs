@@ -40,7 +40,8 @@ pub struct InputSpec {
     /// Per-pixel cost.
     pub cost: PixelCost,
     /// Block radius of the aggregation before SGM.
-    pub block_radius: usize,
+    #[serde(alias = "block_radius")]
+    pub block_radius_px: usize,
     /// SGM penalty for ±1 disparity steps (cost units).
     pub p1: u16,
     /// SGM penalty for larger jumps.
@@ -52,7 +53,7 @@ impl Default for InputSpec {
     fn default() -> Self {
         Self {
             cost: PixelCost::Census { radius: 3 },
-            block_radius: 3,
+            block_radius_px: 3,
             p1: 300,
             p2: 3000,
         }
@@ -160,7 +161,7 @@ pub fn input_volumes(
 ) -> Result<Vec<CostVolume<u8>>, FuseError> {
     let cost = CostSpec {
         pixel: spec.cost,
-        block_radius: spec.block_radius,
+        block_radius_px: spec.block_radius_px,
     };
     let shift = quantisation_shift(cost.max_cost());
     let (p1, p2) = (quantise_penalty(spec.p1, shift), quantise_penalty(spec.p2, shift));
@@ -177,7 +178,7 @@ pub fn input_volumes(
 /// [`input_volumes`] over a range that starts `below` disparities under the problem's: the
 /// networks answer badly when the truth lies in the first slices of their range (Middlebury's
 /// far backgrounds at 1–2 px searched from 0: Bowling1), so inference gives them room. The
-/// extended range may reach under 0 (signed disparities: the costs of `−d` towards offset `o`
+/// extended range may reach under 0 (signed num_disparities: the costs of `−d` towards offset `o`
 /// are those of `d` towards `−o`); SGM aggregates each neighbour over the whole extended range.
 /// Returns the volumes and the disparity of their first slice.
 pub fn input_volumes_below(
@@ -202,8 +203,8 @@ pub fn normalise(sums: &CostVolume<u16>, p2: u16) -> CostVolume<u8> {
     let scale = STEPS_PER_UNIT / (8.0 * f32::from(p2.max(1)));
     let mut data = vec![0u8; sums.data.len()];
     for (out, pixel) in data
-        .chunks_exact_mut(sums.disparities)
-        .zip(sums.data.chunks_exact(sums.disparities))
+        .chunks_exact_mut(sums.num_disparities)
+        .zip(sums.data.chunks_exact(sums.num_disparities))
     {
         let min = pixel.iter().copied().min().unwrap_or(0);
         for (o, s) in out.iter_mut().zip(pixel) {
@@ -214,7 +215,7 @@ pub fn normalise(sums: &CostVolume<u16>, p2: u16) -> CostVolume<u8> {
         width: sums.width,
         height: sums.height,
         min_disparity: sums.min_disparity,
-        disparities: sums.disparities,
+        num_disparities: sums.num_disparities,
         data,
         max_cost: 255,
         source: sums.source.clone(),
@@ -378,7 +379,7 @@ mod tests {
             assert_eq!(first, -4);
             volumes.extend(volumes_below(&vertical(&plane(d, 0, 12)), 4).0);
             for v in &volumes {
-                assert_eq!((v.disparities, v.min_disparity), (16, -4));
+                assert_eq!((v.num_disparities, v.min_disparity), (16, -4));
                 let (mut right, mut total) = (0, 0);
                 let (mx, my) = if v.width > v.height { (12, 4) } else { (4, 12) };
                 for y in my..v.height - my {

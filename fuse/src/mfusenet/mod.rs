@@ -47,13 +47,13 @@ pub enum Error {
     },
     /// The slices kept out of the estimate leave none to read it from.
     #[error(
-        "{context_below} context slices below the searched range leave none of the volume's {disparities} disparities"
+        "{context_below} context slices below the searched range leave none of the volume's {num_disparities} disparities"
     )]
     ContextBelow {
         /// Slices left out of the estimate.
         context_below: usize,
         /// Slices in the volumes.
-        disparities: usize,
+        num_disparities: usize,
     },
     /// Test-time flips were asked for volumes whose neighbours have no mirror image among
     /// themselves (or that are not single neighbours' volumes).

@@ -119,7 +119,7 @@ pub fn band_minimum(
     (width, height): (usize, usize),
     band: Band,
 ) -> DisparityImage {
-    let nd = volumes.first().map_or(0, |v| v.disparities);
+    let nd = volumes.first().map_or(0, |v| v.num_disparities);
     let f = band.factor.max(1);
     let (cw, ch) = (coarse.width, coarse.height);
     let mut data = vec![f32::INFINITY; width * height];
@@ -237,7 +237,7 @@ mod tests {
             width: w,
             height: h,
             min_disparity: 10,
-            disparities: nd,
+            num_disparities: nd,
             data: (0..w * h).flat_map(|_| costs.clone()).collect(),
             max_cost: 255,
             source: VolumeSource::Neighbour {
@@ -272,7 +272,7 @@ mod tests {
             width: w,
             height: h,
             min_disparity: 10,
-            disparities: nd,
+            num_disparities: nd,
             data: vec![0; w * h * nd],
             max_cost: 255,
             source: VolumeSource::Fused(crate::fusion::Fusion::Mean),

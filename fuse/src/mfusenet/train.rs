@@ -37,7 +37,7 @@ pub fn crop(
     (rows, columns): (usize, usize),
     depth: usize,
 ) -> Example {
-    let (w, nd) = (volumes[0].width, volumes[0].disparities);
+    let (w, nd) = (volumes[0].width, volumes[0].num_disparities);
     let min = volumes[0].min_disparity as f32;
     let inputs = volumes
         .iter()
@@ -296,7 +296,7 @@ mod tests {
             width: w,
             height: h,
             min_disparity: 0,
-            disparities: nd,
+            num_disparities: nd,
             data: (0..w * h * nd)
                 .map(|i| {
                     let d = (i % nd) as i32;

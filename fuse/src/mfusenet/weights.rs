@@ -99,7 +99,7 @@ pub fn input_spec_recommended(info: &WeightsInfo, file: &str) -> Result<super::i
         file: file.to_owned(),
         key: "input_spec",
         value: value.to_owned(),
-        expected: "an input spec: {\"cost\": …, \"block_radius\": …, \"p1\": …, \"p2\": …}",
+        expected: "an input spec: {\"cost\": …, \"block_radius_px\": …, \"p1\": …, \"p2\": …}",
     })
 }
 
@@ -542,14 +542,14 @@ mod tests {
             .unwrap_or_else(|e| panic!("{e}"));
         assert_eq!(input_spec_recommended(&read, "w").ok(), Some(InputSpec::default()));
         let sharper = InputSpec {
-            block_radius: 2,
+            block_radius_px: 2,
             ..InputSpec::default()
         };
         info.set("input_spec", serde_json::to_string(&sharper).unwrap_or_default());
         let (_, read) = from_bytes(&to_bytes(&net, &info).unwrap_or_else(|e| panic!("{e}")), "w", "", None)
             .unwrap_or_else(|e| panic!("{e}"));
         assert_eq!(input_spec_recommended(&read, "w").ok(), Some(sharper));
-        info.set("input_spec", "{\"block_radius\": \"wide\"}");
+        info.set("input_spec", "{\"block_radius_px\": \"wide\"}");
         let result = from_bytes(&to_bytes(&net, &info).unwrap_or_else(|e| panic!("{e}")), "w", "", None);
         assert!(
             matches!(&result, Err(Error::Metadata { key: "input_spec", file, .. }) if file == "w"),

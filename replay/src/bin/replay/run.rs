@@ -18,7 +18,7 @@ pub struct RunArgs {
     /// Method (see --list-methods); several comma-separated, or `all`.
     #[arg(long, default_value = "sgm-heuristic")]
     pub(crate) method: String,
-    /// Method configuration overrides as a JSON object, e.g. '{"block_radius": 3}'.
+    /// Method configuration overrides as a JSON object, e.g. '{"block_radius_px": 3}'.
     #[arg(long, value_name = "JSON")]
     pub(crate) config: Option<String>,
     /// Output directory for the result files.

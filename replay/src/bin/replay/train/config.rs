@@ -30,8 +30,8 @@ impl TrainArgs {
         let config = TrainConfig {
             views: self.views.parse().unwrap_or(2),
             steps: self.steps,
-            crop: self.crop_px,
-            disparities: self.disparities,
+            crop_px: self.crop_px,
+            num_disparities: self.num_disparities,
             learning_rate: self.learning_rate,
             seed: self.seed,
             train_sets: self.train_sets,
@@ -51,7 +51,7 @@ impl TrainArgs {
             scenes: self.scenes.clone(),
             exposure_jitter: self.exposure_jitter,
             input: InputSpec {
-                block_radius: self.input_block_radius,
+                block_radius_px: self.input_block_radius_px,
                 ..InputSpec::default()
             },
             ..TrainConfig::default()

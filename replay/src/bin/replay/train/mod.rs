@@ -33,9 +33,9 @@ pub fn run(args: &TrainArgs, quiet: bool) -> Result<Outcome> {
     info!(
         "training {variant} ({} steps, {}×{} crops, {} disparities) in {}",
         config.steps,
-        config.crop,
-        config.crop,
-        config.disparities,
+        config.crop_px,
+        config.crop_px,
+        config.num_disparities,
         dir.display()
     );
     let dataset_bar = progress_bar((config.train_sets + config.val_sets) as u64, quiet, "captures");

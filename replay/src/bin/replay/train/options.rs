@@ -26,11 +26,11 @@ pub struct TrainArgs {
     #[arg(long, default_value_t = TrainConfig::default().steps)]
     pub(crate) steps: u64,
     /// Side of the square training crops (px, a multiple of 4).
-    #[arg(long = "crop-px", alias = "crop", value_name = "PX", default_value_t = TrainConfig::default().crop)]
+    #[arg(long = "crop-px", alias = "crop", value_name = "PX", default_value_t = TrainConfig::default().crop_px)]
     pub(crate) crop_px: usize,
     /// Disparities of the training volumes (a multiple of 4).
-    #[arg(long, default_value_t = TrainConfig::default().disparities)]
-    pub(crate) disparities: usize,
+    #[arg(long, alias = "disparities", value_name = "N", default_value_t = TrainConfig::default().num_disparities)]
+    pub(crate) num_disparities: usize,
     /// Adam's learning rate (÷4 for the last quarter).
     #[arg(long, default_value_t = TrainConfig::default().learning_rate)]
     pub(crate) learning_rate: f32,
@@ -62,10 +62,10 @@ pub struct TrainArgs {
     /// context below the searched range (metadata `context_below`; N with --context-below N).
     #[arg(long, value_name = "N", default_value_t = 0)]
     pub(crate) disparity_shift: usize,
-    /// Block radius of the inputs' aggregation before SGM (the inputs' `block_radius`; the
+    /// Block radius of the inputs' aggregation before SGM (the inputs' `block_radius_px`; the
     /// weights' metadata `input_spec` records it and inference reads it from there).
-    #[arg(long, value_name = "R", default_value_t = TrainConfig::default().input.block_radius)]
-    pub(crate) input_block_radius: usize,
+    #[arg(long, alias = "input-block-radius", value_name = "PX", default_value_t = TrainConfig::default().input.block_radius_px)]
+    pub(crate) input_block_radius_px: usize,
     /// Re-estimate the BatchNorm statistics on 32 fixed crops at the start and every N steps
     /// (0 = once at a random initialisation, then frozen), so that activations stay normalised
     /// while the weights move. Each recalibration changes the function being trained: every
