@@ -30,6 +30,7 @@ pub mod metrics;
 pub mod mfusenet;
 pub mod nn;
 pub mod postprocess;
+pub mod rng;
 pub mod sgm;
 pub mod volume;
 pub mod wta;

@@ -127,8 +127,10 @@ impl Penalties {
 }
 
 /// Aggregates `volume` (`[y][x][d]`, quantised costs) along eight paths and returns the summed
-/// costs. `max_cost` bounds the valid costs (invalid ones count as `max_cost`).
-pub fn aggregate(
+/// costs. `max_cost` bounds the valid costs (invalid ones count as `max_cost`). The tests'
+/// reference for [`select`]; methods use [`aggregate_volume`] and [`select_volume`].
+#[cfg(test)]
+pub(crate) fn aggregate(
     volume: &[u8],
     width: usize,
     height: usize,
@@ -141,7 +143,7 @@ pub fn aggregate(
     passes(volume, width, height, num_disparities, &penalties, None)
 }
 
-/// [`aggregate`] on a [`CostVolume`]: the eight paths' summed costs, a volume of the same
+/// The eight paths' summed costs of a [`CostVolume`], a volume of the same
 /// source whose `max_cost` bounds the sums (`8 · (cap + P2)` in the scaled units).
 pub fn aggregate_volume(volume: &CostVolume<u8>, p1: u16, p2: u16) -> CostVolume<u16> {
     let penalties = Penalties::new(volume.max_cost, p1, p2);
@@ -153,15 +155,7 @@ pub fn aggregate_volume(volume: &CostVolume<u8>, p1: u16, p2: u16) -> CostVolume
         &penalties,
         None,
     );
-    CostVolume {
-        width: volume.width,
-        height: volume.height,
-        min_disparity: volume.min_disparity,
-        num_disparities: volume.num_disparities,
-        data,
-        max_cost: 8 * (u32::from(penalties.cap) + u32::from(p2)),
-        source: volume.source.clone(),
-    }
+    volume.with_data(data, 8 * (u32::from(penalties.cap) + u32::from(p2)))
 }
 
 /// Winner-take-all over the eight-path sums of `volume` (as [`aggregate`] then
@@ -169,7 +163,7 @@ pub fn aggregate_volume(volume: &CostVolume<u8>, p1: u16, p2: u16) -> CostVolume
 /// summed volume is never written back or read again. Returns the disparities and their
 /// confidences (`[y][x]`, [`crate::wta::peak_confidence`] of the summed costs).
 #[allow(clippy::too_many_arguments)]
-pub fn select(
+pub(crate) fn select(
     volume: &[u8],
     width: usize,
     height: usize,
@@ -188,6 +182,25 @@ pub fn select(
     };
     passes(volume, width, height, num_disparities, &penalties, Some(selection));
     out.chunks_exact(2).map(|pair| (pair[0], pair[1])).unzip()
+}
+
+/// [`select`] on a [`CostVolume`] (quantised costs; its `max_cost` bounds the valid ones, its
+/// `min_disparity` is the first slice's): the disparities and confidences, `[y][x]`.
+pub fn select_volume(
+    volume: &CostVolume<u8>,
+    penalties: (u16, u16),
+    subpixel: Option<SubpixelFit>,
+) -> (Vec<f32>, Vec<f32>) {
+    select(
+        &volume.data,
+        volume.width,
+        volume.height,
+        volume.num_disparities,
+        volume.max_cost,
+        penalties,
+        volume.min_disparity,
+        subpixel,
+    )
 }
 
 /// Where the last pass puts the winners instead of the sums.

@@ -117,7 +117,9 @@ pub enum VolumeSource {
 /// A cost volume of the reference view, `[y][x][d]` (disparity fastest): one neighbour's or the
 /// fused costs, block-aggregated or aggregated along SGM's paths, quantised to bytes (`u8`,
 /// [`crate::sgm::INVALID_QUANTISED`] where the correspondence leaves the neighbour), summed
-/// (`u16`) or normalised. SGM, MFuseNet and the viewer take volumes of this type.
+/// (`u16`) or normalised. SGM, MFuseNet (inference and training) and the viewer take volumes
+/// of this type; graph cuts keep their data term in label-major planes for their moves. Rows of
+/// it (`[x][d]`) are what the streaming kernels (fused bands, winner-take-all) pass around.
 #[derive(Debug, Clone, PartialEq)]
 pub struct CostVolume<T> {
     /// Width of the reference view.
@@ -137,6 +139,25 @@ pub struct CostVolume<T> {
 }
 
 impl<T> CostVolume<T> {
+    /// `[height, width, num_disparities]`, the order of [`CostVolume::data`].
+    pub fn shape(&self) -> [usize; 3] {
+        [self.height, self.width, self.num_disparities]
+    }
+
+    /// A volume of the same pixels, disparities and source holding `data` (e.g. this volume's
+    /// costs aggregated or normalised), whose largest valid cost is `max_cost`.
+    pub fn with_data<U>(&self, data: Vec<U>, max_cost: u32) -> CostVolume<U> {
+        CostVolume {
+            width: self.width,
+            height: self.height,
+            min_disparity: self.min_disparity,
+            num_disparities: self.num_disparities,
+            data,
+            max_cost,
+            source: self.source.clone(),
+        }
+    }
+
     /// The costs of pixel `(x, y)` over the disparities.
     pub fn costs(&self, x: usize, y: usize) -> &[T] {
         let at = (y * self.width + x) * self.num_disparities;

@@ -201,55 +201,68 @@ pub fn markdown(rows: &[EvalRow]) -> String {
     out
 }
 
-/// The table as CSV (one row per method and scene, plus the mean; the change against the
-/// stereo method and the sparsification curves, averaged per scene and pooled, on the mean row
-/// only).
-pub fn csv(rows: &[EvalRow]) -> String {
-    let mut out = String::from(
-        "method,scene,rms,avg_err_px,bad_0_5,bad_1,bad_2,pixels,missing,avg_err_change_percent,avg_err_top50,avg_err_top75,avg_err_top90,pooled_avg_err_top50,pooled_avg_err_top75,pooled_avg_err_top90,pooled_avg_err_all\n",
-    );
+/// One line of `eval.csv`: a method on a scene, or its mean over the scenes (`scene` = `mean`,
+/// which alone carries the change against stereo and the sparsification curves).
+#[derive(Debug, Serialize)]
+struct CsvLine<'a> {
+    method: &'a str,
+    scene: &'a str,
+    rms_px: f64,
+    avg_err_px: f64,
+    bad_0_5_percent: f64,
+    bad_1_percent: f64,
+    bad_2_percent: f64,
+    pixels: usize,
+    missing: usize,
+    avg_err_change_percent: Option<f64>,
+    avg_err_top50_px: Option<f64>,
+    avg_err_top75_px: Option<f64>,
+    avg_err_top90_px: Option<f64>,
+    pooled_avg_err_top50_px: Option<f64>,
+    pooled_avg_err_top75_px: Option<f64>,
+    pooled_avg_err_top90_px: Option<f64>,
+    pooled_avg_err_all_px: Option<f64>,
+}
+
+/// Rounds for the table (4 decimals; the JSON keeps every digit).
+fn round4(v: f64) -> f64 {
+    (v * 1e4).round() / 1e4
+}
+
+/// The rows as CSV (RFC 4180: scene names with commas or quotes are quoted), one line per method
+/// and scene plus one per method for its mean.
+pub fn csv(rows: &[EvalRow]) -> Result<String, ReplayError> {
+    let mut writer = ::csv::Writer::from_writer(Vec::new());
     for r in rows {
-        for (scene, m) in r
-            .scenes
-            .iter()
-            .map(|(s, m)| (s.as_str(), m))
-            .chain(std::iter::once(("mean", &r.mean)))
-        {
-            let mut curve = match (&r.sparsification, scene == "mean") {
-                (Some(c), true) => format!(
-                    "{:.4},{:.4},{:.4}",
-                    c.avg_err_top50_px, c.avg_err_top75_px, c.avg_err_top90_px
-                ),
-                _ => ",,".to_owned(),
-            };
-            curve.push(',');
-            curve.push_str(&match (&r.sparsification_pooled, scene == "mean") {
-                (Some(c), true) => format!(
-                    "{:.4},{:.4},{:.4},{:.4}",
-                    c.avg_err_top50_px, c.avg_err_top75_px, c.avg_err_top90_px, c.avg_err_all_px
-                ),
-                _ => ",,,".to_owned(),
-            });
-            out.push_str(&format!(
-                "{},{},{:.4},{:.4},{:.3},{:.3},{:.3},{},{},{},{curve}\n",
-                r.method,
+        let scenes = r.scenes.iter().map(|(s, m)| (s.as_str(), m, false));
+        for (scene, m, mean) in scenes.chain(std::iter::once(("mean", &r.mean, true))) {
+            let curve = r.sparsification.as_ref().filter(|_| mean);
+            let pooled = r.sparsification_pooled.as_ref().filter(|_| mean);
+            writer.serialize(CsvLine {
+                method: &r.method,
                 scene,
-                m.rms,
-                m.avg_err_px,
-                m.bad_0_5,
-                m.bad_1,
-                m.bad_2,
-                m.pixels,
-                m.missing,
-                if scene == "mean" {
-                    r.avg_err_change_percent.map_or(String::new(), |v| format!("{v:.2}"))
-                } else {
-                    String::new()
-                }
-            ));
+                rms_px: round4(m.rms),
+                avg_err_px: round4(m.avg_err_px),
+                bad_0_5_percent: round4(m.bad_0_5),
+                bad_1_percent: round4(m.bad_1),
+                bad_2_percent: round4(m.bad_2),
+                pixels: m.pixels,
+                missing: m.missing,
+                avg_err_change_percent: r.avg_err_change_percent.filter(|_| mean).map(round4),
+                avg_err_top50_px: curve.map(|c| round4(c.avg_err_top50_px)),
+                avg_err_top75_px: curve.map(|c| round4(c.avg_err_top75_px)),
+                avg_err_top90_px: curve.map(|c| round4(c.avg_err_top90_px)),
+                pooled_avg_err_top50_px: pooled.map(|c| round4(c.avg_err_top50_px)),
+                pooled_avg_err_top75_px: pooled.map(|c| round4(c.avg_err_top75_px)),
+                pooled_avg_err_top90_px: pooled.map(|c| round4(c.avg_err_top90_px)),
+                pooled_avg_err_all_px: pooled.map(|c| round4(c.avg_err_all_px)),
+            })?;
         }
     }
-    out
+    let bytes = writer
+        .into_inner()
+        .map_err(|e| ReplayError::Csv(e.into_error().into()))?;
+    Ok(String::from_utf8_lossy(&bytes).into_owned())
 }
 
 /// The view sets of `replay eval`'s inputs: a folder is read as `record import` reads it (with
@@ -284,7 +297,7 @@ pub fn write_tables(dir: &std::path::Path, rows: &[EvalRow]) -> Result<(), Repla
     std::fs::create_dir_all(dir).map_err(io(dir.to_path_buf()))?;
     let files = [
         ("eval.md", markdown(rows)),
-        ("eval.csv", csv(rows)),
+        ("eval.csv", csv(rows)?),
         ("eval.json", serde_json::to_string_pretty(rows)?),
     ];
     for (name, text) in files {
@@ -299,7 +312,7 @@ mod tests {
     use super::*;
 
     #[test]
-    fn the_csv_has_a_value_for_every_column_and_the_curve_on_the_mean_row() {
+    fn the_csv_quotes_scene_names_and_has_the_curves_on_the_mean_row_only() {
         let metrics = Metrics {
             rms: 1.0,
             avg_err_px: 0.5,
@@ -315,7 +328,7 @@ mod tests {
             mean: metrics,
             occluded: None,
             specular: None,
-            scenes: vec![("Aloe".into(), metrics), ("Baby1".into(), metrics)],
+            scenes: vec![("Aloe".into(), metrics), ("log, \"quoted\"/Baby1".into(), metrics)],
             sparsification: Some(Sparsification {
                 avg_err_top50_px: 0.1,
                 avg_err_top75_px: 0.2,
@@ -335,20 +348,34 @@ mod tests {
             rms_change_percent: None,
             seconds: 1.0,
         };
-        let table = csv(std::slice::from_ref(&row));
-        let lines: Vec<&str> = table.lines().collect();
-        assert_eq!(lines.len(), 4, "{table}");
-        let columns = lines[0].split(',').count();
-        for line in &lines {
-            assert_eq!(line.split(',').count(), columns, "{line}");
+        let table = csv(std::slice::from_ref(&row)).unwrap_or_else(|e| panic!("{e}"));
+        let mut reader = ::csv::Reader::from_reader(table.as_bytes());
+        let header = reader.headers().unwrap_or_else(|e| panic!("{e}")).clone();
+        let records: Vec<::csv::StringRecord> = reader.records().map(|r| r.unwrap_or_else(|e| panic!("{e}"))).collect();
+        assert_eq!(records.len(), 3, "two scenes and the mean: {table}");
+        let field = |record: &::csv::StringRecord, name: &str| {
+            let at = header
+                .iter()
+                .position(|h| h == name)
+                .unwrap_or_else(|| panic!("no column {name}: {table}"));
+            record.get(at).unwrap_or_default().to_owned()
+        };
+        // A scene name with a comma and quotes survives the round trip.
+        assert_eq!(field(&records[1], "scene"), "log, \"quoted\"/Baby1");
+        assert_eq!(field(&records[2], "scene"), "mean");
+        assert_eq!(field(&records[2], "avg_err_px"), "0.5");
+        for (column, value) in [
+            ("avg_err_top50_px", "0.1"),
+            ("avg_err_top75_px", "0.2"),
+            ("avg_err_top90_px", "0.3"),
+            ("pooled_avg_err_top50_px", "0.15"),
+            ("pooled_avg_err_top75_px", "0.25"),
+            ("pooled_avg_err_top90_px", "0.35"),
+            ("pooled_avg_err_all_px", "0.5"),
+        ] {
+            assert_eq!(field(&records[2], column), value, "{column} on the mean row");
+            assert_eq!(field(&records[0], column), "", "{column} on a scene's row");
         }
-        assert!(
-            lines[3].starts_with("mfusenet,mean,")
-                && lines[3].ends_with(",0.1000,0.2000,0.3000,0.1500,0.2500,0.3500,0.5000"),
-            "{}",
-            lines[3]
-        );
-        assert!(lines[1].ends_with(",,,,,,,"), "{}", lines[1]);
         assert!(
             markdown(&[row]).contains("| 0.40 / 0.50 |"),
             "the ratios per scene and pooled"

@@ -189,6 +189,9 @@ pub enum ReplayError {
     /// Writing the result log failed.
     #[error("writing the result log")]
     ResultLog(#[from] record::log::LogError),
+    /// A table could not be written as CSV.
+    #[error("writing CSV")]
+    Csv(#[from] csv::Error),
     /// A summary could not be serialised.
     #[error("serialising a summary")]
     Json(#[from] serde_json::Error),

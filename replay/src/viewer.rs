@@ -229,7 +229,7 @@ pub fn log_costs(viewer: &Viewer, set: &ViewSet, problem: &Problem, occluded: Op
             VolumeSource::Neighbour { role, .. } => role.as_str(),
             VolumeSource::Fused(_) => "fused",
         };
-        viewer.log_cost_volume(name, &volume.data, [sh, sw, snd])?;
+        viewer.log_cost_volume(name, &volume.data, volume.shape())?;
         for (probe, x, y) in &probes {
             let (px, py) = ((x / factor).min(sw - 1), (y / factor).min(sh - 1));
             let curve: Vec<f32> = volume

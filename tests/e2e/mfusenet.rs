@@ -336,39 +336,35 @@ fn read_summary(out: &Path) -> serde_json::Value {
         .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
 }
 
-/// The JSON header of a safetensors file (tensor shapes and `__metadata__`).
+/// A safetensors file's header as JSON (each tensor's `shape` and `dtype`, and `__metadata__`),
+/// read with the `safetensors` crate.
 fn safetensors_header(path: &Path) -> serde_json::Value {
-    read_safetensors(path).0
-}
-
-/// A safetensors file's header and its data section (the bytes after the header).
-fn read_safetensors(path: &Path) -> (serde_json::Value, Vec<u8>) {
-    let bytes = std::fs::read(path).unwrap_or_default();
-    let header_len = bytes
-        .get(..8)
-        .map_or(0, |b| u64::from_le_bytes(b.try_into().unwrap_or([0; 8])) as usize);
-    let header = serde_json::from_slice(bytes.get(8..8 + header_len).unwrap_or_default())
+    let bytes = std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    let (_, metadata) = safetensors::SafeTensors::read_metadata(&bytes)
         .unwrap_or_else(|e| panic!("safetensors header of {}: {e}", path.display()));
-    (header, bytes.get(8 + header_len..).unwrap_or_default().to_vec())
+    let tensors = safetensors::SafeTensors::deserialize(&bytes)
+        .unwrap_or_else(|e| panic!("safetensors file {}: {e}", path.display()));
+    let mut header = serde_json::Map::new();
+    if let Some(entries) = metadata.metadata() {
+        header.insert("__metadata__".into(), serde_json::json!(entries));
+    }
+    for (name, view) in tensors.tensors() {
+        header.insert(
+            name,
+            serde_json::json!({"shape": view.shape(), "dtype": format!("{:?}", view.dtype())}),
+        );
+    }
+    serde_json::Value::Object(header)
 }
 
-/// Every tensor's bytes, in the order of their names (the metadata left out).
+/// Every tensor's bytes, in the order of their names.
 fn safetensors_tensor_bytes(path: &Path) -> Vec<u8> {
-    let (header, data) = read_safetensors(path);
-    let mut names: Vec<&String> = header.as_object().map(|o| o.keys().collect()).unwrap_or_default();
-    names.retain(|n| *n != "__metadata__");
-    names.sort();
-    names
-        .iter()
-        .flat_map(|n| {
-            let at = &header[n.as_str()]["data_offsets"];
-            let (a, b) = (
-                at[0].as_u64().unwrap_or(0) as usize,
-                at[1].as_u64().unwrap_or(0) as usize,
-            );
-            data.get(a..b).unwrap_or_default().to_vec()
-        })
-        .collect()
+    let bytes = std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    let tensors = safetensors::SafeTensors::deserialize(&bytes)
+        .unwrap_or_else(|e| panic!("safetensors file {}: {e}", path.display()));
+    let mut named = tensors.tensors();
+    named.sort_by(|a, b| a.0.cmp(&b.0));
+    named.iter().flat_map(|(_, view)| view.data().to_vec()).collect()
 }
 
 #[test]

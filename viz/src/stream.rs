@@ -10,7 +10,7 @@
 //!   3D view back-projects it to a point cloud; `results/<method>/error`: |disparity − truth|
 //!   (a colour-mapped `DepthImage` in 1/64 px, so that the viewer shows its scale);
 //!   `results/<method>/confidence`: the method's per-pixel confidence (0 … 1, turbo);
-//! - `cost/<source>`: a bounded cost volume `Tensor` (disparity × height × width);
+//! - `cost/<source>`: a bounded cost volume `Tensor` (height × width × disparity, the `fuse::volume::CostVolume` order);
 //!   `cost_curves/<probe>/<source>`: cost against disparity (`Scalars` on the `disparity` timeline);
 //! - `metrics/<method>/<name>`: `Scalars` per set; `alignment`: the alignment report (`TextLog`).
 
@@ -530,18 +530,18 @@ impl Viewer {
         &self,
         source: &str,
         costs: &[u8],
-        [height, width, disparities]: [usize; 3],
+        [height, width, num_disparities]: [usize; 3],
     ) -> Result<(), VizError> {
         let entity = format!("cost/{source}");
-        if costs.len() != height * width * disparities {
+        if costs.len() != height * width * num_disparities {
             return Err(VizError::Size {
                 entity,
                 len: costs.len(),
-                expected: height * width * disparities,
+                expected: height * width * num_disparities,
             });
         }
         let data = rerun::datatypes::TensorData::new(
-            vec![height as u64, width as u64, disparities as u64],
+            vec![height as u64, width as u64, num_disparities as u64],
             rerun::datatypes::TensorBuffer::U8(costs.to_vec().into()),
         )
         .with_dim_names(["height", "width", "disparity"]);

@@ -10,7 +10,7 @@ use crate::cost::PixelCost;
 use crate::fusion::Fusion;
 use crate::image::DisparityImage;
 use crate::postprocess::{WeightedMedian, median3x3, weighted_median};
-use crate::sgm::{quantisation_shift, quantise_penalty, select};
+use crate::sgm::{quantisation_shift, quantise_penalty, select_volume};
 use crate::volume::{CostSpec, PreparedProblem, Problem, band_rows};
 use crate::wta::SubpixelFit;
 
@@ -80,7 +80,7 @@ impl Method for Sgm {
             block_radius_px: self.config.block_radius_px,
         };
         let prepared = PreparedProblem::new(problem, spec, self.config.fusion)?;
-        let (w, h, nd) = (prepared.width(), prepared.height(), prepared.num_disparities());
+        let (w, h) = (prepared.width(), prepared.height());
         let bands = h.div_ceil(band_rows(h));
         let done = AtomicUsize::new(0);
         // Cost volume: the first half of the work; aggregation the rest.
@@ -92,15 +92,9 @@ impl Method for Sgm {
             quantise_penalty(self.config.p1, shift),
             quantise_penalty(self.config.p2, shift),
         );
-        let max_cost = spec.max_cost() >> shift;
-        let (data, confidence) = select(
-            &volume.data,
-            w,
-            h,
-            nd,
-            max_cost,
+        let (data, confidence) = select_volume(
+            &volume,
             (p1, p2),
-            problem.min_disparity,
             self.config.subpixel.then_some(self.config.subpixel_fit),
         );
         drop(volume);

@@ -6,7 +6,7 @@
 //! soft-argmin runs over the real disparities only (padded slices are dropped).
 
 use super::Error;
-use super::input::{STEPS_PER_UNIT, flip_axes, mirrored};
+use super::input::{flip_axes, mirrored};
 use super::network::Network;
 use crate::nn::Tensor;
 use crate::volume::CostVolume;
@@ -122,19 +122,7 @@ pub fn infer_with_confidence(
         let (rh, rw) = (ry1 - ry0, rx1 - rx0);
         let inputs: Vec<Tensor> = volumes
             .iter()
-            .map(|v| {
-                let mut t = Tensor::zeros([1, dp, rh, rw]);
-                for yy in 0..rh {
-                    let y = (ry0 + yy).min(h - 1);
-                    for xx in 0..rw {
-                        let costs = v.costs((rx0 + xx).min(w - 1), y);
-                        for d in 0..dp {
-                            t.data[(d * rh + yy) * rw + xx] = f32::from(costs[d.min(nd - 1)]) / STEPS_PER_UNIT;
-                        }
-                    }
-                }
-                t
-            })
+            .map(|v| super::input::to_tensor(v, (ry0, rx0), (rh, rw), dp))
             .collect();
         let mut logits = net.logits(&inputs)?;
         if let Some((vertical, horizontal)) = mirror {

@@ -211,15 +211,35 @@ pub fn normalise(sums: &CostVolume<u16>, p2: u16) -> CostVolume<u8> {
             *o = (f32::from(s - min) * scale).round().min(255.0) as u8;
         }
     }
-    CostVolume {
-        width: sums.width,
-        height: sums.height,
-        min_disparity: sums.min_disparity,
-        num_disparities: sums.num_disparities,
-        data,
-        max_cost: 255,
-        source: sums.source.clone(),
+    sums.with_data(data, 255)
+}
+
+/// The network's input tensor `[1, depth, rows, columns]` of a window of `volume` whose top-left
+/// pixel is `(y0, x0)`: costs in units of [`STEPS_PER_UNIT`], pixels past the volume's edge
+/// repeating its last row or column and slices past its last repeating that slice (the padding
+/// to multiples of 4). The one conversion from a volume to the network's numbers, for
+/// inference's tiles and training's crops.
+pub fn to_tensor(
+    volume: &CostVolume<u8>,
+    (y0, x0): (usize, usize),
+    (rows, columns): (usize, usize),
+    depth: usize,
+) -> Tensor {
+    let [h, w, nd] = volume.shape();
+    let mut t = Tensor::zeros([1, depth, rows, columns]);
+    if h == 0 || w == 0 || nd == 0 {
+        return t;
     }
+    for yy in 0..rows {
+        let y = (y0 + yy).min(h - 1);
+        for xx in 0..columns {
+            let costs = volume.costs((x0 + xx).min(w - 1), y);
+            for d in 0..depth {
+                t.data[(d * rows + yy) * columns + xx] = f32::from(costs[d.min(nd - 1)]) / STEPS_PER_UNIT;
+            }
+        }
+    }
+    t
 }
 
 #[cfg(test)]

@@ -330,18 +330,18 @@ impl Network {
     /// the classifier's bias; γ = 1, β = 0), from a seed.
     pub fn init(views: usize, seed: u64) -> Self {
         let mut net = Self::zeros(views);
-        let mut rng = SplitMix(seed);
+        let mut rng = crate::rng::SplitMix64::new(seed);
         for layer in net.feature.iter_mut().chain(net.fuse.iter_mut()) {
             // PyTorch's fan_in is weight.size(1)·k³: cin for convolutions, cout for transposed.
             let [_, fan, k, ..] = layer.weight_shape();
             let bound = 1.0 / ((fan * k * k * k) as f32).sqrt();
             for w in &mut layer.weight {
-                *w = rng.uniform(-bound, bound);
+                *w = rng.uniform_f32(-bound, bound);
             }
         }
         let bound = 1.0 / ((4 * 27) as f32).sqrt();
         for w in net.classify.weight.iter_mut().chain(net.classify.bias.iter_mut()) {
-            *w = rng.uniform(-bound, bound);
+            *w = rng.uniform_f32(-bound, bound);
         }
         net
     }
@@ -585,25 +585,6 @@ impl Network {
 fn residual(mut y: Tensor, skip: &Tensor) -> Tensor {
     y.add_assign(skip);
     y
-}
-
-/// A small deterministic generator for initialisation (SplitMix64).
-pub(crate) struct SplitMix(pub u64);
-
-impl SplitMix {
-    pub(crate) fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-
-    /// Uniform in `[lo, hi)`.
-    pub(crate) fn uniform(&mut self, lo: f32, hi: f32) -> f32 {
-        let unit = (self.next_u64() >> 40) as f32 / (1u64 << 24) as f32;
-        lo + (hi - lo) * unit
-    }
 }
 
 #[cfg(test)]

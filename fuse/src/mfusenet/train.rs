@@ -9,7 +9,6 @@ use std::path::Path;
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 
 use super::Error;
-use super::input::STEPS_PER_UNIT;
 use super::network::{Gradients, Network};
 use super::weights::{self, WeightsInfo};
 use crate::nn::Tensor;
@@ -41,18 +40,7 @@ pub fn crop(
     let min = volumes[0].min_disparity as f32;
     let inputs = volumes
         .iter()
-        .map(|v| {
-            let mut t = Tensor::zeros([1, depth, rows, columns]);
-            for y in 0..rows {
-                for x in 0..columns {
-                    let costs = v.costs(x0 + x, y0 + y);
-                    for d in 0..depth {
-                        t.data[(d * rows + y) * columns + x] = f32::from(costs[d.min(nd - 1)]) / STEPS_PER_UNIT;
-                    }
-                }
-            }
-            t
-        })
+        .map(|v| super::input::to_tensor(v, (y0, x0), (rows, columns), depth))
         .collect();
     let mut target = Vec::with_capacity(rows * columns);
     let mut mask = Vec::with_capacity(rows * columns);

@@ -374,15 +374,8 @@ pub(crate) mod tests {
     }
 
     pub(crate) fn random_values(n: usize, seed: u64) -> Vec<f32> {
-        let mut state = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-        (0..n)
-            .map(|_| {
-                state = state
-                    .wrapping_mul(6364136223846793005)
-                    .wrapping_add(1442695040888963407);
-                ((state >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
-            })
-            .collect()
+        let mut rng = crate::rng::SplitMix64::new(seed);
+        (0..n).map(|_| rng.uniform_f32(-1.0, 1.0)).collect()
     }
 
     fn assert_close(got: &[f32], expected: &[f32], tolerance: f32, what: &str) {

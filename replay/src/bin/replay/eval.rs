@@ -93,7 +93,7 @@ pub fn run(args: &EvalArgs, quiet: bool) -> Result<Outcome> {
     let table = markdown(&rows);
     match args.format {
         TableFormat::Markdown => print!("{table}"),
-        TableFormat::Csv => print!("{}", csv(&rows)),
+        TableFormat::Csv => print!("{}", csv(&rows)?),
         TableFormat::Json => println!("{}", serde_json::to_string_pretty(&rows)?),
     }
     if let Some(dir) = &args.out {

@@ -1,0 +1,220 @@
+//! The training dataset: simulated five-view captures reduced once to their input volumes and
+//! ground truth (cached as safetensors), validation crops, and how hard a crop is for the
+//! inputs alone (winner-take-all, hopeless crops).
+
+use std::path::Path;
+use std::sync::atomic::AtomicBool;
+
+use fuse::mfusenet::input::{input_volumes_below, ordered_neighbours};
+use fuse::mfusenet::train::{Example, crop};
+use fuse::volume::{CostVolume, VolumeSource};
+use record::capture::Simulation;
+use safetensors::tensor::{Dtype, SafeTensors, TensorView};
+
+use crate::viewset::ViewSet;
+
+use super::{TrainConfig, TrainError, file_error};
+
+/// One sample of the cache: the four per-neighbour volumes (left, right, top, bottom) and the
+/// ground-truth disparity.
+pub struct Sample {
+    /// Left, right, top, bottom.
+    pub volumes: Vec<CostVolume<u8>>,
+    /// `[y][x]` px, 0 = unknown.
+    pub truth: Vec<f32>,
+}
+
+impl Sample {
+    /// The volumes a network of `views` inputs takes (see `fuse::mfusenet::input`).
+    pub fn for_views(&self, views: usize) -> Vec<&CostVolume<u8>> {
+        let indices: &[usize] = match views {
+            1 => &[1],
+            2 => &[0, 1],
+            _ => &[0, 1, 2, 3],
+        };
+        indices.iter().map(|i| &self.volumes[*i]).collect()
+    }
+}
+
+/// Makes (or reads from `cache_dir`) one dataset sample.
+pub fn sample(config: &TrainConfig, index: usize, validation: bool, cache_dir: &Path) -> Result<Sample, TrainError> {
+    let name = format!(
+        "{}-{index:04}-{:016x}.safetensors",
+        if validation { "val" } else { "train" },
+        config.data_key()
+    );
+    let path = cache_dir.join(name);
+    if let Ok(bytes) = std::fs::read(&path)
+        && let Some(sample) = read_sample(&bytes, config.depth())
+    {
+        return Ok(sample);
+    }
+    // Some random stations are out of the arm's reach: draw another scene (a few times).
+    let mut attempt = 0;
+    let set = loop {
+        let stop = AtomicBool::new(false);
+        let captured = Simulation::new(config.capture_config(index, validation, attempt))
+            .and_then(|mut sim| sim.capture_set(0, &stop, |_| {}));
+        match captured {
+            Ok(Some(set)) => break set,
+            Ok(None) => return Err(file_error(&path, "the simulation produced no set".to_owned())),
+            Err(source) if attempt >= 4 => return Err(TrainError::Simulation { index, source }),
+            Err(source) => tracing::debug!("training set {index}: {source}; drawing another scene"),
+        }
+        attempt += 1;
+    };
+    let view_set = ViewSet::from_captured(&set).map_err(|source| TrainError::Replay { index, source })?;
+    let problem = view_set
+        .problem(0, config.num_disparities, false)
+        .map_err(|source| TrainError::Replay { index, source })?;
+    let neighbours = ordered_neighbours(&problem, 4).map_err(|source| TrainError::Fuse { index, source })?;
+    // Samples are in slice coordinates, as `read_sample` gives them back: the first slice (the
+    // context's, under 0) is 0 and the truth is shifted up by the context.
+    let volumes = input_volumes_below(&problem, &neighbours, config.input, config.context_below, &|| {})
+        .map_err(|source| TrainError::Fuse { index, source })?
+        .0
+        .into_iter()
+        .map(|v| CostVolume { min_disparity: 0, ..v })
+        .collect();
+    let below = config.context_below as f32;
+    let truth = view_set
+        .ground_truth_disparity()
+        .ok_or_else(|| file_error(&path, "the simulated set has no ground truth".to_owned()))?
+        .into_iter()
+        .map(|t| if t.is_finite() && t > 0.0 { t + below } else { 0.0 })
+        .collect();
+    let sample = Sample { volumes, truth };
+    write_sample(&sample, &path)?;
+    Ok(sample)
+}
+
+fn write_sample(sample: &Sample, path: &Path) -> Result<(), TrainError> {
+    let v = &sample.volumes[0];
+    let truth: Vec<u8> = sample.truth.iter().flat_map(|t| t.to_le_bytes()).collect();
+    let mut views = Vec::new();
+    for (i, volume) in sample.volumes.iter().enumerate() {
+        let view = TensorView::new(Dtype::U8, vec![v.height, v.width, v.num_disparities], &volume.data)
+            .map_err(|e| file_error(path, e.to_string()))?;
+        views.push((format!("volume.{i}"), view));
+    }
+    views.push((
+        "truth".to_owned(),
+        TensorView::new(Dtype::F32, vec![v.height, v.width], &truth).map_err(|e| file_error(path, e.to_string()))?,
+    ));
+    let bytes = safetensors::serialize(views, None).map_err(|e| file_error(path, e.to_string()))?;
+    if let Some(dir) = path.parent() {
+        std::fs::create_dir_all(dir).map_err(|e| file_error(dir, e.to_string()))?;
+    }
+    let temporary = path.with_extension("partial");
+    std::fs::write(&temporary, bytes).map_err(|e| file_error(&temporary, e.to_string()))?;
+    std::fs::rename(&temporary, path).map_err(|e| file_error(path, e.to_string()))
+}
+
+fn read_sample(bytes: &[u8], num_disparities: usize) -> Option<Sample> {
+    let tensors = SafeTensors::deserialize(bytes).ok()?;
+    let truth_view = tensors.tensor("truth").ok()?;
+    let (height, width) = (*truth_view.shape().first()?, *truth_view.shape().get(1)?);
+    let truth = truth_view
+        .data()
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        .collect();
+    let roles = [
+        ("left", [-1, 0]),
+        ("right", [1, 0]),
+        ("top", [0, -1]),
+        ("bottom", [0, 1]),
+    ];
+    let mut volumes = Vec::new();
+    for (i, (role, offset)) in roles.iter().enumerate() {
+        let view = tensors.tensor(&format!("volume.{i}")).ok()?;
+        if view.shape() != [height, width, num_disparities] {
+            return None;
+        }
+        volumes.push(CostVolume {
+            width,
+            height,
+            min_disparity: 0,
+            num_disparities,
+            data: view.data().to_vec(),
+            max_cost: 255,
+            source: VolumeSource::Neighbour {
+                role: (*role).to_owned(),
+                offset: *offset,
+            },
+        });
+    }
+    Some(Sample { volumes, truth })
+}
+
+/// Validation crops: the centre `side × side` (largest multiple of 4 that fits, at most 160)
+/// of every validation sample.
+pub fn validation_examples(samples: &[Sample], views: usize, num_disparities: usize) -> Vec<Example> {
+    samples
+        .iter()
+        .map(|s| {
+            let (w, h) = (s.volumes[0].width, s.volumes[0].height);
+            let side = (w.min(h).min(160)) / 4 * 4;
+            crop(
+                &s.for_views(views),
+                &s.truth,
+                ((h - side) / 2, (w - side) / 2),
+                (side, side),
+                num_disparities,
+            )
+        })
+        .collect()
+}
+
+/// The errors (px) over the masked pixels of the winner-take-all of the mean input volume (with
+/// parabola refinement): what the network's inputs say on their own.
+pub fn winner_take_all_errors(example: &Example) -> Vec<f32> {
+    let Some(first) = example.inputs.first() else {
+        return Vec::new();
+    };
+    let [_, d, h, w] = first.shape;
+    let plane = h * w;
+    (0..plane)
+        .filter(|pixel| example.mask[*pixel])
+        .map(|pixel| {
+            let cost = |z: usize| example.inputs.iter().map(|t| t.data[z * plane + pixel]).sum::<f32>();
+            let best = (0..d).min_by(|a, b| cost(*a).total_cmp(&cost(*b))).unwrap_or(0);
+            let mut estimate = best as f32;
+            if best > 0 && best + 1 < d {
+                let (l, c, r) = (cost(best - 1), cost(best), cost(best + 1));
+                let denominator = l - 2.0 * c + r;
+                if denominator > 0.0 {
+                    estimate += 0.5 * (l - r) / denominator;
+                }
+            }
+            (estimate - example.target[pixel]).abs()
+        })
+        .collect()
+}
+
+/// AvgErr (px) and Bad1 (%) of [`winner_take_all_errors`] over the examples.
+pub fn winner_take_all_reference(examples: &[Example]) -> (f64, f64) {
+    let (mut sum, mut bad, mut count) = (0f64, 0usize, 0usize);
+    for error in examples.iter().flat_map(winner_take_all_errors) {
+        sum += f64::from(error);
+        bad += usize::from(error > 1.0);
+        count += 1;
+    }
+    let count = count.max(1) as f64;
+    (sum / count, 100.0 * bad as f64 / count)
+}
+
+/// A crop is hopeless when the inputs are wrong by more than this (px) on more than
+/// [`HOPELESS_FRACTION`] of its labelled pixels: a periodic or blank surface filling the crop,
+/// where no local fusion can know the answer. Training draws another unless
+/// [`TrainConfig::keep_hopeless`] (occlusions and reflections, wrong in one neighbour only, stay
+/// in either way).
+pub const HOPELESS_ERROR_PX: f32 = 3.0;
+/// See [`HOPELESS_ERROR_PX`].
+pub const HOPELESS_FRACTION: f32 = 0.4;
+
+pub(super) fn hopeless(example: &Example) -> bool {
+    let errors = winner_take_all_errors(example);
+    let wrong = errors.iter().filter(|e| **e > HOPELESS_ERROR_PX).count();
+    wrong as f32 > HOPELESS_FRACTION * errors.len() as f32
+}

@@ -1,0 +1,622 @@
+//! Training MFuseNet on synthetic captures made by `record` (never on the evaluation scenes):
+//! a dataset of simulated five-view sets with ground truth, each reduced once to its four
+//! per-neighbour input volumes (cached as safetensors in the run folder), then Adam on random
+//! crops with the smooth-L1 loss, validation on sets of other seeds, checkpoints and resume.
+//!
+//! Everything is seeded: the scenes (`seed + i` for training, `seed + 1_000_000 + i` for
+//! validation), the initial weights and every crop (drawn from the seed and the step, so a
+//! resumed run draws what the uninterrupted one would have).
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Instant;
+
+use fuse::mfusenet::network::BatchNormMode;
+use fuse::mfusenet::train::{Adam, Example, clip_gradients, load_checkpoint, recalibrate_batch_norm, save_checkpoint};
+use fuse::mfusenet::{Network, WeightsInfo, weights};
+use serde::{Deserialize, Serialize};
+
+use record::rng::SplitMix64;
+
+mod calibration;
+mod config;
+mod curves;
+mod dataset;
+mod schedule;
+
+pub use calibration::*;
+pub use config::*;
+use curves::*;
+pub use dataset::*;
+pub use schedule::*;
+
+/// Errors of a training run.
+#[derive(Debug, thiserror::Error)]
+pub enum TrainError {
+    /// The simulator refused a configuration or failed.
+    #[error("simulating training set {index}")]
+    Simulation {
+        /// Set index.
+        index: usize,
+        /// Cause.
+        #[source]
+        source: record::capture::SimulationError,
+    },
+    /// A simulated set did not become a view set.
+    #[error("training set {index}")]
+    Replay {
+        /// Set index.
+        index: usize,
+        /// Cause.
+        #[source]
+        source: crate::ReplayError,
+    },
+    /// The cost volumes could not be made.
+    #[error("cost volumes of training set {index}")]
+    Fuse {
+        /// Set index.
+        index: usize,
+        /// Cause.
+        #[source]
+        source: fuse::FuseError,
+    },
+    /// The network or a weights/checkpoint file.
+    #[error(transparent)]
+    Network(#[from] fuse::mfusenet::Error),
+    /// A file of the run folder.
+    #[error("cannot write or read '{path}': {reason}")]
+    File {
+        /// File.
+        path: PathBuf,
+        /// Why.
+        reason: String,
+    },
+    /// A configuration value is unusable.
+    #[error("invalid training configuration: {field} = {value} ({reason})")]
+    Config {
+        /// Field.
+        field: &'static str,
+        /// Value.
+        value: String,
+        /// What is allowed.
+        reason: &'static str,
+    },
+    /// A value of the weights' metadata does not serialise.
+    #[error("metadata {key} cannot be written: {reason}")]
+    Metadata {
+        /// The metadata key.
+        key: &'static str,
+        /// What serde said.
+        reason: String,
+    },
+}
+
+/// What the caller sees after each step.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StepReport {
+    /// Steps done.
+    pub step: u64,
+    /// Loss of this step.
+    pub loss: f32,
+    /// Mean loss over the last 50 steps.
+    pub mean_loss: f32,
+    /// Seconds per step (mean over this session's steps).
+    pub seconds_per_step: f64,
+    /// The last validation `(AvgErr px, Bad1 %)`.
+    pub validation: Option<(f64, f64)>,
+}
+
+/// The outcome of a run.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrainSummary {
+    /// The configuration.
+    pub config: TrainConfig,
+    /// Steps done (all sessions).
+    pub steps_done: u64,
+    /// Whether the run stopped early (interrupted).
+    pub interrupted: bool,
+    /// Seconds of training, all sessions.
+    pub train_seconds: f64,
+    /// Seconds to make the dataset (this session; 0 when cached).
+    pub dataset_seconds: f64,
+    /// Final validation AvgErr (px) on the validation crops.
+    pub val_avg_err_px: Option<f64>,
+    /// Final validation Bad1 (%).
+    pub val_bad1_percent: Option<f64>,
+    /// AvgErr (px) of the winner-take-all of the mean input volume on the validation crops:
+    /// the inputs' own answer, which the network must beat (and a check that the crops'
+    /// targets and volumes agree on where disparity 0 is).
+    pub val_wta_avg_err_px: f64,
+    /// Trainable parameters.
+    pub parameters: usize,
+    /// The weights file written.
+    pub weights: PathBuf,
+}
+
+/// A value as JSON for the weights' metadata (a failure is an error, never an empty entry).
+pub(super) fn to_json<T: Serialize + ?Sized>(key: &'static str, value: &T) -> Result<String, TrainError> {
+    serde_json::to_string(value).map_err(|e| TrainError::Metadata {
+        key,
+        reason: e.to_string(),
+    })
+}
+
+pub(super) fn file_error(path: &Path, reason: String) -> TrainError {
+    TrainError::File {
+        path: path.to_path_buf(),
+        reason,
+    }
+}
+
+/// Where a run keeps its files.
+#[derive(Debug, Clone, Copy)]
+pub struct TrainPaths<'a> {
+    /// The run folder: checkpoint, curves, `training.json`.
+    pub dir: &'a Path,
+    /// The dataset cache (shared by runs).
+    pub dataset: &'a Path,
+    /// The weights written at the end.
+    pub weights: &'a Path,
+}
+
+/// Paths of a run folder.
+pub struct RunFiles {
+    /// The folder.
+    pub dir: PathBuf,
+}
+
+impl RunFiles {
+    /// Checkpoint (weights + Adam + step).
+    pub fn checkpoint(&self) -> PathBuf {
+        self.dir.join("checkpoint.safetensors")
+    }
+    /// Loss and validation per step (CSV).
+    pub fn curves_csv(&self) -> PathBuf {
+        self.dir.join("curves.csv")
+    }
+    /// The same as a Rerun recording.
+    pub fn curves_rrd(&self) -> PathBuf {
+        self.dir.join("curves.rrd")
+    }
+    /// The run's record.
+    pub fn summary(&self) -> PathBuf {
+        self.dir.join("training.json")
+    }
+}
+
+/// Runs (or resumes) training in `dir` with the dataset cached in `dataset_dir`; writes the weights to `weights_out`. `on_dataset(done,
+/// total)` reports the dataset, `on_step` every step; `stop` ends the run early after a
+/// checkpoint (the summary says it was interrupted).
+pub fn train(
+    config: &TrainConfig,
+    paths: &TrainPaths<'_>,
+    command: &str,
+    stop: &AtomicBool,
+    on_dataset: &mut dyn FnMut(usize, usize),
+    on_step: &mut dyn FnMut(&StepReport),
+) -> Result<TrainSummary, TrainError> {
+    config.validate()?;
+    let TrainPaths {
+        dir,
+        dataset: dataset_dir,
+        weights: weights_out,
+    } = *paths;
+    let files = RunFiles { dir: dir.to_path_buf() };
+    std::fs::create_dir_all(dir).map_err(|e| file_error(dir, e.to_string()))?;
+    let dataset_started = Instant::now();
+    let total = config.train_sets + config.val_sets;
+    let mut train_samples = Vec::new();
+    let mut val_samples = Vec::new();
+    for i in 0..total {
+        let validation = i >= config.train_sets;
+        let index = if validation { i - config.train_sets } else { i };
+        let s = sample(config, index, validation, dataset_dir)?;
+        if validation {
+            val_samples.push(s);
+        } else {
+            train_samples.push(s);
+        }
+        on_dataset(i + 1, total);
+        if stop.load(Ordering::SeqCst) {
+            break;
+        }
+    }
+    let dataset_seconds = dataset_started.elapsed().as_secs_f64();
+    if train_samples.len() < config.train_sets || val_samples.len() < config.val_sets {
+        return Err(TrainError::Config {
+            field: "dataset",
+            value: format!("{} of {total} captures", train_samples.len() + val_samples.len()),
+            reason: "interrupted before the dataset was complete (the captures made so far are cached)",
+        });
+    }
+    let val_examples = validation_examples(&val_samples, config.views, config.depth());
+    let (wta_avg, wta_bad1) = winner_take_all_reference(&val_examples);
+    let locking = fit_locking(&train_samples, config.views);
+    tracing::info!(
+        "validation crops: winner-take-all of the mean input volume gives AvgErr {wta_avg:.3} px, Bad1 {wta_bad1:.2} % (the network must do better)"
+    );
+
+    // BatchNorm statistics: batch statistics of a few dozen fixed crops at the start, then frozen
+    // (see `BatchNorm::forward_frozen`; one crop per step is far too small a batch to normalise
+    // with), recalibrated every `recalibrate_every` steps, or tracked (`statistics_momentum`).
+    let mut calibration_rng = SplitMix64::new(config.seed ^ 0x5EED_CA1B);
+    let calibration: Vec<Example> = (0..CALIBRATION_CROPS)
+        .map(|_| random_crop(config, &train_samples, &mut calibration_rng))
+        .collect();
+    // Resume or start.
+    let (mut net, mut adam, mut history, mut train_seconds) = match load_checkpoint(&files.checkpoint(), config.views) {
+        Ok((net, adam, info)) if info.get("train_config") == Some(&to_json("train_config", config)?) => {
+            let history = read_curves(&files.curves_csv(), adam.step)?;
+            let seconds = info.get("train_seconds").and_then(|s| s.parse().ok()).unwrap_or(0.0);
+            (net, adam, history, seconds)
+        }
+        _ => {
+            let mut net = match &config.init_weights {
+                Some(path) => {
+                    let mut net = weights::load(path, Some(config.views))?.0;
+                    if config.recalibrate_every > 0 {
+                        recalibrate_batch_norm(&mut net, &calibration)?;
+                    }
+                    net
+                }
+                None => {
+                    let mut net = Network::init(config.views, config.seed);
+                    recalibrate_batch_norm(&mut net, &calibration)?;
+                    net
+                }
+            };
+            let adam = Adam::new(&mut net, config.learning_rate);
+            (net, adam, Vec::new(), 0.0)
+        }
+    };
+    // The momentum is not part of the weights: set it on every (re)start.
+    let batch_norm_mode = if config.statistics_momentum > 0.0 {
+        for layer in net.layers_mut() {
+            layer.bn.momentum = Some(config.statistics_momentum);
+        }
+        BatchNormMode::Tracking
+    } else {
+        BatchNormMode::Frozen
+    };
+    let started = Instant::now();
+    let session_start_step = adam.step;
+    let mut recent: Vec<f32> = history.iter().rev().take(50).map(|r: &CurveRow| r.loss).collect();
+    let mut last_validation = history
+        .iter()
+        .rev()
+        .find_map(|r| r.val_avg_err_px.zip(r.val_bad1_percent));
+    // The last validation with both estimates and its step, reused for the metadata.
+    let mut last_estimates: Option<(u64, Validation)> = None;
+    let config_json = to_json("train_config", config)?;
+    let info_for = |seconds: f64| {
+        let mut info = WeightsInfo::default();
+        info.set("train_config", config_json.clone());
+        info.set("train_seconds", format!("{seconds:.1}"));
+        info
+    };
+    let mut interrupted = false;
+    while adam.step < config.steps {
+        if stop.load(Ordering::SeqCst) {
+            interrupted = true;
+            break;
+        }
+        let step = adam.step;
+        adam.learning_rate = if step >= config.steps * 3 / 4 {
+            config.learning_rate / 4.0
+        } else {
+            config.learning_rate
+        };
+        let mut rng = SplitMix64::new(
+            (config.seed ^ 0x9E37_79B9_7F4A_7C15).wrapping_add(step.wrapping_mul(0xD1B5_4A32_D192_ED03)),
+        );
+        let example = random_crop(config, &train_samples, &mut rng);
+        let (loss, _, mut gradients) =
+            net.loss_and_gradients_with(&example.inputs, &example.target, &example.mask, batch_norm_mode)?;
+        clip_gradients(&mut gradients, MAX_GRADIENT_NORM);
+        adam.update(&mut net, &gradients);
+        if config.recalibrate_every > 0 && adam.step % config.recalibrate_every == 0 {
+            recalibrate_batch_norm(&mut net, &calibration)?;
+        }
+        recent.insert(0, loss);
+        recent.truncate(50);
+        let done = adam.step;
+        let mut row = CurveRow {
+            step: done,
+            loss,
+            val_avg_err_px: None,
+            val_bad1_percent: None,
+        };
+        if done % config.validate_every == 0 || done == config.steps {
+            let estimates = validate_estimates(&net, &val_examples, locking)?;
+            tracing::info!(
+                "step {done}: validation AvgErr {:.3} px / Bad1 {:.2} % (refined {:.3} / {:.2}), logit range {:.1} (tens is healthy, thousands saturated)",
+                estimates.soft_argmin.0,
+                estimates.soft_argmin.1,
+                estimates.refined.0,
+                estimates.refined.1,
+                estimates.logit_range
+            );
+            last_estimates = Some((done, estimates));
+            let (avg, bad1) = estimates.soft_argmin;
+            row.val_avg_err_px = Some(avg);
+            row.val_bad1_percent = Some(bad1);
+            last_validation = Some((avg, bad1));
+        }
+        history.push(row);
+        let elapsed = started.elapsed().as_secs_f64();
+        on_step(&StepReport {
+            step: done,
+            loss,
+            mean_loss: recent.iter().sum::<f32>() / recent.len().max(1) as f32,
+            seconds_per_step: elapsed / (done - session_start_step).max(1) as f64,
+            validation: last_validation,
+        });
+        if done % config.checkpoint_every == 0 || done == config.steps {
+            let seconds = train_seconds + elapsed;
+            save_checkpoint(&mut net, &adam, &info_for(seconds), &files.checkpoint())?;
+            write_curves(&files, &history)?;
+        }
+    }
+    train_seconds += started.elapsed().as_secs_f64();
+    save_checkpoint(&mut net, &adam, &info_for(train_seconds), &files.checkpoint())?;
+    write_curves(&files, &history)?;
+    let mut info = info_for(train_seconds);
+    info.set("format", "mfusenet-weights/1");
+    info.set("variant", variant_name(config.views));
+    info.set("views", config.views.to_string());
+    info.set(
+        "input_order",
+        match config.views {
+            1 => "right",
+            2 => "left,right",
+            _ => "left,right,top,bottom",
+        },
+    );
+    info.set("disparities_trained", config.num_disparities.to_string());
+    info.set(
+        "input_normalisation",
+        "per neighbour: census 7x7 block-summed, SGM 8 paths; (S - min_d S) / (8 P2), steps of 1/128, max 255 steps; tensor = byte / 128",
+    );
+    info.set("input_spec", to_json("input_spec", &config.input)?);
+    info.set(
+        "input_steps_per_unit",
+        fuse::mfusenet::input::STEPS_PER_UNIT.to_string(),
+    );
+    // A network trained on crops that start below their answers (`--disparity-shift`) is run
+    // with 4 slices of context below the searched range (measured: the three-view network on
+    // Middlebury 0.442 -> 0.410 px); one trained without them never saw that and is run without.
+    // A network trained with context below its range (`context_below`) is run with as much.
+    let context = if config.context_below > 0 {
+        config.context_below
+    } else {
+        config.disparity_shift.min(4)
+    };
+    info.set("context_below", context.to_string());
+    info.set("made_by", command);
+    info.set("steps", adam.step.to_string());
+    if let Some((avg, bad1)) = last_validation {
+        info.set("val_avg_err_px", format!("{avg:.4}"));
+        info.set("val_bad1_percent", format!("{bad1:.3}"));
+    }
+    // How inference should read this network: whichever estimate validates better (the last
+    // step's validation when it had one, e.g. not after an interruption or a resumed finished run).
+    let estimates = match last_estimates {
+        Some((step, estimates)) if step == adam.step => estimates,
+        _ => validate_estimates(&net, &val_examples, locking)?,
+    };
+    let (avg, bad1) = estimates.refined;
+    info.set("val_refined_avg_err_px", format!("{avg:.4}"));
+    info.set("val_refined_bad1_percent", format!("{bad1:.3}"));
+    info.set("val_logit_range", format!("{:.1}", estimates.logit_range));
+    if let Some(curve) = locking {
+        info.set("locking_curve", to_json("locking_curve", &curve)?);
+    }
+    info.set(
+        "estimate",
+        if estimates.refine_is_better() {
+            "refine"
+        } else {
+            "soft-argmin"
+        },
+    );
+    weights::save(&net, &info, weights_out)?;
+    let summary = TrainSummary {
+        config: config.clone(),
+        steps_done: adam.step,
+        interrupted,
+        train_seconds,
+        dataset_seconds,
+        val_avg_err_px: last_validation.map(|v| v.0),
+        val_bad1_percent: last_validation.map(|v| v.1),
+        val_wta_avg_err_px: wta_avg,
+        parameters: net.parameter_count(),
+        weights: weights_out.to_path_buf(),
+    };
+    let json = serde_json::to_string_pretty(&summary).map_err(|e| file_error(&files.summary(), e.to_string()))?;
+    std::fs::write(files.summary(), json).map_err(|e| file_error(&files.summary(), e.to_string()))?;
+    Ok(summary)
+}
+
+/// The registry name of a variant.
+pub fn variant_name(views: usize) -> &'static str {
+    match views {
+        1 => "mfusenet-stereo",
+        2 => "mfusenet-3view",
+        _ => "mfusenet-5view",
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use fuse::nn::Tensor;
+    use fuse::volume::{CostVolume, VolumeSource};
+    use record::scene::SceneKind;
+
+    /// Two views whose costs are |d − m| around a minimum `m` per pixel.
+    fn example(minimum: impl Fn(usize) -> f32, target: f32) -> Example {
+        let (d, h, w) = (16, 4, 5);
+        let mut volume = Tensor::zeros([1, d, h, w]);
+        for z in 0..d {
+            for p in 0..h * w {
+                volume.data[z * h * w + p] = (z as f32 - minimum(p)).abs();
+            }
+        }
+        Example {
+            inputs: vec![volume.clone(), volume],
+            target: vec![target; h * w],
+            mask: vec![true; h * w],
+        }
+    }
+
+    #[test]
+    fn the_held_out_family_and_bad_exposure_spreads_are_refused() {
+        let ok = TrainConfig {
+            scenes: vec![SceneKind::Random, SceneKind::Clutter],
+            exposure_jitter: 0.1,
+            ..TrainConfig::default()
+        };
+        assert!(ok.validate().is_ok());
+        for bad in [
+            TrainConfig {
+                scenes: vec![SceneKind::Random, SceneKind::Bin],
+                ..TrainConfig::default()
+            },
+            TrainConfig {
+                scenes: Vec::new(),
+                ..TrainConfig::default()
+            },
+            TrainConfig {
+                exposure_jitter: 0.6,
+                ..TrainConfig::default()
+            },
+        ] {
+            let error = bad.validate().map(|()| String::new()).unwrap_or_else(|e| e.to_string());
+            assert!(
+                error.contains("scenes") || error.contains("exposure_jitter"),
+                "{error:?}"
+            );
+        }
+        // The jitter changes the data (its key), a run without it keeps the old key.
+        assert_ne!(
+            ok.data_key(),
+            TrainConfig {
+                exposure_jitter: 0.0,
+                ..ok.clone()
+            }
+            .data_key()
+        );
+    }
+
+    #[test]
+    fn inputs_that_agree_with_the_truth_are_not_hopeless() {
+        let right = example(|_| 6.0, 6.0);
+        assert!(winner_take_all_errors(&right).iter().all(|e| *e < 1e-6));
+        assert!(!hopeless(&right));
+        // Off by 5 px on 12 of 20 pixels (60 %): hopeless; on 4 of 20 (20 %): kept.
+        let mostly_wrong = example(|p| if p < 12 { 11.0 } else { 6.0 }, 6.0);
+        assert!(hopeless(&mostly_wrong));
+        let partly_wrong = example(|p| if p < 4 { 11.0 } else { 6.0 }, 6.0);
+        assert!(!hopeless(&partly_wrong));
+        // Training redraws the hopeless crop unless told to keep it; a crop mostly without
+        // ground truth is redrawn either way.
+        let keep = TrainConfig {
+            keep_hopeless: true,
+            ..TrainConfig::default()
+        };
+        assert!(!acceptable(&TrainConfig::default(), &mostly_wrong));
+        assert!(acceptable(&keep, &mostly_wrong));
+        assert!(acceptable(&TrainConfig::default(), &partly_wrong));
+        let mut unlabelled = right.clone();
+        unlabelled.mask.iter_mut().take(10).for_each(|m| *m = false);
+        assert!(!acceptable(&keep, &unlabelled));
+        let (avg, bad1) = winner_take_all_reference(&[partly_wrong]);
+        assert!((avg - 1.0).abs() < 1e-6 && (bad1 - 20.0).abs() < 1e-6, "{avg} {bad1}");
+    }
+
+    #[test]
+    fn the_locking_fit_reads_the_truth_through_the_inputs() {
+        // Costs 20·|d − t|^p around each pixel's truth t ∈ [2, 9]. With p = 1 (a V) the
+        // equiangular fit reads t exactly: the curve is the identity. With p = 2 (a parabola)
+        // the lines read it locked towards the integer: the curve undoes that.
+        let (w, h, nd) = (40, 30, 12);
+        let truth: Vec<f32> = (0..w * h).map(|p| 2.0 + 7.0 * p as f32 / (w * h) as f32).collect();
+        let sample = |power: i32| {
+            let volume = CostVolume::<u8> {
+                width: w,
+                height: h,
+                min_disparity: 0,
+                num_disparities: nd,
+                data: truth
+                    .iter()
+                    .flat_map(|t| (0..nd).map(move |d| (20.0 * (d as f32 - t).abs().powi(power)).min(255.0) as u8))
+                    .collect(),
+                max_cost: 255,
+                source: VolumeSource::Fused(fuse::fusion::Fusion::Mean),
+            };
+            Sample {
+                volumes: vec![volume; 4],
+                truth: truth.clone(),
+            }
+        };
+        let v = fit_locking(&[sample(1)], 2).unwrap_or_else(|| panic!("no curve"));
+        for (k, value) in fuse::wta::LOCKING_KNOTS.iter().zip(v.0) {
+            assert!((value - k).abs() < 0.03, "V: knot {k}: {value}");
+        }
+        let parabola = fit_locking(&[sample(2)], 2).unwrap_or_else(|| panic!("no curve"));
+        // A parabola's minimum t = d + 0.25 reads as (l − r) / (2 (max(l, r) − c)) =
+        // ((1.25)² − (0.75)²) / (2 ((1.25)² − (0.25)²)) = 1/3 through the lines: the curve takes
+        // about 1/3 back to 1/4.
+        let corrected = parabola.apply(1.0 / 3.0);
+        assert!((corrected - 0.25).abs() < 0.03, "{corrected}");
+        // Too few pixels: none.
+        assert_eq!(
+            fit_locking(
+                &[Sample {
+                    truth: vec![0.0; w * h],
+                    ..sample(1)
+                }],
+                2
+            ),
+            None
+        );
+    }
+
+    #[test]
+    fn calibration_needs_the_files_training_configuration() {
+        let dir = std::env::temp_dir().join(format!("replay-calibrate-{}", std::process::id()));
+        let _ = std::fs::create_dir_all(&dir);
+        let file = dir.join("bare.safetensors");
+        let saved = weights::save(&Network::init(2, 1), &WeightsInfo::default(), &file);
+        assert!(saved.is_ok(), "{saved:?}");
+        let error = calibrate_locking(&file, &dir, &dir.join("out.safetensors"), &mut |_, _| {}).err();
+        assert!(
+            matches!(&error, Some(TrainError::Config { field: "train_config", value, .. }) if value.ends_with("bare.safetensors")),
+            "{error:?}"
+        );
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn a_shifted_crop_keeps_its_minimum_on_its_target() {
+        // Minima at 6 (first 10 pixels) and 2 (the rest); dropping 4 slices moves the first to
+        // slice 2 and leaves the second below the range, no longer counted.
+        let mut original = example(|p| if p < 10 { 6.0 } else { 2.0 }, 0.0);
+        original.target = (0..20).map(|p| if p < 10 { 6.0 } else { 2.0 }).collect();
+        let shifted = shifted(original.clone(), 4, 0);
+        assert_eq!(shifted.inputs[0].shape, [1, 12, 4, 5]);
+        assert_eq!(shifted.inputs[1].data, original.inputs[1].data[4 * 20..]);
+        assert!(shifted.target[..10].iter().all(|t| (*t - 2.0).abs() < 1e-6));
+        assert!(shifted.mask[..10].iter().all(|m| *m) && shifted.mask[10..].iter().all(|m| !*m));
+        let errors = winner_take_all_errors(&shifted);
+        assert!(errors.iter().all(|e| *e < 1e-6), "{errors:?}");
+        assert_eq!(super::shifted(original.clone(), 0, 0), original);
+        // The first 10 pixels' truth lands on slice 2 after the shift: just above 2 slices of
+        // context, still asked for; inside 3, no longer.
+        let context2 = super::shifted(original.clone(), 4, 2);
+        assert_eq!(context2.mask, shifted.mask);
+        let context3 = super::shifted(original.clone(), 4, 3);
+        assert!(context3.mask.iter().all(|m| !*m));
+        assert_eq!(context3.target, shifted.target);
+    }
+}
