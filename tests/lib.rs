@@ -23,6 +23,28 @@ pub fn shared_data() -> PathBuf {
     workspace_root().join("../shared/data")
 }
 
+/// The Middlebury 2006 dev scenes (`../shared/data/middlebury2006-third-dev`, or one scene of
+/// them); a missing folder fails the test with where it must be.
+pub fn middlebury_dev(scene: &str) -> PathBuf {
+    let path = shared_data().join("middlebury2006-third-dev").join(scene);
+    assert!(
+        path.is_dir(),
+        "fixture missing: {} (the shared evaluation data must sit beside the checkout as ../shared/data)",
+        path.display()
+    );
+    path
+}
+
+/// The strings of a JSON array (none when it is not one).
+pub fn json_strings(value: &serde_json::Value) -> Vec<&str> {
+    value
+        .as_array()
+        .into_iter()
+        .flatten()
+        .filter_map(serde_json::Value::as_str)
+        .collect()
+}
+
 /// Path of a workspace binary in the profile the tests run with, built on first use so that the
 /// tests never run a stale binary.
 pub fn binary(name: &str) -> PathBuf {
@@ -72,6 +94,34 @@ pub fn record_log(dir: &Path, name: &str, args: &[&str]) -> PathBuf {
     all.extend_from_slice(args);
     assert_success(&record(&all), "record");
     path
+}
+
+/// [`record_log`] with its arguments in one string, split at blanks (`"--resolution 160x120
+/// --captures 3"`).
+pub fn record_args(dir: &Path, name: &str, args: &str) -> PathBuf {
+    record_log(dir, name, &args.split_whitespace().collect::<Vec<_>>())
+}
+
+/// Runs `replay LOG ARGS --out OUT -q` (ARGS split at blanks), asserts success and returns the
+/// `summary.json` it wrote.
+pub fn replay_summary(log: &Path, out: &Path, args: &str) -> serde_json::Value {
+    let mut all = vec![log.to_str().unwrap_or_default()];
+    all.extend(args.split_whitespace());
+    all.extend(["--out", out.to_str().unwrap_or_default(), "-q"]);
+    assert_success(&replay(&all), &format!("replay {args}"));
+    let path = out.join("summary.json");
+    serde_json::from_slice(&std::fs::read(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display())))
+        .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+}
+
+/// Runs `record` with the arguments of one string, split at blanks (paths must have none).
+pub fn record_str(args: &str) -> Output {
+    record(&args.split_whitespace().collect::<Vec<_>>())
+}
+
+/// Runs `replay` with the arguments of one string, split at blanks (paths must have none).
+pub fn replay_str(args: &str) -> Output {
+    replay(&args.split_whitespace().collect::<Vec<_>>())
 }
 
 /// Runs `replay` with arguments.

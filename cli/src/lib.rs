@@ -41,6 +41,21 @@ pub fn parse_args<P: clap::Parser>() -> Result<P, ExitCode> {
     })
 }
 
+/// The body of a binary's `main`: parses the command line (clap's message and exit code on a
+/// usage error or `--help`), sets up logging (`quiet` says whether the arguments asked for
+/// errors only), runs, and turns the outcome into the exit code.
+pub fn main_with<P: clap::Parser>(
+    quiet: impl Fn(&P) -> bool,
+    run: impl FnOnce(P) -> anyhow::Result<Outcome>,
+) -> ExitCode {
+    let args: P = match parse_args() {
+        Ok(args) => args,
+        Err(code) => return code,
+    };
+    init_logging(quiet(&args));
+    exit_code(run(args))
+}
+
 /// Logs to stderr at `info` (or `error` when quiet), overridable with `RUST_LOG`.
 pub fn init_logging(quiet: bool) {
     let level = if quiet { "error" } else { "info" };

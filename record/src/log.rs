@@ -606,20 +606,18 @@ impl<W: Write + Seek> LogWriter<W> {
         let (width, height) = (view.camera.width, view.camera.height);
         Self::check_len(set, view, "rgb", view.rgb.len(), 3)?;
         let image = image_topic(&view.role);
+        // A raw image of this view on `topic`: `encoding`, `bytes_per_pixel`, little-endian data.
+        let raw = |encoding: &str, bytes_per_pixel: u32, data: Bytes| RawImage {
+            timestamp: Some(timestamp(t)),
+            frame_id: view_frame(&view.role),
+            width,
+            height,
+            encoding: encoding.into(),
+            step: width * bytes_per_pixel,
+            data,
+        };
         match self.options.image_format {
-            ImageFormat::Raw => self.write_message(
-                &image,
-                t,
-                &RawImage {
-                    timestamp: Some(timestamp(t)),
-                    frame_id: view_frame(&view.role),
-                    width,
-                    height,
-                    encoding: "rgb8".into(),
-                    step: width * 3,
-                    data: Bytes::copy_from_slice(&view.rgb),
-                },
-            )?,
+            ImageFormat::Raw => self.write_message(&image, t, &raw("rgb8", 3, Bytes::copy_from_slice(&view.rgb)))?,
             ImageFormat::Png => {
                 let data = encode_png_rgb8(&view.rgb, width, height, self.options.png_compression).map_err(|e| {
                     LogError::Encode {
@@ -646,23 +644,8 @@ impl<W: Write + Seek> LogWriter<W> {
             Some(depth_m) => {
                 Self::check_len(set, view, "depth_m", depth_m.len(), 1)?;
                 let topic = depth_topic(&view.role);
-                let mut data = Vec::with_capacity(depth_m.len() * 4);
-                for d in depth_m {
-                    data.extend_from_slice(&d.to_le_bytes());
-                }
-                self.write_message(
-                    &topic,
-                    t,
-                    &RawImage {
-                        timestamp: Some(timestamp(t)),
-                        frame_id: view_frame(&view.role),
-                        width,
-                        height,
-                        encoding: DEPTH_ENCODING.into(),
-                        step: width * 4,
-                        data: Bytes::from(data),
-                    },
-                )?;
+                let data: Vec<u8> = depth_m.iter().flat_map(|d| d.to_le_bytes()).collect();
+                self.write_message(&topic, t, &raw(DEPTH_ENCODING, 4, Bytes::from(data)))?;
                 Some(topic)
             }
             None => None,
@@ -671,19 +654,7 @@ impl<W: Write + Seek> LogWriter<W> {
             Some(classes) => {
                 Self::check_len(set, view, "surface_class", classes.len(), 1)?;
                 let topic = surface_topic(&view.role);
-                self.write_message(
-                    &topic,
-                    t,
-                    &RawImage {
-                        timestamp: Some(timestamp(t)),
-                        frame_id: view_frame(&view.role),
-                        width,
-                        height,
-                        encoding: SURFACE_ENCODING.into(),
-                        step: width,
-                        data: Bytes::copy_from_slice(classes),
-                    },
-                )?;
+                self.write_message(&topic, t, &raw(SURFACE_ENCODING, 1, Bytes::copy_from_slice(classes)))?;
                 Some(topic)
             }
             None => None,

@@ -232,6 +232,33 @@ pub enum Shape {
     },
 }
 
+impl Shape {
+    /// A box standing on its base: turned `yaw_deg` about world z, not tilted.
+    pub fn upright_box(center: [f64; 3], half_extents_m: [f64; 3], yaw_deg: f64) -> Self {
+        Self::Box {
+            center,
+            half_extents_m,
+            yaw_deg,
+            tilt_deg: 0.0,
+        }
+    }
+
+    /// A cylinder along `axis`.
+    pub fn cylinder(center: [f64; 3], axis: [f64; 3], radius_m: f64, half_length_m: f64) -> Self {
+        Self::Cylinder {
+            center,
+            axis,
+            radius_m,
+            half_length_m,
+        }
+    }
+
+    /// A sphere.
+    pub fn sphere(center: [f64; 3], radius_m: f64) -> Self {
+        Self::Sphere { center, radius_m }
+    }
+}
+
 /// A shape with a material.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct SceneObject {
@@ -474,50 +501,23 @@ fn toy_scene(seed: u64) -> Scene {
     let c = WORK_AREA_CENTER_M;
     scene.add(
         "checker_block",
-        Shape::Box {
-            center: [c[0] - 0.05, c[1] - 0.12, 0.06],
-            half_extents_m: [0.05, 0.07, 0.06],
-            yaw_deg: 20.0,
-            tilt_deg: 0.0,
-        },
+        Shape::upright_box([c[0] - 0.05, c[1] - 0.12, 0.06], [0.05, 0.07, 0.06], 20.0),
         checker,
     );
     scene.add(
         "patch_box",
-        Shape::Box {
-            center: [c[0] + 0.1, c[1] + 0.08, 0.04],
-            half_extents_m: [0.08, 0.05, 0.04],
-            yaw_deg: -15.0,
-            tilt_deg: 0.0,
-        },
+        Shape::upright_box([c[0] + 0.1, c[1] + 0.08, 0.04], [0.08, 0.05, 0.04], -15.0),
         patches,
     );
-    scene.add(
-        "ball",
-        Shape::Sphere {
-            center: [c[0] - 0.09, c[1] + 0.12, 0.055],
-            radius_m: 0.055,
-        },
-        stone,
-    );
+    scene.add("ball", Shape::sphere([c[0] - 0.09, c[1] + 0.12, 0.055], 0.055), stone);
     scene.add(
         "striped_can",
-        Shape::Cylinder {
-            center: [c[0] + 0.12, c[1] - 0.1, 0.07],
-            axis: [0.0, 0.0, 1.0],
-            radius_m: 0.035,
-            half_length_m: 0.07,
-        },
+        Shape::cylinder([c[0] + 0.12, c[1] - 0.1, 0.07], [0.0, 0.0, 1.0], 0.035, 0.07),
         stripes,
     );
     scene.add(
         "textureless_box",
-        Shape::Box {
-            center: [c[0] + 0.02, c[1] + 0.0, 0.025],
-            half_extents_m: [0.04, 0.04, 0.025],
-            yaw_deg: 40.0,
-            tilt_deg: 0.0,
-        },
+        Shape::upright_box([c[0] + 0.02, c[1] + 0.0, 0.025], [0.04, 0.04, 0.025], 40.0),
         plain,
     );
     for (i, (dx, dy, yaw)) in [(-0.16, -0.02, 10.0f64), (0.16, 0.14, 80.0), (-0.02, 0.2, -35.0)]
@@ -527,24 +527,14 @@ fn toy_scene(seed: u64) -> Scene {
         let yaw = yaw.to_radians();
         scene.add(
             &format!("pencil_{i}"),
-            Shape::Cylinder {
-                center: [c[0] + dx, c[1] + dy, 0.004],
-                axis: [yaw.cos(), yaw.sin(), 0.0],
-                radius_m: 0.004,
-                half_length_m: 0.08,
-            },
+            Shape::cylinder([c[0] + dx, c[1] + dy, 0.004], [yaw.cos(), yaw.sin(), 0.0], 0.004, 0.08),
             pencil,
         );
     }
     // A thin wire arch standing above the table: a thin structure in front of the background.
     scene.add(
         "wire",
-        Shape::Cylinder {
-            center: [c[0] - 0.02, c[1] - 0.02, 0.15],
-            axis: [0.3, 1.0, 0.0],
-            radius_m: 0.0025,
-            half_length_m: 0.2,
-        },
+        Shape::cylinder([c[0] - 0.02, c[1] - 0.02, 0.15], [0.3, 1.0, 0.0], 0.0025, 0.2),
         pencil,
     );
     scene.add_lights(&mut rng);
@@ -607,51 +597,28 @@ fn workpiece_scene(seed: u64) -> Scene {
     let c = WORK_AREA_CENTER_M;
     scene.add(
         "rubber_mat",
-        Shape::Box {
-            center: [c[0] - 0.14, c[1] + 0.1, 0.002],
-            half_extents_m: [0.09, 0.11, 0.002],
-            yaw_deg: 5.0,
-            tilt_deg: 0.0,
-        },
+        Shape::upright_box([c[0] - 0.14, c[1] + 0.1, 0.002], [0.09, 0.11, 0.002], 5.0),
         rubber,
     );
     // The machined part: a flange plate with a boss and a shaft.
     scene.add(
         "part_plate",
-        Shape::Box {
-            center: [c[0] + 0.02, c[1] - 0.02, 0.015],
-            half_extents_m: [0.1, 0.07, 0.015],
-            yaw_deg: 12.0,
-            tilt_deg: 0.0,
-        },
+        Shape::upright_box([c[0] + 0.02, c[1] - 0.02, 0.015], [0.1, 0.07, 0.015], 12.0),
         polished,
     );
     scene.add(
         "part_boss",
-        Shape::Cylinder {
-            center: [c[0] + 0.03, c[1] - 0.02, 0.05],
-            axis: [0.0, 0.0, 1.0],
-            radius_m: 0.045,
-            half_length_m: 0.02,
-        },
+        Shape::cylinder([c[0] + 0.03, c[1] - 0.02, 0.05], [0.0, 0.0, 1.0], 0.045, 0.02),
         polished,
     );
     scene.add(
         "part_shaft",
-        Shape::Cylinder {
-            center: [c[0] + 0.03, c[1] - 0.02, 0.1],
-            axis: [0.0, 0.0, 1.0],
-            radius_m: 0.015,
-            half_length_m: 0.04,
-        },
+        Shape::cylinder([c[0] + 0.03, c[1] - 0.02, 0.1], [0.0, 0.0, 1.0], 0.015, 0.04),
         polished,
     );
     scene.add(
         "part_ball",
-        Shape::Sphere {
-            center: [c[0] - 0.1, c[1] - 0.13, 0.04],
-            radius_m: 0.04,
-        },
+        Shape::sphere([c[0] - 0.1, c[1] - 0.13, 0.04], 0.04),
         polished,
     );
     for i in 0..5 {
@@ -660,23 +627,13 @@ fn workpiece_scene(seed: u64) -> Scene {
         let y = c[1] + 0.12 + 0.05 * angle.sin();
         scene.add(
             &format!("bolt_{i}"),
-            Shape::Cylinder {
-                center: [x, y, 0.008],
-                axis: [angle.cos(), angle.sin(), 0.0],
-                radius_m: 0.006,
-                half_length_m: 0.03,
-            },
+            Shape::cylinder([x, y, 0.008], [angle.cos(), angle.sin(), 0.0], 0.006, 0.03),
             bolt,
         );
     }
     scene.add(
         "label_box",
-        Shape::Box {
-            center: [c[0] - 0.16, c[1] - 0.02, 0.045],
-            half_extents_m: [0.035, 0.05, 0.045],
-            yaw_deg: -8.0,
-            tilt_deg: 0.0,
-        },
+        Shape::upright_box([c[0] - 0.16, c[1] - 0.02, 0.045], [0.035, 0.05, 0.045], -8.0),
         cardboard,
     );
     scene.add_lights(&mut rng);
@@ -784,39 +741,36 @@ fn random_scene(seed: u64) -> Scene {
                 yaw_deg: rng.range(0.0, 90.0),
                 tilt_deg: if lift > 0.0 { rng.range(-30.0, 30.0) } else { 0.0 },
             },
-            3 | 4 => Shape::Sphere {
-                center: [x, y, lift + size],
-                radius_m: size,
-            },
+            3 | 4 => Shape::sphere([x, y, lift + size], size),
             5 | 6 => {
                 let upright = rng.below(2) == 0;
                 let yaw = rng.range(0.0, std::f64::consts::TAU);
                 let radius = size * rng.range(0.3, 0.8);
-                Shape::Cylinder {
-                    center: [x, y, lift + if upright { size } else { radius }],
-                    axis: if upright {
+                Shape::cylinder(
+                    [x, y, lift + if upright { size } else { radius }],
+                    if upright {
                         [0.0, 0.0, 1.0]
                     } else {
                         [yaw.cos(), yaw.sin(), 0.0]
                     },
-                    radius_m: radius,
-                    half_length_m: size,
-                }
+                    radius,
+                    size,
+                )
             }
             _ => {
                 // Thin structure: a rod or wire, possibly slanted and floating.
                 let yaw = rng.range(0.0, std::f64::consts::TAU);
                 let pitch = rng.range(-0.4, 0.4);
-                Shape::Cylinder {
-                    center: [x, y, lift + 0.01],
-                    axis: [
+                Shape::cylinder(
+                    [x, y, lift + 0.01],
+                    [
                         yaw.cos() * pitch.cos(),
                         yaw.sin() * pitch.cos(),
                         pitch.sin().abs() * 0.2,
                     ],
-                    radius_m: rng.range(0.0015, 0.006),
-                    half_length_m: rng.range(0.05, 0.25),
-                }
+                    rng.range(0.0015, 0.006),
+                    rng.range(0.05, 0.25),
+                )
             }
         };
         scene.add(&format!("object_{index}"), shape, material);
@@ -862,19 +816,13 @@ fn clutter_scene(seed: u64) -> Scene {
         let height = camera_height_m * rng.range(0.1, 0.5);
         let width = camera_height_m * rng.range(0.03, 0.12);
         let shape = if rng.below(3) == 0 {
-            Shape::Cylinder {
-                center: [x, y, height / 2.0],
-                axis: [0.0, 0.0, 1.0],
-                radius_m: width,
-                half_length_m: height / 2.0,
-            }
+            Shape::cylinder([x, y, height / 2.0], [0.0, 0.0, 1.0], width, height / 2.0)
         } else {
-            Shape::Box {
-                center: [x, y, height / 2.0],
-                half_extents_m: [width, width * rng.range(0.5, 1.5), height / 2.0],
-                yaw_deg: rng.range(0.0, 90.0),
-                tilt_deg: 0.0,
-            }
+            Shape::upright_box(
+                [x, y, height / 2.0],
+                [width, width * rng.range(0.5, 1.5), height / 2.0],
+                rng.range(0.0, 90.0),
+            )
         };
         scene.add(&format!("stack_{index}"), shape, material);
     }
@@ -885,17 +833,13 @@ fn clutter_scene(seed: u64) -> Scene {
         let (x, y) = (c[0] + rng.range(-spread, spread), c[1] + rng.range(-spread, spread));
         let size = camera_height_m * rng.range(0.01, 0.05);
         let shape = if rng.below(2) == 0 {
-            Shape::Sphere {
-                center: [x, y, size],
-                radius_m: size,
-            }
+            Shape::sphere([x, y, size], size)
         } else {
-            Shape::Box {
-                center: [x, y, size],
-                half_extents_m: [size, size * rng.range(0.5, 2.0), size],
-                yaw_deg: rng.range(0.0, 90.0),
-                tilt_deg: 0.0,
-            }
+            Shape::upright_box(
+                [x, y, size],
+                [size, size * rng.range(0.5, 2.0), size],
+                rng.range(0.0, 90.0),
+            )
         };
         scene.add(&format!("part_{index}"), shape, material);
     }
@@ -908,12 +852,12 @@ fn clutter_scene(seed: u64) -> Scene {
         let pitch = rng.range(-0.3, 0.3);
         scene.add(
             &format!("rod_{index}"),
-            Shape::Cylinder {
-                center: [x, y, camera_height_m * rng.range(0.02, 0.45)],
-                axis: [yaw.cos() * pitch.cos(), yaw.sin() * pitch.cos(), pitch.sin()],
-                radius_m: rng.range(0.001, 0.005),
-                half_length_m: camera_height_m * rng.range(0.1, 0.4),
-            },
+            Shape::cylinder(
+                [x, y, camera_height_m * rng.range(0.02, 0.45)],
+                [yaw.cos() * pitch.cos(), yaw.sin() * pitch.cos(), pitch.sin()],
+                rng.range(0.001, 0.005),
+                camera_height_m * rng.range(0.1, 0.4),
+            ),
             material,
         );
     }
@@ -957,12 +901,7 @@ fn bin_scene(seed: u64) -> Scene {
     let thickness = 0.008;
     scene.add(
         "tote_floor",
-        Shape::Box {
-            center: [c[0], c[1], thickness / 2.0],
-            half_extents_m: [half_x, half_y, thickness / 2.0],
-            yaw_deg: 0.0,
-            tilt_deg: 0.0,
-        },
+        Shape::upright_box([c[0], c[1], thickness / 2.0], [half_x, half_y, thickness / 2.0], 0.0),
         tote,
     );
     for (name, center, half) in [
@@ -973,12 +912,11 @@ fn bin_scene(seed: u64) -> Scene {
     ] {
         scene.add(
             name,
-            Shape::Box {
-                center: [center[0], center[1], wall_height / 2.0],
-                half_extents_m: [half[0], half[1], wall_height / 2.0],
-                yaw_deg: 0.0,
-                tilt_deg: 0.0,
-            },
+            Shape::upright_box(
+                [center[0], center[1], wall_height / 2.0],
+                [half[0], half[1], wall_height / 2.0],
+                0.0,
+            ),
             tote,
         );
     }
@@ -1000,17 +938,14 @@ fn bin_scene(seed: u64) -> Scene {
             },
             1 => {
                 let yaw = rng.range(0.0, std::f64::consts::TAU);
-                Shape::Cylinder {
-                    center: [x, y, z],
-                    axis: [yaw.cos(), yaw.sin(), rng.range(-0.3, 0.3)],
-                    radius_m: size * rng.range(0.3, 0.7),
-                    half_length_m: size * rng.range(1.0, 2.5),
-                }
+                Shape::cylinder(
+                    [x, y, z],
+                    [yaw.cos(), yaw.sin(), rng.range(-0.3, 0.3)],
+                    size * rng.range(0.3, 0.7),
+                    size * rng.range(1.0, 2.5),
+                )
             }
-            _ => Shape::Sphere {
-                center: [x, y, z],
-                radius_m: size,
-            },
+            _ => Shape::sphere([x, y, z], size),
         };
         scene.add(&format!("part_{index}"), shape, material);
     }

@@ -7,7 +7,7 @@ use std::path::Path;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use multiscopic_tests::{Log, binary, foxglove_read, python_with_mcap, record_log, replay, run, temp_dir};
+use multiscopic_tests::{Log, binary, foxglove_read, python_with_mcap, record_args, replay, replay_str, run, temp_dir};
 
 /// The byte offsets where each chunk record ends, in file order (from the summary).
 fn chunk_ends(bytes: &[u8]) -> Vec<usize> {
@@ -48,10 +48,10 @@ fn python_complete_sets(path: &Path) -> (Vec<u64>, serde_json::Value) {
 #[test]
 fn every_cut_keeps_the_sets_completed_before_it_and_recover_finishes_them() {
     let dir = temp_dir();
-    let log = record_log(
+    let log = record_args(
         dir.path(),
         "six.mcap",
-        &["--resolution", "320x240", "--captures", "6", "--samples-per-pixel", "1"],
+        "--resolution 320x240 --captures 6 --samples-per-pixel 1",
     );
     let bytes = std::fs::read(&log).unwrap_or_else(|e| panic!("{e}"));
     let ends = chunk_ends(&bytes);
@@ -114,7 +114,7 @@ fn every_cut_keeps_the_sets_completed_before_it_and_recover_finishes_them() {
         let path = dir.path().join(format!("cut-{cut}.mcap"));
         std::fs::write(&path, &bytes[..cut]).unwrap_or_else(|e| panic!("{e}"));
         let path_text = path.to_str().unwrap_or_default();
-        let check = replay(&["check", path_text, "--json"]);
+        let check = replay_str(&format!("check {} --json", path_text));
         assert_eq!(
             check.status.code(),
             Some(3),
@@ -127,7 +127,7 @@ fn every_cut_keeps_the_sets_completed_before_it_and_recover_finishes_them() {
             serde_json::from_slice(&check.stdout).unwrap_or_else(|e| panic!("check --json: {e}"));
         assert_eq!(sets.len(), expected(cut), "cut {cut}");
         let fixed = dir.path().join(format!("fixed-{cut}.mcap"));
-        let recover = replay(&["recover", path_text, "-o", fixed.to_str().unwrap_or_default()]);
+        let recover = replay_str(&format!("recover {} -o {}", path_text, fixed.display()));
         assert_eq!(
             recover.status.code(),
             Some(3),
@@ -183,10 +183,10 @@ fn every_cut_keeps_the_sets_completed_before_it_and_recover_finishes_them() {
 #[test]
 fn a_corrupt_chunk_loses_its_set_only() {
     let dir = temp_dir();
-    let log = record_log(
+    let log = record_args(
         dir.path(),
         "three.mcap",
-        &["--resolution", "160x120", "--captures", "3", "--samples-per-pixel", "1"],
+        "--resolution 160x120 --captures 3 --samples-per-pixel 1",
     );
     let mut bytes = std::fs::read(&log).unwrap_or_else(|e| panic!("{e}"));
     let summary = mcap::Summary::read(&bytes)
@@ -269,12 +269,7 @@ fn a_recorder_killed_mid_run_leaves_every_set_it_reported_done() {
             continue;
         }
         let fixed = dir.path().join(format!("fixed-{k}.mcap"));
-        let recover = replay(&[
-            "recover",
-            left.to_str().unwrap_or_default(),
-            "-o",
-            fixed.to_str().unwrap_or_default(),
-        ]);
+        let recover = replay_str(&format!("recover {} -o {}", left.display(), fixed.display()));
         let finished_anyway = !left.file_name().is_some_and(|n| n.to_string_lossy().starts_with('.'));
         assert!(
             matches!(recover.status.code(), Some(0 | 3)),
@@ -328,12 +323,7 @@ fn a_full_disk_exits_1_naming_the_file_and_the_sets_safe_in_it() {
     );
     assert!(!out.exists(), "no file under the final name");
     let fixed = dir.path().join("fixed.mcap");
-    let recover = replay(&[
-        "recover",
-        kept.to_str().unwrap_or_default(),
-        "-o",
-        fixed.to_str().unwrap_or_default(),
-    ]);
+    let recover = replay_str(&format!("recover {} -o {}", kept.display(), fixed.display()));
     assert_eq!(
         recover.status.code(),
         Some(3),

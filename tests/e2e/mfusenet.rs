@@ -5,7 +5,9 @@
 use std::path::Path;
 use std::process::Command;
 
-use multiscopic_tests::{assert_success, python_with_mcap, record_log, replay, run, temp_dir, workspace_root};
+use multiscopic_tests::{
+    assert_success, python_with_mcap, record_args, replay, replay_summary, run, temp_dir, workspace_root,
+};
 
 fn weights(file: &str) -> String {
     workspace_root().join("fuse/weights").join(file).display().to_string()
@@ -33,23 +35,10 @@ fn shipped_weights_have_the_reference_state_dict_names_and_shapes() {
 #[test]
 fn replay_runs_mfusenet_and_names_bad_weight_files() {
     let dir = temp_dir();
-    let log = record_log(
-        dir.path(),
-        "five.mcap",
-        &["--resolution", "256x192", "--samples-per-pixel", "1"],
-    );
-    let log = log.to_str().unwrap_or_default();
+    let log = record_args(dir.path(), "five.mcap", "--resolution 256x192 --samples-per-pixel 1");
     let out = dir.path().join("results");
-    let output = replay(&[
-        log,
-        "--method",
-        "mfusenet,mfusenet-stereo",
-        "--out",
-        out.to_str().unwrap_or_default(),
-        "-q",
-    ]);
-    assert_success(&output, "replay --method mfusenet");
-    let summary = read_summary(&out);
+    let summary = replay_summary(&log, &out, "--method mfusenet,mfusenet-stereo");
+    let log = log.to_str().unwrap_or_default();
     for method in ["mfusenet", "mfusenet-stereo"] {
         let set = summary["sets"]
             .as_array()
@@ -146,6 +135,7 @@ fn replay_runs_mfusenet_and_names_bad_weight_files() {
         ),
     ];
     for (method, config, expected) in cases {
+        // The JSON holds blanks: the arguments as a list.
         let output = replay(&[
             log,
             "--method",
@@ -165,37 +155,26 @@ fn train(dir: &Path, steps: &str) -> serde_json::Value {
     train_with(dir, steps, &[])
 }
 
+/// `replay train` of the three-view network on a tiny dataset (two 96×72 captures, 12
+/// disparities, 32-px crops) in `run_dir`, `extra` appended.
+fn tiny_training(run_dir: &Path, dataset: &Path, steps: &str, extra: &[&str]) -> std::process::Output {
+    let (run_dir, dataset) = (
+        run_dir.to_str().unwrap_or_default(),
+        dataset.to_str().unwrap_or_default(),
+    );
+    let mut args: Vec<&str> =
+        "train --views 2 --resolution 96x72 --num-disparities 12 --crop-px 32 --train-sets 2 --val-sets 1 -q"
+            .split_whitespace()
+            .collect();
+    args.extend(["--dir", run_dir, "--dataset-dir", dataset, "--steps", steps]);
+    args.extend_from_slice(extra);
+    replay(&args)
+}
+
 fn train_with(dir: &Path, steps: &str, extra: &[&str]) -> serde_json::Value {
     let run_dir = dir.join("run");
-    let dataset_dir = dir.join("dataset");
-    let mut args = vec![
-        "train",
-        "--views",
-        "2",
-        "--dir",
-        run_dir.to_str().unwrap_or_default(),
-        "--dataset-dir",
-        dataset_dir.to_str().unwrap_or_default(),
-        "--resolution",
-        "96x72",
-        "--disparities",
-        "12",
-        "--crop",
-        "32",
-        "--train-sets",
-        "2",
-        "--val-sets",
-        "1",
-        "--steps",
-        steps,
-        "--checkpoint-every",
-        "2",
-        "--validate-every",
-        "3",
-        "-q",
-    ];
-    args.extend_from_slice(extra);
-    let output = replay(&args);
+    let every = ["--checkpoint-every", "2", "--validate-every", "3"];
+    let output = tiny_training(&run_dir, &dir.join("dataset"), steps, &[&every[..], extra].concat());
     assert_success(&output, "replay train");
     serde_json::from_slice(&std::fs::read(run_dir.join("training.json")).unwrap_or_default())
         .unwrap_or_else(|e| panic!("training.json: {e}"))
@@ -304,17 +283,10 @@ fn training_resumes_and_its_weights_run() {
     let before = safetensors_tensor_bytes(&weights);
     assert!(!before.is_empty());
     assert_eq!(before, safetensors_tensor_bytes(&calibrated), "tensors changed");
-    let log = record_log(
+    let log = record_args(
         dir.path(),
         "three.mcap",
-        &[
-            "--rig",
-            "three-view",
-            "--resolution",
-            "96x72",
-            "--samples-per-pixel",
-            "1",
-        ],
+        "--rig three-view --resolution 96x72 --samples-per-pixel 1",
     );
     let output = replay(&[
         log.to_str().unwrap_or_default(),
@@ -404,37 +376,12 @@ fn training_can_give_its_network_context_below_the_range() {
     // for the context.
     let shifted_run = dir.path().join("shifted");
     let dataset = dir.path().join("dataset");
-    let common = [
-        "train",
-        "--views",
+    let output = tiny_training(
+        &shifted_run,
+        &dataset,
         "2",
-        "--dataset-dir",
-        dataset.to_str().unwrap_or_default(),
-        "--resolution",
-        "96x72",
-        "--disparities",
-        "12",
-        "--crop",
-        "32",
-        "--train-sets",
-        "2",
-        "--val-sets",
-        "1",
-        "--steps",
-        "2",
-        "-q",
-        "--context-below",
-    ];
-    let mut args = common.to_vec();
-    args.extend([
-        "4",
-        "--disparity-shift",
-        "4",
-        "--flips",
-        "--dir",
-        shifted_run.to_str().unwrap_or_default(),
-    ]);
-    let output = replay(&args);
+        &["--context-below", "4", "--disparity-shift", "4", "--flips"],
+    );
     assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
     let metadata = &safetensors_header(&shifted_run.join("mfusenet-3view.safetensors"))["__metadata__"];
     assert_eq!(metadata["context_below"], "4", "{metadata}");
@@ -452,9 +399,7 @@ fn training_can_give_its_network_context_below_the_range() {
     assert_eq!(std::fs::read_dir(&dataset).map(Iterator::count).unwrap_or(0), 3);
     // Not a multiple of 4: an error naming the option.
     let other = dir.path().join("other");
-    let mut args = common.to_vec();
-    args.extend(["6", "--dir", other.to_str().unwrap_or_default()]);
-    let output = replay(&args);
+    let output = tiny_training(&other, &dataset, "2", &["--context-below", "6"]);
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(!output.status.success() && stderr.contains("context_below"), "{stderr}");
 }
@@ -465,17 +410,10 @@ fn a_wide_range_goes_coarse_to_fine_and_the_summary_says_what_the_network_saw() 
     // network runs at half size over 0..33 with 4 slices of context below (−4..33) and the
     // full-size band is ± 2 px.
     let dir = temp_dir();
-    let log = record_log(
+    let log = record_args(
         dir.path(),
         "wide.mcap",
-        &[
-            "--resolution",
-            "320x240",
-            "--baseline-mm",
-            "60",
-            "--samples-per-pixel",
-            "1",
-        ],
+        "--resolution 320x240 --baseline-mm 60 --samples-per-pixel 1",
     );
     let out = dir.path().join("results");
     let output = replay(&[

@@ -5,7 +5,7 @@ use std::io::{BufRead, BufReader};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use multiscopic_tests::{Log, binary, record, temp_dir};
+use multiscopic_tests::{Log, binary, record, record_str, temp_dir};
 
 fn stderr(output: &std::process::Output) -> String {
     String::from_utf8_lossy(&output.stderr).into_owned()
@@ -45,23 +45,11 @@ fn invalid_arguments_exit_2_with_a_clear_message() {
 fn unwritable_output_exits_1_and_leaves_nothing() {
     let dir = temp_dir();
     let missing = dir.path().join("no/such/dir/capture.mcap");
-    let output = record(&[
-        "-o",
-        missing.to_str().unwrap_or_default(),
-        "--resolution",
-        "32x24",
-        "-q",
-    ]);
+    let output = record_str(&format!("-o {} --resolution 32x24 -q", missing.display()));
     assert_eq!(output.status.code(), Some(1), "{}", stderr(&output));
     assert!(stderr(&output).contains("no/such/dir"), "{}", stderr(&output));
     // A directory as the output path.
-    let output = record(&[
-        "-o",
-        dir.path().to_str().unwrap_or_default(),
-        "--resolution",
-        "32x24",
-        "-q",
-    ]);
+    let output = record_str(&format!("-o {} --resolution 32x24 -q", dir.path().display()));
     assert_eq!(output.status.code(), Some(1), "{}", stderr(&output));
     assert_eq!(std::fs::read_dir(dir.path()).map(|d| d.count()).unwrap_or(99), 0);
 }
@@ -71,15 +59,10 @@ fn failure_mid_run_leaves_no_file() {
     // The centre view is captured, then the left view lies outside the UR10's reach.
     let dir = temp_dir();
     let path = dir.path().join("capture.mcap");
-    let output = record(&[
-        "-o",
-        path.to_str().unwrap_or_default(),
-        "--baseline-mm",
-        "1000",
-        "--resolution",
-        "32x24",
-        "-q",
-    ]);
+    let output = record_str(&format!(
+        "-o {} --baseline-mm 1000 --resolution 32x24 -q",
+        path.display()
+    ));
     assert_eq!(output.status.code(), Some(1), "{}", stderr(&output));
     assert!(stderr(&output).contains("cannot reach"), "{}", stderr(&output));
     let left: Vec<_> = std::fs::read_dir(dir.path())

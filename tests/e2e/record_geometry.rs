@@ -2,7 +2,7 @@
 //! axes, optical axes parallel (within the injected noise); the logged transform chain, joint
 //! states and capture events agree; injected errors land on the named view only.
 
-use multiscopic_tests::{Log, record_log, temp_dir};
+use multiscopic_tests::{Log, record_args, temp_dir};
 use nalgebra::Vector3;
 use record::log::{CAMERA_FRAME, PoseJson};
 use record::ur10::Ur10;
@@ -53,10 +53,10 @@ fn relative_poses(log: &Log, set: u32, use_true_pose: bool) -> Vec<Relative> {
 #[test]
 fn five_view_sets_are_coplanar_at_the_baseline_with_parallel_axes() {
     let dir = temp_dir();
-    let path = record_log(
+    let path = record_args(
         dir.path(),
         "five.mcap",
-        &["--captures", "3", "--resolution", "48x32", "--samples-per-pixel", "1"],
+        "--captures 3 --resolution 48x32 --samples-per-pixel 1",
     );
     let log = Log::read(&path);
     let arm = Ur10::default();
@@ -123,21 +123,10 @@ fn five_view_sets_are_coplanar_at_the_baseline_with_parallel_axes() {
 #[test]
 fn injected_errors_land_on_the_named_view_only() {
     let dir = temp_dir();
-    let path = record_log(
+    let path = record_args(
         dir.path(),
         "errors.mcap",
-        &[
-            "--resolution",
-            "48x32",
-            "--samples-per-pixel",
-            "1",
-            "--repeatability-mm",
-            "0",
-            "--rotation-error",
-            "left:z:0.5",
-            "--offset-error",
-            "top:z:1",
-        ],
+        "--resolution 48x32 --samples-per-pixel 1 --repeatability-mm 0 --rotation-error left:z:0.5 --offset-error top:z:1",
     );
     let log = Log::read(&path);
     let poses = relative_poses(&log, 0, false);
@@ -171,19 +160,10 @@ fn injected_errors_land_on_the_named_view_only() {
         }
     }
     // A hand-eye error is invisible in the logged (believed) poses but present in the true ones.
-    let path = record_log(
+    let path = record_args(
         dir.path(),
         "hand_eye.mcap",
-        &[
-            "--resolution",
-            "48x32",
-            "--samples-per-pixel",
-            "1",
-            "--repeatability-mm",
-            "0",
-            "--hand-eye-error-deg",
-            "0,0,2",
-        ],
+        "--resolution 48x32 --samples-per-pixel 1 --repeatability-mm 0 --hand-eye-error-deg 0,0,2",
     );
     let log = Log::read(&path);
     let believed = relative_poses(&log, 0, false);

@@ -2,7 +2,7 @@
 
 use std::path::Path;
 
-use multiscopic_tests::{Log, assert_success, f32_pixels, record, shared_data, temp_dir};
+use multiscopic_tests::{Log, assert_success, f32_pixels, middlebury_dev, record, record_str, temp_dir};
 
 fn write_png(path: &Path, width: u32, height: u32, color: png::ColorType, data: &[u8]) {
     let file = std::fs::File::create(path).unwrap_or_else(|e| panic!("{e}"));
@@ -82,13 +82,11 @@ fn import_errors_name_the_file() {
     }
     write_png(&scene.join("view2.png"), 9, 8, png::ColorType::Rgb, &[9; 216]);
     let out = dir.path().join("x.mcap");
-    let output = record(&[
-        "import",
-        scene.to_str().unwrap_or_default(),
-        "-o",
-        out.to_str().unwrap_or_default(),
-        "--no-ground-truth",
-    ]);
+    let output = record_str(&format!(
+        "import {} -o {} --no-ground-truth",
+        scene.display(),
+        out.display()
+    ));
     assert_eq!(output.status.code(), Some(1));
     let message = String::from_utf8_lossy(&output.stderr);
     assert!(message.contains("view2.png") && message.contains("9x8"), "{message}");
@@ -111,23 +109,14 @@ fn import_errors_name_the_file() {
 
 #[test]
 fn middlebury_scenes_import_with_ground_truth() {
-    let data = shared_data().join("middlebury2006-third-dev");
-    if !data.is_dir() {
-        panic!(
-            "fixture missing: {} (the shared evaluation data must sit beside the checkout as ../shared/data)",
-            data.display()
-        );
-    }
+    let data = middlebury_dev("");
     let dir = temp_dir();
     let out = dir.path().join("middlebury.mcap");
-    let output = record(&[
-        "import",
-        data.to_str().unwrap_or_default(),
-        "-o",
-        out.to_str().unwrap_or_default(),
-        "--focal-px",
-        "1246.67",
-    ]);
+    let output = record_str(&format!(
+        "import {} -o {} --focal-px 1246.67",
+        data.display(),
+        out.display()
+    ));
     assert_success(&output, "record import");
     let log = Log::read(&out);
     let events = log.events();
@@ -428,12 +417,7 @@ fn a_described_folder_with_a_middlebury_2014_calibration_needs_no_flags() {
     )
     .unwrap_or_else(|e| panic!("{e}"));
     let out = dir.path().join("described.mcap");
-    let output = record(&[
-        "import",
-        dir.path().to_str().unwrap_or_default(),
-        "-o",
-        out.to_str().unwrap_or_default(),
-    ]);
+    let output = record_str(&format!("import {} -o {}", dir.path().display(), out.display()));
     assert_success(&output, "record import of a described folder");
     let sets = replay::log::read_log_file(&out).unwrap_or_else(|e| panic!("{e}")).sets;
     assert_eq!(sets.len(), 1);
@@ -454,16 +438,10 @@ fn a_described_folder_with_a_middlebury_2014_calibration_needs_no_flags() {
     assert!(truth[1..].iter().all(|d| (d - 10.0).abs() < 1e-4));
     assert!((set.disparity_to_depth_m()(10.0).unwrap_or_default() - 200.0 / 15.0).abs() < 1e-9);
     // replay eval reads the same folder without flags.
-    let output = multiscopic_tests::replay(&[
-        "eval",
-        dir.path().to_str().unwrap_or_default(),
-        "--methods",
-        "bm-stereo",
-        "--num-disparities",
-        "16",
-        "--format",
-        "json",
-    ]);
+    let output = multiscopic_tests::replay_str(&format!(
+        "eval {} --methods bm-stereo --num-disparities 16 --format json",
+        dir.path().display()
+    ));
     assert_success(&output, "replay eval of a described folder");
     let rows: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap_or_else(|e| panic!("{e}"));
     assert!(rows.to_string().contains("Scene-perfect"), "{rows}");

@@ -2,7 +2,7 @@
 
 use std::process::Command;
 
-use multiscopic_tests::{Log, assert_success, python_with_mcap, record_log, rerun_cli, run, temp_dir};
+use multiscopic_tests::{Log, assert_success, json_strings, python_with_mcap, record_log, rerun_cli, run, temp_dir};
 
 const SMALL: &[&str] = &["--resolution", "96x64", "--samples-per-pixel", "1"];
 
@@ -32,12 +32,7 @@ fn python_mcap_client_checks_crcs_and_decodes_every_message() {
         let report = python_check(&path);
         let log = Log::read(&path);
         assert_eq!(report["messages"].as_u64(), Some(log.messages.len() as u64), "{report}");
-        let schemas: Vec<&str> = report["schemas"]
-            .as_array()
-            .into_iter()
-            .flatten()
-            .filter_map(|s| s.as_str())
-            .collect();
+        let schemas = json_strings(&report["schemas"]);
         for expected in [
             "foxglove.CameraCalibration",
             "foxglove.FrameTransforms",

@@ -1,13 +1,13 @@
 //! `replay check`: clean captures pass; an injected roll or out-of-plane offset is flagged on
 //! that view only; a hand-eye error, invisible in the poses, shows in the image-based shift.
 
-use multiscopic_tests::{assert_success, record_log, replay, temp_dir};
+use multiscopic_tests::{assert_success, record_args, record_log, replay, replay_str, temp_dir};
 
 fn check(extra: &[&str], name: &str) -> (Option<i32>, serde_json::Value) {
     let dir = temp_dir();
     let args: Vec<&str> = ["--resolution", "640x360"].iter().chain(extra).copied().collect();
     let log = record_log(dir.path(), name, &args);
-    let output = replay(&["check", log.to_str().unwrap_or_default(), "--json", "-q"]);
+    let output = replay_str(&format!("check {} --json -q", log.display()));
     let json = serde_json::from_slice(&output.stdout).unwrap_or_else(|e| panic!("replay check printed no JSON: {e}"));
     (output.status.code(), json)
 }
@@ -87,10 +87,10 @@ fn hand_eye_error_shows_in_the_images_only() {
 #[test]
 fn rectify_recovers_depth_quality_lost_to_a_rolled_view() {
     let dir = temp_dir();
-    let log = record_log(
+    let log = record_args(
         dir.path(),
         "rolled.mcap",
-        &["--resolution", "640x360", "--rotation-error", "left:z:1"],
+        "--resolution 640x360 --rotation-error left:z:1",
     );
     let avg_err_px = |extra: &[&str]| {
         let mut all = vec![
@@ -118,10 +118,10 @@ fn half_a_pixel_of_epipolar_error_warns_and_the_limits_are_configurable() {
     let dir = temp_dir();
     // A 0.1° roll of the left view: about 0.55 px of epipolar error at the image's left and right
     // edges (640 px wide).
-    let log = record_log(
+    let log = record_args(
         dir.path(),
         "roll.mcap",
-        &["--resolution", "640x360", "--rotation-error", "left:z:0.1"],
+        "--resolution 640x360 --rotation-error left:z:0.1",
     );
     let log = log.to_str().unwrap_or_default();
     let left = |extra: &[&str]| {
@@ -152,7 +152,7 @@ fn half_a_pixel_of_epipolar_error_warns_and_the_limits_are_configurable() {
     assert_eq!(relaxed["epipolar_error_px"]["status"], "ok", "{relaxed}");
     let (_, strict) = left(&["--warn-px", "0.2", "--fail-px", "0.4"]);
     assert_eq!(strict["status"], "fail", "{strict}");
-    let usage = replay(&["check", log, "--warn-px", "2", "--fail-px", "1"]);
+    let usage = replay_str(&format!("check {} --warn-px 2 --fail-px 1", log));
     assert_eq!(
         usage.status.code(),
         Some(2),

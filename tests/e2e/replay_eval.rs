@@ -1,6 +1,8 @@
 //! Depth quality: the paper's claims on real and simulated data, through the real binaries.
 
-use multiscopic_tests::{assert_success, eval_json, record_log, replay, shared_data, temp_dir};
+use multiscopic_tests::{
+    assert_success, eval_json, json_strings, middlebury_dev, record_args, replay_str, replay_summary, temp_dir,
+};
 
 fn metric(rows: &[serde_json::Value], method: &str, region: &str, field: &str) -> f64 {
     rows.iter()
@@ -11,12 +13,7 @@ fn metric(rows: &[serde_json::Value], method: &str, region: &str, field: &str) -
 
 #[test]
 fn middlebury_multiscopic_beats_stereo_and_opencv_sgbm() {
-    let data = shared_data().join("middlebury2006-third-dev");
-    assert!(
-        data.is_dir(),
-        "fixture missing: {} (the shared evaluation data must sit beside the checkout as ../shared/data)",
-        data.display()
-    );
+    let data = middlebury_dev("");
     let rows = eval_json(&[
         data.to_str().unwrap_or_default(),
         "--methods",
@@ -63,7 +60,7 @@ fn middlebury_multiscopic_beats_stereo_and_opencv_sgbm() {
 #[test]
 fn five_views_beat_three_which_beat_stereo_most_in_occlusions() {
     let dir = temp_dir();
-    let log = record_log(dir.path(), "five.mcap", &["--resolution", "640x360", "--captures", "2"]);
+    let log = record_args(dir.path(), "five.mcap", "--resolution 640x360 --captures 2");
     let log = log.to_str().unwrap_or_default();
     let five = eval_json(&[
         log,
@@ -110,24 +107,14 @@ fn five_views_beat_three_which_beat_stereo_most_in_occlusions() {
 #[test]
 fn replay_writes_result_files_and_a_result_log_other_tools_read() {
     let dir = temp_dir();
-    let log = record_log(
-        dir.path(),
-        "capture.mcap",
-        &["--resolution", "320x180", "--rig", "three-view"],
-    );
+    let log = record_args(dir.path(), "capture.mcap", "--resolution 320x180 --rig three-view");
     let out = dir.path().join("results");
     let result_log = dir.path().join("results.mcap");
-    let output = replay(&[
-        log.to_str().unwrap_or_default(),
-        "--method",
-        "bm-heuristic",
-        "--out",
-        out.to_str().unwrap_or_default(),
-        "--out-mcap",
-        result_log.to_str().unwrap_or_default(),
-        "-q",
-    ]);
-    assert_success(&output, "replay");
+    replay_summary(
+        &log,
+        &out,
+        &format!("--method bm-heuristic --out-mcap {}", result_log.display()),
+    );
     let set_dir = out.join("000-toy-0");
     let (w, h, disparity) =
         viz::files::read_pfm(&set_dir.join("bm-heuristic_disparity.pfm")).unwrap_or_else(|e| panic!("{e}"));
@@ -212,12 +199,7 @@ fn replay_writes_result_files_and_a_result_log_other_tools_read() {
     ] {
         assert_eq!(report["topics"][topic].as_u64(), Some(1), "{topic}: {report}");
     }
-    let metadata: Vec<&str> = report["metadata"]
-        .as_array()
-        .into_iter()
-        .flatten()
-        .filter_map(|m| m.as_str())
-        .collect();
+    let metadata = json_strings(&report["metadata"]);
     assert!(
         metadata.contains(&"multiscopic.recording") && metadata.contains(&"multiscopic.replay"),
         "{metadata:?}"
@@ -227,24 +209,15 @@ fn replay_writes_result_files_and_a_result_log_other_tools_read() {
 #[test]
 fn graph_cuts_leave_occlusions_unmatched_and_five_views_beat_stereo() {
     let dir = temp_dir();
-    let log = record_log(
+    let log = record_args(
         dir.path(),
         "metal.mcap",
-        &["--scene", "workpiece", "--resolution", "320x240", "--captures", "1"],
+        "--scene workpiece --resolution 320x240 --captures 1",
     );
     let log_arg = log.to_str().unwrap_or_default();
     // Without filling, pixels left without a match have no estimate (+inf in the PFM).
     let out = dir.path().join("results");
-    let output = replay(&[
-        log_arg,
-        "--rectify",
-        "--method",
-        "gc-heuristic",
-        "--out",
-        out.to_str().unwrap_or_default(),
-        "-q",
-    ]);
-    assert_success(&output, "replay --method gc-heuristic");
+    replay_summary(&log, &out, "--rectify --method gc-heuristic");
     let set_dir = std::fs::read_dir(&out)
         .unwrap_or_else(|e| panic!("{}: {e}", out.display()))
         .filter_map(Result::ok)
@@ -293,11 +266,7 @@ fn graph_cuts_leave_occlusions_unmatched_and_five_views_beat_stereo() {
 #[test]
 fn a_line_of_five_runs_through_every_method_against_its_three_view_subset() {
     let dir = temp_dir();
-    let log = record_log(
-        dir.path(),
-        "line5.mcap",
-        &["--rig", "line5", "--resolution", "320x180", "--seed", "3"],
-    );
+    let log = record_args(dir.path(), "line5.mcap", "--rig line5 --resolution 320x180 --seed 3");
     let log = log.to_str().unwrap_or_default();
     let methods: Vec<&str> = fuse::methods::registry().iter().map(|e| e.name).collect();
     let methods = methods.join(",");
@@ -338,16 +307,10 @@ fn a_line_of_five_runs_through_every_method_against_its_three_view_subset() {
 fn the_demo_writes_where_git_ignores_it() {
     let dir = temp_dir();
     let out = dir.path().join("demo");
-    let output = replay(&[
-        "demo",
-        "--out",
-        out.to_str().unwrap_or_default(),
-        "--resolution",
-        "160x96",
-        "--method",
-        "bm-heuristic",
-        "-q",
-    ]);
+    let output = replay_str(&format!(
+        "demo --out {} --resolution 160x96 --method bm-heuristic -q",
+        out.display()
+    ));
     assert_success(&output, "replay demo");
     assert!(out.join("capture.mcap").is_file() && out.join("results/summary.json").is_file());
     let ignore = std::fs::read_to_string(out.join(".gitignore")).unwrap_or_default();

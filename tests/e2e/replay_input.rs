@@ -3,7 +3,7 @@
 use std::path::Path;
 
 use foxglove::messages::RawImage;
-use multiscopic_tests::{assert_success, record_log, replay, temp_dir};
+use multiscopic_tests::{record_args, replay_str, replay_summary, temp_dir};
 use record::camera::PinholeCamera;
 use record::log::{LogOptions, LogWriter};
 use record::rig::RigKind;
@@ -55,14 +55,11 @@ fn write_log(path: &Path, build: impl FnOnce(&mut LogWriter<std::io::BufWriter<s
 }
 
 fn replay_err(log: &Path, out: &Path) -> (Option<i32>, String) {
-    let output = replay(&[
-        log.to_str().unwrap_or_default(),
-        "--method",
-        "bm-heuristic",
-        "--out",
-        out.to_str().unwrap_or_default(),
-        "-q",
-    ]);
+    let output = replay_str(&format!(
+        "{} --method bm-heuristic --out {} -q",
+        log.display(),
+        out.display()
+    ));
     let stderr = String::from_utf8_lossy(&output.stderr).into_owned();
     assert!(!stderr.contains("panicked"), "replay panicked:\n{stderr}");
     (output.status.code(), stderr)
@@ -171,10 +168,10 @@ fn garbage_and_cut_off_logs() {
     assert_eq!(code, Some(1));
     assert!(stderr.contains("missing.mcap"), "{stderr}");
     // A recording cut off part-way: the complete sets are replayed, exit 3 says something was lost.
-    let full = record_log(
+    let full = record_args(
         dir.path(),
         "full.mcap",
-        &["--resolution", "640x360", "--captures", "3", "--rig", "three-view"],
+        "--resolution 640x360 --captures 3 --rig three-view",
     );
     let bytes = std::fs::read(&full).unwrap_or_else(|e| panic!("{e}"));
     let cut = dir.path().join("cut.mcap");
@@ -192,10 +189,10 @@ fn garbage_and_cut_off_logs() {
 #[test]
 fn random_bytes_and_truncations_never_panic_the_reader() {
     let dir = temp_dir();
-    let path = record_log(
+    let path = record_args(
         dir.path(),
         "fuzz.mcap",
-        &["--resolution", "48x32", "--captures", "2", "--samples-per-pixel", "1"],
+        "--resolution 48x32 --captures 2 --samples-per-pixel 1",
     );
     let bytes = std::fs::read(&path).unwrap_or_else(|e| panic!("{e}"));
     let mut rng = SplitMix64::new(2024);
@@ -228,10 +225,10 @@ fn random_bytes_and_truncations_never_panic_the_reader() {
 #[test]
 fn foreign_logs_without_capture_events_get_their_sets_from_the_poses() {
     let dir = temp_dir();
-    let ours = record_log(
+    let ours = record_args(
         dir.path(),
         "ours.mcap",
-        &["--resolution", "160x90", "--samples-per-pixel", "1", "--captures", "3"],
+        "--resolution 160x90 --samples-per-pixel 1 --captures 3",
     );
     let foreign = dir.path().join("foreign.mcap");
     multiscopic_tests::strip_capture_events(&ours, &foreign);
@@ -258,25 +255,21 @@ fn foreign_logs_without_capture_events_get_their_sets_from_the_poses() {
             inferred.baseline_m
         );
     }
-    let out = dir.path().join("out");
-    let output = replay(&[
-        foreign.to_str().unwrap_or_default(),
-        "--method",
-        "bm-heuristic",
-        "--out",
-        out.to_str().unwrap_or_default(),
-        "-q",
-    ]);
-    assert_success(&output, "replay of a foreign log");
+    let summary = replay_summary(&foreign, &dir.path().join("out"), "--method bm-heuristic");
+    assert_eq!(
+        summary["sets"].as_array().map(Vec::len),
+        Some(3),
+        "every inferred set replayed"
+    );
 }
 
 #[test]
 fn time_range_selects_sets() {
     let dir = temp_dir();
-    let log = record_log(
+    let log = record_args(
         dir.path(),
         "three.mcap",
-        &["--resolution", "96x64", "--samples-per-pixel", "1", "--captures", "3"],
+        "--resolution 96x64 --samples-per-pixel 1 --captures 3",
     );
     let all = replay::log::read_log_file(&log).unwrap_or_else(|e| panic!("{e}"));
     let start = all.sets[0].reference.capture_time_nanos;

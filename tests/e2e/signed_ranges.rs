@@ -5,7 +5,7 @@
 
 use std::path::Path;
 
-use multiscopic_tests::{assert_success, eval_json as eval, record, record_log, shared_data, temp_dir};
+use multiscopic_tests::{assert_success, eval_json as eval, middlebury_dev, record_log, record_str, temp_dir};
 
 /// Disparity shift of the converged copy (px).
 const SHIFT: u32 = 8;
@@ -80,12 +80,7 @@ fn scene_metrics(rows: &[serde_json::Value], scene: &str) -> Vec<(String, f64, f
 
 #[test]
 fn a_dev_scene_shifted_below_zero_scores_as_its_unshifted_crop() {
-    let scene = shared_data().join("middlebury2006-third-dev/Baby1");
-    assert!(
-        scene.is_dir(),
-        "fixture missing: {} (the shared evaluation data must sit beside the checkout as ../shared/data)",
-        scene.display()
-    );
+    let scene = middlebury_dev("Baby1");
     let dir = temp_dir();
     let (positive, negative) = (dir.path().join("positive"), dir.path().join("negative"));
     write_crop(&scene, &positive, 0);
@@ -114,12 +109,7 @@ fn a_dev_scene_shifted_below_zero_scores_as_its_unshifted_crop() {
     // it without flags, and `--min-disparity -8` on the command line gives the same.
     let log = dir.path().join("negative.mcap");
     assert_success(
-        &record(&[
-            "import",
-            negative.to_str().unwrap_or_default(),
-            "-o",
-            log.to_str().unwrap_or_default(),
-        ]),
+        &record_str(&format!("import {} -o {}", negative.display(), log.display())),
         "record import",
     );
     let sets = replay::log::read_log_file(&log).unwrap_or_else(|e| panic!("{e}")).sets;

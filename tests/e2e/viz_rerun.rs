@@ -5,15 +5,11 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use multiscopic_tests::{assert_success, binary, record_log, replay, rerun_cli, run, temp_dir};
+use multiscopic_tests::{assert_success, binary, record_args, replay_summary, rerun_cli, run, temp_dir};
 
 /// Records a small five-view capture (fast at this size, still every role and ground truth).
 fn small_capture(dir: &Path) -> PathBuf {
-    record_log(
-        dir,
-        "capture.mcap",
-        &["--resolution", "320x180", "--samples-per-pixel", "1"],
-    )
+    record_args(dir, "capture.mcap", "--resolution 320x180 --samples-per-pixel 1")
 }
 
 /// `rerun rrd print` of a file, checked for success.
@@ -42,19 +38,14 @@ fn assert_column(printed: &str, entity: &str, column: &str) {
 }
 
 fn replay_with_rerun(dir: &Path, log: &Path, rrd: &Path) {
-    let output = replay(&[
-        log.to_str().unwrap_or_default(),
-        "--method",
-        "bm-heuristic,sgm-heuristic,gc-stereo",
-        "--rectify",
-        "--out",
-        dir.join("results").to_str().unwrap_or_default(),
-        "--rerun",
-        "save",
-        rrd.to_str().unwrap_or_default(),
-        "-q",
-    ]);
-    assert_success(&output, "replay --rerun save");
+    replay_summary(
+        log,
+        &dir.join("results"),
+        &format!(
+            "--method bm-heuristic,sgm-heuristic,gc-stereo --rectify --rerun save {}",
+            rrd.display()
+        ),
+    );
 }
 
 #[test]

@@ -6,7 +6,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::{Family, Method, MethodEntry, Progress, apply_overrides};
+use super::{Family, Method, MethodEntry, Progress, configure};
 use crate::FuseError;
 use crate::cost::PixelCost;
 use crate::fusion::Fusion;
@@ -40,6 +40,12 @@ pub struct BlockMatchingConfig {
     pub weighted_median: Option<WeightedMedian>,
 }
 
+impl super::FusedConfig for BlockMatchingConfig {
+    fn set_fusion(&mut self, fusion: Fusion) {
+        self.fusion = fusion;
+    }
+}
+
 impl Default for BlockMatchingConfig {
     /// Chosen on `middlebury2006-third-dev` (`replay eval --config`): the paper's Birchfield–Tomasi
     /// on colour, a 9×9 block and a 3×3 median give the lowest AvgErr for stereo and fusion alike.
@@ -71,13 +77,7 @@ impl BlockMatching {
 }
 
 impl Method for BlockMatching {
-    fn name(&self) -> &str {
-        self.name
-    }
-
-    fn config_json(&self) -> Result<serde_json::Value, FuseError> {
-        super::config_json(self.name(), &self.config)
-    }
+    super::name_and_config!();
 
     fn run(&self, problem: &Problem, progress: Progress<'_>) -> Result<DisparityImage, FuseError> {
         let spec = CostSpec {
@@ -137,13 +137,7 @@ fn build(
     fusion: Fusion,
     overrides: Option<&serde_json::Value>,
 ) -> Result<Box<dyn Method>, FuseError> {
-    let config = apply_overrides(
-        BlockMatchingConfig {
-            fusion,
-            ..BlockMatchingConfig::default()
-        },
-        overrides,
-    )?;
+    let config: BlockMatchingConfig = configure(fusion, overrides)?;
     Ok(Box::new(BlockMatching::new(name, config)))
 }
 

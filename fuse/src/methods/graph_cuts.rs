@@ -4,7 +4,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::{Family, Method, MethodEntry, Progress, apply_overrides};
+use super::{Family, Method, MethodEntry, Progress, configure};
 use crate::FuseError;
 use crate::fusion::Fusion;
 use crate::graph_cuts::{DataNorm, EnergyParams, KzEnergy, Uniqueness, expand_until_converged, label_order};
@@ -58,6 +58,12 @@ pub struct GraphCutsConfig {
     pub weighted_median: Option<WeightedMedian>,
 }
 
+impl super::FusedConfig for GraphCutsConfig {
+    fn set_fusion(&mut self, fusion: Fusion) {
+        self.fusion = fusion;
+    }
+}
+
 impl Default for GraphCutsConfig {
     fn default() -> Self {
         let energy = EnergyParams::default();
@@ -93,13 +99,7 @@ pub struct GraphCuts {
 }
 
 impl Method for GraphCuts {
-    fn name(&self) -> &str {
-        self.name
-    }
-
-    fn config_json(&self) -> Result<serde_json::Value, FuseError> {
-        super::config_json(self.name(), &self.config)
-    }
+    super::name_and_config!();
 
     fn run(&self, problem: &Problem, progress: Progress<'_>) -> Result<DisparityImage, FuseError> {
         let upsampled;
@@ -218,13 +218,7 @@ fn build(
     fusion: Fusion,
     overrides: Option<&serde_json::Value>,
 ) -> Result<Box<dyn Method>, FuseError> {
-    let config = apply_overrides(
-        GraphCutsConfig {
-            fusion,
-            ..GraphCutsConfig::default()
-        },
-        overrides,
-    )?;
+    let config: GraphCutsConfig = configure(fusion, overrides)?;
     if config.subpixel_radius_px > MAX_SUBPIXEL_RADIUS {
         return Err(FuseError::Config {
             field: "subpixel_radius_px",

@@ -232,13 +232,7 @@ impl MFuseNet {
 }
 
 impl Method for MFuseNet {
-    fn name(&self) -> &str {
-        self.name
-    }
-
-    fn config_json(&self) -> Result<serde_json::Value, FuseError> {
-        super::config_json(self.name(), &self.config)
-    }
+    super::name_and_config!();
 
     fn run(&self, problem: &Problem, progress: Progress<'_>) -> Result<DisparityImage, FuseError> {
         problem.validate()?;

@@ -146,6 +146,37 @@ pub fn apply_overrides<C: Serialize + DeserializeOwned>(
     })
 }
 
+/// A configuration with a fusion rule: the registry builds each family's methods from its
+/// defaults with the rule of the entry ([`configure`]).
+pub trait FusedConfig: Default + Serialize + DeserializeOwned {
+    /// Sets the cost fusion over the neighbours.
+    fn set_fusion(&mut self, fusion: crate::fusion::Fusion);
+}
+
+/// The defaults of `C` with `fusion` and the JSON `overrides` applied.
+pub fn configure<C: FusedConfig>(
+    fusion: crate::fusion::Fusion,
+    overrides: Option<&serde_json::Value>,
+) -> Result<C, FuseError> {
+    let mut config = C::default();
+    config.set_fusion(fusion);
+    apply_overrides(config, overrides)
+}
+
+/// The [`Method`] functions every method's struct with `name` and `config` fields answers alike.
+macro_rules! name_and_config {
+    () => {
+        fn name(&self) -> &str {
+            self.name
+        }
+
+        fn config_json(&self) -> Result<serde_json::Value, FuseError> {
+            super::config_json(self.name, &self.config)
+        }
+    };
+}
+pub(crate) use name_and_config;
+
 /// A method's configuration as JSON ([`Method::config_json`]).
 pub fn config_json<C: Serialize>(method: &str, config: &C) -> Result<serde_json::Value, FuseError> {
     serde_json::to_value(config).map_err(|e| FuseError::ConfigJson {

@@ -4,7 +4,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 
 use serde::{Deserialize, Serialize};
 
-use super::{Family, Method, MethodEntry, Progress, apply_overrides};
+use super::{Family, Method, MethodEntry, Progress, configure};
 use crate::FuseError;
 use crate::cost::PixelCost;
 use crate::fusion::Fusion;
@@ -41,6 +41,12 @@ pub struct SgmConfig {
     pub weighted_median: Option<WeightedMedian>,
 }
 
+impl super::FusedConfig for SgmConfig {
+    fn set_fusion(&mut self, fusion: Fusion) {
+        self.fusion = fusion;
+    }
+}
+
 impl Default for SgmConfig {
     /// Chosen on `middlebury2006-third-dev` (`replay eval --config`): census 7×7 summed over a 7×7
     /// block, P1 = 300, P2 = 3000 (in those summed census units).
@@ -66,13 +72,7 @@ pub struct Sgm {
 }
 
 impl Method for Sgm {
-    fn name(&self) -> &str {
-        self.name
-    }
-
-    fn config_json(&self) -> Result<serde_json::Value, FuseError> {
-        super::config_json(self.name(), &self.config)
-    }
+    super::name_and_config!();
 
     fn run(&self, problem: &Problem, progress: Progress<'_>) -> Result<DisparityImage, FuseError> {
         let spec = CostSpec {
@@ -123,13 +123,7 @@ fn build(
     fusion: Fusion,
     overrides: Option<&serde_json::Value>,
 ) -> Result<Box<dyn Method>, FuseError> {
-    let config = apply_overrides(
-        SgmConfig {
-            fusion,
-            ..SgmConfig::default()
-        },
-        overrides,
-    )?;
+    let config: SgmConfig = configure(fusion, overrides)?;
     Ok(Box::new(Sgm { name, config }))
 }
 

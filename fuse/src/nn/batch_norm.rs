@@ -47,6 +47,13 @@ pub struct BatchNormGrad {
     pub bias: Vec<f32>,
 }
 
+/// `Σ ∂y` and `Σ ∂y · x̂` over one channel (in f64): the β and γ gradients.
+fn sums(grad: &[f32], normalised: &[f32]) -> (f64, f64) {
+    grad.iter().zip(normalised).fold((0.0, 0.0), |(g, gx), (a, b)| {
+        (g + f64::from(*a), gx + f64::from(*a) * f64::from(*b))
+    })
+}
+
 impl BatchNorm {
     /// γ = 1, β = 0, running mean 0 and variance 1 (PyTorch's initialisation).
     pub fn new(channels: usize) -> Self {
@@ -147,15 +154,10 @@ impl BatchNorm {
         let mut input_grad = Tensor::zeros(grad.shape);
         let (mut dweight, mut dbias) = (Vec::new(), Vec::new());
         for c in 0..self.channels() {
-            let g = grad.channel(c);
-            let xhat = cache.normalised.channel(c);
-            dbias.push(g.iter().map(|v| f64::from(*v)).sum::<f64>() as f32);
-            dweight.push(
-                g.iter()
-                    .zip(xhat)
-                    .map(|(a, b)| f64::from(*a) * f64::from(*b))
-                    .sum::<f64>() as f32,
-            );
+            let (g, xhat) = (grad.channel(c), cache.normalised.channel(c));
+            let (sum_g, sum_gx) = sums(g, xhat);
+            dweight.push(sum_gx as f32);
+            dbias.push(sum_g as f32);
             let scale = self.weight[c] * cache.inv_std[c];
             for (out, gv) in input_grad.data[c * n..(c + 1) * n].iter_mut().zip(g) {
                 *out = scale * gv;
@@ -176,10 +178,8 @@ impl BatchNorm {
         let mut input_grad = Tensor::zeros(grad.shape);
         let (mut dweight, mut dbias) = (Vec::new(), Vec::new());
         for c in 0..self.channels() {
-            let g = grad.channel(c);
-            let xhat = cache.normalised.channel(c);
-            let sum_g: f64 = g.iter().map(|v| f64::from(*v)).sum();
-            let sum_gx: f64 = g.iter().zip(xhat).map(|(a, b)| f64::from(*a) * f64::from(*b)).sum();
+            let (g, xhat) = (grad.channel(c), cache.normalised.channel(c));
+            let (sum_g, sum_gx) = sums(g, xhat);
             dweight.push(sum_gx as f32);
             dbias.push(sum_g as f32);
             let scale = f64::from(self.weight[c]) * f64::from(cache.inv_std[c]) / n as f64;

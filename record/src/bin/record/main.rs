@@ -15,7 +15,6 @@ mod simulate;
 use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
-use cli::{exit_code, init_logging, parse_args};
 
 /// Record multiscopic captures (a simulated UR10 moving a camera in its image plane) as MCAP logs
 /// with Foxglove schemas and ground truth, or import real image sets into the same format.
@@ -46,14 +45,11 @@ enum Command {
 }
 
 fn main() -> ExitCode {
-    let cli: Cli = match parse_args() {
-        Ok(cli) => cli,
-        Err(code) => return code,
-    };
-    init_logging(cli.quiet);
-    let result = match cli.command {
-        Some(Command::Import(args)) => import::run(&args, cli.quiet),
-        None => simulate::run(&cli.simulate, cli.quiet),
-    };
-    exit_code(result)
+    cli::main_with(
+        |cli: &Cli| cli.quiet,
+        |cli| match cli.command {
+            Some(Command::Import(args)) => import::run(&args, cli.quiet),
+            None => simulate::run(&cli.simulate, cli.quiet),
+        },
+    )
 }

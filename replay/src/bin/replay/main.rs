@@ -15,7 +15,7 @@ use std::process::ExitCode;
 
 use anyhow::Result;
 use clap::{Parser, Subcommand};
-use cli::{Outcome, UsageError, exit_code, init_logging, parse_args};
+use cli::{Outcome, UsageError};
 
 /// mimalloc keeps the network's large, short-lived tensors' pages between layers (glibc maps and
 /// unmaps every allocation over 32 MB and faults and zeroes it again): MFuseNet 5 % faster on a
@@ -68,27 +68,24 @@ enum Command {
 }
 
 fn main() -> ExitCode {
-    let cli: Cli = match parse_args() {
-        Ok(cli) => cli,
-        Err(code) => return code,
-    };
-    init_logging(cli.quiet);
-    let result = if cli.list_methods {
+    cli::main_with(|cli: &Cli| cli.quiet, |cli| dispatch(&cli))
+}
+
+fn dispatch(cli: &Cli) -> Result<Outcome> {
+    if cli.list_methods {
         for entry in fuse::methods::registry() {
             println!("{:<16} {}", entry.name, entry.summary);
         }
-        Ok(Outcome::Complete)
-    } else {
-        match &cli.command {
-            Some(Command::Eval(args)) => eval::run(args, cli.quiet),
-            Some(Command::Demo(args)) => demo::run(args, cli.quiet),
-            Some(Command::Check(args)) => check::run(args),
-            Some(Command::Recover(args)) => recover::run(args),
-            Some(Command::Train(args)) => train::run(args, cli.quiet),
-            None => run::run(&cli.run, cli.quiet),
-        }
-    };
-    exit_code(result)
+        return Ok(Outcome::Complete);
+    }
+    match &cli.command {
+        Some(Command::Eval(args)) => eval::run(args, cli.quiet),
+        Some(Command::Demo(args)) => demo::run(args, cli.quiet),
+        Some(Command::Check(args)) => check::run(args),
+        Some(Command::Recover(args)) => recover::run(args),
+        Some(Command::Train(args)) => train::run(args, cli.quiet),
+        None => run::run(&cli.run, cli.quiet),
+    }
 }
 
 /// `--config` as JSON (a usage error when it is not).
