@@ -34,7 +34,7 @@ use crate::cost::{INVALID_COST, PixelCost, PreparedView};
 use crate::fusion::{Fusion, fuse_values};
 use crate::image::{DisparityImage, Image};
 use crate::maxflow::BinaryEnergy;
-use crate::volume::Problem;
+use crate::volume::{DisparityPlanes, Problem};
 
 /// Energy units per data-cost unit (so that K, λ1, λ2 may be quarters).
 pub const UNITS_PER_COST: f32 = 4.0;
@@ -243,7 +243,7 @@ pub struct KzEnergy {
     min_disparity: i32,
     labels: usize,
     /// Fused data cost per (label, pixel), [`INVALID_COST`] where the assignment is not allowed.
-    data: Vec<u16>,
+    data: DisparityPlanes<u16>,
     /// The views each (label, pixel) assignment matches (bit k = view k): those whose costs the
     /// fused data term uses, where uniqueness is enforced.
     used: Vec<u8>,
@@ -317,9 +317,15 @@ impl KzEnergy {
         // cost and the views it uses.
         let n = w * h;
         let strict = params.uniqueness == Uniqueness::AllViews;
-        let mut data = vec![INVALID_COST; n * labels];
+        let mut data = DisparityPlanes::filled(
+            (w, h),
+            (problem.min_disparity, labels),
+            INVALID_COST,
+            u32::from(MAX_DATA_COST),
+        );
         let mut used = vec![0u8; n * labels];
-        data.par_chunks_mut(n)
+        data.data
+            .par_chunks_mut(n)
             .zip(used.par_chunks_mut(n))
             .enumerate()
             .for_each(|(l, (costs, masks))| {
@@ -404,7 +410,7 @@ impl KzEnergy {
         let mut other = vec![f32::INFINITY; plane];
         let mut rows = vec![0f32; plane];
         for label in 0..self.labels {
-            let costs = &self.data[label * plane..(label + 1) * plane];
+            let costs = self.data.plane(label);
             // An invalid cell counts as the largest valid cost in the window sums.
             let value = |c: u16| {
                 if c == INVALID_COST {
@@ -516,7 +522,7 @@ impl KzEnergy {
 
     #[inline]
     fn cost(&self, p: usize, label: usize) -> u16 {
-        self.data[label * self.width * self.height + p]
+        self.data.at(p, label)
     }
 
     #[inline]
@@ -759,6 +765,11 @@ impl KzEnergy {
                     .is_none_or(|q| !std::mem::replace(&mut seen[q], true))
             })
         })
+    }
+
+    /// The fused data term, plane by plane ([`INVALID_COST`] where an assignment is not allowed).
+    pub fn data_term(&self) -> &DisparityPlanes<u16> {
+        &self.data
     }
 
     /// The IPOL program's automatic K: the mean over pixels (with every label allowed) of the

@@ -165,6 +165,96 @@ impl<T> CostVolume<T> {
     }
 }
 
+/// Costs stored one disparity plane after another, `[d][y][x]` (pixel fastest): the layout of
+/// moves that visit one label at a time, as graph cuts' α-expansion does. The same metadata as a
+/// [`CostVolume`]; [`CostVolume::to_planes`] and [`DisparityPlanes::to_volume`] are the only
+/// transposes between the two.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DisparityPlanes<T> {
+    /// Width of the reference view.
+    pub width: usize,
+    /// Height of the reference view.
+    pub height: usize,
+    /// Disparity of the first plane (signed).
+    pub min_disparity: i32,
+    /// Planes.
+    pub num_disparities: usize,
+    /// `num_disparities × height × width` costs.
+    pub data: Vec<T>,
+    /// Largest valid cost.
+    pub max_cost: u32,
+}
+
+impl<T: Copy> DisparityPlanes<T> {
+    /// Planes all holding `value`.
+    pub fn filled(
+        (width, height): (usize, usize),
+        (min_disparity, num_disparities): (i32, usize),
+        value: T,
+        max_cost: u32,
+    ) -> Self {
+        Self {
+            width,
+            height,
+            min_disparity,
+            num_disparities,
+            data: vec![value; width * height * num_disparities],
+            max_cost,
+        }
+    }
+
+    /// The costs of plane `d` (`[y][x]`).
+    pub fn plane(&self, d: usize) -> &[T] {
+        let n = self.width * self.height;
+        &self.data[d * n..(d + 1) * n]
+    }
+
+    /// The cost of pixel `p` (`y · width + x`) at plane `d`.
+    #[inline]
+    pub fn at(&self, p: usize, d: usize) -> T {
+        self.data[d * self.width * self.height + p]
+    }
+
+    /// The same costs pixel-major, as a [`CostVolume`] of `source`.
+    pub fn to_volume(&self, source: VolumeSource) -> CostVolume<T> {
+        let n = self.width * self.height;
+        let nd = self.num_disparities;
+        let mut data = Vec::with_capacity(self.data.len());
+        for p in 0..n {
+            data.extend((0..nd).map(|d| self.data[d * n + p]));
+        }
+        CostVolume {
+            width: self.width,
+            height: self.height,
+            min_disparity: self.min_disparity,
+            num_disparities: nd,
+            data,
+            max_cost: self.max_cost,
+            source,
+        }
+    }
+}
+
+impl<T: Copy> CostVolume<T> {
+    /// The same costs plane by plane ([`DisparityPlanes`]).
+    pub fn to_planes(&self) -> DisparityPlanes<T> {
+        let n = self.width * self.height;
+        let nd = self.num_disparities;
+        let mut data = Vec::with_capacity(self.data.len());
+        for d in 0..nd {
+            data.extend((0..n).map(|p| self.data[p * nd + d]));
+        }
+        DisparityPlanes {
+            width: self.width,
+            height: self.height,
+            min_disparity: self.min_disparity,
+            num_disparities: nd,
+            data,
+            max_cost: self.max_cost,
+        }
+    }
+}
+
 /// Each neighbour's block-aggregated costs as its own volume, quantised to bytes by `shift`
 /// ([`crate::sgm::quantise`]), in the order of `neighbours`; `on_band` is called after each band.
 pub fn neighbour_volumes(
@@ -591,6 +681,31 @@ fn horizontal_block_sums(column_sums: &[u16], out: &mut [u16], num_disparities: 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn planes_and_pixel_major_volumes_are_the_same_costs() {
+        let (w, h, nd) = (5, 3, 4);
+        let volume = CostVolume {
+            width: w,
+            height: h,
+            min_disparity: -2,
+            num_disparities: nd,
+            data: (0..w * h * nd).map(|i| i as u16).collect(),
+            max_cost: 999,
+            source: VolumeSource::Fused(Fusion::Min),
+        };
+        let planes = volume.to_planes();
+        for y in 0..h {
+            for x in 0..w {
+                for d in 0..nd {
+                    assert_eq!(planes.at(y * w + x, d), volume.costs(x, y)[d]);
+                    assert_eq!(planes.plane(d)[y * w + x], volume.costs(x, y)[d]);
+                }
+            }
+        }
+        assert_eq!(planes.to_volume(VolumeSource::Fused(Fusion::Min)), volume);
+        assert_eq!((planes.min_disparity, planes.max_cost), (-2, 999));
+    }
     use crate::cost::{INVALID_COST, mark_invalid};
     use crate::fusion::fuse_values;
 

@@ -39,8 +39,8 @@ pub struct ImportArgs {
     /// log for replay (as `min_disparity` in multiscopic.toml).
     #[arg(long, value_name = "PX", allow_hyphen_values = true)]
     min_disparity: Option<i32>,
-    /// Disparities to search, written into the log for replay (as `num_disparities` in
-    /// multiscopic.toml).
+    /// Disparities to search (1 … 1024), written into the log for replay (as `num_disparities`
+    /// in multiscopic.toml).
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..=1024))]
     num_disparities: Option<u32>,
     /// Do not write the viewer layout beside the log (`<log stem>.rbl`, opened with

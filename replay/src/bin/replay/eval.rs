@@ -30,7 +30,7 @@ pub struct EvalArgs {
     )]
     methods: Vec<String>,
     /// Disparities searched (default: per set, the range its log or multiscopic.toml gives, else
-    /// width/15 rounded up to a multiple of 16).
+    /// width/15 rounded up to a multiple of 16); at most 1024.
     #[arg(long)]
     num_disparities: Option<usize>,
     /// Smallest disparity searched, signed: negative for converged rigs (default: per set, as
