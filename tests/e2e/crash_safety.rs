@@ -45,6 +45,18 @@ fn python_complete_sets(path: &Path) -> (Vec<u64>, serde_json::Value) {
     (complete, report)
 }
 
+/// `replay recover LOG -o FIXED`, which must say that something was lost (exit 3).
+fn recover_losing_something(log: &Path, fixed: &Path) {
+    let recover = replay_str(&format!("recover {} -o {}", log.display(), fixed.display()));
+    assert_eq!(
+        recover.status.code(),
+        Some(3),
+        "recover of {}: {}",
+        log.display(),
+        String::from_utf8_lossy(&recover.stderr)
+    );
+}
+
 #[test]
 fn every_cut_keeps_the_sets_completed_before_it_and_recover_finishes_them() {
     let dir = temp_dir();
@@ -127,13 +139,7 @@ fn every_cut_keeps_the_sets_completed_before_it_and_recover_finishes_them() {
             serde_json::from_slice(&check.stdout).unwrap_or_else(|e| panic!("check --json: {e}"));
         assert_eq!(sets.len(), expected(cut), "cut {cut}");
         let fixed = dir.path().join(format!("fixed-{cut}.mcap"));
-        let recover = replay_str(&format!("recover {} -o {}", path_text, fixed.display()));
-        assert_eq!(
-            recover.status.code(),
-            Some(3),
-            "recover of cut {cut}: {}",
-            String::from_utf8_lossy(&recover.stderr)
-        );
+        recover_losing_something(Path::new(path_text), &fixed);
         let (complete, report) = python_complete_sets(&fixed);
         assert_eq!(
             complete,
@@ -323,13 +329,7 @@ fn a_full_disk_exits_1_naming_the_file_and_the_sets_safe_in_it() {
     );
     assert!(!out.exists(), "no file under the final name");
     let fixed = dir.path().join("fixed.mcap");
-    let recover = replay_str(&format!("recover {} -o {}", kept.display(), fixed.display()));
-    assert_eq!(
-        recover.status.code(),
-        Some(3),
-        "{}",
-        String::from_utf8_lossy(&recover.stderr)
-    );
+    recover_losing_something(&kept, &fixed);
     let (complete, report) = python_complete_sets(&fixed);
     assert_eq!(complete, (0..safe as u64).collect::<Vec<_>>(), "{report}");
 }

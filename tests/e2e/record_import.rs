@@ -28,16 +28,15 @@ fn imported_set_round_trips_pixels_and_ground_truth() {
     // Ground truth: disparity 5 px everywhere (value 60 / 12), unknown in the first row.
     let gt: Vec<u8> = (0..w * h).map(|k| if k < w { 0 } else { 60 }).collect();
     write_png(&scene.join("disp1.png"), w, h, png::ColorType::Grayscale, &gt);
-    let out = dir.path().join("import.mcap");
-    let output = record(&[
-        "import",
-        dir.path().join("scenes").to_str().unwrap_or_default(),
-        "-o",
-        out.to_str().unwrap_or_default(),
-        "--focal-px",
-        "100",
-    ]);
-    assert_success(&output, "record import");
+    let (scenes, out) = (dir.path().join("scenes"), dir.path().join("import.mcap"));
+    let import = |out: &Path, extra: &str| {
+        record_str(&format!(
+            "import {} -o {} --focal-px 100 {extra}",
+            scenes.display(),
+            out.display()
+        ))
+    };
+    assert_success(&import(&out, ""), "record import");
     let log = Log::read(&out);
     let events = log.events();
     assert_eq!(events.len(), 3);
@@ -59,16 +58,7 @@ fn imported_set_round_trips_pixels_and_ground_truth() {
     // The viewer layout is written beside the log, unless asked not to.
     assert!(out.with_extension("rbl").exists(), "no import.rbl beside the log");
     let bare = dir.path().join("bare.mcap");
-    let output = record(&[
-        "import",
-        dir.path().join("scenes").to_str().unwrap_or_default(),
-        "-o",
-        bare.to_str().unwrap_or_default(),
-        "--focal-px",
-        "100",
-        "--no-blueprint",
-    ]);
-    assert_success(&output, "record import --no-blueprint");
+    assert_success(&import(&bare, "--no-blueprint"), "record import --no-blueprint");
     assert!(bare.exists() && !bare.with_extension("rbl").exists());
 }
 

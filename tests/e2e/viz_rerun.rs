@@ -37,23 +37,25 @@ fn assert_column(printed: &str, entity: &str, column: &str) {
     );
 }
 
-fn replay_with_rerun(dir: &Path, log: &Path, rrd: &Path) {
+/// A small capture replayed with three methods into `dir/run.rrd`, returned.
+fn recording(dir: &Path) -> PathBuf {
+    let log = small_capture(dir);
+    let rrd = dir.join("run.rrd");
     replay_summary(
-        log,
+        &log,
         &dir.join("results"),
         &format!(
             "--method bm-heuristic,sgm-heuristic,gc-stereo --rectify --rerun save {}",
             rrd.display()
         ),
     );
+    rrd
 }
 
 #[test]
 fn replay_saves_a_recording_the_viewer_verifies_with_every_entity() {
     let dir = temp_dir();
-    let log = small_capture(dir.path());
-    let rrd = dir.path().join("run.rrd");
-    replay_with_rerun(dir.path(), &log, &rrd);
+    let rrd = recording(dir.path());
     for check in [["rrd", "verify"], ["rrd", "stats"]] {
         let output = run(rerun_cli().args(check).arg(&rrd));
         assert_success(&output, &format!("rerun {}", check.join(" ")));
@@ -168,9 +170,7 @@ fn assert_regions_filled(shot: &Path, regions: &[(&str, [f64; 4], f64)]) {
 #[test]
 fn the_recording_renders_in_the_headless_viewer_with_every_panel_filled() {
     let dir = temp_dir();
-    let log = small_capture(dir.path());
-    let rrd = dir.path().join("run.rrd");
-    replay_with_rerun(dir.path(), &log, &rrd);
+    let rrd = recording(dir.path());
     let shot = dir.path().join("shot.png");
     let output = headless_screenshot(&[&rrd], &shot, "1600x900");
     assert_success(
