@@ -217,39 +217,37 @@ impl<T: Copy> DisparityPlanes<T> {
 
     /// The same costs pixel-major, as a [`CostVolume`] of `source`.
     pub fn to_volume(&self, source: VolumeSource) -> CostVolume<T> {
-        let n = self.width * self.height;
-        let nd = self.num_disparities;
-        let mut data = Vec::with_capacity(self.data.len());
-        for p in 0..n {
-            data.extend((0..nd).map(|d| self.data[d * n + p]));
-        }
+        let (n, nd) = (self.width * self.height, self.num_disparities);
         CostVolume {
             width: self.width,
             height: self.height,
             min_disparity: self.min_disparity,
             num_disparities: nd,
-            data,
+            data: transposed(&self.data, nd, n),
             max_cost: self.max_cost,
             source,
         }
     }
 }
 
+/// `data` read as `rows × columns` (row-major), written column by column: the transpose
+/// between pixel-major (`[p][d]`) and plane-major (`[d][p]`) costs.
+fn transposed<T: Copy>(data: &[T], rows: usize, columns: usize) -> Vec<T> {
+    (0..columns)
+        .flat_map(|c| (0..rows).map(move |r| data[r * columns + c]))
+        .collect()
+}
+
 impl<T: Copy> CostVolume<T> {
     /// The same costs plane by plane ([`DisparityPlanes`]).
     pub fn to_planes(&self) -> DisparityPlanes<T> {
-        let n = self.width * self.height;
-        let nd = self.num_disparities;
-        let mut data = Vec::with_capacity(self.data.len());
-        for d in 0..nd {
-            data.extend((0..n).map(|p| self.data[p * nd + d]));
-        }
+        let (n, nd) = (self.width * self.height, self.num_disparities);
         DisparityPlanes {
             width: self.width,
             height: self.height,
             min_disparity: self.min_disparity,
             num_disparities: nd,
-            data,
+            data: transposed(&self.data, n, nd),
             max_cost: self.max_cost,
         }
     }

@@ -373,28 +373,19 @@ pub fn read_log_in(bytes: &[u8], range: &TimeRange) -> Result<LogContents, Repla
     let truncation = damage.cut;
     let damaged = truncation.is_some() || !damage.bad_chunks.is_empty();
     let bad_chunks: Vec<String> = damage.bad_chunks.iter().map(|(reason, _)| reason.clone()).collect();
+    let (mut sets, mut incomplete_sets) = (Vec::new(), Vec::new());
     if events.is_empty() && foreign.has_images() {
         // A cut-off log may have lost what the inference needs: report, do not fail.
-        let (sets, incomplete_sets) = match (foreign.infer_sets(&payloads), damaged) {
-            (Ok(sets), _) => (sets, Vec::new()),
-            (Err(error), true) => (Vec::new(), vec![(0, error.to_string())]),
+        match (foreign.infer_sets(&payloads), damaged) {
+            (Ok(inferred), _) => sets = inferred,
+            (Err(error), true) => incomplete_sets.push((0, error.to_string())),
             (Err(error), false) => return Err(error),
-        };
-        return Ok(LogContents {
-            sets,
-            incomplete_sets,
-            messages,
-            truncation,
-            bad_chunks,
-            metadata: read_metadata(bytes, damage.metadata.take()),
-        });
+        }
     }
     let mut by_set: BTreeMap<u32, Vec<CaptureEvent>> = BTreeMap::new();
     for event in events {
         by_set.entry(event.set_index).or_default().push(event);
     }
-    let mut sets = Vec::new();
-    let mut incomplete_sets = Vec::new();
     for (index, events) in by_set {
         let expected = events.first().map_or(0, |e| e.views_in_set as usize);
         if events.len() < expected {
