@@ -6,7 +6,7 @@ use std::sync::atomic::AtomicBool;
 
 use record::capture::{Simulation, SimulationConfig};
 use record::session::{SessionError, record_simulation};
-use tracing::{error, info};
+use tracing::info;
 
 /// Errors of the demo's recording.
 #[derive(Debug, thiserror::Error)]
@@ -43,8 +43,9 @@ pub struct DemoCapture {
     pub min_disparity: i32,
     /// See `min_disparity`.
     pub num_disparities: usize,
-    /// The viewer layout beside the log could not be written (the demo ends incomplete).
-    pub layout_lost: bool,
+    /// The viewer layout of the log (from its first set), for the caller to write beside it
+    /// (`record::live::write_log_blueprint`).
+    pub layout: Option<viz::log_blueprint::LogLayout>,
 }
 
 /// Writes `DIR/.gitignore` ignoring everything in `DIR` (as Cargo does for `target/`), unless the
@@ -61,7 +62,7 @@ pub fn ignore_in_git(dir: &Path) -> Result<(), DemoError> {
     .map_err(|source| DemoError::Io { path, source })
 }
 
-/// Records the demo's capture into `out/capture.mcap` (with its viewer layout beside it);
+/// Records the demo's capture into `out/capture.mcap`;
 /// `on_view` is called after each rendered view with the set index and the view's role.
 pub fn record_capture(
     config: SimulationConfig,
@@ -110,26 +111,10 @@ pub fn record_capture(
     if recorded.path.is_none() {
         return Err(DemoError::NoSet { path: log });
     }
-    // The capture's own layout, for `rerun OUT/capture.mcap OUT/capture.rbl`.
-    let layout_lost = match layout.map(|layout| record::live::write_log_blueprint(&log, &layout)) {
-        Some(Ok(path)) => {
-            info!(
-                "open the log in Rerun with its layout: rerun {} {}",
-                log.display(),
-                path.display()
-            );
-            false
-        }
-        Some(Err(e)) => {
-            error!("viewer layout of {} not written: {e}", log.display());
-            true
-        }
-        None => false,
-    };
     Ok(DemoCapture {
         log,
         min_disparity,
         num_disparities,
-        layout_lost,
+        layout,
     })
 }

@@ -4,7 +4,7 @@ use std::path::PathBuf;
 
 use anyhow::Result;
 use clap::Args;
-use cli::{Outcome, UsageError, progress_bar};
+use cli::{Outcome, UsageError, progress_bar, report_log_layout};
 
 use crate::run::RunArgs;
 
@@ -67,6 +67,10 @@ pub fn run(args: &DemoArgs, quiet: bool) -> Result<Outcome> {
         e => anyhow::Error::new(e),
     })?;
     progress.finish_and_clear();
+    // The capture's own layout, for `rerun OUT/capture.mcap OUT/capture.rbl`.
+    let layout_lost = capture.layout.as_ref().is_some_and(|layout| {
+        !report_log_layout(&capture.log, record::live::write_log_blueprint(&capture.log, layout))
+    });
     let rerun = if args.rerun.is_empty() {
         vec!["save".to_owned(), args.out.join("demo.rrd").display().to_string()]
     } else {
@@ -91,9 +95,5 @@ pub fn run(args: &DemoArgs, quiet: bool) -> Result<Outcome> {
         },
         quiet,
     )?;
-    Ok(if capture.layout_lost {
-        Outcome::Incomplete
-    } else {
-        outcome
-    })
+    Ok(if layout_lost { Outcome::Incomplete } else { outcome })
 }
