@@ -6,7 +6,8 @@ A case's size is the check's `true_epipolar_error_px` (from the simulator's true
 neighbour); it must be warned from the warning limit (0.5 px) and failed from the failure limit
 (1.5 px), and a clean capture must raise nothing.
 
-Usage: scripts/misalignment-sweep.py [--seeds 50] [--out out/misalignment] [--record ...] [--replay ...]
+Usage: scripts/misalignment-sweep.py [--seeds 50] [--kinds hand-eye,clean] [--keep] [--out out/misalignment]
+                                     [--record ...] [--replay ...]
 Prints a JSON line per case, then the table (Markdown) and a summary; exit 1 on any miss.
 """
 import argparse, json, os, random, subprocess, sys
@@ -31,17 +32,29 @@ def main():
     parser.add_argument("--replay", default="target/release/replay")
     parser.add_argument("--warn-px", type=float, default=0.5)
     parser.add_argument("--fail-px", type=float, default=1.5)
+    parser.add_argument("--samples-per-pixel", type=int, default=4,
+                        help="the recorder's anti-aliasing (4, its default, integrates over the pixel as a sensor does)")
+    parser.add_argument("--kinds", default=",".join(KINDS), help="comma-separated subset of " + ",".join(KINDS))
+    parser.add_argument("--keep", action="store_true", help="keep the logs and reuse those already there")
     args = parser.parse_args()
+    kinds = args.kinds.split(",")
+    unknown = [k for k in kinds if k not in KINDS]
+    if unknown:
+        parser.error(f"unknown kinds {unknown}")
     os.makedirs(args.out, exist_ok=True)
     rows, misses = [], 0
-    for kind, (arguments, (low, high)) in KINDS.items():
+    for kind in kinds:
+        arguments, (low, high) = KINDS[kind]
         for seed in range(1, args.seeds + 1):
             rng = random.Random(f"{kind}-{seed}")
             role = rng.choice(["left", "right", "top", "bottom"])
             size = low * (high / low) ** rng.random() if high > 0 else 0.0
             log = os.path.join(args.out, f"{kind}-{seed}.mcap")
-            subprocess.run([args.record, "--resolution", "640x360", "--captures", "1", "--samples-per-pixel", "1",
-                            "--seed", str(seed), "--no-blueprint", "-q", "-o", log, *arguments(role, size)], check=True)
+            if not (args.keep and os.path.exists(log)):
+                subprocess.run([args.record, "--resolution", "640x360", "--captures", "1", "--samples-per-pixel",
+                                str(args.samples_per_pixel),
+                                "--seed", str(seed), "--no-blueprint", "-q", "-o", log, *arguments(role, size)],
+                               check=True)
             check = subprocess.run([args.replay, "check", log, "--json", "-q", "--warn-px", str(args.warn_px),
                                     "--fail-px", str(args.fail_px)], capture_output=True)
             neighbours = json.loads(check.stdout)[0]["neighbours"]
@@ -57,10 +70,11 @@ def main():
                    "wanted_at_least": wanted, "miss": miss}
             rows.append(row)
             print(json.dumps(row), flush=True)
-            os.remove(log)
+            if not args.keep:
+                os.remove(log)
     print("\n| kind | cases | true error < 0.5 px: ok / warn / fail | 0.5–1.5 px: warned or failed | ≥ 1.5 px: failed | misses |")
     print("|---|---|---|---|---|---|")
-    for kind in KINDS:
+    for kind in kinds:
         r = [x for x in rows if x["kind"] == kind]
         small = [x for x in r if x["true_px"] < args.warn_px]
         mid = [x for x in r if args.warn_px <= x["true_px"] < args.fail_px]

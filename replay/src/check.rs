@@ -61,6 +61,16 @@ const IMAGE_SAMPLES_PER_AXIS: usize = 40;
 /// Smallest standard deviation (px) of the samples' disparities for the image-based estimate to
 /// fit a shift that grows with disparity.
 const MIN_DISPARITY_SPREAD_PX: f64 = 2.0;
+/// A sample's best match must beat every match 2 or more disparities away by this fraction.
+const IMAGE_UNIQUENESS: f32 = 0.15;
+/// Smallest eigenvalue of a sample window's gradient matrix (per pixel, in squared 8-bit levels
+/// per pixel) for both directions to be observable: below it the window is an edge or flat.
+const IMAGE_MIN_TEXTURE: f64 = 8.0;
+/// The image-based shift is graded against this fraction of the pixel limits (warn from 0.35 px,
+/// fail from 1.05 px by default): its estimate reads 0.66–1.24 × (median 0.95) the true worst
+/// error of a hand-eye rotation (`scripts/misalignment-sweep.py`), so a case at a limit must not
+/// pass on an under-reading; clean simulated captures read at most 0.17 px.
+pub const IMAGE_LIMIT_FRACTION: f64 = 0.7;
 
 /// Verdict of one measurement.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Serialize)]
@@ -234,38 +244,176 @@ fn pooled_shift(samples: &[Vec<f32>]) -> Option<f64> {
     Some(shift)
 }
 
+/// A grey image borrowed for bilinear sampling.
+struct Luma<'a> {
+    data: &'a [f32],
+    width: i32,
+    height: i32,
+}
+
+impl Luma<'_> {
+    fn pixel(&self, x: i32, y: i32) -> f32 {
+        self.data[(y.clamp(0, self.height - 1) * self.width + x.clamp(0, self.width - 1)) as usize]
+    }
+
+    fn bilinear(&self, x: f64, y: f64) -> f64 {
+        let (x0, y0) = (x.floor(), y.floor());
+        let (fx, fy) = (x - x0, y - y0);
+        let (x0, y0) = (x0 as i32, y0 as i32);
+        let p = |dx, dy| f64::from(self.pixel(x0 + dx, y0 + dy));
+        (1.0 - fy) * ((1.0 - fx) * p(0, 0) + fx * p(1, 0)) + fy * ((1.0 - fx) * p(0, 1) + fx * p(1, 1))
+    }
+}
+
+/// Refines a sample's integer match `(d, s)` (disparity along the search line, shift across it)
+/// to sub-pixel in both by Lucas–Kanade on a window about the sample, with both windows' means
+/// removed. `None` when the window's texture leaves either direction unobservable (aperture) or
+/// the refinement leaves the integer cell or does not converge.
+fn refine_match(
+    template: &Luma<'_>,
+    image: &Luma<'_>,
+    (x, y): (i32, i32),
+    (along, across): ([i32; 2], [i32; 2]),
+    start: (f64, f64),
+) -> Option<(f64, f64)> {
+    let r = IMAGE_BLOCK_RADIUS + 1;
+    let offsets: Vec<(i32, i32)> = (-r..=r).flat_map(|dy| (-r..=r).map(move |dx| (dx, dy))).collect();
+    let t: Vec<f64> = offsets
+        .iter()
+        .map(|(dx, dy)| f64::from(template.pixel(x + dx, y + dy)))
+        .collect();
+    let t_mean = t.iter().sum::<f64>() / t.len() as f64;
+    let (a, c) = (
+        [f64::from(along[0]), f64::from(along[1])],
+        [f64::from(across[0]), f64::from(across[1])],
+    );
+    let (mut d, mut s) = start;
+    for _ in 0..8 {
+        let (qx, qy) = (f64::from(x) + a[0] * d + c[0] * s, f64::from(y) + a[1] * d + c[1] * s);
+        let values: Vec<f64> = offsets
+            .iter()
+            .map(|(dx, dy)| image.bilinear(qx + f64::from(*dx), qy + f64::from(*dy)))
+            .collect();
+        let mean = values.iter().sum::<f64>() / values.len() as f64;
+        // Jacobian of each window pixel in (disparity, shift), with its means removed as the
+        // window's own mean is.
+        let jacobian: Vec<(f64, f64)> = offsets
+            .iter()
+            .map(|(dx, dy)| {
+                let (sx, sy) = (qx + f64::from(*dx), qy + f64::from(*dy));
+                let gx = 0.5 * (image.bilinear(sx + 1.0, sy) - image.bilinear(sx - 1.0, sy));
+                let gy = 0.5 * (image.bilinear(sx, sy + 1.0) - image.bilinear(sx, sy - 1.0));
+                (gx * a[0] + gy * a[1], gx * c[0] + gy * c[1])
+            })
+            .collect();
+        let n = offsets.len() as f64;
+        let (jd_mean, js_mean) = jacobian
+            .iter()
+            .fold((0.0, 0.0), |(sd, ss), (jd, js)| (sd + jd / n, ss + js / n));
+        let (mut h00, mut h01, mut h11, mut g0, mut g1) = (0.0, 0.0, 0.0, 0.0, 0.0);
+        for (((jd, js), v), tv) in jacobian.iter().zip(&values).zip(&t) {
+            let (jd, js) = (jd - jd_mean, js - js_mean);
+            let residual = (v - mean) - (tv - t_mean);
+            h00 += jd * jd;
+            h01 += jd * js;
+            h11 += js * js;
+            g0 += jd * residual;
+            g1 += js * residual;
+        }
+        let trace = h00 + h11;
+        let det = h00 * h11 - h01 * h01;
+        let smallest = 0.5 * (trace - (trace * trace - 4.0 * det).max(0.0).sqrt());
+        if smallest / n < IMAGE_MIN_TEXTURE {
+            return None;
+        }
+        let step_d = -(h11 * g0 - h01 * g1) / det;
+        let step_s = -(h00 * g1 - h01 * g0) / det;
+        d += step_d;
+        s += step_s;
+        if (d - start.0).abs() > 1.0 || (s - start.1).abs() > 1.0 {
+            return None;
+        }
+        if step_d.abs() < 0.002 && step_s.abs() < 0.002 {
+            return Some((d, s));
+        }
+    }
+    // Not converged: no measurement.
+    None
+}
+
+/// Whether a sample's best match along the search line is unambiguous: every disparity 2 or more
+/// away costs at least `1 +` [`IMAGE_UNIQUENESS`] times the best (not a repeated texture).
+fn is_unique(along: &[f32], best: usize) -> bool {
+    let rival = along
+        .iter()
+        .enumerate()
+        .filter(|(d, _)| d.abs_diff(best) >= 2)
+        .map(|(_, v)| *v)
+        .fold(f32::MAX, f32::min);
+    rival >= (1.0 + IMAGE_UNIQUENESS) * along[best]
+}
+
+/// Tukey's biweights of points `(d, shift)` about the line `shift = a + b·d`, at 4.685 robust
+/// standard deviations (1.4826 × the median absolute residual, at least 0.05 px).
+fn biweights(points: &[(f64, f64)], a: f64, b: f64) -> Vec<f64> {
+    let residuals: Vec<f64> = points.iter().map(|p| (p.1 - a - b * p.0).abs()).collect();
+    let mut sorted = residuals.clone();
+    sorted.sort_by(f64::total_cmp);
+    let median = sorted.get(sorted.len() / 2).copied().unwrap_or(0.0);
+    let scale = (1.4826 * median).max(0.05) * 4.685;
+    residuals
+        .into_iter()
+        .map(|r| {
+            let u = r / scale;
+            if u < 1.0 { (1.0 - u * u).powi(2) } else { 0.0 }
+        })
+        .collect()
+}
+
 /// The worst perpendicular shift (px) between a neighbour and the reference over the disparities
 /// of `depth_range`, measured in the images with the disparity along the search line free.
 ///
 /// A rotation about the axis across the search line shifts every pixel alike; a displacement
 /// off the search line's direction (a hand-eye rotation: the poses look ideal) shifts each pixel
-/// in proportion to its disparity. So each textured sample pixel gives its own shift at its best
-/// match, a line `shift = a + b·d` is fitted through them (Tukey's biweight, robust to wrong
-/// matches) and evaluated at both ends of the set's disparity range; with too little disparity
-/// spread, the shift pooled over every sample ([`pooled_shift`]) is the answer.
+/// in proportion to its disparity. So each textured sample pixel with an unambiguous match gives
+/// its own sub-pixel (disparity, shift) ([`refine_match`]), a line `shift = a + b·d` is fitted
+/// through them (Tukey's biweight, robust to wrong matches) and evaluated at both ends of the
+/// set's disparity range; with too little disparity spread, the shift pooled over every sample
+/// ([`pooled_shift`]) is the answer.
 fn image_shift(set: &ViewSet, neighbour: &View, num_disparities: usize, depth_range: (f64, f64)) -> Option<f64> {
     let (w, h) = (set.width() as i32, set.height() as i32);
     let reference = luma(&set.reference);
     let other = luma(neighbour);
-    let at = |image: &[f32], x: i32, y: i32| image[(y.clamp(0, h - 1) * w + x.clamp(0, w - 1)) as usize];
     let (ox, oy) = (neighbour.offset[0], neighbour.offset[1]);
     let (px, py) = (-oy.signum(), ox.signum());
     let margin = IMAGE_BLOCK_RADIUS + IMAGE_SHIFT_SEARCH_PX + 1;
-    // Per textured sample: its best block cost at each shift, and the disparity of its best match.
-    let mut samples: Vec<(u32, Vec<f32>)> = Vec::new();
+    let image = Luma {
+        data: &other,
+        width: w,
+        height: h,
+    };
+    let template = Luma {
+        data: &reference,
+        width: w,
+        height: h,
+    };
+    // Per unambiguous textured sample: its best block cost at each integer shift (for the pooled
+    // constant), and its match refined to sub-pixel (disparity, shift).
+    let mut pooled: Vec<Vec<f32>> = Vec::new();
+    let mut points: Vec<(f64, f64)> = Vec::new();
     for sy in 0..IMAGE_SAMPLES_PER_AXIS {
         for sx in 0..IMAGE_SAMPLES_PER_AXIS {
             let x = margin + ((w - 2 * margin) as usize * sx / IMAGE_SAMPLES_PER_AXIS) as i32;
             let y = margin + ((h - 2 * margin) as usize * sy / IMAGE_SAMPLES_PER_AXIS) as i32;
             // Texture across the search line, or the shift is not observable here.
-            let gradient = (at(&reference, x + px, y + py) - at(&reference, x - px, y - py)).abs();
+            let gradient = (template.pixel(x + px, y + py) - template.pixel(x - px, y - py)).abs();
             if gradient < 8.0 {
                 continue;
             }
-            let mut best_per_shift = Vec::with_capacity((2 * IMAGE_SHIFT_SEARCH_PX + 1) as usize);
-            let mut best_overall = (f32::MAX, 0u32);
-            for shift in -IMAGE_SHIFT_SEARCH_PX..=IMAGE_SHIFT_SEARCH_PX {
-                let mut best = f32::MAX;
+            // Block costs at every shift (rows) and disparity (columns); f32::MAX off the image.
+            let shifts = (2 * IMAGE_SHIFT_SEARCH_PX + 1) as usize;
+            let mut costs = vec![f32::MAX; shifts * num_disparities];
+            for (row, shift) in (-IMAGE_SHIFT_SEARCH_PX..=IMAGE_SHIFT_SEARCH_PX).enumerate() {
                 for d in 0..num_disparities as i32 {
                     let (qx, qy) = (x - ox * d + px * shift, y - oy * d + py * shift);
                     if qx < IMAGE_BLOCK_RADIUS
@@ -278,36 +426,46 @@ fn image_shift(set: &ViewSet, neighbour: &View, num_disparities: usize, depth_ra
                     let mut sad = 0.0f32;
                     for by in -IMAGE_BLOCK_RADIUS..=IMAGE_BLOCK_RADIUS {
                         for bx in -IMAGE_BLOCK_RADIUS..=IMAGE_BLOCK_RADIUS {
-                            sad += (at(&reference, x + bx, y + by) - at(&other, qx + bx, qy + by)).abs();
+                            sad += (template.pixel(x + bx, y + by) - image.pixel(qx + bx, qy + by)).abs();
                         }
                     }
-                    best = best.min(sad);
-                    if sad < best_overall.0 {
-                        best_overall = (sad, d as u32);
-                    }
+                    costs[row * num_disparities + d as usize] = sad;
                 }
-                best_per_shift.push(best);
             }
-            if best_per_shift.iter().all(|b| *b < f32::MAX) {
-                samples.push((best_overall.1, best_per_shift));
+            let best_per_shift: Vec<f32> = costs
+                .chunks_exact(num_disparities)
+                .map(|row| row.iter().copied().fold(f32::MAX, f32::min))
+                .collect();
+            if best_per_shift.contains(&f32::MAX) {
+                continue;
+            }
+            let Some((best_index, _)) = costs.iter().enumerate().min_by(|a, b| a.1.total_cmp(b.1)) else {
+                continue;
+            };
+            let (row, d_best) = (best_index / num_disparities, best_index % num_disparities);
+            let along = &costs[row * num_disparities..(row + 1) * num_disparities];
+            if !is_unique(along, d_best) {
+                continue;
+            }
+            let start = (d_best as f64, row as f64 - f64::from(IMAGE_SHIFT_SEARCH_PX));
+            // A refined shift near the end of the search is not a measurement (a wrong match or a
+            // shift beyond the search).
+            let refined = refine_match(&template, &image, (x, y), ([-ox, -oy], [px, py]), start)
+                .filter(|(_, s)| s.abs() < f64::from(IMAGE_SHIFT_SEARCH_PX) - 0.5);
+            pooled.push(best_per_shift);
+            if let Some(point) = refined {
+                points.push(point);
             }
         }
     }
-    if samples.len() < 20 {
+    if pooled.len() < 20 {
         return None;
     }
-    let whole: Vec<Vec<f32>> = samples.iter().map(|(_, c)| c.clone()).collect();
-    let constant = pooled_shift(&whole)?;
+    let constant = pooled_shift(&pooled)?;
     // Disparity along the search line per unit of grid offset at the ends of the depth range.
     let scale = f64::from(ox.abs().max(oy.abs()));
     let focal_baseline = set.reference.camera.fx * set.baseline_m * scale;
     let (d_near, d_far) = (focal_baseline / depth_range.0, focal_baseline / depth_range.1);
-    // Each sample's own shift at its best match, then a line shift = a + b·d through them,
-    // robust to wrong matches (Tukey's biweight, re-weighted a few times).
-    let points: Vec<(f64, f64)> = samples
-        .iter()
-        .filter_map(|(d, costs)| pooled_shift(std::slice::from_ref(costs)).map(|s| (f64::from(*d), s)))
-        .collect();
     let mean = |values: &mut dyn Iterator<Item = f64>| {
         let (sum, n) = values.fold((0.0, 0usize), |(s, n), v| (s + v, n + 1));
         sum / n.max(1) as f64
@@ -318,8 +476,10 @@ fn image_shift(set: &ViewSet, neighbour: &View, num_disparities: usize, depth_ra
     if d_spread < MIN_DISPARITY_SPREAD_PX || points.len() < 20 {
         return Some(constant);
     }
-    let mut weights = vec![1.0f64; points.len()];
+    // Start from the pooled constant, weighted by the biweight of its residuals, so that the
+    // first line is not a plain least-squares fit pulled by the wrong matches.
     let (mut a, mut b) = (constant, 0.0);
+    let mut weights = biweights(&points, a, b);
     for _ in 0..5 {
         let total: f64 = weights.iter().sum();
         if total <= 0.0 {
@@ -335,14 +495,7 @@ fn image_shift(set: &ViewSet, neighbour: &View, num_disparities: usize, depth_ra
             .sum();
         b = if sxx > 0.0 { sxy / sxx } else { 0.0 };
         a = sm - b * dm;
-        let mut residuals: Vec<f64> = points.iter().map(|p| (p.1 - a - b * p.0).abs()).collect();
-        let mut sorted = residuals.clone();
-        sorted.sort_by(f64::total_cmp);
-        let scale = (1.4826 * sorted[sorted.len() / 2]).max(0.05) * 4.685;
-        for (w, r) in weights.iter_mut().zip(residuals.drain(..)) {
-            let u = r / scale;
-            *w = if u < 1.0 { (1.0 - u * u).powi(2) } else { 0.0 };
-        }
+        weights = biweights(&points, a, b);
     }
     let ends = [a + b * d_near, a + b * d_far];
     ends.into_iter().max_by(|x, y| x.abs().total_cmp(&y.abs()))
@@ -378,7 +531,10 @@ pub fn check_set(set: &ViewSet, num_disparities: usize, limits: PixelLimits) -> 
                     limits.pair(),
                 ),
             ];
-            let image_shift_px = image_shift(set, n, num_disparities, range).map(|s| Measure::new(s, limits.pair()));
+            let image_shift_px = image_shift(set, n, num_disparities, range).map(|s| {
+                let (warn, fail) = limits.pair();
+                Measure::new(s, (warn * IMAGE_LIMIT_FRACTION, fail * IMAGE_LIMIT_FRACTION))
+            });
             let true_epipolar_error_px = set
                 .reference
                 .true_world_from_camera
@@ -473,5 +629,67 @@ mod tests {
         assert_eq!(grade(0.02, BASELINE_DEVIATION_LIMITS), Status::Warn);
         assert_eq!(grade(0.2, BASELINE_DEVIATION_LIMITS), Status::Fail);
         assert_eq!(grade(f64::NAN, BASELINE_DEVIATION_LIMITS), Status::Fail);
+    }
+
+    /// A smooth two-frequency texture, the same function sampled at any sub-pixel offset.
+    fn texture(x: f64, y: f64) -> f32 {
+        (128.0 + 60.0 * (0.5 * x + 0.3 * y).sin() + 50.0 * (0.45 * y - 0.2 * x).cos()) as f32
+    }
+
+    #[test]
+    fn refinement_finds_a_sub_pixel_displacement_in_both_directions() {
+        let (w, h) = (64, 48);
+        let reference: Vec<f32> = (0..w * h)
+            .map(|i| texture(f64::from(i % w), f64::from(i / w)))
+            .collect();
+        // The neighbour sees the scene moved by 7.3 px along the search line (left: −x) and
+        // 0.4 px across it (+y): its pixel (x − 7.3, y + 0.4) shows the reference's (x, y).
+        let (d, s) = (7.3, 0.4);
+        let neighbour: Vec<f32> = (0..w * h)
+            .map(|i| texture(f64::from(i % w) + d, f64::from(i / w) - s))
+            .collect();
+        let template = Luma {
+            data: &reference,
+            width: w,
+            height: h,
+        };
+        let image = Luma {
+            data: &neighbour,
+            width: w,
+            height: h,
+        };
+        let mut checked = 0;
+        for (x, y) in [(30, 20), (40, 24), (25, 30)] {
+            let refined = refine_match(&template, &image, (x, y), ([-1, 0], [0, 1]), (7.0, 0.0));
+            let (found_d, found_s) = refined.unwrap_or_else(|| panic!("no refinement at ({x}, {y})"));
+            assert!(
+                (found_d - d).abs() < 0.05 && (found_s - s).abs() < 0.05,
+                "({found_d}, {found_s}) at ({x}, {y})"
+            );
+            checked += 1;
+        }
+        assert_eq!(checked, 3);
+    }
+
+    #[test]
+    fn refinement_refuses_an_edge_that_hides_one_direction() {
+        let (w, h) = (64, 48);
+        // Vertical stripes only: a shift along y is not observable.
+        let stripes: Vec<f32> = (0..w * h).map(|i| texture(f64::from(i % w), 0.0)).collect();
+        let image = Luma {
+            data: &stripes,
+            width: w,
+            height: h,
+        };
+        assert_eq!(
+            refine_match(&image, &image, (30, 20), ([-1, 0], [0, 1]), (0.0, 0.0)),
+            None
+        );
+    }
+
+    #[test]
+    fn a_repeated_match_along_the_line_is_ambiguous() {
+        assert!(is_unique(&[9.0, 5.0, 1.0, 5.0, 9.0], 2));
+        assert!(!is_unique(&[9.0, 1.1, 5.0, 1.0, 9.0], 3));
     }
 }

@@ -85,6 +85,36 @@ fn hand_eye_error_shows_in_the_images_only() {
 }
 
 #[test]
+fn a_hand_eye_error_just_over_half_a_pixel_warns() {
+    // 1.25° of mount rotation: about 0.58 px of true epipolar error at the near end of the scene
+    // (seed 2 of `scripts/misalignment-sweep.py`), where the image estimate reads low.
+    let (code, json) = check(
+        &["--seed", "2", "--hand-eye-error-deg", "0,0,1.25"],
+        "hand_eye_small.mcap",
+    );
+    let neighbours = json[0]["neighbours"].as_array().cloned().unwrap_or_default();
+    assert_eq!(neighbours.len(), 4, "{json}");
+    let truth = neighbours
+        .iter()
+        .filter_map(|n| n["true_epipolar_error_px"].as_f64())
+        .fold(0.0f64, f64::max);
+    assert!(
+        (0.5..1.0).contains(&truth),
+        "the case must sit just over the warning limit: {json}"
+    );
+    let worst = statuses(&json)
+        .into_iter()
+        .map(|(_, s)| s)
+        .max_by_key(|s| match s.as_str() {
+            "ok" => 0,
+            "warn" => 1,
+            _ => 2,
+        });
+    assert_ne!(worst.as_deref(), Some("ok"), "true {truth:.2} px not warned: {json}");
+    assert_ne!(code, Some(1), "{json}");
+}
+
+#[test]
 fn rectify_recovers_depth_quality_lost_to_a_rolled_view() {
     let dir = temp_dir();
     let log = record_args(

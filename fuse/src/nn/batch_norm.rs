@@ -150,30 +150,25 @@ impl BatchNorm {
 
     /// Backward of [`BatchNorm::forward_frozen`]: `∂x = γ/σ · ∂y` and the γ, β gradients.
     pub fn backward_frozen(&self, grad: &Tensor, cache: &BatchNormCache) -> (Tensor, BatchNormGrad) {
-        let n = grad.channel_len();
-        let mut input_grad = Tensor::zeros(grad.shape);
-        let (mut dweight, mut dbias) = (Vec::new(), Vec::new());
-        for c in 0..self.channels() {
-            let (g, xhat) = (grad.channel(c), cache.normalised.channel(c));
-            let (sum_g, sum_gx) = sums(g, xhat);
-            dweight.push(sum_gx as f32);
-            dbias.push(sum_g as f32);
-            let scale = self.weight[c] * cache.inv_std[c];
-            for (out, gv) in input_grad.data[c * n..(c + 1) * n].iter_mut().zip(g) {
-                *out = scale * gv;
-            }
-        }
-        (
-            input_grad,
-            BatchNormGrad {
-                weight: dweight,
-                bias: dbias,
-            },
-        )
+        self.backward_with(grad, cache, |scale, _, _, g, _| (scale * f64::from(g)) as f32)
     }
 
     /// Train-mode backward: the input gradient and the parameter gradients from the output's.
     pub fn backward(&self, grad: &Tensor, cache: &BatchNormCache) -> (Tensor, BatchNormGrad) {
+        let n = grad.channel_len() as f64;
+        self.backward_with(grad, cache, |scale, sum_g, sum_gx, g, xhat| {
+            (scale / n * (n * f64::from(g) - sum_g - f64::from(xhat) * sum_gx)) as f32
+        })
+    }
+
+    /// The parameter gradients, and the input gradient from `input(γ/σ, Σ∂y, Σ∂y·x̂, ∂y, x̂)` per
+    /// element of each channel.
+    fn backward_with(
+        &self,
+        grad: &Tensor,
+        cache: &BatchNormCache,
+        input: impl Fn(f64, f64, f64, f32, f32) -> f32,
+    ) -> (Tensor, BatchNormGrad) {
         let n = grad.channel_len();
         let mut input_grad = Tensor::zeros(grad.shape);
         let (mut dweight, mut dbias) = (Vec::new(), Vec::new());
@@ -182,9 +177,9 @@ impl BatchNorm {
             let (sum_g, sum_gx) = sums(g, xhat);
             dweight.push(sum_gx as f32);
             dbias.push(sum_g as f32);
-            let scale = f64::from(self.weight[c]) * f64::from(cache.inv_std[c]) / n as f64;
+            let scale = f64::from(self.weight[c]) * f64::from(cache.inv_std[c]);
             for ((out, gv), xv) in input_grad.data[c * n..(c + 1) * n].iter_mut().zip(g).zip(xhat) {
-                *out = (scale * (n as f64 * f64::from(*gv) - sum_g - f64::from(*xv) * sum_gx)) as f32;
+                *out = input(scale, sum_g, sum_gx, *gv, *xv);
             }
         }
         (

@@ -3,6 +3,20 @@
 
 use super::Tensor;
 
+/// A position in the zero-padded input (`padding` on each side) as an index of the unpadded
+/// `shape`, or `None` in the padding.
+fn unpadded(at: [usize; 3], padding: isize, shape: [usize; 3]) -> Option<[usize; 3]> {
+    let mut out = [0; 3];
+    for ((o, a), n) in out.iter_mut().zip(at).zip(shape) {
+        let v = a as isize - padding;
+        if v < 0 || v >= n as isize {
+            return None;
+        }
+        *o = v as usize;
+    }
+    Some(out)
+}
+
 /// `Conv3d(cin, cout, k, stride, padding = k / 2, bias=False)` as PyTorch defines it:
 /// `out[o][z] = Σ_{i, t} w[o][i][t] · x[i][stride·z − k/2 + t]` (zero outside).
 /// `weight` is `[cout][cin][k][k][k]`.
@@ -21,20 +35,12 @@ pub fn conv3d(x: &Tensor, weight: &[f32], cout: usize, k: usize, stride: usize) 
                         for td in 0..k {
                             for th in 0..k {
                                 for tw in 0..k {
-                                    let sd = (stride * zd + td) as isize - p;
-                                    let sh = (stride * zh + th) as isize - p;
-                                    let sw = (stride * zw + tw) as isize - p;
-                                    if sd < 0
-                                        || sh < 0
-                                        || sw < 0
-                                        || sd >= d as isize
-                                        || sh >= h as isize
-                                        || sw >= w as isize
-                                    {
+                                    let at = [stride * zd + td, stride * zh + th, stride * zw + tw];
+                                    let Some([sd, sh, sw]) = unpadded(at, p, [d, h, w]) else {
                                         continue;
-                                    }
+                                    };
                                     let wv = weight[(((o * cin + i) * k + td) * k + th) * k + tw];
-                                    let xv = x.data[x.index(i, sd as usize, sh as usize, sw as usize)];
+                                    let xv = x.data[x.index(i, sd, sh, sw)];
                                     sum += f64::from(wv) * f64::from(xv);
                                 }
                             }
@@ -65,21 +71,12 @@ pub fn conv_transpose3d(x: &Tensor, weight: &[f32], cout: usize) -> Tensor {
                         for td in 0..3 {
                             for th in 0..3 {
                                 for tw in 0..3 {
-                                    let jd = (2 * zd + td) as isize - 1;
-                                    let jh = (2 * zh + th) as isize - 1;
-                                    let jw = (2 * zw + tw) as isize - 1;
-                                    if jd < 0
-                                        || jh < 0
-                                        || jw < 0
-                                        || jd >= shape[1] as isize
-                                        || jh >= shape[2] as isize
-                                        || jw >= shape[3] as isize
-                                    {
+                                    let full = [2 * zd + td, 2 * zh + th, 2 * zw + tw];
+                                    let Some([jd, jh, jw]) = unpadded(full, 1, [shape[1], shape[2], shape[3]]) else {
                                         continue;
-                                    }
+                                    };
                                     let wv = f64::from(weight[(((i * cout + o) * 3 + td) * 3 + th) * 3 + tw]);
-                                    let at = ((o * shape[1] + jd as usize) * shape[2] + jh as usize) * shape[3]
-                                        + jw as usize;
+                                    let at = ((o * shape[1] + jd) * shape[2] + jh) * shape[3] + jw;
                                     acc[at] += xv * wv;
                                 }
                             }
@@ -111,20 +108,11 @@ pub fn conv3d_weight_grad(x: &Tensor, grad: &Tensor, k: usize) -> Vec<f32> {
                         for zd in 0..d {
                             for zh in 0..h {
                                 for zw in 0..w {
-                                    let sd = (zd + td) as isize - p;
-                                    let sh = (zh + th) as isize - p;
-                                    let sw = (zw + tw) as isize - p;
-                                    if sd < 0
-                                        || sh < 0
-                                        || sw < 0
-                                        || sd >= d as isize
-                                        || sh >= h as isize
-                                        || sw >= w as isize
-                                    {
+                                    let Some([sd, sh, sw]) = unpadded([zd + td, zh + th, zw + tw], p, [d, h, w]) else {
                                         continue;
-                                    }
+                                    };
                                     sum += f64::from(grad.data[grad.index(o, zd, zh, zw)])
-                                        * f64::from(x.data[x.index(i, sd as usize, sh as usize, sw as usize)]);
+                                        * f64::from(x.data[x.index(i, sd, sh, sw)]);
                                 }
                             }
                         }
