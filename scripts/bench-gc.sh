@@ -9,13 +9,7 @@
 #  4. with --full: a five-view 1920×1080 capture (default 128 disparities).
 # Peer: the IPOL KZ2 program takes a median 6.7 s per *stereo* pair of these scenes (range 0..24,
 # single thread, Intel host; ../shared/data/README.md), Midd1 79 s.
-set -euo pipefail
-cd "$(dirname "$0")/.."
-cargo build --release -q -p record -p replay
-R=target/release/replay
-T=$(mktemp -d)
-trap 'rm -rf "$T"' EXIT
-echo "host: $(lscpu | sed -n 's/^Model name: *//p') ($(nproc) vCPUs)"
+source "$(dirname "$0")/bench-common.sh"
 
 # One run of gc-heuristic on a log: "<method seconds> <process seconds> <peak RSS MB>".
 run() { # log [replay options]

@@ -11,13 +11,7 @@
 #     .venv-torch && .venv-torch/bin/pip install torch safetensors`: about a minute, 5.4 GB with
 #     its CUDA libraries); else the issue's figures stand (12.7–13.0 s on AMD EPYC hosts, 14.0 s on
 #     Intel; PyTorch 2.15 measured 9.3 s on the AMD host of docs/benchmarks.md's table).
-set -euo pipefail
-cd "$(dirname "$0")/.."
-cargo build --release -q -p record -p replay
-R=target/release/replay
-T=$(mktemp -d)
-trap 'rm -rf "$T"' EXIT
-echo "host: $(lscpu | sed -n 's/^Model name: *//p') ($(nproc) vCPUs)"
+source "$(dirname "$0")/bench-common.sh"
 
 DATA=../shared/data/middlebury2006-third-dev
 if [ -d "$DATA" ]; then

@@ -102,6 +102,14 @@ pub fn record_args(dir: &Path, name: &str, args: &str) -> PathBuf {
     record_log(dir, name, &args.split_whitespace().collect::<Vec<_>>())
 }
 
+/// A fresh scratch folder and a log recorded in it by `record ARGS` (split at blanks); the folder
+/// lives as long as the returned guard.
+pub fn recorded(name: &str, args: &str) -> (tempfile::TempDir, PathBuf) {
+    let dir = temp_dir();
+    let log = record_args(dir.path(), name, args);
+    (dir, log)
+}
+
 /// Runs `replay LOG ARGS --out OUT -q` (ARGS split at blanks), asserts success and returns the
 /// `summary.json` it wrote.
 pub fn replay_summary(log: &Path, out: &Path, args: &str) -> serde_json::Value {

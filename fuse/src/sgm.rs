@@ -126,23 +126,6 @@ impl Penalties {
     }
 }
 
-/// Aggregates `volume` (`[y][x][d]`, quantised costs) along eight paths and returns the summed
-/// costs. `max_cost` bounds the valid costs (invalid ones count as `max_cost`). The tests'
-/// reference for [`select`]; methods use [`aggregate_volume`] and [`select_volume`].
-#[cfg(test)]
-pub(crate) fn aggregate(
-    volume: &[u8],
-    width: usize,
-    height: usize,
-    num_disparities: usize,
-    max_cost: u32,
-    p1: u16,
-    p2: u16,
-) -> Vec<u16> {
-    let penalties = Penalties::new(max_cost, p1, p2);
-    passes(volume, width, height, num_disparities, &penalties, None)
-}
-
 /// The eight paths' summed costs of a [`CostVolume`], a volume of the same
 /// source whose `max_cost` bounds the sums (`8 · (cap + P2)` in the scaled units).
 pub fn aggregate_volume(volume: &CostVolume<u8>, p1: u16, p2: u16) -> CostVolume<u16> {
@@ -158,7 +141,7 @@ pub fn aggregate_volume(volume: &CostVolume<u8>, p1: u16, p2: u16) -> CostVolume
     volume.with_data(data, 8 * (u32::from(penalties.cap) + u32::from(p2)))
 }
 
-/// Winner-take-all over the eight-path sums of `volume` (as [`aggregate`] then
+/// Winner-take-all over the eight-path sums of `volume` (as [`aggregate_volume`] then
 /// [`crate::wta::winner_take_all`]), picked while the last pass visits each pixel so that the
 /// summed volume is never written back or read again. Returns the disparities and their
 /// confidences (`[y][x]`, [`crate::wta::peak_confidence`] of the summed costs).
@@ -594,6 +577,12 @@ mod tests {
         }
     }
 
+    /// Raw `[y][x][d]` costs as a (left neighbour's) volume whose largest valid cost is `max_cost`.
+    fn as_volume(costs: &[u8], [w, h, nd]: [usize; 3], max_cost: u32) -> CostVolume<u8> {
+        let volume = CostVolume::from_fn([w, h, nd], 0, ("left", [-1, 0]), |x, y, d| costs[(y * w + x) * nd + d]);
+        CostVolume { max_cost, ..volume }
+    }
+
     /// The previous sequential implementation, kept as the definition the parallel one must match.
     /// Aggregates `volume` (`[y][x][d]`) along eight paths and returns the summed costs.
     /// `max_cost` bounds the valid costs (invalid ones count as `max_cost`).
@@ -697,7 +686,7 @@ mod tests {
                     .unwrap_or_else(|e| panic!("{e}"));
                 pool.install(|| {
                     assert!(
-                        aggregate(&volume, w, h, nd, max_cost, 40, 400) == reference,
+                        aggregate_volume(&as_volume(&volume, [w, h, nd], max_cost), 40, 400).data == reference,
                         "{w}x{h}x{nd} {threads}"
                     );
                     let (selected, confidence) =
@@ -735,7 +724,7 @@ mod tests {
                 };
             }
         }
-        let sum = aggregate(&volume, w, h, nd, 20, 3, 12);
+        let sum = aggregate_volume(&as_volume(&volume, [w, h, nd], 20), 3, 12).data;
         let mut disparity = vec![0.0f32; w * h];
         crate::wta::winner_take_all(&sum, nd, 0, None, &mut disparity);
         assert!(disparity.iter().all(|d| *d == 2.0), "{disparity:?}");

@@ -165,6 +165,37 @@ impl<T> CostVolume<T> {
     }
 }
 
+impl CostVolume<u8> {
+    /// A neighbour's byte volume of `width × height` pixels and `num_disparities` slices from
+    /// `min_disparity`, whose cost at pixel `(x, y)` and slice `d` is `cost(x, y, d)` (synthetic
+    /// volumes for tests and examples); largest valid cost 255.
+    pub fn from_fn(
+        [width, height, num_disparities]: [usize; 3],
+        min_disparity: i32,
+        (role, offset): (&str, [i32; 2]),
+        mut cost: impl FnMut(usize, usize, usize) -> u8,
+    ) -> Self {
+        let mut data = Vec::with_capacity(width * height * num_disparities);
+        for y in 0..height {
+            for x in 0..width {
+                data.extend((0..num_disparities).map(|d| cost(x, y, d)));
+            }
+        }
+        Self {
+            width,
+            height,
+            min_disparity,
+            num_disparities,
+            data,
+            max_cost: 255,
+            source: VolumeSource::Neighbour {
+                role: role.to_owned(),
+                offset,
+            },
+        }
+    }
+}
+
 /// Costs stored one disparity plane after another, `[d][y][x]` (pixel fastest): the layout of
 /// moves that visit one label at a time, as graph cuts' α-expansion does. The same metadata as a
 /// [`CostVolume`]; [`CostVolume::to_planes`] and [`DisparityPlanes::to_volume`] are the only

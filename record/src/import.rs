@@ -1040,20 +1040,13 @@ pub fn import_set(dir: &Path, index: u32, config: &ImportConfig) -> Result<Captu
             let mut view_camera = camera;
             view_camera.cx += dx * doffs;
             view_camera.cy += dy * doffs;
-            CapturedView {
-                role: role_for_offset(view.offset),
-                grid_offset: view.offset,
-                camera: view_camera,
-                capture_time_nanos: set_time + i as u64 * VIEW_SPACING_MS * 1_000_000,
+            CapturedView::new(
+                (&role_for_offset(view.offset), view.offset),
+                view_camera,
+                Isometry3::translation(dx * baseline_m, dy * baseline_m, 0.0),
+                set_time + i as u64 * VIEW_SPACING_MS * 1_000_000,
                 rgb,
-                depth_m: None,
-                surface_class: None,
-                world_from_camera: Isometry3::translation(dx * baseline_m, dy * baseline_m, 0.0),
-                true_world_from_camera: None,
-                commanded_world_from_camera: None,
-                joints: None,
-                exposure_gain: 1.0,
-            }
+            )
         })
         .collect();
     views[reference_position].depth_m = depth;

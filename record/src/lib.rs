@@ -82,6 +82,34 @@ pub struct CapturedView {
     pub exposure_gain: f64,
 }
 
+impl CapturedView {
+    /// A view as an import knows it: role, grid offset, intrinsics, the believed pose, the
+    /// capture time and the image; no ground truth, true or commanded pose or joints, nominal
+    /// exposure.
+    pub fn new(
+        (role, grid_offset): (&str, [i32; 2]),
+        camera: PinholeCamera,
+        world_from_camera: Isometry3<f64>,
+        capture_time_nanos: u64,
+        rgb: Vec<u8>,
+    ) -> Self {
+        Self {
+            role: role.to_owned(),
+            grid_offset,
+            camera,
+            capture_time_nanos,
+            rgb,
+            depth_m: None,
+            surface_class: None,
+            world_from_camera,
+            true_world_from_camera: None,
+            commanded_world_from_camera: None,
+            joints: None,
+            exposure_gain: 1.0,
+        }
+    }
+}
+
 /// One multiscopic view set: a reference view and its neighbours.
 #[derive(Debug, Clone, PartialEq)]
 pub struct CapturedSet {

@@ -251,7 +251,11 @@ struct Luma<'a> {
     height: i32,
 }
 
-impl Luma<'_> {
+impl<'a> Luma<'a> {
+    fn new(data: &'a [f32], width: i32, height: i32) -> Self {
+        Self { data, width, height }
+    }
+
     fn pixel(&self, x: i32, y: i32) -> f32 {
         self.data[(y.clamp(0, self.height - 1) * self.width + x.clamp(0, self.width - 1)) as usize]
     }
@@ -387,16 +391,8 @@ fn image_shift(set: &ViewSet, neighbour: &View, num_disparities: usize, depth_ra
     let (ox, oy) = (neighbour.offset[0], neighbour.offset[1]);
     let (px, py) = (-oy.signum(), ox.signum());
     let margin = IMAGE_BLOCK_RADIUS + IMAGE_SHIFT_SEARCH_PX + 1;
-    let image = Luma {
-        data: &other,
-        width: w,
-        height: h,
-    };
-    let template = Luma {
-        data: &reference,
-        width: w,
-        height: h,
-    };
+    let image = Luma::new(&other, w, h);
+    let template = Luma::new(&reference, w, h);
     // Per unambiguous textured sample: its best block cost at each integer shift (for the pooled
     // constant), and its match refined to sub-pixel (disparity, shift).
     let mut pooled: Vec<Vec<f32>> = Vec::new();
@@ -648,16 +644,8 @@ mod tests {
         let neighbour: Vec<f32> = (0..w * h)
             .map(|i| texture(f64::from(i % w) + d, f64::from(i / w) - s))
             .collect();
-        let template = Luma {
-            data: &reference,
-            width: w,
-            height: h,
-        };
-        let image = Luma {
-            data: &neighbour,
-            width: w,
-            height: h,
-        };
+        let template = Luma::new(&reference, w, h);
+        let image = Luma::new(&neighbour, w, h);
         let mut checked = 0;
         for (x, y) in [(30, 20), (40, 24), (25, 30)] {
             let refined = refine_match(&template, &image, (x, y), ([-1, 0], [0, 1]), (7.0, 0.0));
@@ -676,11 +664,7 @@ mod tests {
         let (w, h) = (64, 48);
         // Vertical stripes only: a shift along y is not observable.
         let stripes: Vec<f32> = (0..w * h).map(|i| texture(f64::from(i % w), 0.0)).collect();
-        let image = Luma {
-            data: &stripes,
-            width: w,
-            height: h,
-        };
+        let image = Luma::new(&stripes, w, h);
         assert_eq!(
             refine_match(&image, &image, (30, 20), ([-1, 0], [0, 1]), (0.0, 0.0)),
             None

@@ -766,18 +766,14 @@ mod tests {
     fn set(index: u32) -> CapturedSet {
         let camera = PinholeCamera::from_horizontal_fov(4, 3, 60.0);
         let view = |role: &str, dx: i32, time: u64| CapturedView {
-            role: role.into(),
-            grid_offset: [dx, 0],
-            camera,
-            capture_time_nanos: time,
-            rgb: (0..36).map(|i| (i * 7 + dx as i64 * 3) as u8).collect(),
             depth_m: Some(vec![0.5; 12]),
-            surface_class: None,
-            world_from_camera: nalgebra::Isometry3::translation(f64::from(dx) * 0.02, 0.0, 0.0),
-            true_world_from_camera: None,
-            commanded_world_from_camera: None,
-            joints: None,
-            exposure_gain: 1.0,
+            ..CapturedView::new(
+                (role, [dx, 0]),
+                camera,
+                nalgebra::Isometry3::translation(f64::from(dx) * 0.02, 0.0, 0.0),
+                time,
+                (0..36).map(|i| (i * 7 + dx as i64 * 3) as u8).collect(),
+            )
         };
         let t = u64::from(index) * 1_000;
         CapturedSet {

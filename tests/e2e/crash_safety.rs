@@ -7,7 +7,7 @@ use std::path::Path;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use multiscopic_tests::{Log, binary, foxglove_read, python_with_mcap, record_args, replay, replay_str, run, temp_dir};
+use multiscopic_tests::{Log, binary, foxglove_read, python_with_mcap, recorded, replay, replay_str, run, temp_dir};
 
 /// The byte offsets where each chunk record ends, in file order (from the summary).
 fn chunk_ends(bytes: &[u8]) -> Vec<usize> {
@@ -59,12 +59,7 @@ fn recover_losing_something(log: &Path, fixed: &Path) {
 
 #[test]
 fn every_cut_keeps_the_sets_completed_before_it_and_recover_finishes_them() {
-    let dir = temp_dir();
-    let log = record_args(
-        dir.path(),
-        "six.mcap",
-        "--resolution 320x240 --captures 6 --samples-per-pixel 1",
-    );
+    let (dir, log) = recorded("six.mcap", "--resolution 320x240 --captures 6 --samples-per-pixel 1");
     let bytes = std::fs::read(&log).unwrap_or_else(|e| panic!("{e}"));
     let ends = chunk_ends(&bytes);
     assert_eq!(ends.len(), 6, "one chunk per set: {ends:?}");
@@ -188,12 +183,7 @@ fn every_cut_keeps_the_sets_completed_before_it_and_recover_finishes_them() {
 
 #[test]
 fn a_corrupt_chunk_loses_its_set_only() {
-    let dir = temp_dir();
-    let log = record_args(
-        dir.path(),
-        "three.mcap",
-        "--resolution 160x120 --captures 3 --samples-per-pixel 1",
-    );
+    let (dir, log) = recorded("three.mcap", "--resolution 160x120 --captures 3 --samples-per-pixel 1");
     let mut bytes = std::fs::read(&log).unwrap_or_else(|e| panic!("{e}"));
     let summary = mcap::Summary::read(&bytes)
         .unwrap_or_else(|e| panic!("{e}"))

@@ -12,7 +12,7 @@ use std::path::{Path, PathBuf};
 use proptest::prelude::*;
 use proptest::test_runner::{Config, TestRunner};
 
-use multiscopic_tests::{record_args, temp_dir, workspace_root};
+use multiscopic_tests::{recorded, temp_dir, workspace_root};
 
 /// Largest single allocation allowed for an input of `len` bytes: the readers may decompress
 /// (a chunk up to 4096 × its compressed size) and build images and networks, never more.
@@ -143,12 +143,7 @@ fn with_file(dir: &Path, name: &str, data: &[u8]) -> PathBuf {
 #[test]
 #[ignore = "writes tests/corpus: run by hand after a change of the log format"]
 fn make_the_log_corpus() {
-    let dir = temp_dir();
-    let five = record_args(
-        dir.path(),
-        "five.mcap",
-        "--captures 2 --resolution 48x32 --samples-per-pixel 1",
-    );
+    let (_dir, five) = recorded("five.mcap", "--captures 2 --resolution 48x32 --samples-per-pixel 1");
     let corpus = workspace_root().join("tests/corpus");
     std::fs::copy(&five, corpus.join("five.mcap")).unwrap_or_else(|e| panic!("{e}"));
     multiscopic_tests::strip_capture_events(&five, &corpus.join("foreign.mcap"));

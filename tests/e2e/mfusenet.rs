@@ -6,7 +6,7 @@ use std::path::Path;
 use std::process::Command;
 
 use multiscopic_tests::{
-    assert_success, python_with_mcap, record_args, replay, replay_summary, run, temp_dir, workspace_root,
+    assert_success, python_with_mcap, record_args, recorded, replay, replay_summary, run, temp_dir, workspace_root,
 };
 
 fn weights(file: &str) -> String {
@@ -34,8 +34,7 @@ fn shipped_weights_have_the_reference_state_dict_names_and_shapes() {
 
 #[test]
 fn replay_runs_mfusenet_and_names_bad_weight_files() {
-    let dir = temp_dir();
-    let log = record_args(dir.path(), "five.mcap", "--resolution 256x192 --samples-per-pixel 1");
+    let (dir, log) = recorded("five.mcap", "--resolution 256x192 --samples-per-pixel 1");
     let out = dir.path().join("results");
     let summary = replay_summary(&log, &out, "--method mfusenet,mfusenet-stereo");
     let log = log.to_str().unwrap_or_default();
@@ -93,35 +92,28 @@ fn replay_runs_mfusenet_and_names_bad_weight_files() {
             "concat.0.weight",
         ),
     ];
-    for (method, file, expected) in cases {
-        let output = replay(&[
-            log,
-            "--method",
-            method,
-            "--weights",
-            &file,
-            "--out",
-            out.to_str().unwrap_or_default(),
-        ]);
+    // Exit 1 with `expected` in the message, and no panic.
+    let fails_naming = |args: &[&str], expected: &str| {
+        let mut all = vec![log];
+        all.extend_from_slice(args);
+        all.extend(["--out", out.to_str().unwrap_or_default()]);
+        let output = replay(&all);
         let stderr = String::from_utf8_lossy(&output.stderr);
-        assert_eq!(output.status.code(), Some(1), "{method} --weights {file}: {stderr}");
-        assert!(stderr.contains(expected) && !stderr.contains("panicked"), "{stderr}");
+        assert_eq!(output.status.code(), Some(1), "{args:?}: {stderr}");
+        assert!(
+            stderr.contains(expected) && !stderr.contains("panicked"),
+            "{args:?}: {stderr}"
+        );
+    };
+    for (method, file, expected) in cases {
+        fails_naming(&["--method", method, "--weights", &file], expected);
     }
     // The five-view weights on a three-view selection say what the network needs.
-    let output = replay(&[
-        log,
-        "--method",
-        "mfusenet",
-        "--neighbours",
-        "left,right",
-        "--weights",
-        &weights("mfusenet-5view.safetensors"),
-        "--out",
-        out.to_str().unwrap_or_default(),
-    ]);
-    let stderr = String::from_utf8_lossy(&output.stderr);
-    assert_eq!(output.status.code(), Some(1), "{stderr}");
-    assert!(stderr.contains("five-view network needs"), "{stderr}");
+    let five = weights("mfusenet-5view.safetensors");
+    fails_naming(
+        &["--method", "mfusenet", "--neighbours", "left,right", "--weights", &five],
+        "five-view network needs",
+    );
     // A bad parameter is named with its value: a readout reach that is no distance, a share of
     // the locking correction outside 0..=1, and a bad weighted-median parameter for a classical
     // method that opts in as well.
@@ -136,18 +128,7 @@ fn replay_runs_mfusenet_and_names_bad_weight_files() {
     ];
     for (method, config, expected) in cases {
         // The JSON holds blanks: the arguments as a list.
-        let output = replay(&[
-            log,
-            "--method",
-            method,
-            "--config",
-            config,
-            "--out",
-            out.to_str().unwrap_or_default(),
-        ]);
-        let stderr = String::from_utf8_lossy(&output.stderr);
-        assert_eq!(output.status.code(), Some(1), "{method} {config}: {stderr}");
-        assert!(stderr.contains(expected), "{stderr}");
+        fails_naming(&["--method", method, "--config", config], expected);
     }
 }
 
@@ -409,9 +390,7 @@ fn a_wide_range_goes_coarse_to_fine_and_the_summary_says_what_the_network_saw() 
     // A 60 mm baseline at 320×240 puts the toy scene at about 27–40 px; searched over 0..64, the
     // network runs at half size over 0..33 with 4 slices of context below (−4..33) and the
     // full-size band is ± 2 px.
-    let dir = temp_dir();
-    let log = record_args(
-        dir.path(),
+    let (dir, log) = recorded(
         "wide.mcap",
         "--resolution 320x240 --baseline-mm 60 --samples-per-pixel 1",
     );

@@ -2,7 +2,7 @@
 //! axes, optical axes parallel (within the injected noise); the logged transform chain, joint
 //! states and capture events agree; injected errors land on the named view only.
 
-use multiscopic_tests::{Log, record_args, temp_dir};
+use multiscopic_tests::{Log, record_args, recorded};
 use nalgebra::Vector3;
 use record::log::{CAMERA_FRAME, PoseJson};
 use record::ur10::Ur10;
@@ -52,12 +52,7 @@ fn relative_poses(log: &Log, set: u32, use_true_pose: bool) -> Vec<Relative> {
 
 #[test]
 fn five_view_sets_are_coplanar_at_the_baseline_with_parallel_axes() {
-    let dir = temp_dir();
-    let path = record_args(
-        dir.path(),
-        "five.mcap",
-        "--captures 3 --resolution 48x32 --samples-per-pixel 1",
-    );
+    let (_dir, path) = recorded("five.mcap", "--captures 3 --resolution 48x32 --samples-per-pixel 1");
     let log = Log::read(&path);
     let arm = Ur10::default();
     let metadata = &log.metadata[record::log::METADATA_NAME];
@@ -122,9 +117,7 @@ fn five_view_sets_are_coplanar_at_the_baseline_with_parallel_axes() {
 
 #[test]
 fn injected_errors_land_on_the_named_view_only() {
-    let dir = temp_dir();
-    let path = record_args(
-        dir.path(),
+    let (dir, path) = recorded(
         "errors.mcap",
         "--resolution 48x32 --samples-per-pixel 1 --repeatability-mm 0 --rotation-error left:z:0.5 --offset-error top:z:1",
     );

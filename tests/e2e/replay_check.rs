@@ -1,7 +1,7 @@
 //! `replay check`: clean captures pass; an injected roll or out-of-plane offset is flagged on
 //! that view only; a hand-eye error, invisible in the poses, shows in the image-based shift.
 
-use multiscopic_tests::{assert_success, record_args, record_log, replay, replay_str, temp_dir};
+use multiscopic_tests::{assert_success, record_args, record_log, recorded, replay, replay_str, temp_dir};
 
 fn check(extra: &[&str], name: &str) -> (Option<i32>, serde_json::Value) {
     let dir = temp_dir();
@@ -10,6 +10,17 @@ fn check(extra: &[&str], name: &str) -> (Option<i32>, serde_json::Value) {
     let output = replay_str(&format!("check {} --json -q", log.display()));
     let json = serde_json::from_slice(&output.stdout).unwrap_or_else(|e| panic!("replay check printed no JSON: {e}"));
     (output.status.code(), json)
+}
+
+/// The neighbours' reports of a five-view set's check (all four, or the test fails).
+fn four_neighbours(json: &serde_json::Value) -> Vec<serde_json::Value> {
+    let neighbours = json[0]["neighbours"].as_array().cloned().unwrap_or_default();
+    assert_eq!(
+        neighbours.len(),
+        4,
+        "every neighbour of the five-view set is checked: {json}"
+    );
+    neighbours
 }
 
 fn statuses(json: &serde_json::Value) -> Vec<(String, String)> {
@@ -69,12 +80,7 @@ fn hand_eye_error_shows_in_the_images_only() {
         &["--hand-eye-error-deg", "0,0,3", "--repeatability-mm", "0"],
         "hand_eye.mcap",
     );
-    let neighbours = json[0]["neighbours"].as_array().cloned().unwrap_or_default();
-    assert_eq!(
-        neighbours.len(),
-        4,
-        "every neighbour of the five-view set is checked: {json}"
-    );
+    let neighbours = four_neighbours(&json);
     for n in &neighbours {
         let epipolar = n["epipolar_error_px"]["value"].as_f64().unwrap_or(f64::NAN);
         let shift = n["image_shift_px"]["value"].as_f64().unwrap_or(f64::NAN);
@@ -92,8 +98,7 @@ fn a_hand_eye_error_just_over_half_a_pixel_warns() {
         &["--seed", "2", "--hand-eye-error-deg", "0,0,1.25"],
         "hand_eye_small.mcap",
     );
-    let neighbours = json[0]["neighbours"].as_array().cloned().unwrap_or_default();
-    assert_eq!(neighbours.len(), 4, "{json}");
+    let neighbours = four_neighbours(&json);
     let truth = neighbours
         .iter()
         .filter_map(|n| n["true_epipolar_error_px"].as_f64())
@@ -116,12 +121,7 @@ fn a_hand_eye_error_just_over_half_a_pixel_warns() {
 
 #[test]
 fn rectify_recovers_depth_quality_lost_to_a_rolled_view() {
-    let dir = temp_dir();
-    let log = record_args(
-        dir.path(),
-        "rolled.mcap",
-        "--resolution 640x360 --rotation-error left:z:1",
-    );
+    let (_dir, log) = recorded("rolled.mcap", "--resolution 640x360 --rotation-error left:z:1");
     let avg_err_px = |extra: &[&str]| {
         let mut all = vec![
             "eval",

@@ -1,7 +1,7 @@
 //! Depth quality: the paper's claims on real and simulated data, through the real binaries.
 
 use multiscopic_tests::{
-    assert_success, eval_json, json_strings, middlebury_dev, record_args, replay_str, replay_summary, temp_dir,
+    assert_success, eval_json, json_strings, middlebury_dev, recorded, replay_str, replay_summary, temp_dir,
 };
 
 fn metric(rows: &[serde_json::Value], method: &str, region: &str, field: &str) -> f64 {
@@ -59,8 +59,7 @@ fn middlebury_multiscopic_beats_stereo_and_opencv_sgbm() {
 
 #[test]
 fn five_views_beat_three_which_beat_stereo_most_in_occlusions() {
-    let dir = temp_dir();
-    let log = record_args(dir.path(), "five.mcap", "--resolution 640x360 --captures 2");
+    let (_dir, log) = recorded("five.mcap", "--resolution 640x360 --captures 2");
     let log = log.to_str().unwrap_or_default();
     let five = eval_json(&[
         log,
@@ -106,8 +105,7 @@ fn five_views_beat_three_which_beat_stereo_most_in_occlusions() {
 
 #[test]
 fn replay_writes_result_files_and_a_result_log_other_tools_read() {
-    let dir = temp_dir();
-    let log = record_args(dir.path(), "capture.mcap", "--resolution 320x180 --rig three-view");
+    let (dir, log) = recorded("capture.mcap", "--resolution 320x180 --rig three-view");
     let out = dir.path().join("results");
     let result_log = dir.path().join("results.mcap");
     replay_summary(
@@ -208,12 +206,7 @@ fn replay_writes_result_files_and_a_result_log_other_tools_read() {
 
 #[test]
 fn graph_cuts_leave_occlusions_unmatched_and_five_views_beat_stereo() {
-    let dir = temp_dir();
-    let log = record_args(
-        dir.path(),
-        "metal.mcap",
-        "--scene workpiece --resolution 320x240 --captures 1",
-    );
+    let (dir, log) = recorded("metal.mcap", "--scene workpiece --resolution 320x240 --captures 1");
     let log_arg = log.to_str().unwrap_or_default();
     // Without filling, pixels left without a match have no estimate (+inf in the PFM).
     let out = dir.path().join("results");
@@ -265,8 +258,7 @@ fn graph_cuts_leave_occlusions_unmatched_and_five_views_beat_stereo() {
 
 #[test]
 fn a_line_of_five_runs_through_every_method_against_its_three_view_subset() {
-    let dir = temp_dir();
-    let log = record_args(dir.path(), "line5.mcap", "--rig line5 --resolution 320x180 --seed 3");
+    let (_dir, log) = recorded("line5.mcap", "--rig line5 --resolution 320x180 --seed 3");
     let log = log.to_str().unwrap_or_default();
     let methods: Vec<&str> = fuse::methods::registry().iter().map(|e| e.name).collect();
     let methods = methods.join(",");

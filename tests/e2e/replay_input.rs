@@ -3,7 +3,7 @@
 use std::path::Path;
 
 use foxglove::messages::RawImage;
-use multiscopic_tests::{record_args, replay_str, replay_summary, temp_dir};
+use multiscopic_tests::{record_args, recorded, replay_str, replay_summary, temp_dir};
 use record::camera::PinholeCamera;
 use record::log::{LogOptions, LogWriter};
 use record::rig::RigKind;
@@ -14,18 +14,14 @@ fn view(role: &str, dx: i32, time: u64, size: (u32, u32)) -> CapturedView {
     let camera = PinholeCamera::from_horizontal_fov(size.0, size.1, 60.0);
     let pixels = (size.0 * size.1) as usize;
     CapturedView {
-        role: role.into(),
-        grid_offset: [dx, 0],
-        camera,
-        capture_time_nanos: time,
-        rgb: (0..pixels * 3).map(|i| (i * 13 % 256) as u8).collect(),
         depth_m: (dx == 0).then(|| vec![0.5; pixels]),
-        surface_class: None,
-        world_from_camera: nalgebra::Isometry3::translation(f64::from(dx) * 0.02, 0.0, 0.0),
-        true_world_from_camera: None,
-        commanded_world_from_camera: None,
-        joints: None,
-        exposure_gain: 1.0,
+        ..CapturedView::new(
+            (role, [dx, 0]),
+            camera,
+            nalgebra::Isometry3::translation(f64::from(dx) * 0.02, 0.0, 0.0),
+            time,
+            (0..pixels * 3).map(|i| (i * 13 % 256) as u8).collect(),
+        )
     }
 }
 
@@ -188,12 +184,7 @@ fn garbage_and_cut_off_logs() {
 
 #[test]
 fn random_bytes_and_truncations_never_panic_the_reader() {
-    let dir = temp_dir();
-    let path = record_args(
-        dir.path(),
-        "fuzz.mcap",
-        "--resolution 48x32 --captures 2 --samples-per-pixel 1",
-    );
+    let (_dir, path) = recorded("fuzz.mcap", "--resolution 48x32 --captures 2 --samples-per-pixel 1");
     let bytes = std::fs::read(&path).unwrap_or_else(|e| panic!("{e}"));
     let mut rng = SplitMix64::new(2024);
     let mut outcomes = [0usize; 2];
@@ -224,12 +215,7 @@ fn random_bytes_and_truncations_never_panic_the_reader() {
 /// A copy of a log without its capture events: what another recorder would write.
 #[test]
 fn foreign_logs_without_capture_events_get_their_sets_from_the_poses() {
-    let dir = temp_dir();
-    let ours = record_args(
-        dir.path(),
-        "ours.mcap",
-        "--resolution 160x90 --samples-per-pixel 1 --captures 3",
-    );
+    let (dir, ours) = recorded("ours.mcap", "--resolution 160x90 --samples-per-pixel 1 --captures 3");
     let foreign = dir.path().join("foreign.mcap");
     multiscopic_tests::strip_capture_events(&ours, &foreign);
     let contents = replay::log::read_log_file(&foreign).unwrap_or_else(|e| panic!("{e}"));
@@ -265,12 +251,7 @@ fn foreign_logs_without_capture_events_get_their_sets_from_the_poses() {
 
 #[test]
 fn time_range_selects_sets() {
-    let dir = temp_dir();
-    let log = record_args(
-        dir.path(),
-        "three.mcap",
-        "--resolution 96x64 --samples-per-pixel 1 --captures 3",
-    );
+    let (_dir, log) = recorded("three.mcap", "--resolution 96x64 --samples-per-pixel 1 --captures 3");
     let all = replay::log::read_log_file(&log).unwrap_or_else(|e| panic!("{e}"));
     let start = all.sets[0].reference.capture_time_nanos;
     let first_of = |i: usize| {

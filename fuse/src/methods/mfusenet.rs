@@ -549,7 +549,6 @@ pub const ENTRIES: &[MethodEntry] = &[
 mod tests {
     use super::*;
     use crate::image::Image;
-    use crate::volume::VolumeSource;
 
     /// A fronto-parallel textured plane at integer disparity `d` seen by the neighbours at
     /// `offsets`, searched over `min_disparity .. min_disparity + 32`.
@@ -703,19 +702,11 @@ mod tests {
     fn a_pixel_votes_fully_where_the_summed_costs_have_a_minimum_within_a_pixel() {
         // One pixel per column; two neighbours whose costs sum to a V with its minimum at slice 6.
         let nd = 12;
-        let volume = |tilt: i32| CostVolume {
-            width: 5,
-            height: 1,
-            min_disparity: 0,
-            num_disparities: nd,
-            data: (0..5)
-                .flat_map(|_| (0..nd as i32).map(move |k| (10 * (k - 6).abs() + tilt * k + 20) as u8))
-                .collect(),
-            max_cost: 255,
-            source: VolumeSource::Neighbour {
-                role: "left".into(),
-                offset: [-1, 0],
-            },
+        let volume = |tilt: i32| {
+            CostVolume::from_fn([5, 1, nd], 0, ("left", [-1, 0]), |_, _, k| {
+                let k = k as i32;
+                (10 * (k - 6).abs() + tilt * k + 20) as u8
+            })
         };
         let volumes = [volume(1), volume(-1)];
         // The volumes start at disparity 10: slice 6 is disparity 16.

@@ -321,7 +321,6 @@ pub fn expected_disparity_from(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::volume::VolumeSource;
 
     #[test]
     fn the_peak_margin_measures_the_searched_mode_against_the_next_best() {
@@ -401,22 +400,16 @@ mod tests {
         }
         // Odd sizes: every axis needs padding; 70 × 61 px cut into 16-px tile cores.
         let (w, h, nd) = (70, 61, 10);
-        let volume = |seed: usize| CostVolume {
-            width: w,
-            height: h,
-            min_disparity: 3,
-            num_disparities: nd,
-            data: (0..w * h * nd)
-                .map(|i| {
-                    (((i / nd) % w) * 7 + ((i / nd) / w) * 3 + (i % nd) * (11 + seed) + seed * 5 + (i * i) % 13) as u8
-                        % 97
-                })
-                .collect(),
-            max_cost: 255,
-            source: VolumeSource::Neighbour {
-                role: if seed == 0 { "left" } else { "right" }.into(),
-                offset: [if seed == 0 { -1 } else { 1 }, 0],
-            },
+        let volume = |seed: usize| {
+            let (role, offset) = if seed == 0 {
+                ("left", [-1, 0])
+            } else {
+                ("right", [1, 0])
+            };
+            CostVolume::from_fn([w, h, nd], 3, (role, offset), |x, y, d| {
+                let i = (y * w + x) * nd + d;
+                ((x * 7 + y * 3 + d * (11 + seed) + seed * 5 + (i * i) % 13) as u8) % 97
+            })
         };
         let volumes = [volume(0), volume(1)];
         let whole = infer(&net, &volumes, usize::MAX, Estimate::default(), &|_| {}).unwrap_or_else(|e| panic!("{e}"));
@@ -491,22 +484,11 @@ mod tests {
     fn flips_make_the_network_answer_a_mirrored_set_mirrored() {
         // Sizes that need no padding, so that the mirror image's padding is the original's.
         let (w, h, nd) = (40, 24, 12);
-        let volume = |seed: usize, offset: [i32; 2]| CostVolume {
-            width: w,
-            height: h,
-            min_disparity: 2,
-            num_disparities: nd,
-            data: (0..w * h * nd)
-                .map(|i| {
-                    let (p, d) = (i / nd, i % nd);
-                    ((p % w) * 7 + (p / w) * 3 * (seed + 1) + d * (11 + seed) + seed * 5 + (i * i) % 13) as u8 % 97
-                })
-                .collect(),
-            max_cost: 255,
-            source: VolumeSource::Neighbour {
-                role: format!("{offset:?}"),
-                offset,
-            },
+        let volume = |seed: usize, offset: [i32; 2]| {
+            CostVolume::from_fn([w, h, nd], 2, (&format!("{offset:?}"), offset), |x, y, d| {
+                let i = (y * w + x) * nd + d;
+                ((x * 7 + y * 3 * (seed + 1) + d * (11 + seed) + seed * 5 + (i * i) % 13) as u8) % 97
+            })
         };
         // The volume seen in a mirror, `[y][x][d]` layout.
         let flip = |v: &CostVolume<u8>, vertical: bool, horizontal: bool| {

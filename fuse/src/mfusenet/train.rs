@@ -276,26 +276,14 @@ pub fn load_checkpoint(path: &Path, views: usize) -> Result<(Network, Adam, Weig
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::volume::VolumeSource;
 
     /// Two views of a fronto-parallel plane at disparity 5: each volume's cost is lowest at 5.
     fn plane_volumes(w: usize, h: usize, nd: usize) -> (Vec<CostVolume<u8>>, Vec<f32>) {
-        let volume = |noise: usize| CostVolume {
-            width: w,
-            height: h,
-            min_disparity: 0,
-            num_disparities: nd,
-            data: (0..w * h * nd)
-                .map(|i| {
-                    let d = (i % nd) as i32;
-                    ((d - 5).unsigned_abs() * 12 + ((i * 7 + noise) % 5) as u32) as u8
-                })
-                .collect(),
-            max_cost: 255,
-            source: VolumeSource::Neighbour {
-                role: "left".into(),
-                offset: [-1, 0],
-            },
+        let volume = |noise: usize| {
+            CostVolume::from_fn([w, h, nd], 0, ("left", [-1, 0]), |x, y, d| {
+                let i = (y * w + x) * nd + d;
+                ((d as i32 - 5).unsigned_abs() * 12 + ((i * 7 + noise) % 5) as u32) as u8
+            })
         };
         (vec![volume(0), volume(3)], vec![5.0; w * h])
     }
