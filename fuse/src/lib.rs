@@ -18,6 +18,8 @@
 //!   backward, fast kernels checked against plain loops); [`mfusenet`]: the network, its
 //!   safetensors weights, its inputs, tiled inference and the training pieces.
 //! - [`metrics`]: the paper's error measures against ground truth.
+//! - [`plan`]: next-best-view planning: which grid offset would resolve most of what the
+//!   current depth lacks (occlusions, texture direction, depth resolution).
 
 pub mod cost;
 pub mod fusion;
@@ -29,6 +31,7 @@ pub mod methods;
 pub mod metrics;
 pub mod mfusenet;
 pub mod nn;
+pub mod plan;
 pub mod postprocess;
 pub mod rng;
 pub mod sgm;

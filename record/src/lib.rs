@@ -14,6 +14,7 @@ pub mod capture;
 pub mod import;
 pub mod live;
 pub mod log;
+pub mod reach;
 pub mod render;
 pub mod rig;
 pub mod rng;

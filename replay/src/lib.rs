@@ -21,6 +21,7 @@ pub mod foreign;
 pub mod log;
 pub mod outputs;
 pub mod pipeline;
+pub mod plan;
 pub mod recover;
 pub mod regions;
 pub mod run;

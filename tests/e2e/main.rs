@@ -13,5 +13,6 @@ mod record_log;
 mod replay_check;
 mod replay_eval;
 mod replay_input;
+mod replay_plan;
 mod signed_ranges;
 mod viz_rerun;

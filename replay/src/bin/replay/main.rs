@@ -7,6 +7,7 @@
 mod check;
 mod demo;
 mod eval;
+mod plan;
 mod recover;
 mod run;
 mod train;
@@ -36,6 +37,7 @@ static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
     replay capture.mcap --method sgm-heuristic --config '{\"weighted_median\": {}}'   depth edges snapped to colour edges (mfusenet's default)\n  \
     replay --list-methods\n  \
     replay recover .capture.mcap.partial-4242 -o capture.mcap   finish what a crash left\n  \
+    replay plan capture.mcap --neighbours left --budget 2   the views that would resolve most next\n  \
     replay eval ../shared/data/middlebury2006-third-dev --methods sgm-stereo,sgm-heuristic,mfusenet-stereo,mfusenet\n  \
     replay train --views 2                               train the three-view network on simulated captures")]
 struct Cli {
@@ -60,6 +62,9 @@ enum Command {
     /// Write what survived of a cut or corrupt log (e.g. the recorder's temporary file after a
     /// crash) as a finished, indexed log, and say what was lost (exit 3 when something was).
     Recover(recover::RecoverArgs),
+    /// The next best views of a set: run a method, score the grid offsets not yet taken by the
+    /// pixels they would resolve, check that the arm reaches them clear of the table.
+    Plan(plan::PlanArgs),
     /// The one-command demo: record a simulated five-view capture, replay it with the best
     /// method, write the results (and the log) into one folder.
     Demo(demo::DemoArgs),
@@ -83,6 +88,7 @@ fn dispatch(cli: &Cli) -> Result<Outcome> {
         Some(Command::Demo(args)) => demo::run(args, cli.quiet),
         Some(Command::Check(args)) => check::run(args),
         Some(Command::Recover(args)) => recover::run(args),
+        Some(Command::Plan(args)) => plan::run(args),
         Some(Command::Train(args)) => train::run(args, cli.quiet),
         None => run::run(&cli.run, cli.quiet),
     }
