@@ -29,6 +29,7 @@
 //! Where the arm can go is not this module's business: `record::reach` checks each candidate's
 //! pose by inverse kinematics and against the table.
 
+use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::FuseError;
@@ -61,8 +62,12 @@ pub struct PlanConfig {
     pub resolution_half_px: f32,
     /// What a pixel already seen from the candidate's direction counts.
     pub redundancy: f32,
-    /// Radius (px) of the window the texture is averaged over.
+    /// Radius (px) of the window the texture is averaged over (at the planning resolution).
     pub window_radius_px: usize,
+    /// Wider inputs are planned on a box-averaged copy at most this wide (an integer factor
+    /// smaller; the expected pixels are scaled back): planning needs the scene's layout, not its
+    /// last pixel, and stays a small share of a method's time.
+    pub max_width_px: usize,
 }
 
 impl Default for PlanConfig {
@@ -74,6 +79,7 @@ impl Default for PlanConfig {
             resolution_half_px: 4.0,
             redundancy: 0.35,
             window_radius_px: 3,
+            max_width_px: 320,
         }
     }
 }
@@ -405,9 +411,74 @@ fn summarise(input: &PlanInput<'_>, prepared: &Prepared, offsets: Vec<[i32; 2]>,
     }
 }
 
-/// Scores every candidate not yet taken, best first (infeasible ones last).
+/// The input box-averaged by `factor` (disparities in the smaller image's pixels; pixels without
+/// an estimate count only when a whole block has none).
+fn reduced(input: &PlanInput<'_>, factor: usize) -> (usize, usize, [Vec<f32>; 3]) {
+    let (w, h) = (input.width / factor, input.height / factor);
+    let mut out = [vec![0.0f32; w * h], vec![f32::INFINITY; w * h], vec![0.0f32; w * h]];
+    for y in 0..h {
+        for x in 0..w {
+            let (mut luma, mut disparity, mut confidence, mut known) = (0.0f32, 0.0f32, 0.0f32, 0usize);
+            for dy in 0..factor {
+                for dx in 0..factor {
+                    let p = (y * factor + dy) * input.width + x * factor + dx;
+                    luma += input.luma[p];
+                    confidence += input.confidence[p];
+                    if input.disparity_px[p].is_finite() {
+                        disparity += input.disparity_px[p];
+                        known += 1;
+                    }
+                }
+            }
+            let n = (factor * factor) as f32;
+            let q = y * w + x;
+            out[0][q] = luma / n;
+            out[2][q] = confidence / n;
+            if known > 0 {
+                out[1][q] = disparity / known as f32 / factor as f32;
+            }
+        }
+    }
+    (w, h, out)
+}
+
+/// Scores every candidate not yet taken, best first (infeasible ones last). Inputs wider than
+/// [`PlanConfig::max_width_px`] are planned on a reduced copy.
 pub fn plan(input: &PlanInput<'_>, config: &PlanConfig) -> Result<Vec<Candidate>, FuseError> {
     check(input)?;
+    let factor = input.width.div_ceil(config.max_width_px.max(16));
+    if factor <= 1 || input.height / factor < 4 {
+        return plan_at(input, config);
+    }
+    let (width, height, [luma, disparity, confidence]) = reduced(input, factor);
+    let small = PlanInput {
+        width,
+        height,
+        luma: &luma,
+        disparity_px: &disparity,
+        confidence: &confidence,
+        taken: input.taken,
+        max_disparity_px: input.max_disparity_px / factor as f32,
+    };
+    // The same terms in the reduced image's units: a gradient spans `factor` times the levels per
+    // pixel, a disparity `1 / factor` the pixels.
+    let f = factor as f32;
+    let scaled = PlanConfig {
+        texture_half: config.texture_half * f * f,
+        resolution_half_px: config.resolution_half_px / f,
+        ..*config
+    };
+    let area = (factor * factor) as f64;
+    Ok(plan_at(&small, &scaled)?
+        .into_iter()
+        .map(|c| Candidate {
+            expected_pixels: c.expected_pixels * area,
+            ..c
+        })
+        .collect())
+}
+
+fn plan_at(input: &PlanInput<'_>, config: &PlanConfig) -> Result<Vec<Candidate>, FuseError> {
     let prepared = prepare(input, config);
     let offsets: Vec<[i32; 2]> = candidate_offsets(config.max_offset)
         .into_iter()
@@ -415,7 +486,7 @@ pub fn plan(input: &PlanInput<'_>, config: &PlanConfig) -> Result<Vec<Candidate>
         .collect();
     let mut candidates: Vec<Candidate> = match config.layout {
         LayoutRule::Free => offsets
-            .iter()
+            .par_iter()
             .map(|o| {
                 summarise(
                     input,
@@ -594,6 +665,38 @@ mod tests {
             "{ranked:#?}"
         );
         assert!(ranked.iter().any(|c| !c.feasible));
+    }
+
+    #[test]
+    fn a_wide_input_is_planned_on_a_reduced_copy_with_the_same_choice() {
+        // The occluder scene of the test above seen by a camera with 4 × the pixels: texture and
+        // disparities 4 × larger.
+        let (w, h) = (96 * 4, 48 * 4);
+        let (small_luma, small_disparity) = occluder_on_the_left(96, 48);
+        let at = |p: usize| ((p / w) / 4) * 96 + (p % w) / 4;
+        let luma: Vec<f32> = (0..w * h).map(|p| small_luma[at(p)]).collect();
+        let disparity: Vec<f32> = (0..w * h).map(|p| 4.0 * small_disparity[at(p)]).collect();
+        let confidence = vec![0.6f32; w * h];
+        let input = PlanInput {
+            width: w,
+            height: h,
+            luma: &luma,
+            disparity_px: &disparity,
+            confidence: &confidence,
+            taken: &[[-1, 0]],
+            max_disparity_px: 256.0,
+        };
+        let full = PlanConfig {
+            max_width_px: 4096,
+            ..PlanConfig::default()
+        };
+        let (reduced, whole) = (
+            plan(&input, &PlanConfig::default()).unwrap_or_else(|e| panic!("{e}")),
+            plan(&input, &full).unwrap_or_else(|e| panic!("{e}")),
+        );
+        assert_eq!(reduced[0].offsets, whole[0].offsets, "{reduced:#?} vs {whole:#?}");
+        let ratio = reduced[0].expected_pixels / whole[0].expected_pixels;
+        assert!((0.7..1.3).contains(&ratio), "expected pixels scaled back: {ratio}");
     }
 
     #[test]

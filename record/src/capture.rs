@@ -12,7 +12,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::camera::{DEFAULT_HORIZONTAL_FOV_DEG, DEFAULT_RESOLUTION, PinholeCamera};
 use crate::render::{PreparedScene, RenderSettings};
-use crate::rig::{REFERENCE_ROLE, RigKind, ViewSlot};
+use crate::rig::{REFERENCE_ROLE, RigKind};
 use crate::rng::{SplitMix64, hash4};
 use crate::scene::{Scene, SceneKind, WORK_AREA_CENTER_M};
 use crate::ur10::{HOME_JOINTS_RAD, Joints, KinematicsError, Ur10, interpolate_joint_velocities, interpolate_joints};
@@ -136,6 +136,9 @@ pub struct SimulationConfig {
     /// positive and farther ones negative disparities. `None`: parallel views (disparities ≥ 0).
     #[serde(default)]
     pub converge_m: Option<f64>,
+    /// How an adaptive set is planned (rig `adaptive` only).
+    #[serde(default)]
+    pub adaptive: crate::adaptive::AdaptiveConfig,
 }
 
 impl Default for SimulationConfig {
@@ -156,6 +159,7 @@ impl Default for SimulationConfig {
             settle_secs: 0.3,
             errors: ErrorInjection::default(),
             converge_m: None,
+            adaptive: crate::adaptive::AdaptiveConfig::default(),
         }
     }
 }
@@ -173,6 +177,23 @@ pub enum SimulationError {
         /// Why.
         #[source]
         source: KinematicsError,
+    },
+    /// The adaptive loop's method or planner rejected the views so far.
+    #[error("set {set}: planning the next view failed")]
+    Planning {
+        /// Set index.
+        set: u32,
+        /// Cause.
+        #[source]
+        source: fuse::FuseError,
+    },
+    /// No candidate view of an adaptive set is both feasible and reachable.
+    #[error("set {set}: no candidate for view {step} is within the search range and the arm's reach")]
+    NothingToTake {
+        /// Set index.
+        set: u32,
+        /// Which neighbour was being planned (1 = the first).
+        step: u32,
     },
     /// A configuration value is out of range.
     #[error("invalid configuration: {field} = {value} ({reason})")]
@@ -391,7 +412,7 @@ impl Simulation {
             }
             let view = self.capture_view(
                 set,
-                slot,
+                (slot.role, slot.grid_offset),
                 &station,
                 believed_reference.as_ref(),
                 baseline_m,
@@ -415,10 +436,12 @@ impl Simulation {
         }))
     }
 
-    fn capture_view(
+    /// Moves to and renders the view `(role, grid_offset)` of set `set`, displaced from the
+    /// believed reference pose (or the station, for the reference itself).
+    pub(crate) fn capture_view(
         &mut self,
         set: u32,
-        slot: ViewSlot,
+        (role, grid_offset): (&str, [i32; 2]),
         station: &Isometry3<f64>,
         believed_reference: Option<&Isometry3<f64>>,
         baseline_m: f64,
@@ -426,25 +449,25 @@ impl Simulation {
     ) -> Result<CapturedView, SimulationError> {
         let kinematics_error = |source| SimulationError::Kinematics {
             set,
-            role: slot.role.to_owned(),
+            role: role.to_owned(),
             source,
         };
         // Target: displaced along the reference camera's own axes, as far as the system knows them.
         let reference = believed_reference.unwrap_or(station);
         let displacement = Vector3::new(
-            f64::from(slot.grid_offset[0]) * baseline_m,
-            f64::from(slot.grid_offset[1]) * baseline_m,
+            f64::from(grid_offset[0]) * baseline_m,
+            f64::from(grid_offset[1]) * baseline_m,
             0.0,
         );
         let mut commanded = reference * Isometry3::translation(displacement.x, displacement.y, displacement.z);
         let errors = self.config.errors.clone();
-        for e in errors.rotation_deg.iter().filter(|e| e.role == slot.role) {
+        for e in errors.rotation_deg.iter().filter(|e| e.role == role) {
             commanded *= Isometry3::from_parts(
                 Translation3::identity(),
                 UnitQuaternion::from_axis_angle(&nalgebra::Unit::new_normalize(e.axis.unit()), e.value.to_radians()),
             );
         }
-        for e in errors.offset_mm.iter().filter(|e| e.role == slot.role) {
+        for e in errors.offset_mm.iter().filter(|e| e.role == role) {
             let offset = e.axis.unit() * (e.value / 1000.0);
             commanded *= Isometry3::translation(offset.x, offset.y, offset.z);
         }
@@ -481,20 +504,19 @@ impl Simulation {
         });
         let true_world_from_camera = base_from_flange * self.hand_eye_true;
         let world_from_camera = base_from_flange * self.hand_eye_believed;
+        // A fixed rig's view by its place in the capture order; a planned view by its offset.
+        let place = self.config.rig.capture_order().iter().position(|s| s.role == role);
         let view_index = u64::from(set) << 8
-            | self
-                .config
-                .rig
-                .capture_order()
-                .iter()
-                .position(|s| s.role == slot.role)
-                .unwrap_or(0) as u64;
+            | place.map_or_else(
+                || 0x80 | ((grid_offset[0] + 8) as u64 & 0xf) << 4 | ((grid_offset[1] + 8) as u64 & 0xf),
+                |p| p as u64,
+            );
         let mut gain = 1.0;
         if errors.exposure_jitter > 0.0 {
             let u = crate::rng::unit_from_bits(hash4(self.config.seed, view_index, 0xe7, 0));
             gain = 1.0 + errors.exposure_jitter * (2.0 * u - 1.0);
         }
-        if let Some(forced) = errors.exposure.iter().find(|e| e.role == slot.role) {
+        if let Some(forced) = errors.exposure.iter().find(|e| e.role == role) {
             gain = forced.gain;
         }
         let settings = RenderSettings {
@@ -506,12 +528,12 @@ impl Simulation {
         };
         let mut camera = self.camera;
         let shift = self.principal_point_shift_px();
-        camera.cx += f64::from(slot.grid_offset[0]) * shift;
-        camera.cy += f64::from(slot.grid_offset[1]) * shift;
+        camera.cx += f64::from(grid_offset[0]) * shift;
+        camera.cy += f64::from(grid_offset[1]) * shift;
         let rendered = self.prepared.render(&camera, &true_world_from_camera, &settings);
         Ok(CapturedView {
-            role: slot.role.to_owned(),
-            grid_offset: slot.grid_offset,
+            role: role.to_owned(),
+            grid_offset,
             camera,
             capture_time_nanos,
             rgb: rendered.rgb,
@@ -527,6 +549,15 @@ impl Simulation {
 }
 
 impl SimulationConfig {
+    /// Views per set: the rig's, or an adaptive set's count.
+    pub fn views_per_set(&self) -> u32 {
+        if self.rig == RigKind::Adaptive {
+            self.adaptive.views
+        } else {
+            self.rig.capture_order().len() as u32
+        }
+    }
+
     /// Scene name used in set names.
     pub fn scene_name(&self) -> &'static str {
         match self.scene {
@@ -565,6 +596,26 @@ fn validate(config: &SimulationConfig) -> Result<(), SimulationError> {
     }
     if config.captures == 0 {
         return invalid("captures", "0".into(), "must be at least 1");
+    }
+    if config.rig == RigKind::Adaptive {
+        let adaptive = &config.adaptive;
+        if !(2..=crate::adaptive::MAX_ADAPTIVE_VIEWS).contains(&adaptive.views) {
+            return invalid("views", adaptive.views.to_string(), "an adaptive set has 2 to 9 views");
+        }
+        if fuse::methods::entry(&adaptive.method).is_none() {
+            return invalid(
+                "method",
+                adaptive.method.clone(),
+                "not a method (replay --list-methods)",
+            );
+        }
+        if !(1..=4).contains(&adaptive.max_offset) {
+            return invalid(
+                "max_offset",
+                adaptive.max_offset.to_string(),
+                "must be 1 to 4 baselines",
+            );
+        }
     }
     if let Some(distance) = config.converge_m
         && !(distance.is_finite() && distance > 0.0)

@@ -80,6 +80,15 @@ pub struct LiveCapture {
 }
 
 impl LiveCapture {
+    /// Opens a viewer on `sink` laid out for views of `roles` and starts on it.
+    pub fn open(sink: &viz::stream::ViewerSink, roles: Vec<String>, arm: Ur10) -> Result<Self, VizError> {
+        let layout = viz::stream::Layout {
+            roles,
+            ..viz::stream::Layout::default()
+        };
+        Self::new(Viewer::create("multiscopic_record", sink, &layout)?, arm)
+    }
+
     /// Starts on an open viewer: logs the table once.
     pub fn new(viewer: Viewer, arm: Ur10) -> Result<Self, VizError> {
         log_table(&viewer)?;
@@ -106,6 +115,30 @@ impl LiveCapture {
             depth_m: view.depth_m.as_deref(),
             time_nanos: view.capture_time_nanos,
         })
+    }
+
+    /// A plan of an adaptive set at the time it was made: the candidates' frusta coloured by
+    /// score, and the depth and confidence it was planned from (`camera`: the reference's
+    /// intrinsics; `baseline_m`: the set's baseline).
+    pub fn plan(
+        &self,
+        step: &crate::adaptive::PlanStep,
+        estimate: Option<&fuse::DisparityImage>,
+        camera: &crate::camera::PinholeCamera,
+        baseline_m: f64,
+    ) -> Result<(), VizError> {
+        self.viewer.set_capture_time(step.time_nanos);
+        let confidence_or_none = estimate.map(|e| e.confidence.clone().unwrap_or_else(|| vec![0.0; e.data.len()]));
+        self.viewer.log_plan(
+            &step.frusta(),
+            (
+                [camera.fx, camera.fy, camera.cx, camera.cy],
+                [camera.width, camera.height],
+            ),
+            estimate
+                .zip(confidence_or_none.as_deref())
+                .map(|(e, c)| (e.data.as_slice(), c, camera.fx * baseline_m)),
+        )
     }
 
     /// The arm's motion between the views of a finished set, on the capture timeline.

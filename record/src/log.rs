@@ -46,6 +46,11 @@ pub const COMMANDED_POSE_TOPIC: &str = "/arm/commanded_camera_pose";
 pub const CAPTURE_EVENTS_TOPIC: &str = "/capture/events";
 /// Schema name of [`CaptureEvent`].
 pub const CAPTURE_EVENT_SCHEMA: &str = "multiscopic.CaptureEvent";
+/// Each plan of an adaptive set: candidates, scores, poses, the choice (JSON,
+/// [`crate::adaptive::PlanStep`]), at the time it was made.
+pub const CAPTURE_PLAN_TOPIC: &str = "/capture/plan";
+/// Schema name of [`crate::adaptive::PlanStep`].
+pub const CAPTURE_PLAN_SCHEMA: &str = "multiscopic.CapturePlan";
 /// Metadata record name holding the effective configuration.
 pub const METADATA_NAME: &str = "multiscopic.recording";
 /// Encoding of `surface` ground-truth images; values are [`crate::scene::SurfaceClass`].

@@ -25,6 +25,10 @@ pub enum RigKind {
     #[value(name = "line5")]
     #[serde(rename = "line5")]
     Line5,
+    /// The centre, then each next view where a plan from the depth so far says it resolves most
+    /// (next-best-view capture, `record --rig adaptive --views N`; `crate::adaptive`). Only the
+    /// centre is fixed: [`RigKind::capture_order`] lists it alone.
+    Adaptive,
 }
 
 /// One view position of a rig.
@@ -44,7 +48,7 @@ const fn slot(role: &'static str, dx: i32, dy: i32) -> ViewSlot {
 }
 
 impl RigKind {
-    /// Every layout.
+    /// Every fixed layout (not [`RigKind::Adaptive`], whose views are planned).
     pub const ALL: [Self; 5] = [
         Self::FiveView,
         Self::ThreeView,
@@ -84,6 +88,7 @@ impl RigKind {
                 slot("right", 1, 0),
                 slot("right2", 2, 0),
             ],
+            Self::Adaptive => vec![slot("center", 0, 0)],
         }
     }
 
@@ -115,6 +120,7 @@ impl RigKind {
             Self::Stereo => "stereo",
             Self::Grid3x3 => "grid3x3",
             Self::Line5 => "line5",
+            Self::Adaptive => "adaptive",
         }
     }
 }

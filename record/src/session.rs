@@ -7,8 +7,10 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 
+use crate::adaptive::PlanStep;
 use crate::capture::{Simulation, SimulationError};
-use crate::log::{LogError, LogOptions, METADATA_NAME, OutputFile, PoseJson};
+use crate::log::{CAPTURE_PLAN_SCHEMA, CAPTURE_PLAN_TOPIC, LogError, LogOptions, METADATA_NAME, OutputFile, PoseJson};
+use crate::rig::RigKind;
 use crate::{CapturedSet, CapturedView, TOOL_VERSION};
 
 /// Errors of a recording.
@@ -82,14 +84,17 @@ fn json<T: serde::Serialize>(what: &'static str, value: &T) -> Result<String, Se
 
 /// Records every set of `sim` into `output` (written under a temporary name, renamed when
 /// finished). When `stop` is raised, the log is finished with the sets completed so far.
-/// `on_view(set, view)` follows every view; `on_set(set)` every completed set (with the arm's
-/// motion samples).
+/// `on_view(set, view)` follows every view; `on_plan(step, estimate)` every plan of an adaptive
+/// set (with the estimate it was planned from); `on_set(set)` every completed set (with the
+/// arm's motion samples). An adaptive set's plans are written to
+/// [`crate::log::CAPTURE_PLAN_TOPIC`] with the set.
 pub fn record_simulation(
     sim: &mut Simulation,
     output: &Path,
     zstd_level: u32,
     stop: &AtomicBool,
     mut on_view: impl FnMut(u32, &CapturedView),
+    mut on_plan: impl FnMut(&PlanStep, Option<&fuse::DisparityImage>),
     mut on_set: impl FnMut(&CapturedSet),
 ) -> Result<RecordingOutcome, SessionError> {
     let config = sim.config().clone();
@@ -131,11 +136,28 @@ pub fn record_simulation(
         }
     };
     for index in 0..config.captures {
-        let Some(set) = sim.capture_set(index, stop, |view| on_view(index, view))? else {
-            break;
+        let (set, steps) = if config.rig == RigKind::Adaptive {
+            let Some(adaptive) = sim.capture_adaptive_set(index, stop, |view| on_view(index, view), &mut on_plan)?
+            else {
+                break;
+            };
+            (adaptive.set, adaptive.steps)
+        } else {
+            let Some(set) = sim.capture_set(index, stop, |view| on_view(index, view))? else {
+                break;
+            };
+            (set, Vec::new())
         };
         let hand_eye = *sim.hand_eye_believed();
-        if let Err(source) = log.write_set(&set, Some(&hand_eye)) {
+        // The plans first: they go into the set's chunk, flushed with it.
+        let plans = steps.iter().try_for_each(|step| {
+            let value = serde_json::to_value(step).map_err(|e| LogError::Encode {
+                topic: CAPTURE_PLAN_TOPIC.into(),
+                reason: e.to_string(),
+            })?;
+            log.write_json(CAPTURE_PLAN_TOPIC, CAPTURE_PLAN_SCHEMA, step.time_nanos, &value)
+        });
+        if let Err(source) = plans.and_then(|()| log.write_set(&set, Some(&hand_eye))) {
             return Err(failed(format!("writing set {index}"), completed, file, source));
         }
         completed += 1;

@@ -103,6 +103,7 @@ pub fn record_capture(
         record::log::DEFAULT_ZSTD_LEVEL,
         &stop,
         |set, view| on_view(set, &view.role),
+        |_, _| {},
         |set| {
             layout.get_or_insert_with(|| record::live::log_layout(set));
         },

@@ -9,8 +9,9 @@ use std::collections::{BTreeMap, HashMap};
 use std::path::Path;
 
 use foxglove::messages::{CameraCalibration, CompressedImage, RawImage};
+use record::adaptive::PlanStep;
 use record::camera::PinholeCamera;
-use record::log::{CAPTURE_EVENTS_TOPIC, CaptureEvent, PoseJson};
+use record::log::{CAPTURE_EVENTS_TOPIC, CAPTURE_PLAN_TOPIC, CaptureEvent, PoseJson};
 use record::rig::REFERENCE_ROLE;
 
 use crate::ReplayError;
@@ -32,6 +33,8 @@ pub struct LogContents {
     pub bad_chunks: Vec<String>,
     /// Metadata records.
     pub metadata: BTreeMap<String, BTreeMap<String, String>>,
+    /// The plans of adaptive sets (`/capture/plan`), in log order.
+    pub plans: Vec<PlanStep>,
 }
 
 /// Reads a log file (memory-mapped).
@@ -267,6 +270,7 @@ fn scan_indexed(
 #[derive(Default)]
 struct Collected {
     events: Vec<CaptureEvent>,
+    plans: Vec<PlanStep>,
     payloads: HashMap<(String, u64), Vec<u8>>,
     foreign: crate::foreign::ForeignMessages,
 }
@@ -285,6 +289,15 @@ impl Collected {
                 self.events
                     .push(serde_json::from_slice(data).map_err(|source| ReplayError::BadEvent {
                         topic: CAPTURE_EVENTS_TOPIC,
+                        log_time,
+                        source,
+                    })?);
+            }
+        } else if topic == CAPTURE_PLAN_TOPIC {
+            if range.contains(log_time) {
+                self.plans
+                    .push(serde_json::from_slice(data).map_err(|source| ReplayError::BadEvent {
+                        topic: CAPTURE_PLAN_TOPIC,
                         log_time,
                         source,
                     })?);
@@ -331,7 +344,10 @@ impl TimeRange {
 /// (foreign logs with images, calibrations and `/tf`) get their sets inferred from the poses.
 pub fn read_log_in(bytes: &[u8], range: &TimeRange) -> Result<LogContents, ReplayError> {
     let wanted = |topic: &str, schema: &str| {
-        topic == CAPTURE_EVENTS_TOPIC || topic.starts_with("/camera/") || crate::foreign::is_foreign_input(schema)
+        topic == CAPTURE_EVENTS_TOPIC
+            || topic == CAPTURE_PLAN_TOPIC
+            || topic.starts_with("/camera/")
+            || crate::foreign::is_foreign_input(schema)
     };
     let mut collected = Collected::default();
     let indexed = if *range == TimeRange::default() {
@@ -367,9 +383,11 @@ pub fn read_log_in(bytes: &[u8], range: &TimeRange) -> Result<LogContents, Repla
     };
     let Collected {
         events,
+        mut plans,
         payloads,
         foreign,
     } = collected;
+    plans.sort_by_key(|p| (p.set_index, p.step));
     let truncation = damage.cut;
     let damaged = truncation.is_some() || !damage.bad_chunks.is_empty();
     let bad_chunks: Vec<String> = damage.bad_chunks.iter().map(|(reason, _)| reason.clone()).collect();
@@ -414,6 +432,7 @@ pub fn read_log_in(bytes: &[u8], range: &TimeRange) -> Result<LogContents, Repla
         truncation,
         bad_chunks,
         metadata: read_metadata(bytes, damage.metadata.take()),
+        plans,
     })
 }
 

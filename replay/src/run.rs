@@ -246,6 +246,7 @@ pub fn replay_log(
         let prepared = PreparedSet::new(set, &request.options)?;
         report_alignment(set, &prepared, request.options.rectify);
         viewer.log(|v| crate::viewer::log_capture(v, &prepared.selected));
+        viewer.log(|v| crate::viewer::log_plans(v, &prepared.selected, &contents.plans));
         viewer
             .log(|v| crate::viewer::log_costs(v, &prepared.selected, &prepared.problem, prepared.occluded.as_deref()));
         debug!("rerun: {:.3} s so far", viewer.seconds);

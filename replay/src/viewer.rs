@@ -68,6 +68,25 @@ pub fn log_capture(viewer: &Viewer, set: &ViewSet) -> Result<(), VizError> {
     Ok(())
 }
 
+/// The plans of an adaptive set (`/capture/plan`) on the capture timeline: at each plan's time,
+/// every candidate's frustum coloured by score and the chosen one marked (the estimates the plans
+/// were made from are shown live by `record --rig adaptive --rerun`; the log keeps the scores).
+pub fn log_plans(viewer: &Viewer, set: &ViewSet, plans: &[record::adaptive::PlanStep]) -> Result<(), VizError> {
+    let camera = &set.reference.camera;
+    for step in plans.iter().filter(|p| p.set_index == set.index) {
+        viewer.set_capture_time(step.time_nanos);
+        viewer.log_plan(
+            &step.frusta(),
+            (
+                [camera.fx, camera.fy, camera.cx, camera.cy],
+                [camera.width, camera.height],
+            ),
+            None,
+        )?;
+    }
+    Ok(())
+}
+
 /// Box-averages an image by `factor` (rows and columns beyond a whole block are dropped).
 fn downsample(image: &Image, factor: usize) -> Image {
     let (w, h, c) = (image.width / factor, image.height / factor, image.channels);

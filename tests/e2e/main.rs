@@ -5,6 +5,7 @@ mod crash_safety;
 mod docs;
 mod fuzz;
 mod mfusenet;
+mod record_adaptive;
 mod record_cli;
 mod record_geometry;
 mod record_ground_truth;

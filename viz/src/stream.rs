@@ -133,6 +133,21 @@ pub struct CameraView<'a> {
     pub time_nanos: u64,
 }
 
+/// One candidate view of a plan as drawn: where the camera would be and how it scored.
+#[derive(Debug, Clone)]
+pub struct PlannedFrustum {
+    /// Pose (world from the optical frame).
+    pub world_from_camera: Isometry3<f64>,
+    /// Score relative to the plan's best (0 … 1).
+    pub score: f32,
+    /// Label (role and expected pixels).
+    pub label: String,
+    /// Whether the plan chose it.
+    pub chosen: bool,
+    /// Whether the arm can take it (unreachable ones are drawn grey).
+    pub reachable: bool,
+}
+
 /// What the layout shows: the camera roles and the methods.
 #[derive(Debug, Clone, Default)]
 pub struct Layout {
@@ -501,6 +516,61 @@ impl Viewer {
                     .with_colormap(rerun::components::Colormap::Turbo)
                     .with_depth_range([0.0, f64::from(error_scale_px * ERROR_STEPS_PER_PX)]),
             )?;
+        }
+        Ok(())
+    }
+
+    /// A plan of the next view on the capture timeline: every candidate's frustum at `world/plan`
+    /// (`intrinsics` `[fx, fy, cx, cy]` and `size` of the camera; drawn 4 cm deep), coloured by
+    /// score from blue (worst) to red (best), unreachable ones grey, the chosen one thicker; and
+    /// the estimate the plan was made from as the centre's `plan` depth (`focal_baseline_px_m`:
+    /// `f·b`) and `results/plan/confidence`.
+    pub fn log_plan(
+        &self,
+        frusta: &[PlannedFrustum],
+        (intrinsics, size): ([f64; 4], [u32; 2]),
+        estimate: Option<(&[f32], &[f32], f64)>,
+    ) -> Result<(), VizError> {
+        let [fx, fy, cx, cy] = intrinsics;
+        let depth = 0.04;
+        let corners: Vec<nalgebra::Point3<f64>> = [
+            (0.0, 0.0),
+            (f64::from(size[0]), 0.0),
+            (f64::from(size[0]), f64::from(size[1])),
+            (0.0, f64::from(size[1])),
+        ]
+        .iter()
+        .map(|(u, v)| nalgebra::Point3::new((u - cx) / fx * depth, (v - cy) / fy * depth, depth))
+        .collect();
+        let mut strips = Vec::new();
+        let (mut colours, mut radii, mut labels) = (Vec::new(), Vec::new(), Vec::new());
+        for frustum in frusta {
+            let at = |p: &nalgebra::Point3<f64>| {
+                let w = frustum.world_from_camera * p;
+                [w.x as f32, w.y as f32, w.z as f32]
+            };
+            let apex = at(&nalgebra::Point3::origin());
+            let c: Vec<[f32; 3]> = corners.iter().map(at).collect();
+            strips.push(vec![apex, c[0], c[1], c[2], c[3], c[0], apex, c[1], c[2], apex, c[3]]);
+            let t = frustum.score.clamp(0.0, 1.0);
+            colours.push(if frustum.reachable {
+                rerun::Color::from_rgb((255.0 * t) as u8, 60, (255.0 * (1.0 - t)) as u8)
+            } else {
+                rerun::Color::from_rgb(128, 128, 128)
+            });
+            radii.push(if frustum.chosen { 0.0015f32 } else { 0.0006 });
+            labels.push(frustum.label.clone());
+        }
+        self.log(
+            "world/plan",
+            &rerun::LineStrips3D::new(strips)
+                .with_colors(colours)
+                .with_radii(radii)
+                .with_labels(labels),
+        )?;
+        if let Some((disparity_px, confidence, focal_baseline_px_m)) = estimate {
+            self.log_result("plan", size, disparity_px, focal_baseline_px_m, 0.0, None, 4.0)?;
+            self.log_confidence("plan", size, confidence)?;
         }
         Ok(())
     }

@@ -4,6 +4,7 @@ use std::path::PathBuf;
 
 use clap::Args;
 use record::ImageFormat;
+use record::adaptive::AdaptiveConfig;
 use record::capture::{ErrorInjection, SimulationConfig, ViewExposure, ViewPoseError};
 use record::rig::RigKind;
 use record::scene::SceneKind;
@@ -20,9 +21,20 @@ pub struct SimulateArgs {
     #[arg(long, num_args = 1..=2, value_names = ["MODE", "ARG"])]
     pub(crate) rerun: Vec<String>,
     /// View layout: five-view (centre, left, right, top, bottom), three-view, stereo, grid3x3,
-    /// line5 (five in a row at −2 … 2 baselines).
+    /// line5 (five in a row at −2 … 2 baselines), or adaptive (the centre, then each next view
+    /// where a plan from the depth so far says it resolves most; see --views).
     #[arg(long, value_enum, default_value = "five-view")]
     pub(crate) rig: RigKind,
+    /// Adaptive rig: views per set, the centre included (2 … 9).
+    #[arg(long, default_value = "5", value_parser = clap::value_parser!(u32).range(2..=9))]
+    pub(crate) views: u32,
+    /// Adaptive rig: the method run on the views so far to plan the next (MFuseNet plans left and
+    /// right or top and bottom in pairs, which its networks take).
+    #[arg(long, default_value = "mfusenet", value_name = "METHOD")]
+    pub(crate) plan_method: String,
+    /// Adaptive rig: longest candidate offset, in baselines (1: the direct neighbours' ring).
+    #[arg(long, default_value = "1", value_parser = clap::value_parser!(i32).range(1..=4))]
+    pub(crate) plan_max_offset: i32,
     /// Distance between the centre view and each direct neighbour (mm).
     #[arg(long, default_value = "20", value_parser = parse_positive_mm)]
     pub(crate) baseline_mm: f64,
@@ -112,6 +124,12 @@ pub fn simulation_config(args: &SimulateArgs) -> SimulationConfig {
             exposure: args.exposure.clone(),
         },
         converge_m: args.converge_m,
+        adaptive: AdaptiveConfig {
+            views: args.views,
+            method: args.plan_method.clone(),
+            max_offset: args.plan_max_offset,
+            ..AdaptiveConfig::default()
+        },
         ..SimulationConfig::default()
     }
 }

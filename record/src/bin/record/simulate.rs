@@ -9,7 +9,7 @@ use record::capture::{Simulation, SimulationError};
 use record::live::{LiveCapture, log_layout};
 use record::session::record_simulation;
 use tracing::{error, info, warn};
-use viz::stream::{Layout, Viewer, ViewerSink};
+use viz::stream::ViewerSink;
 
 use crate::options::{SimulateArgs, simulation_config};
 
@@ -27,7 +27,7 @@ pub fn run(args: &SimulateArgs, quiet: bool) -> Result<Outcome> {
         "interrupt: finishing the log with the sets completed so far (Ctrl-C again to abort)",
         "aborted: no log written",
     );
-    let views_per_set = config.rig.capture_order().len() as u64;
+    let views_per_set = u64::from(config.views_per_set());
     let bar = progress_bar(u64::from(config.captures) * views_per_set, quiet, "views");
     info!(
         "recording {} {} set(s) of the {} scene at {}x{}, baseline {} mm → {}",
@@ -44,27 +44,16 @@ pub fn run(args: &SimulateArgs, quiet: bool) -> Result<Outcome> {
         None
     } else {
         let sink = ViewerSink::parse(&args.rerun).map_err(|e| UsageError(e.to_string()))?;
-        let layout = Layout {
-            roles: config.rig.capture_order().iter().map(|s| s.role.to_owned()).collect(),
-            ..Layout::default()
-        };
-        match Viewer::create("multiscopic_record", &sink, &layout) {
-            Ok(viewer) => match LiveCapture::new(viewer, sim.arm().clone()) {
-                Ok(live) => Some(live),
-                Err(e) => {
-                    error!("Rerun: {e}\n  (the recording goes on; the log is still written)");
-                    viewer_lost = true;
-                    None
-                }
-            },
-            Err(e) => {
-                error!("{e}\n  (the recording goes on; the log is still written)");
+        let roles = config.rig.capture_order().iter().map(|s| s.role.to_owned()).collect();
+        LiveCapture::open(&sink, roles, sim.arm().clone())
+            .inspect_err(|e| {
+                error!("Rerun: {e}\n  (the recording goes on; the log is still written)");
                 viewer_lost = true;
-                None
-            }
-        }
+            })
+            .ok()
     };
     let viewer_error = std::cell::Cell::new(None::<viz::stream::VizError>);
+    let camera = *sim.camera();
     let mut layout_of_log = None;
     let outcome = record_simulation(
         &mut sim,
@@ -76,6 +65,14 @@ pub fn run(args: &SimulateArgs, quiet: bool) -> Result<Outcome> {
             bar.inc(1);
             if let Some(live) = &viewer
                 && let Err(e) = live.view(view)
+            {
+                viewer_error.set(Some(e));
+            }
+        },
+        |step, estimate| {
+            bar.suspend(|| info!("{}", step.summary()));
+            if let Some(live) = &viewer
+                && let Err(e) = live.plan(step, estimate, &camera, config.baseline_mm / 1000.0)
             {
                 viewer_error.set(Some(e));
             }

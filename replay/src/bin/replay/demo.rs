@@ -33,6 +33,11 @@ pub struct DemoArgs {
     /// Rig layout.
     #[arg(long, value_enum, default_value = "five-view")]
     rig: record::rig::RigKind,
+    /// Next-best-view capture (`--rig adaptive`): the centre, then each of 4 more views where a
+    /// plan from MFuseNet's depth so far says it resolves most; the plans go into the log and
+    /// the recording (candidate frusta coloured by score).
+    #[arg(long, conflicts_with = "rig")]
+    adaptive: bool,
     /// Seed.
     #[arg(long, default_value = "0")]
     seed: u64,
@@ -50,13 +55,17 @@ pub fn run(args: &DemoArgs, quiet: bool) -> Result<Outcome> {
         .ok_or_else(|| UsageError(format!("--resolution {}: expected WxH, e.g. 960x540", args.resolution)))?;
     let config = record::capture::SimulationConfig {
         scene: args.scene,
-        rig: args.rig,
+        rig: if args.adaptive {
+            record::rig::RigKind::Adaptive
+        } else {
+            args.rig
+        },
         seed: args.seed,
         width,
         height,
         ..record::capture::SimulationConfig::default()
     };
-    let views = config.rig.capture_order().len() as u64 * u64::from(config.captures);
+    let views = u64::from(config.views_per_set()) * u64::from(config.captures);
     let progress = progress_bar(views, quiet, "views");
     let capture = replay::demo::record_capture(config, &args.out, |set, role| {
         progress.set_message(format!("rendering set {set} view {role}"));
