@@ -77,6 +77,14 @@ impl Image {
     }
 }
 
+/// Grey levels (BT.601, unrounded) of 8-bit RGB pixels, for the analyses that want floats (the
+/// alignment check, the next-best-view planner).
+pub fn luma_levels(rgb: &[u8]) -> Vec<f32> {
+    rgb.chunks_exact(3)
+        .map(|p| 0.299 * f32::from(p[0]) + 0.587 * f32::from(p[1]) + 0.114 * f32::from(p[2]))
+        .collect()
+}
+
 /// A disparity map in pixels of the reference view; `f32::INFINITY` marks "no estimate"
 /// (Middlebury's PFM convention).
 #[derive(Debug, Clone, PartialEq)]

@@ -538,6 +538,23 @@ fn plan_at(input: &PlanInput<'_>, config: &PlanConfig) -> Result<Vec<Candidate>,
 mod tests {
     use super::*;
 
+    /// An input with the given buffers, the views `taken` and a 64 px search range.
+    fn input<'a>(
+        (width, height): (usize, usize),
+        (luma, disparity_px, confidence): (&'a [f32], &'a [f32], &'a [f32]),
+        taken: &'a [[i32; 2]],
+    ) -> PlanInput<'a> {
+        PlanInput {
+            width,
+            height,
+            luma,
+            disparity_px,
+            confidence,
+            taken,
+            max_disparity_px: 64.0,
+        }
+    }
+
     /// A textured background at disparity 4 with a near box (disparity 12) standing at the
     /// image's left.
     fn occluder_on_the_left(w: usize, h: usize) -> (Vec<f32>, Vec<f32>) {
@@ -581,18 +598,10 @@ mod tests {
     fn an_occluder_on_the_left_picks_a_view_on_the_right() {
         let (w, h) = (96, 48);
         let (luma, disparity) = occluder_on_the_left(w, h);
-        // The set so far: the centre and the left view; it sees the background left of the box's
-        // edge... and misses the background right of it (the box moved over it).
+        // The set so far: the centre and the left view, in which the box covers the background
+        // right beside it.
         let confidence = vec![0.6f32; w * h];
-        let input = PlanInput {
-            width: w,
-            height: h,
-            luma: &luma,
-            disparity_px: &disparity,
-            confidence: &confidence,
-            taken: &[[-1, 0]],
-            max_disparity_px: 64.0,
-        };
+        let input = input((w, h), (&luma, &disparity, &confidence), &[[-1, 0]]);
         let ranked = plan(&input, &PlanConfig::default()).unwrap_or_else(|e| panic!("{e}"));
         let best = &ranked[0];
         assert!(best.offsets[0][0] > 0, "a view on the right: {ranked:#?}");
@@ -608,15 +617,7 @@ mod tests {
             .collect();
         let disparity = vec![5.0f32; w * h];
         let confidence = vec![0.2f32; w * h];
-        let input = PlanInput {
-            width: w,
-            height: h,
-            luma: &luma,
-            disparity_px: &disparity,
-            confidence: &confidence,
-            taken: &[],
-            max_disparity_px: 64.0,
-        };
+        let input = input((w, h), (&luma, &disparity, &confidence), &[]);
         for layout in [LayoutRule::Free, LayoutRule::Pairs] {
             let config = PlanConfig {
                 layout,
@@ -642,15 +643,7 @@ mod tests {
             .collect();
         let disparity = vec![1.5f32; w * h];
         let confidence = vec![0.3f32; w * h];
-        let mut input = PlanInput {
-            width: w,
-            height: h,
-            luma: &luma,
-            disparity_px: &disparity,
-            confidence: &confidence,
-            taken: &[[1, 0]],
-            max_disparity_px: 64.0,
-        };
+        let mut input = input((w, h), (&luma, &disparity, &confidence), &[[1, 0]]);
         let ranked = plan(&input, &PlanConfig::default()).unwrap_or_else(|e| panic!("{e}"));
         assert_eq!(
             ranked[0].offsets[0].iter().map(|v| v.abs()).max(),
@@ -678,13 +671,8 @@ mod tests {
         let disparity: Vec<f32> = (0..w * h).map(|p| 4.0 * small_disparity[at(p)]).collect();
         let confidence = vec![0.6f32; w * h];
         let input = PlanInput {
-            width: w,
-            height: h,
-            luma: &luma,
-            disparity_px: &disparity,
-            confidence: &confidence,
-            taken: &[[-1, 0]],
             max_disparity_px: 256.0,
+            ..input((w, h), (&luma, &disparity, &confidence), &[[-1, 0]])
         };
         let full = PlanConfig {
             max_width_px: 4096,

@@ -169,13 +169,6 @@ pub struct AdaptiveSet {
     pub steps: Vec<PlanStep>,
 }
 
-/// Grey levels of an RGB image (BT.601).
-fn luma(rgb: &[u8]) -> Vec<f32> {
-    rgb.chunks_exact(3)
-        .map(|p| 0.299 * f32::from(p[0]) + 0.587 * f32::from(p[1]) + 0.114 * f32::from(p[2]))
-        .collect()
-}
-
 /// The matching problem of the views so far (the first is the centre).
 fn problem(views: &[CapturedView], range: &crate::DisparityRange) -> Result<fuse::Problem, FuseError> {
     let image = |v: &CapturedView| fuse::Image::rgb(v.camera.width as usize, v.camera.height as usize, v.rgb.clone());
@@ -233,7 +226,7 @@ impl Simulation {
         let centre = self.capture_view(set, (REFERENCE_ROLE, [0, 0]), &station, None, baseline_m, &mut motion)?;
         on_view(&centre);
         let believed_reference = centre.world_from_camera;
-        let centre_luma = luma(&centre.rgb);
+        let centre_luma = fuse::image::luma_levels(&centre.rgb);
         let mut views = vec![centre];
         let mut steps = Vec::new();
         while views.len() < adaptive.views as usize {

@@ -213,13 +213,6 @@ fn epipolar_error(
     worst
 }
 
-fn luma(view: &View) -> Vec<f32> {
-    view.rgb
-        .chunks_exact(3)
-        .map(|p| 0.299 * f32::from(p[0]) + 0.587 * f32::from(p[1]) + 0.114 * f32::from(p[2]))
-        .collect()
-}
-
 /// The perpendicular shift (px) that best aligns a group of sample pixels: for each candidate
 /// shift, the sum of the samples' best block costs over the disparities; the minimum refined by
 /// equiangular lines.
@@ -386,8 +379,8 @@ fn biweights(points: &[(f64, f64)], a: f64, b: f64) -> Vec<f64> {
 /// ([`pooled_shift`]) is the answer.
 fn image_shift(set: &ViewSet, neighbour: &View, num_disparities: usize, depth_range: (f64, f64)) -> Option<f64> {
     let (w, h) = (set.width() as i32, set.height() as i32);
-    let reference = luma(&set.reference);
-    let other = luma(neighbour);
+    let reference = fuse::image::luma_levels(&set.reference.rgb);
+    let other = fuse::image::luma_levels(&neighbour.rgb);
     let (ox, oy) = (neighbour.offset[0], neighbour.offset[1]);
     let (px, py) = (-oy.signum(), ox.signum());
     let margin = IMAGE_BLOCK_RADIUS + IMAGE_SHIFT_SEARCH_PX + 1;

@@ -284,23 +284,22 @@ impl Collected {
         log_time: u64,
         data: &[u8],
     ) -> Result<(), ReplayError> {
+        let parse = |topic: &'static str| {
+            move |source| ReplayError::BadEvent {
+                topic,
+                log_time,
+                source,
+            }
+        };
         if topic == CAPTURE_EVENTS_TOPIC {
             if range.contains(log_time) {
                 self.events
-                    .push(serde_json::from_slice(data).map_err(|source| ReplayError::BadEvent {
-                        topic: CAPTURE_EVENTS_TOPIC,
-                        log_time,
-                        source,
-                    })?);
+                    .push(serde_json::from_slice(data).map_err(parse(CAPTURE_EVENTS_TOPIC))?);
             }
         } else if topic == CAPTURE_PLAN_TOPIC {
             if range.contains(log_time) {
                 self.plans
-                    .push(serde_json::from_slice(data).map_err(|source| ReplayError::BadEvent {
-                        topic: CAPTURE_PLAN_TOPIC,
-                        log_time,
-                        source,
-                    })?);
+                    .push(serde_json::from_slice(data).map_err(parse(CAPTURE_PLAN_TOPIC))?);
             }
         } else if (range.contains(log_time) || schema == crate::foreign::TRANSFORMS_SCHEMA)
             && self.foreign.add(topic, schema, log_time, data)

@@ -128,13 +128,6 @@ pub fn layout_for(method: &dyn Method) -> LayoutRule {
     }
 }
 
-/// Grey levels of an RGB image (BT.601).
-pub fn luma(rgb: &[u8]) -> Vec<f32> {
-    rgb.chunks_exact(3)
-        .map(|p| 0.299 * f32::from(p[0]) + 0.587 * f32::from(p[1]) + 0.114 * f32::from(p[2]))
-        .collect()
-}
-
 /// Scores the candidates of `set` from a disparity and confidence already computed, and checks
 /// their poses against the arm.
 pub fn plan_from_estimate(
@@ -143,7 +136,7 @@ pub fn plan_from_estimate(
     config: &PlanConfig,
     max_disparity_px: f32,
 ) -> Result<Vec<PlannedCandidate>, ReplayError> {
-    let luma = luma(&set.reference.rgb);
+    let luma = fuse::image::luma_levels(&set.reference.rgb);
     let confidence = disparity
         .confidence
         .clone()

@@ -321,3 +321,30 @@ fn the_viewer_shows_a_recorded_log_with_its_cameras_and_images() {
         ],
     );
 }
+
+#[test]
+fn the_adaptive_demo_records_plans_and_shows_their_candidates() {
+    let dir = temp_dir();
+    let out = dir.path().join("demo");
+    let output = run(Command::new(binary("replay")).args([
+        "demo",
+        "--adaptive",
+        "--out",
+        out.to_str().unwrap_or_default(),
+        "--resolution",
+        "160x96",
+        "--method",
+        "bm-heuristic",
+        "-q",
+    ]));
+    assert_success(&output, "replay demo --adaptive");
+    let printed = printed(&out.join("demo.rrd"));
+    assert_column(&printed, "/world/plan", "LineStrips3D:strips");
+    assert_column(&printed, "/world/plan", "LineStrips3D:colors");
+    // Four plans (views 2 … 5), one row each.
+    let rows: usize = columns_of(&printed, "/world/plan")
+        .lines()
+        .filter_map(|l| l.split(" with ").nth(1)?.split(' ').next()?.parse::<usize>().ok())
+        .sum();
+    assert_eq!(rows, 4, "{}", columns_of(&printed, "/world/plan"));
+}
