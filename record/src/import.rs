@@ -396,8 +396,11 @@ pub enum ImportError {
         /// What is wrong.
         reason: &'static str,
     },
-    /// The layout needs a different number of views.
-    #[error("layout {layout} has {expected} views, but {given} view files were named")]
+    /// The layout needs a different number of views (an adaptive capture has no fixed layout:
+    /// its one slot is the centre; name the views with their offsets instead).
+    #[error(
+        "layout {layout} has {expected} views, but {given} view files were named (give each file its offset, FILE@DX[:DY], for other layouts)"
+    )]
     ViewCount {
         /// Layout name.
         layout: &'static str,

@@ -26,8 +26,8 @@ pub enum RigKind {
     #[serde(rename = "line5")]
     Line5,
     /// The centre, then each next view where a plan from the depth so far says it resolves most
-    /// (next-best-view capture, `record --rig adaptive --views N`; `crate::adaptive`). Only the
-    /// centre is fixed: [`RigKind::capture_order`] lists it alone.
+    /// (next-best-view capture with `--views N`; not a layout to import)
+    // Only the centre is fixed: `capture_order` lists it alone (`crate::adaptive` plans the rest).
     Adaptive,
 }
 
