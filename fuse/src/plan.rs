@@ -47,6 +47,17 @@ pub enum LayoutRule {
     Pairs,
 }
 
+impl LayoutRule {
+    /// The rule a method's family needs: opposite pairs for MFuseNet's networks, any offset for
+    /// the others (and for an unknown method).
+    pub fn for_family(family: Option<crate::methods::Family>) -> Self {
+        match family {
+            Some(crate::methods::Family::MFuseNet) => Self::Pairs,
+            _ => Self::Free,
+        }
+    }
+}
+
 /// The planner's settings.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, serde::Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -104,7 +115,7 @@ pub struct PlanInput<'a> {
 }
 
 /// One scored candidate (a single offset, or an opposite pair under [`LayoutRule::Pairs`]).
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, serde::Deserialize)]
 pub struct Candidate {
     /// Grid offsets of the views to take (one, or a pair; a pair member already taken is left
     /// out).
@@ -167,18 +178,26 @@ fn direction(offset: [i32; 2]) -> Option<([i32; 2], i32)> {
 /// nearer and covers it. Pixels without an estimate count as seen if they land in the image at
 /// the median disparity.
 pub fn visibility(width: usize, height: usize, disparity: &[f32], offset: [i32; 2]) -> Vec<bool> {
+    visibility_with(width, height, disparity, offset, median_disparity(disparity))
+}
+
+/// The median of the finite disparities (0 when there are none).
+fn median_disparity(disparity: &[f32]) -> f32 {
+    let mut finite: Vec<f32> = disparity.iter().copied().filter(|d| d.is_finite()).collect();
+    if finite.is_empty() {
+        return 0.0;
+    }
+    let mid = finite.len() / 2;
+    *finite.select_nth_unstable_by(mid, f32::total_cmp).1
+}
+
+/// [`visibility`] with the disparity assumed where there is no estimate.
+fn visibility_with(width: usize, height: usize, disparity: &[f32], offset: [i32; 2], fallback: f32) -> Vec<bool> {
     let mut visible = vec![false; width * height];
     let Some(([ux, uy], k)) = direction(offset) else {
         return visible;
     };
     let kf = k as f32;
-    let mut finite: Vec<f32> = disparity.iter().copied().filter(|d| d.is_finite()).collect();
-    let fallback = if finite.is_empty() {
-        0.0
-    } else {
-        let mid = finite.len() / 2;
-        *finite.select_nth_unstable_by(mid, f32::total_cmp).1
-    };
     let inside = |x: usize, y: usize, d: f32| {
         let (tx, ty) = (x as f32 - (k * ux) as f32 * d, y as f32 - (k * uy) as f32 * d);
         tx >= 0.0 && ty >= 0.0 && tx <= (width - 1) as f32 && ty <= (height - 1) as f32
@@ -280,38 +299,50 @@ fn box_mean(width: usize, height: usize, values: &[f32], r: usize) -> Vec<f32> {
     out
 }
 
-/// What the planner computes once per input: per pixel need, the taken views' visibility and the
-/// texture tensor.
+/// What the planner computes once per input: per pixel need, the taken views' visibility (and
+/// directions, in the same order) and whether any of them sees it, the texture tensor, and the
+/// median and largest disparities.
 struct Prepared {
     need: Vec<f32>,
     seen_from: Vec<Vec<bool>>,
-    taken_directions: Vec<[i32; 2]>,
+    taken_directions: Vec<Option<[i32; 2]>>,
+    hidden: Vec<bool>,
     tensor: [Vec<f32>; 3],
+    median_disparity: f32,
+    largest_disparity: f32,
 }
 
 fn prepare(input: &PlanInput<'_>, config: &PlanConfig) -> Prepared {
     let (w, h) = (input.width, input.height);
+    let median_disparity = median_disparity(input.disparity_px);
     let seen_from: Vec<Vec<bool>> = input
         .taken
         .iter()
-        .map(|o| visibility(w, h, input.disparity_px, *o))
+        .map(|o| visibility_with(w, h, input.disparity_px, *o, median_disparity))
         .collect();
+    let hidden: Vec<bool> = (0..w * h).map(|p| !seen_from.iter().any(|v| v[p])).collect();
     let need = (0..w * h)
         .map(|p| {
-            let unsure = if input.disparity_px[p].is_finite() {
-                1.0 - input.confidence[p].clamp(0.0, 1.0)
-            } else {
+            if hidden[p] || !input.disparity_px[p].is_finite() {
                 1.0
-            };
-            let hidden = !seen_from.iter().any(|v| v[p]);
-            if hidden { 1.0 } else { unsure }
+            } else {
+                1.0 - input.confidence[p].clamp(0.0, 1.0)
+            }
         })
         .collect();
     Prepared {
         need,
-        taken_directions: input.taken.iter().filter_map(|o| direction(*o).map(|d| d.0)).collect(),
+        taken_directions: input.taken.iter().map(|o| direction(*o).map(|d| d.0)).collect(),
         seen_from,
+        hidden,
         tensor: structure_tensor(w, h, input.luma, config.window_radius_px),
+        median_disparity,
+        largest_disparity: input
+            .disparity_px
+            .iter()
+            .copied()
+            .filter(|d| d.is_finite())
+            .fold(0.0f32, f32::max),
     }
 }
 
@@ -325,7 +356,7 @@ struct Scored {
 
 fn score_offset(input: &PlanInput<'_>, config: &PlanConfig, prepared: &Prepared, offset: [i32; 2]) -> Scored {
     let (w, h) = (input.width, input.height);
-    let visible = visibility(w, h, input.disparity_px, offset);
+    let visible = visibility_with(w, h, input.disparity_px, offset, prepared.median_disparity);
     let Some((unit, k)) = direction(offset) else {
         return Scored {
             per_pixel: vec![0.0; w * h],
@@ -337,18 +368,12 @@ fn score_offset(input: &PlanInput<'_>, config: &PlanConfig, prepared: &Prepared,
     let (ux, uy) = (unit[0] as f32, unit[1] as f32);
     let norm = (ux * ux + uy * uy).sqrt();
     let (ux, uy) = (ux / norm, uy / norm);
-    let largest = input
-        .disparity_px
-        .iter()
-        .copied()
-        .filter(|d| d.is_finite())
-        .fold(0.0f32, f32::max);
-    let feasible = k as f32 * largest <= input.max_disparity_px;
+    let feasible = k as f32 * prepared.largest_disparity <= input.max_disparity_px;
     let same_direction: Vec<usize> = prepared
         .taken_directions
         .iter()
         .enumerate()
-        .filter(|(_, d)| **d == unit)
+        .filter(|(_, d)| **d == Some(unit))
         .map(|(i, _)| i)
         .collect();
     let [jxx, jxy, jyy] = &prepared.tensor;
@@ -396,8 +421,7 @@ fn summarise(input: &PlanInput<'_>, prepared: &Prepared, offsets: Vec<[i32; 2]>,
         }
         if prepared.need[p] >= 0.5 {
             needy += 1;
-            let hidden_so_far = !prepared.seen_from.iter().any(|v| v[p]);
-            revealed += usize::from(hidden_so_far && seen);
+            revealed += usize::from(prepared.hidden[p] && seen);
         }
     }
     Candidate {

@@ -12,7 +12,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use fuse::methods::Family;
-use fuse::plan::{LayoutRule, PlanConfig, PlanInput};
+use fuse::plan::{Candidate, LayoutRule, PlanConfig, PlanInput};
 use fuse::{DisparityImage, FuseError};
 use nalgebra::Isometry3;
 use serde::{Deserialize, Serialize};
@@ -58,28 +58,17 @@ impl Default for AdaptiveConfig {
 impl AdaptiveConfig {
     /// The layout rule in force for `method`.
     pub fn layout_for(&self, family: Option<Family>) -> LayoutRule {
-        self.layout.unwrap_or(match family {
-            Some(Family::MFuseNet) => LayoutRule::Pairs,
-            _ => LayoutRule::Free,
-        })
+        self.layout.unwrap_or_else(|| LayoutRule::for_family(family))
     }
 }
 
-/// One scored candidate of a plan step, as the log records it.
+/// One scored candidate of a plan step, as the log records it: the planner's scores and whether
+/// the arm reaches its views.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct PlanCandidate {
-    /// Grid offsets of its views (one, or an opposite pair).
-    pub offsets: Vec<[i32; 2]>,
-    /// Pixels it is expected to resolve.
-    pub expected_pixels: f64,
-    /// `expected_pixels` as a share of the image.
-    pub gain: f64,
-    /// Share of the needy pixels no view so far sees and it would.
-    pub reveals_share: f64,
-    /// Mean texture term along its direction.
-    pub texture: f64,
-    /// Whether the methods' search range covers it.
-    pub feasible: bool,
+    /// The planner's scores (offsets, expected pixels, gain, …).
+    #[serde(flatten)]
+    pub score: Candidate,
     /// Whether the arm reaches every view of it clear of the table.
     pub reachable: bool,
     /// Why not, when not.
@@ -125,7 +114,7 @@ impl PlanStep {
             self.step + 1,
             self.chosen_role,
             self.candidates.len(),
-            self.candidates.first().map_or(0.0, |c| c.expected_pixels),
+            self.candidates.first().map_or(0.0, |c| c.score.expected_pixels),
             self.planning_seconds,
             self.method_seconds,
             self.method.as_deref().unwrap_or("texture alone")
@@ -139,21 +128,22 @@ impl PlanStep {
         let best = self
             .candidates
             .iter()
-            .map(|c| c.expected_pixels)
+            .map(|c| c.score.expected_pixels)
             .fold(0.0f64, f64::max)
             .max(1.0);
         self.candidates
             .iter()
             .flat_map(|c| {
-                c.offsets
+                c.score
+                    .offsets
                     .iter()
                     .zip(&c.world_from_camera)
                     .map(move |(offset, pose)| viz::stream::PlannedFrustum {
                         world_from_camera: pose.to_isometry(),
-                        score: (c.expected_pixels / best) as f32,
-                        label: format!("{} {:.0} px", role_for_offset(*offset), c.expected_pixels),
+                        score: (c.score.expected_pixels / best) as f32,
+                        label: format!("{} {:.0} px", role_for_offset(*offset), c.score.expected_pixels),
                         chosen: *offset == self.chosen_offset,
-                        reachable: c.reachable && c.feasible,
+                        reachable: c.reachable && c.score.feasible,
                     })
             })
             .collect()
@@ -227,6 +217,9 @@ impl Simulation {
         on_view(&centre);
         let believed_reference = centre.world_from_camera;
         let centre_luma = fuse::image::luma_levels(&centre.rgb);
+        // What the first plan knows of each pixel: nothing.
+        let (w, h) = (centre.camera.width as usize, centre.camera.height as usize);
+        let unknown = (vec![f32::INFINITY; w * h], vec![0.0f32; w * h]);
         let mut views = vec![centre];
         let mut steps = Vec::new();
         while views.len() < adaptive.views as usize {
@@ -243,8 +236,6 @@ impl Simulation {
             };
             let method_seconds = started.elapsed().as_secs_f64();
             let started = Instant::now();
-            let (w, h) = (views[0].camera.width as usize, views[0].camera.height as usize);
-            let unknown = (vec![f32::INFINITY; w * h], vec![0.0f32; w * h]);
             let (disparity, confidence) = estimate.as_ref().map_or((&unknown.0, &unknown.1), |e| {
                 (&e.data, e.confidence.as_ref().unwrap_or(&unknown.1))
             });
@@ -267,8 +258,8 @@ impl Simulation {
                 .collect();
             let chosen = candidates
                 .iter()
-                .find(|c| c.feasible && c.reachable)
-                .map(|c| c.offsets[0])
+                .find(|c| c.score.feasible && c.reachable)
+                .map(|c| c.score.offsets[0])
                 .ok_or(SimulationError::NothingToTake { set, step })?;
             let plan = PlanStep {
                 set_index: set,
@@ -319,14 +310,9 @@ impl Simulation {
     }
 
     /// A scored candidate with its views' poses and whether the arm reaches them from here.
-    fn with_reach(
-        &self,
-        candidate: fuse::plan::Candidate,
-        believed_reference: &Isometry3<f64>,
-        baseline_m: f64,
-    ) -> PlanCandidate {
+    fn with_reach(&self, score: Candidate, believed_reference: &Isometry3<f64>, baseline_m: f64) -> PlanCandidate {
         let mut unreachable_because = None;
-        let poses: Vec<PoseJson> = candidate
+        let world_from_camera: Vec<PoseJson> = score
             .offsets
             .iter()
             .map(|offset| {
@@ -338,15 +324,10 @@ impl Simulation {
             })
             .collect();
         PlanCandidate {
-            offsets: candidate.offsets,
-            expected_pixels: candidate.expected_pixels,
-            gain: candidate.gain,
-            reveals_share: candidate.reveals_share,
-            texture: candidate.texture,
-            feasible: candidate.feasible,
+            score,
             reachable: unreachable_because.is_none(),
             unreachable_because,
-            world_from_camera: poses,
+            world_from_camera,
         }
     }
 }

@@ -390,6 +390,10 @@ fn image_shift(set: &ViewSet, neighbour: &View, num_disparities: usize, depth_ra
     // constant), and its match refined to sub-pixel (disparity, shift).
     let mut pooled: Vec<Vec<f32>> = Vec::new();
     let mut points: Vec<(f64, f64)> = Vec::new();
+    // Block costs at every shift (rows) and disparity (columns) of one sample; f32::MAX off the
+    // image.
+    let shifts = (2 * IMAGE_SHIFT_SEARCH_PX + 1) as usize;
+    let mut costs = vec![f32::MAX; shifts * num_disparities];
     for sy in 0..IMAGE_SAMPLES_PER_AXIS {
         for sx in 0..IMAGE_SAMPLES_PER_AXIS {
             let x = margin + ((w - 2 * margin) as usize * sx / IMAGE_SAMPLES_PER_AXIS) as i32;
@@ -399,9 +403,7 @@ fn image_shift(set: &ViewSet, neighbour: &View, num_disparities: usize, depth_ra
             if gradient < 8.0 {
                 continue;
             }
-            // Block costs at every shift (rows) and disparity (columns); f32::MAX off the image.
-            let shifts = (2 * IMAGE_SHIFT_SEARCH_PX + 1) as usize;
-            let mut costs = vec![f32::MAX; shifts * num_disparities];
+            costs.fill(f32::MAX);
             for (row, shift) in (-IMAGE_SHIFT_SEARCH_PX..=IMAGE_SHIFT_SEARCH_PX).enumerate() {
                 for d in 0..num_disparities as i32 {
                     let (qx, qy) = (x - ox * d + px * shift, y - oy * d + py * shift);

@@ -10,7 +10,7 @@
 
 use std::time::Instant;
 
-use fuse::methods::{Family, Method};
+use fuse::methods::Method;
 use fuse::plan::{Candidate, LayoutRule, PlanConfig, PlanInput};
 use nalgebra::Isometry3;
 use record::rig::role_for_offset;
@@ -122,10 +122,7 @@ fn mount(arm: &Ur10, world_from_camera: &Isometry3<f64>, joints: &[f64; 6]) -> I
 
 /// The layout rule a method needs: opposite pairs for MFuseNet's networks, any offset otherwise.
 pub fn layout_for(method: &dyn Method) -> LayoutRule {
-    match fuse::methods::entry(method.name()).map(|e| e.family) {
-        Some(Family::MFuseNet) => LayoutRule::Pairs,
-        _ => LayoutRule::Free,
-    }
+    LayoutRule::for_family(fuse::methods::entry(method.name()).map(|e| e.family))
 }
 
 /// Scores the candidates of `set` from a disparity and confidence already computed, and checks
