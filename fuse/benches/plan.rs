@@ -53,6 +53,7 @@ fn planning(c: &mut Criterion) {
         confidence: &confidence,
         taken: &[[-1, 0], [1, 0]],
         max_disparity_px: 256.0,
+        expected_range_px: None,
     };
     let mut group = c.benchmark_group("plan_960x540");
     group.sample_size(10);

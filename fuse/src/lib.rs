@@ -129,6 +129,12 @@ pub fn disparity_from_depth(focal_px: f64, baseline_m: f64, depth_m: f64) -> Opt
     (depth_m.is_finite() && depth_m > 0.0).then(|| focal_px * baseline_m / depth_m)
 }
 
+/// The disparities searched when nothing says otherwise for an image `width_px` wide: a
+/// fifteenth of the width, rounded up to a multiple of 16 (16 … 256).
+pub fn default_num_disparities(width_px: usize) -> usize {
+    (width_px / 15).div_ceil(16).clamp(1, 16) * 16
+}
+
 /// Z-depth (m) of a pixel with disparity `disparity_px`: `z = f·b / d`. Returns `None` for
 /// disparities ≤ 0 or not finite (no finite depth).
 pub fn depth_from_disparity(focal_px: f64, baseline_m: f64, disparity_px: f64) -> Option<f64> {

@@ -75,6 +75,10 @@ pub struct PlanConfig {
     pub redundancy: f32,
     /// Radius (px) of the window the texture is averaged over (at the planning resolution).
     pub window_radius_px: usize,
+    /// What a vertical candidate's expected pixels count against a horizontal one's: 1 for
+    /// methods that match along either axis alike; MFuseNet plans with
+    /// [`MFUSENET_VERTICAL_WEIGHT`] ([`PlanConfig::for_family`]).
+    pub vertical_weight: f32,
     /// Wider inputs are planned on a box-averaged copy at most this wide (an integer factor
     /// smaller; the expected pixels are scaled back): planning needs the scene's layout, not its
     /// last pixel, and stays a small share of a method's time.
@@ -90,7 +94,29 @@ impl Default for PlanConfig {
             resolution_half_px: 4.0,
             redundancy: 0.35,
             window_radius_px: 3,
+            vertical_weight: 1.0,
             max_width_px: 320,
+        }
+    }
+}
+
+/// [`PlanConfig::vertical_weight`] for MFuseNet: a vertical pair is taken first only where it
+/// sees at least twice the texture. Its three-view network was trained on left/right pairs, and
+/// on brushed or mirror-like metal, whose streaks run along the rows, the texture a vertical
+/// baseline sees is mostly reflection that does not move with the surface: on the simulated
+/// workpieces a top/bottom pair at twice the baseline errs by 3.5 px where a left/right pair
+/// errs by 0.1 px, and MFuseNet's confidence does not tell (docs/experiments.md).
+pub const MFUSENET_VERTICAL_WEIGHT: f32 = 0.5;
+
+impl PlanConfig {
+    /// The settings a method's family plans with: its [`LayoutRule::for_family`] and, for
+    /// MFuseNet, [`MFUSENET_VERTICAL_WEIGHT`].
+    pub fn for_family(family: Option<crate::methods::Family>) -> Self {
+        let mfusenet = family == Some(crate::methods::Family::MFuseNet);
+        Self {
+            layout: LayoutRule::for_family(family),
+            vertical_weight: if mfusenet { MFUSENET_VERTICAL_WEIGHT } else { 1.0 },
+            ..Self::default()
         }
     }
 }
@@ -112,6 +138,10 @@ pub struct PlanInput<'a> {
     pub taken: &'a [[i32; 2]],
     /// Largest disparity (px, at the candidate's own offset) the methods can search.
     pub max_disparity_px: f32,
+    /// The disparities (px per baseline) of the farthest and nearest points the scene is known
+    /// to span (a workcell's table and tallest part): with no estimate yet they stand in for the
+    /// depth; they bound which baselines are feasible, and an estimate only narrows them.
+    pub expected_range_px: Option<[f32; 2]>,
 }
 
 /// One scored candidate (a single offset, or an opposite pair under [`LayoutRule::Pairs`]).
@@ -189,6 +219,21 @@ fn median_disparity(disparity: &[f32]) -> f32 {
     }
     let mid = finite.len() / 2;
     *finite.select_nth_unstable_by(mid, f32::total_cmp).1
+}
+
+/// Share of the estimated pixels whose disparity may pass the "largest" one: a few outliers
+/// (a mismatch on a mirror) must not rule a baseline out.
+const LARGEST_DISPARITY_OUTLIERS: f64 = 0.005;
+
+/// The largest of the finite disparities in magnitude, but for [`LARGEST_DISPARITY_OUTLIERS`] of
+/// them (0 when there are none).
+fn largest_disparity(disparity: &[f32]) -> f32 {
+    let mut finite: Vec<f32> = disparity.iter().filter(|d| d.is_finite()).map(|d| d.abs()).collect();
+    if finite.is_empty() {
+        return 0.0;
+    }
+    let rank = ((finite.len() - 1) as f64 * (1.0 - LARGEST_DISPARITY_OUTLIERS)).round() as usize;
+    *finite.select_nth_unstable_by(rank, f32::total_cmp).1
 }
 
 /// [`visibility`] with the disparity assumed where there is no estimate.
@@ -301,7 +346,7 @@ fn box_mean(width: usize, height: usize, values: &[f32], r: usize) -> Vec<f32> {
 
 /// What the planner computes once per input: per pixel need, the taken views' visibility (and
 /// directions, in the same order) and whether any of them sees it, the texture tensor, and the
-/// median and largest disparities.
+/// median and largest disparities ([`largest_disparity`]).
 struct Prepared {
     need: Vec<f32>,
     seen_from: Vec<Vec<bool>>,
@@ -309,6 +354,9 @@ struct Prepared {
     hidden: Vec<bool>,
     tensor: [Vec<f32>; 3],
     median_disparity: f32,
+    /// The disparity of pixels without an estimate, for their resolution term (from
+    /// [`PlanInput::expected_range_px`] before anything is measured).
+    assumed_disparity: Option<f32>,
     largest_disparity: f32,
 }
 
@@ -330,19 +378,23 @@ fn prepare(input: &PlanInput<'_>, config: &PlanConfig) -> Prepared {
             }
         })
         .collect();
+    let measured = input.disparity_px.iter().any(|d| d.is_finite());
+    let expected = input.expected_range_px.filter(|_| !measured);
     Prepared {
         need,
         taken_directions: input.taken.iter().map(|o| direction(*o).map(|d| d.0)).collect(),
         seen_from,
         hidden,
         tensor: structure_tensor(w, h, input.luma, config.window_radius_px),
-        median_disparity,
-        largest_disparity: input
-            .disparity_px
-            .iter()
-            .copied()
-            .filter(|d| d.is_finite())
-            .fold(0.0f32, f32::max),
+        median_disparity: expected.map_or(median_disparity, |[far, near]| 0.5 * (far + near)),
+        assumed_disparity: expected.map(|[far, near]| 0.5 * (far + near)),
+        // The estimate may rule a baseline in that the known range rules out, not the reverse:
+        // disparities past the range are mismatches (on a mirror, say).
+        largest_disparity: match (measured, input.expected_range_px) {
+            (false, Some([far, near])) => far.abs().max(near.abs()),
+            (true, Some([far, near])) => largest_disparity(input.disparity_px).min(far.abs().max(near.abs())),
+            (_, None) => largest_disparity(input.disparity_px),
+        },
     }
 }
 
@@ -387,12 +439,15 @@ fn score_offset(input: &PlanInput<'_>, config: &PlanConfig, prepared: &Prepared,
                 return 0.0;
             }
             let d = input.disparity_px[p];
-            let resolution = if d.is_finite() {
+            let d = if d.is_finite() {
+                Some(d)
+            } else {
+                prepared.assumed_disparity
+            };
+            let resolution = d.map_or(0.5, |d| {
                 let reach = k as f32 * d.abs();
                 reach / (reach + config.resolution_half_px)
-            } else {
-                0.5
-            };
+            });
             let seen_here = same_direction.iter().any(|i| prepared.seen_from[*i][p]);
             let novelty = if seen_here { config.redundancy } else { 1.0 };
             prepared.need[p] * texture * resolution * novelty
@@ -483,6 +538,7 @@ pub fn plan(input: &PlanInput<'_>, config: &PlanConfig) -> Result<Vec<Candidate>
         confidence: &confidence,
         taken: input.taken,
         max_disparity_px: input.max_disparity_px / factor as f32,
+        expected_range_px: input.expected_range_px.map(|r| r.map(|d| d / factor as f32)),
     };
     // The same terms in the reduced image's units: a gradient spans `factor` times the levels per
     // pixel, a disparity `1 / factor` the pixels.
@@ -550,6 +606,12 @@ fn plan_at(input: &PlanInput<'_>, config: &PlanConfig) -> Result<Vec<Candidate>,
                 .collect()
         }
     };
+    for c in &mut candidates {
+        if c.offsets.iter().all(|o| o[0] == 0) {
+            c.expected_pixels *= f64::from(config.vertical_weight);
+            c.gain *= f64::from(config.vertical_weight);
+        }
+    }
     candidates.sort_by(|a, b| {
         b.feasible
             .cmp(&a.feasible)
@@ -576,6 +638,7 @@ mod tests {
             confidence,
             taken,
             max_disparity_px: 64.0,
+            expected_range_px: None,
         }
     }
 
@@ -642,9 +705,15 @@ mod tests {
         let disparity = vec![5.0f32; w * h];
         let confidence = vec![0.2f32; w * h];
         let input = input((w, h), (&luma, &disparity, &confidence), &[]);
-        for layout in [LayoutRule::Free, LayoutRule::Pairs] {
+        let mfusenet = PlanConfig::for_family(Some(crate::methods::Family::MFuseNet));
+        for (layout, vertical_weight) in [
+            (LayoutRule::Free, 1.0),
+            (LayoutRule::Pairs, 1.0),
+            (LayoutRule::Pairs, mfusenet.vertical_weight),
+        ] {
             let config = PlanConfig {
                 layout,
+                vertical_weight,
                 ..PlanConfig::default()
             };
             let ranked = plan(&input, &config).unwrap_or_else(|e| panic!("{e}"));
@@ -657,6 +726,33 @@ mod tests {
             let horizontal = ranked.iter().find(|c| c.offsets.iter().all(|o| o[1] == 0));
             assert!(horizontal.is_some_and(|c| c.gain < 0.01), "{ranked:#?}");
         }
+    }
+
+    #[test]
+    fn mfusenet_takes_a_vertical_pair_first_only_with_twice_the_texture() {
+        let (w, h) = (64, 48);
+        // Texture along y about 1.9 times that along x, like brushed metal with streaks along
+        // the rows.
+        let luma: Vec<f32> = (0..w * h)
+            .map(|p| 128.0 + 4.0 * (0.9 * (p % w) as f32).sin() + 7.0 * (0.8 * (p / w) as f32).cos())
+            .collect();
+        let disparity = vec![5.0f32; w * h];
+        let confidence = vec![0.2f32; w * h];
+        let input = input((w, h), (&luma, &disparity, &confidence), &[]);
+        let vertical = |c: &Candidate| c.offsets.iter().all(|o| o[0] == 0);
+        let any_axis = PlanConfig {
+            layout: LayoutRule::Pairs,
+            ..PlanConfig::default()
+        };
+        let ranked = plan(&input, &any_axis).unwrap_or_else(|e| panic!("{e}"));
+        assert!(vertical(&ranked[0]), "more texture along y: {ranked:#?}");
+        let mfusenet = PlanConfig::for_family(Some(crate::methods::Family::MFuseNet));
+        assert_eq!(mfusenet.layout, LayoutRule::Pairs);
+        let ranked = plan(&input, &mfusenet).unwrap_or_else(|e| panic!("{e}"));
+        assert!(
+            !vertical(&ranked[0]),
+            "MFuseNet's first pair is horizontal: {ranked:#?}"
+        );
     }
 
     #[test]
@@ -682,6 +778,45 @@ mod tests {
             "{ranked:#?}"
         );
         assert!(ranked.iter().any(|c| !c.feasible));
+    }
+
+    #[test]
+    fn before_any_estimate_the_working_range_decides_the_baseline() {
+        let (w, h) = (64, 48);
+        let luma: Vec<f32> = (0..w * h)
+            .map(|p| 128.0 + 60.0 * (0.9 * (p % w) as f32).sin() + 60.0 * (0.8 * (p / w) as f32).cos())
+            .collect();
+        let unknown = vec![f32::INFINITY; w * h];
+        let confidence = vec![0.0f32; w * h];
+        let pairs = PlanConfig {
+            layout: LayoutRule::Pairs,
+            ..PlanConfig::default()
+        };
+        let longest = |ranked: &[Candidate]| ranked[0].offsets[0].iter().map(|v| v.abs()).max();
+        // A table at 9 px and parts up to 12 px: twice the baseline (24 px) fits a 32 px search.
+        let far = PlanInput {
+            max_disparity_px: 32.0,
+            expected_range_px: Some([9.0, 12.0]),
+            ..input((w, h), (&luma, &unknown, &confidence), &[])
+        };
+        let ranked = plan(&far, &pairs).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(longest(&ranked), Some(2), "{ranked:#?}");
+        assert_eq!(ranked[0].offsets.len(), 2, "a pair: {ranked:#?}");
+        // Parts up to 20 px: twice is 40 px, past the search; one baseline it is.
+        let near = PlanInput {
+            expected_range_px: Some([9.0, 20.0]),
+            ..far
+        };
+        let ranked = plan(&near, &pairs).unwrap_or_else(|e| panic!("{e}"));
+        assert!(ranked[0].feasible && longest(&ranked) == Some(1), "{ranked:#?}");
+        // An estimate that finds nothing nearer than 10 px narrows the range: twice fits again.
+        let measured = vec![10.0f32; w * h];
+        let estimated = PlanInput {
+            disparity_px: &measured,
+            ..near
+        };
+        let ranked = plan(&estimated, &pairs).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(longest(&ranked), Some(2), "{ranked:#?}");
     }
 
     #[test]
@@ -721,6 +856,7 @@ mod tests {
             confidence: &[0.0; 16],
             taken: &[],
             max_disparity_px: 8.0,
+            expected_range_px: None,
         };
         assert!(matches!(
             plan(&input, &PlanConfig::default()),

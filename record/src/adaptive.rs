@@ -34,13 +34,15 @@ pub struct AdaptiveConfig {
     pub views: u32,
     /// The method run on the views so far to plan the next (a registry name).
     pub method: String,
-    /// Longest candidate offset, in baselines.
+    /// Longest candidate offset, in baselines (a longer baseline resolves depth finer where the
+    /// disparities it makes stay in the search range).
     pub max_offset: i32,
     /// Candidates as single views or opposite pairs (default: pairs for MFuseNet, whose networks
     /// take left and right or top and bottom; single views otherwise).
     pub layout: Option<LayoutRule>,
-    /// Largest disparity (px) a candidate may reach at its own offset.
-    pub max_disparity_px: f32,
+    /// Largest disparity (px) a candidate may reach at its own offset (`None`: the search a
+    /// replay of the log makes by default, `fuse::default_num_disparities` of the width).
+    pub max_disparity_px: Option<f32>,
 }
 
 impl Default for AdaptiveConfig {
@@ -48,9 +50,9 @@ impl Default for AdaptiveConfig {
         Self {
             views: 5,
             method: "mfusenet".to_owned(),
-            max_offset: 1,
+            max_offset: 2,
             layout: None,
-            max_disparity_px: 256.0,
+            max_disparity_px: None,
         }
     }
 }
@@ -159,25 +161,30 @@ pub struct AdaptiveSet {
     pub steps: Vec<PlanStep>,
 }
 
-/// The matching problem of the views so far (the first is the centre).
-fn problem(views: &[CapturedView], range: &crate::DisparityRange) -> Result<fuse::Problem, FuseError> {
+/// The matching problem of the views so far (the first is the centre), in units of the common
+/// factor of their offsets (a centre with views at ±2 baselines is a set at twice the baseline,
+/// as MFuseNet's networks need it), with that factor.
+fn problem(views: &[CapturedView], sim: &Simulation) -> Result<(fuse::Problem, i32), FuseError> {
+    let factor = common_factor(views[1..].iter().map(|v| v.grid_offset));
+    let range = sim.working_disparity_range_at(factor);
     let image = |v: &CapturedView| fuse::Image::rgb(v.camera.width as usize, v.camera.height as usize, v.rgb.clone());
-    Ok(fuse::Problem {
+    let problem = fuse::Problem {
         reference: image(&views[0])?,
         neighbours: views[1..]
             .iter()
             .map(|v| {
                 Ok(fuse::Neighbour {
-                    role: v.role.clone(),
+                    role: role_for_offset(v.grid_offset.map(|o| o / factor)),
                     image: image(v)?,
-                    offset: v.grid_offset,
+                    offset: v.grid_offset.map(|o| o / factor),
                     baseline_ratio: 1.0,
                 })
             })
             .collect::<Result<_, FuseError>>()?,
         min_disparity: range.min_disparity,
         num_disparities: range.num_disparities.unwrap_or(64) as usize,
-    })
+    };
+    Ok((problem, factor))
 }
 
 /// The common factor of the neighbours' offsets (a set planned at twice the baseline has
@@ -207,10 +214,9 @@ impl Simulation {
         let plan_config = PlanConfig {
             max_offset: adaptive.max_offset,
             layout: adaptive.layout_for(family),
-            ..PlanConfig::default()
+            ..PlanConfig::for_family(family)
         };
         let baseline_m = self.config().baseline_mm / 1000.0;
-        let range = self.working_disparity_range();
         let station = self.station(set);
         let mut motion = Vec::new();
         let centre = self.capture_view(set, (REFERENCE_ROLE, [0, 0]), &station, None, baseline_m, &mut motion)?;
@@ -229,8 +235,11 @@ impl Simulation {
             let step = views.len() as u32;
             let started = Instant::now();
             let estimate = if views.len() >= 2 {
-                let problem = problem(&views, &range).map_err(planning)?;
-                Some(method.run(&problem, &|_| {}).map_err(planning)?)
+                let (problem, factor) = problem(&views, self).map_err(planning)?;
+                let mut estimate = method.run(&problem, &|_| {}).map_err(planning)?;
+                // Back to pixels per baseline of grid offset, as the planner counts.
+                estimate.data.iter_mut().for_each(|d| *d /= factor as f32);
+                Some(estimate)
             } else {
                 None
             };
@@ -247,7 +256,10 @@ impl Simulation {
                 disparity_px: disparity,
                 confidence,
                 taken: &taken,
-                max_disparity_px: adaptive.max_disparity_px,
+                max_disparity_px: adaptive
+                    .max_disparity_px
+                    .unwrap_or(fuse::default_num_disparities(w) as f32),
+                expected_range_px: Some(self.expected_disparity_px().map(|d| d as f32)),
             };
             let scored = fuse::plan::plan(&input, &plan_config).map_err(planning)?;
             let remaining = adaptive.views as usize - views.len();
@@ -259,8 +271,34 @@ impl Simulation {
             let chosen = candidates
                 .iter()
                 .find(|c| c.score.feasible && c.reachable)
+                // The other half of a pair already begun is taken even if the estimate now
+                // reaches past the search: the method needs it.
+                .or_else(|| {
+                    candidates.iter().find(|c| {
+                        let completes = |o: &[i32; 2]| taken.contains(&o.map(|v| -v));
+                        plan_config.layout == LayoutRule::Pairs && c.reachable && c.score.offsets.iter().all(completes)
+                    })
+                })
                 .map(|c| c.score.offsets[0])
-                .ok_or(SimulationError::NothingToTake { set, step })?;
+                .ok_or_else(|| SimulationError::NothingToTake {
+                    set,
+                    step,
+                    candidates: candidates
+                        .iter()
+                        .map(|c| {
+                            format!(
+                                "{:?} {}",
+                                c.score.offsets,
+                                match (&c.unreachable_because, c.score.feasible) {
+                                    (Some(why), _) => format!("unreachable ({why})"),
+                                    (None, false) => "past the disparity search".to_owned(),
+                                    (None, true) => "takeable".to_owned(),
+                                }
+                            )
+                        })
+                        .collect::<Vec<_>>()
+                        .join("; "),
+                })?;
             let plan = PlanStep {
                 set_index: set,
                 step,
@@ -303,7 +341,9 @@ impl Simulation {
                 baseline_m: baseline_m * f64::from(factor),
                 motion,
                 views,
-                disparity_range: self.config().converge_m.map(|_| range),
+                // Searched by replay as the loop searched it: the working range at the set's
+                // baseline.
+                disparity_range: Some(self.working_disparity_range_at(factor)),
             },
             steps,
         }))

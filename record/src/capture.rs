@@ -139,6 +139,11 @@ pub struct SimulationConfig {
     /// How an adaptive set is planned (rig `adaptive` only).
     #[serde(default)]
     pub adaptive: crate::adaptive::AdaptiveConfig,
+    /// Log each set's working disparity range ([`Simulation::working_disparity_range`]) so that
+    /// replay searches it, as a workcell that knows its table and tallest part would (always for
+    /// converged rigs, whose range is signed, and adaptive sets, planned within it).
+    #[serde(default)]
+    pub log_working_range: bool,
 }
 
 impl Default for SimulationConfig {
@@ -160,6 +165,7 @@ impl Default for SimulationConfig {
             errors: ErrorInjection::default(),
             converge_m: None,
             adaptive: crate::adaptive::AdaptiveConfig::default(),
+            log_working_range: false,
         }
     }
 }
@@ -188,12 +194,14 @@ pub enum SimulationError {
         source: fuse::FuseError,
     },
     /// No candidate view of an adaptive set is both feasible and reachable.
-    #[error("set {set}: no candidate for view {step} is within the search range and the arm's reach")]
+    #[error("set {set}: no candidate for view {step} is within the search range and the arm's reach: {candidates}")]
     NothingToTake {
         /// Set index.
         set: u32,
         /// Which neighbour was being planned (1 = the first).
         step: u32,
+        /// The candidates with what ruled each out.
+        candidates: String,
     },
     /// A configuration value is out of range.
     #[error("invalid configuration: {field} = {value} ({reason})")]
@@ -318,22 +326,36 @@ impl Simulation {
     /// (2 px of margin each side, the count a multiple of 16), less the principal-point shift of
     /// a converged rig (its range is signed).
     pub fn working_disparity_range(&self) -> crate::DisparityRange {
-        let far_m = self.scene.camera_height_m;
-        let near_m = (far_m - self.scene.highest_point_m()).max(0.2 * far_m);
-        let fb = self.camera.fx * self.config.baseline_mm / 1000.0;
-        let shift = self.principal_point_shift_px();
-        let first = (fb / far_m - shift).floor() as i32 - 2;
+        self.working_disparity_range_at(1)
+    }
+
+    /// [`Self::working_disparity_range`] of a set at `factor` times the baseline (its disparities
+    /// `factor` times larger; the margins and the rounding stay in pixels).
+    pub fn working_disparity_range_at(&self, factor: i32) -> crate::DisparityRange {
+        let [far_px, near_px] = self.expected_disparity_px().map(|d| d * f64::from(factor.max(1)));
+        let first = far_px.floor() as i32 - 2;
         let first = if self.config.converge_m.is_some() {
             first
         } else {
             first.max(0)
         };
-        let last = (fb / near_m - shift).ceil() as i32 + 2;
+        let last = near_px.ceil() as i32 + 2;
         let count = (last - first).max(1).unsigned_abs().div_ceil(16) * 16;
         crate::DisparityRange {
             min_disparity: first,
             num_disparities: Some(count),
         }
+    }
+
+    /// The disparities (px at one baseline) of the scene's farthest and nearest points as the
+    /// workcell knows them before anything is measured: the table at the camera's height, the
+    /// top of the highest object (at most 80 % of the way up), less a converged rig's shift.
+    pub fn expected_disparity_px(&self) -> [f64; 2] {
+        let far_m = self.scene.camera_height_m;
+        let near_m = (far_m - self.scene.highest_point_m()).max(0.2 * far_m);
+        let fb = self.camera.fx * self.config.baseline_mm / 1000.0;
+        let shift = self.principal_point_shift_px();
+        [fb / far_m - shift, fb / near_m - shift]
     }
 
     /// The arm model.
@@ -432,7 +454,8 @@ impl Simulation {
             motion,
             views,
             // A converged rig's range is signed: replay would search from 0 without it.
-            disparity_range: self.config.converge_m.map(|_| self.working_disparity_range()),
+            disparity_range: (self.config.converge_m.is_some() || self.config.log_working_range)
+                .then(|| self.working_disparity_range()),
         }))
     }
 
@@ -615,6 +638,11 @@ fn validate(config: &SimulationConfig) -> Result<(), SimulationError> {
                 adaptive.max_offset.to_string(),
                 "must be 1 to 4 baselines",
             );
+        }
+        if let Some(px) = adaptive.max_disparity_px
+            && !(px.is_finite() && px > 0.0)
+        {
+            return invalid("max_disparity_px", px.to_string(), "a disparity in pixels, > 0");
         }
     }
     if let Some(distance) = config.converge_m

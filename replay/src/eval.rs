@@ -62,6 +62,17 @@ pub struct EvalOptions {
     pub rectify: bool,
     /// MFuseNet weights instead of the shipped ones.
     pub weights: Option<std::path::PathBuf>,
+    /// Express every error in pixels of disparity at this baseline (m) and take as "occluded" the
+    /// pixels a view at this baseline in any of the four axis directions would not see (predicted
+    /// from the ground truth): sets captured at different baselines (an adaptive rig that chose
+    /// twice the baseline) then compare on the same depth errors and the same pixels. `None` =
+    /// each set's own baseline and occlusions.
+    pub at_baseline_m: Option<f64>,
+}
+
+/// `values` times `scale` (the identity for 1).
+fn scaled(values: &[f32], scale: f64) -> Vec<f32> {
+    values.iter().map(|v| (f64::from(*v) * scale) as f32).collect()
 }
 
 /// Runs `methods` on every set with ground truth and tabulates the results.
@@ -97,15 +108,26 @@ pub fn evaluate_sets(
                 },
             )?;
             let result = prepared.run(method.as_ref(), &|_| {})?;
-            if let (Some(confidence), Some(truth)) = (&result.disparity.confidence, set.ground_truth_disparity()) {
-                pooled.extend(RankedErrors::new(
-                    &result.disparity.data,
-                    confidence,
-                    &truth,
-                    prepared.num_disparities as f64,
-                ));
+            // Per pixel of disparity at the set's baseline, this many at the common one.
+            let scale = options.at_baseline_m.map_or(1.0, |b| b / set.baseline_m);
+            let missing_error_px = prepared.num_disparities as f64 * scale;
+            let estimate = scaled(&result.disparity.data, scale);
+            let truth = set.ground_truth_disparity().map(|t| scaled(&t, scale));
+            if let (Some(confidence), Some(truth)) = (&result.disparity.confidence, &truth) {
+                pooled.extend(RankedErrors::new(&estimate, confidence, truth, missing_error_px));
             }
-            if let Some(metrics) = result.regions {
+            let regions = match (options.at_baseline_m, &truth) {
+                (Some(_), Some(truth)) => crate::regions::region_metrics(
+                    &estimate,
+                    result.disparity.confidence.as_deref(),
+                    truth,
+                    &crate::regions::hidden_from_axis_views(set.reference.camera.width as usize, truth),
+                    set.surface_class.as_deref(),
+                    missing_error_px,
+                ),
+                _ => result.regions,
+            };
+            if let Some(metrics) = regions {
                 scenes.push((set.name.clone(), metrics.all));
                 occluded.extend(metrics.occluded);
                 specular.extend(metrics.specular);

@@ -21,9 +21,6 @@ use crate::ReplayError;
 use crate::pipeline::{PreparedSet, RunOptions};
 use crate::viewset::ViewSet;
 
-/// Largest disparity (px) a candidate may reach at its own offset: the methods' search cap.
-pub const DEFAULT_MAX_DISPARITY_PX: f32 = 256.0;
-
 /// How a set is planned.
 #[derive(Debug, Clone, PartialEq)]
 pub struct PlanOptions {
@@ -33,8 +30,9 @@ pub struct PlanOptions {
     pub config: PlanConfig,
     /// Grouping of candidates (default: pairs for MFuseNet, single views otherwise).
     pub layout: Option<LayoutRule>,
-    /// Largest disparity a candidate may reach (px).
-    pub max_disparity_px: f32,
+    /// Largest disparity a candidate may reach (px; `None`: the end of the range the set is
+    /// searched over, as for replay).
+    pub max_disparity_px: Option<f32>,
     /// How the set is run.
     pub run: RunOptions,
 }
@@ -45,7 +43,7 @@ impl Default for PlanOptions {
             budget: 3,
             config: PlanConfig::default(),
             layout: None,
-            max_disparity_px: DEFAULT_MAX_DISPARITY_PX,
+            max_disparity_px: None,
             run: RunOptions::default(),
         }
     }
@@ -147,6 +145,7 @@ pub fn plan_from_estimate(
         confidence: &confidence,
         taken: &taken,
         max_disparity_px,
+        expected_range_px: None,
     };
     let scored = fuse::plan::plan(&input, config).map_err(|source| ReplayError::Fuse { set: set.index, source })?;
     let arm = Ur10::default();
@@ -197,11 +196,15 @@ pub fn plan_set(set: &ViewSet, method: &dyn Method, options: &PlanOptions) -> Re
     let result = prepared.run(method, &|_| {})?;
     let started = Instant::now();
     let layout = options.layout.unwrap_or_else(|| layout_for(method));
+    let family = fuse::methods::entry(method.name()).map(|e| e.family);
     let config = PlanConfig {
         layout,
+        vertical_weight: PlanConfig::for_family(family).vertical_weight,
         ..options.config
     };
-    let candidates = plan_from_estimate(&prepared.selected, &result.disparity, &config, options.max_disparity_px)?;
+    let searched_px = (prepared.min_disparity + prepared.num_disparities as i32) as f32;
+    let max_disparity_px = options.max_disparity_px.unwrap_or(searched_px);
+    let candidates = plan_from_estimate(&prepared.selected, &result.disparity, &config, max_disparity_px)?;
     let planning_seconds = started.elapsed().as_secs_f64();
     let chosen = candidates
         .iter()

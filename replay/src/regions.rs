@@ -156,6 +156,20 @@ impl Sparsification {
     }
 }
 
+/// Pixels occluded (as [`occluded_in`]) in a view one baseline away along +x, −x, +y or −y,
+/// from the reference's `truth` disparity (px per baseline, NaN = unknown; `width` pixels a
+/// row): the occlusions of the five-view cross, the same pixels whichever views a set has.
+pub fn hidden_from_axis_views(width: usize, truth: &[f32]) -> Vec<bool> {
+    let height = truth.len() / width.max(1);
+    let mut hidden = vec![false; truth.len()];
+    for offset in [[1, 0], [-1, 0], [0, 1], [0, -1]] {
+        for (h, o) in hidden.iter_mut().zip(occluded_in(truth, width, height, offset)) {
+            *h |= o;
+        }
+    }
+    hidden
+}
+
 /// Evaluates `estimate` against `truth` overall and per region, and, with the method's
 /// `confidence`, its sparsification curve.
 pub fn region_metrics(
@@ -186,6 +200,22 @@ pub fn region_metrics(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_cross_hides_both_sides_of_a_step() {
+        // A bar 3 px wide, at 6 px of disparity, before a background at 2 px, running the image's
+        // height: the view to the right hides the 3 px of background left of the bar, the view to
+        // the left the 3 px right of it; the borders fall out of the side views.
+        let (w, h) = (20, 20);
+        let truth: Vec<f32> = (0..w * h)
+            .map(|p| if (8..11).contains(&(p % w)) { 6.0 } else { 2.0 })
+            .collect();
+        let hidden = hidden_from_axis_views(w, &truth);
+        let row: Vec<usize> = (0..w).filter(|x| hidden[10 * w + x]).collect();
+        assert_eq!(row, [0, 1, 4, 5, 6, 12, 13, 14, 18, 19]);
+        // The same pixels whatever the set's own views: a function of the truth alone.
+        assert_eq!(hidden, hidden_from_axis_views(w, &truth));
+    }
 
     #[test]
     fn the_most_confident_pixels_are_kept_first() {

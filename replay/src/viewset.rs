@@ -107,7 +107,7 @@ impl ViewSet {
     /// Disparities searched when none are given: about a fifteenth of the width, rounded up to
     /// a multiple of 16 (32 for Middlebury's third size, 128 for 1920 px).
     pub fn default_num_disparities(&self) -> usize {
-        (self.width() / 15).div_ceil(16).clamp(1, 16) * 16
+        fuse::default_num_disparities(self.width())
     }
 
     /// The range `(min, count)` searched: each of `min_disparity` and `num_disparities` as given,

@@ -93,6 +93,15 @@ fn mfusenet_plans_make_a_layout_its_networks_take() {
         [-offsets[1][0], -offsets[1][1]],
         "an opposite pair: {offsets:?}"
     );
+    // The toy's working range fits twice the baseline in the search (16 px at 160 px wide): the
+    // planner took it, and the set is stored at 40 mm, its range with it, which replay searches.
+    let event = &log.events()[0];
+    assert!((event.baseline_m - 0.04).abs() < 1e-9, "{event:?}");
+    let range = event
+        .disparity_range
+        .as_ref()
+        .unwrap_or_else(|| panic!("no range: {event:?}"));
+    assert!(range.min_disparity > 0, "{range:?}");
     let out = temp_dir();
     let summary = replay_summary(&path, out.path(), "--method mfusenet");
     let text = summary.to_string();

@@ -328,3 +328,35 @@ fn the_demo_writes_where_git_ignores_it() {
         println!("git not available: checked the .gitignore only");
     }
 }
+
+#[test]
+fn errors_at_a_common_baseline_are_the_set_errors_scaled_to_it() {
+    // A set at 30 mm evaluated at 15 mm: every disparity, and so every error, halves; an error
+    // over 1 px at 15 mm is one over 2 px at 30 mm. The occluded region becomes the cross's at
+    // 15 mm, the same pixels whatever views a set has.
+    let (_dir, path) = recorded(
+        "wide.mcap",
+        "--rig five-view --baseline-mm 30 --resolution 160x120 --samples-per-pixel 1",
+    );
+    let log = path.to_str().unwrap_or_default();
+    let own = eval_json(&[log, "--methods", "sgm-heuristic"]);
+    let common = eval_json(&[log, "--methods", "sgm-heuristic", "--at-baseline-mm", "15"]);
+    let at = |rows: &[serde_json::Value], field: &str| metric(rows, "sgm-heuristic", "mean", field);
+    assert!(
+        (at(&common, "avg_err_px") - 0.5 * at(&own, "avg_err_px")).abs() < 1e-6,
+        "AvgErr {} at 15 mm against {} at 30 mm",
+        at(&common, "avg_err_px"),
+        at(&own, "avg_err_px")
+    );
+    assert!((at(&common, "bad_1") - at(&own, "bad_2")).abs() < 1e-9);
+    // Half the baseline hides fewer pixels.
+    let hidden = |rows: &[serde_json::Value]| metric(rows, "sgm-heuristic", "occluded", "pixels");
+    assert!(
+        0.0 < hidden(&common) && hidden(&common) < hidden(&own),
+        "occluded pixels {} at 15 mm, {} at 30 mm",
+        hidden(&common),
+        hidden(&own)
+    );
+    let output = replay_str(&format!("eval {log} --methods sgm-heuristic --at-baseline-mm 0"));
+    assert_eq!(output.status.code(), Some(2), "{output:?}");
+}

@@ -32,9 +32,18 @@ pub struct SimulateArgs {
     /// right or top and bottom in pairs, which its networks take).
     #[arg(long, default_value = "mfusenet", value_name = "METHOD")]
     pub(crate) plan_method: String,
-    /// Adaptive rig: longest candidate offset, in baselines (1: the direct neighbours' ring).
-    #[arg(long, default_value = "1", value_parser = clap::value_parser!(i32).range(1..=4))]
+    /// Adaptive rig: longest candidate offset, in baselines (1: the direct neighbours' ring; 2
+    /// lets it take twice the baseline where the disparities stay in the search).
+    #[arg(long, default_value = "2", value_parser = clap::value_parser!(i32).range(1..=4))]
     pub(crate) plan_max_offset: i32,
+    /// Adaptive rig: the disparity search (px) a candidate must stay within at its offset
+    /// (default: replay's default search, a fifteenth of the width rounded up to 16).
+    #[arg(long, value_name = "PX")]
+    pub(crate) plan_max_disparity: Option<f32>,
+    /// Log the scene's working disparity range (table to tallest part, at the set's baseline)
+    /// so that replay searches it (always for --converge-m and --rig adaptive).
+    #[arg(long)]
+    pub(crate) log_working_range: bool,
     /// Distance between the centre view and each direct neighbour (mm).
     #[arg(long, default_value = "20", value_parser = parse_positive_mm)]
     pub(crate) baseline_mm: f64,
@@ -124,10 +133,12 @@ pub fn simulation_config(args: &SimulateArgs) -> SimulationConfig {
             exposure: args.exposure.clone(),
         },
         converge_m: args.converge_m,
+        log_working_range: args.log_working_range,
         adaptive: AdaptiveConfig {
             views: args.views,
             method: args.plan_method.clone(),
             max_offset: args.plan_max_offset,
+            max_disparity_px: args.plan_max_disparity,
             ..AdaptiveConfig::default()
         },
         ..SimulationConfig::default()

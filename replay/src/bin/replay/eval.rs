@@ -55,6 +55,11 @@ pub struct EvalArgs {
     /// MFuseNet weights (safetensors) instead of the shipped ones.
     #[arg(long, value_name = "FILE")]
     weights: Option<PathBuf>,
+    /// Errors in pixels of disparity at this baseline (mm), "occluded" = hidden from a view at it
+    /// along either axis (from the ground truth): compares rigs that took different baselines
+    /// (an adaptive capture at twice the baseline) on the same depth errors and pixels.
+    #[arg(long, value_name = "MM")]
+    at_baseline_mm: Option<f64>,
     /// How dataset folders are read (as `record import`; logs ignore these).
     #[command(flatten, next_help_heading = "Dataset folders")]
     dataset: record::import::ImportOverrides,
@@ -66,6 +71,9 @@ pub fn run(args: &EvalArgs, quiet: bool) -> Result<Outcome> {
         if !fuse::methods::registry().iter().any(|e| e.name == name) {
             return Err(UsageError(format!("unknown method '{name}' (see --list-methods)")).into());
         }
+    }
+    if args.at_baseline_mm.is_some_and(|mm| !(mm > 0.0 && mm.is_finite())) {
+        return Err(UsageError("--at-baseline-mm must be a positive number of millimetres".to_owned()).into());
     }
     let overrides = crate::parse_overrides(args.config.as_deref())?;
     let sets = replay::eval::read_inputs(&args.inputs, &args.dataset).map_err(|e| match e {
@@ -84,6 +92,7 @@ pub fn run(args: &EvalArgs, quiet: bool) -> Result<Outcome> {
         neighbours: args.neighbours.clone(),
         rectify: args.rectify,
         weights: args.weights.clone(),
+        at_baseline_m: args.at_baseline_mm.map(|mm| mm / 1000.0),
     };
     let rows = evaluate_sets(&sets, &args.methods, &options, |method, scene| {
         progress.set_message(format!("{method} on {scene}"));

@@ -34,9 +34,10 @@ pub struct PlanArgs {
     /// Longest candidate offset, in baselines (the 8 directions at 1 … this).
     #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(i32).range(1..=4))]
     max_offset: i32,
-    /// Largest disparity (px) a candidate may reach at its own offset.
-    #[arg(long, default_value_t = replay::plan::DEFAULT_MAX_DISPARITY_PX)]
-    max_disparity: f32,
+    /// Largest disparity (px) a candidate may reach at its own offset (default: the end of the
+    /// range the set is searched over).
+    #[arg(long, value_name = "PX")]
+    max_disparity: Option<f32>,
     /// Disparities the method searches (default: as for replay).
     #[arg(long)]
     num_disparities: Option<usize>,
