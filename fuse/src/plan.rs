@@ -95,7 +95,7 @@ impl Default for PlanConfig {
             redundancy: 0.35,
             window_radius_px: 3,
             vertical_weight: 1.0,
-            max_width_px: 320,
+            max_width_px: 256,
         }
     }
 }

@@ -1,6 +1,7 @@
 //! Adaptive capture (`record --rig adaptive --views N`): the closed loop of next-best-view
 //! planning. The arm takes the centre view; the first neighbour is planned from the centre's
-//! texture alone (no depth yet); then, until the set has N views, the chosen method runs on the
+//! texture and the scene's working range (no depth yet; the range bounds the baselines the search
+//! affords); then, until the set has N views, the chosen method runs on the
 //! views so far, the planner (`fuse::plan`) scores every grid offset not yet taken by the pixels
 //! it would resolve, the best one the arm reaches clear of the table (`crate::reach`) is taken.
 //!
@@ -88,7 +89,8 @@ pub struct PlanStep {
     pub step: u32,
     /// When the plan was made (ns since the Unix epoch; the log time of its message).
     pub time_nanos: u64,
-    /// The method whose estimate was planned from (`None`: the first step, from texture alone).
+    /// The method whose estimate was planned from (`None`: the first step, from texture and the
+    /// working range).
     pub method: Option<String>,
     /// Seconds the method took.
     pub method_seconds: f64,
@@ -119,7 +121,7 @@ impl PlanStep {
             self.candidates.first().map_or(0.0, |c| c.score.expected_pixels),
             self.planning_seconds,
             self.method_seconds,
-            self.method.as_deref().unwrap_or("texture alone")
+            self.method.as_deref().unwrap_or("texture and the working range")
         )
     }
 }

@@ -39,10 +39,6 @@ pub enum DemoError {
 pub struct DemoCapture {
     /// `OUT/capture.mcap`.
     pub log: PathBuf,
-    /// The disparity range of the scene's working depth (table to highest object).
-    pub min_disparity: i32,
-    /// See `min_disparity`.
-    pub num_disparities: usize,
     /// The viewer layout of the log (from its first set), for the caller to write beside it
     /// (`record::live::write_log_blueprint`).
     pub layout: Option<viz::log_blueprint::LogLayout>,
@@ -80,6 +76,12 @@ pub fn record_capture(
         out.join(".gitignore").display()
     );
     let log = out.join("capture.mcap");
+    // Every set carries its working range at its own baseline (an adaptive set may have taken a
+    // longer one), which the replay searches.
+    let config = SimulationConfig {
+        log_working_range: true,
+        ..config
+    };
     let mut sim = Simulation::new(config)?;
     let range = sim.working_disparity_range();
     let (min_disparity, num_disparities) = (range.min_disparity, range.num_disparities.unwrap_or(16) as usize);
@@ -112,10 +114,5 @@ pub fn record_capture(
     if recorded.path.is_none() {
         return Err(DemoError::NoSet { path: log });
     }
-    Ok(DemoCapture {
-        log,
-        min_disparity,
-        num_disparities,
-        layout,
-    })
+    Ok(DemoCapture { log, layout })
 }

@@ -48,7 +48,7 @@ fn every_view_has_its_plan_and_the_plans_choose_reachable_views_not_yet_taken() 
             .unwrap_or_else(|| panic!("the choice is among the candidates: {plan}"));
         assert_eq!(picked["reachable"], true, "{picked}");
         assert_eq!(picked["feasible"], true, "{picked}");
-        // The first is planned from texture alone, the others from the method's estimate.
+        // The first is planned from texture and the working range, the others from the method's estimate.
         let first = plan["step"] == 1;
         assert_eq!(plan["method"].is_null(), first, "{plan}");
     }

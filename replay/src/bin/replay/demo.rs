@@ -91,8 +91,9 @@ pub fn run(args: &DemoArgs, quiet: bool) -> Result<Outcome> {
             method: args.method.clone(),
             config: None,
             out: args.out.join("results"),
-            num_disparities: Some(capture.num_disparities),
-            min_disparity: Some(capture.min_disparity),
+            // Each set's logged working range.
+            num_disparities: None,
+            min_disparity: None,
             sets: Vec::new(),
             start: None,
             end: None,
