@@ -7,6 +7,8 @@
 #
 #   scripts/adaptive-eval.sh [OUT_DIR] [SEEDS] [PLAN_METHOD]   # default out/adaptive-eval, 20, mfusenet
 #
+# Also the fixed rigs at 30 mm, the baseline the planner takes where the working range allows it,
+# to tell the planner's part from the longer baseline's.
 # Captures: 448x336 (MFuseNet's training size), 15 mm baseline, 2 samples per pixel; seeds from
 # 3000 up, which `replay train` never draws. The planner's settings were chosen on seeds 2000-2004
 # before any of these captures was made (`fuse::plan::PlanConfig::for_family`). Every set is
@@ -23,21 +25,22 @@ SEEDS=${2:-20}
 PLAN=${3:-mfusenet}
 mkdir -p "$OUT"
 cargo build --release -q -p record -p replay
-rec() { # name extra-args...
-    local log="$OUT/$1.mcap"; shift
-    [ -f "$log" ] || target/release/record --resolution 448x336 --baseline-mm 15 --samples-per-pixel 2 \
+rec() { # name baseline-mm extra-args...
+    local log="$OUT/$1.mcap" base=$2; shift 2
+    [ -f "$log" ] || target/release/record --resolution 448x336 --baseline-mm "$base" --samples-per-pixel 2 \
         -o "$log" -q --no-blueprint "$@"
 }
-fixed=(); ad3=(); ad5=()
+fixed=(); wide=(); ad3=(); ad5=()
 for family in toy workpiece; do
     for seed in $(seq 3000 $((2999 + SEEDS))); do
         common=(--scene "$family" --seed "$seed")
         name="$family-$seed"
-        fixed+=("$OUT/$name-fixed.mcap"); ad3+=("$OUT/$name-adaptive3-$PLAN.mcap"); ad5+=("$OUT/$name-adaptive5-$PLAN.mcap")
-        rec "$name-fixed" "${common[@]}" --rig five-view --log-working-range
+        fixed+=("$OUT/$name-fixed.mcap"); wide+=("$OUT/$name-fixed30.mcap"); ad3+=("$OUT/$name-adaptive3-$PLAN.mcap"); ad5+=("$OUT/$name-adaptive5-$PLAN.mcap")
+        rec "$name-fixed" 15 "${common[@]}" --rig five-view --log-working-range
+        rec "$name-fixed30" 30 "${common[@]}" --rig five-view --log-working-range
         # The two adaptive captures run their method in the loop: one per core.
-        rec "$name-adaptive3-$PLAN" "${common[@]}" --rig adaptive --views 3 --plan-method "$PLAN" &
-        rec "$name-adaptive5-$PLAN" "${common[@]}" --rig adaptive --views 5 --plan-method "$PLAN" &
+        rec "$name-adaptive3-$PLAN" 15 "${common[@]}" --rig adaptive --views 3 --plan-method "$PLAN" &
+        rec "$name-adaptive5-$PLAN" 15 "${common[@]}" --rig adaptive --views 5 --plan-method "$PLAN" &
         wait
     done
 done
@@ -45,6 +48,8 @@ R=target/release/replay
 flags=(--methods mfusenet,sgm-heuristic --at-baseline-mm 15 --format json -q)
 $R eval "${fixed[@]}" --neighbours left,right "${flags[@]}" > "$OUT/fixed3.json"
 $R eval "${fixed[@]}" "${flags[@]}" > "$OUT/fixed5.json"
+$R eval "${wide[@]}" --neighbours left,right "${flags[@]}" > "$OUT/fixed3-30mm.json"
+$R eval "${wide[@]}" "${flags[@]}" > "$OUT/fixed5-30mm.json"
 $R eval "${ad3[@]}" "${flags[@]}" > "$OUT/adaptive3-$PLAN.json"
 $R eval "${ad5[@]}" "${flags[@]}" > "$OUT/adaptive5-$PLAN.json"
 python3 - "$OUT" "$PLAN" <<'PY'
@@ -52,8 +57,10 @@ import json, sys
 out, plan = sys.argv[1], sys.argv[2]
 print("| rig | views | method | AvgErr | Bad1 (%) | AvgErr occluded | Bad1 occluded (%) | AvgErr specular | Bad1 specular (%) |")
 print("|---|---|---|---|---|---|---|---|---|")
-for file, rig, views in (("fixed3", "fixed", 3), (f"adaptive3-{plan}", f"adaptive ({plan} plans)", 3),
-                         ("fixed5", "fixed", 5), (f"adaptive5-{plan}", f"adaptive ({plan} plans)", 5)):
+for file, rig, views in (("fixed3", "fixed", 3), ("fixed3-30mm", "fixed, 30 mm", 3),
+                         (f"adaptive3-{plan}", f"adaptive ({plan} plans)", 3),
+                         ("fixed5", "fixed", 5), ("fixed5-30mm", "fixed, 30 mm", 5),
+                         (f"adaptive5-{plan}", f"adaptive ({plan} plans)", 5)):
     for row in json.load(open(f"{out}/{file}.json")):
         m, o, s = row["mean"], row["occluded"], row["specular"]
         print(f"| {rig} | {views} | {row['method']} | {m['avg_err_px']:.3f} | {m['bad_1']:.2f} | {o['avg_err_px']:.3f} | "

@@ -98,6 +98,12 @@ pub struct PlanStep {
     pub planning_seconds: f64,
     /// How candidates were grouped.
     pub layout: LayoutRule,
+    /// The baseline (m) the step's offsets count in: the capture's. A set whose offsets all
+    /// share a factor is stored as a set at that multiple of it (its views' `grid_offset`
+    /// divided by the factor, its `baseline_m` multiplied), so a view's offset here is its
+    /// event's `grid_offset × baseline_m ÷` this.
+    #[serde(default)]
+    pub baseline_m: f64,
     /// Offsets taken before this step.
     pub taken: Vec<[i32; 2]>,
     /// Every candidate, best first.
@@ -309,6 +315,7 @@ impl Simulation {
                 method_seconds,
                 planning_seconds: started.elapsed().as_secs_f64(),
                 layout: plan_config.layout,
+                baseline_m,
                 taken,
                 candidates,
                 chosen_offset: chosen,

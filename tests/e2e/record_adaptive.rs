@@ -30,10 +30,16 @@ fn every_view_has_its_plan_and_the_plans_choose_reachable_views_not_yet_taken() 
     for plan in &plans {
         let set = plan["set_index"].as_u64().unwrap_or(99) as u32;
         let chosen = &plan["chosen_offset"];
+        // Offsets in the plan's baseline (a set whose offsets share a factor is stored at that
+        // multiple of the baseline).
+        let plan_baseline_m = plan["baseline_m"].as_f64().unwrap_or(f64::NAN);
         let offsets: Vec<serde_json::Value> = events
             .iter()
             .filter(|e| e.set_index == set)
-            .map(|e| serde_json::json!(e.grid_offset))
+            .map(|e| {
+                let factor = (e.baseline_m / plan_baseline_m).round() as i32;
+                serde_json::json!(e.grid_offset.map(|o| o * factor))
+            })
             .collect();
         assert!(
             offsets.contains(chosen),
