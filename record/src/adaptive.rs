@@ -197,7 +197,7 @@ fn problem(views: &[CapturedView], sim: &Simulation) -> Result<(fuse::Problem, i
 
 /// The common factor of the neighbours' offsets (a set planned at twice the baseline has
 /// offsets ±2 only: it is a set at twice the baseline).
-fn common_factor(offsets: impl Iterator<Item = [i32; 2]>) -> i32 {
+pub fn common_factor(offsets: impl Iterator<Item = [i32; 2]>) -> i32 {
     fn gcd(a: i32, b: i32) -> i32 {
         if b == 0 { a.abs() } else { gcd(b, a % b) }
     }

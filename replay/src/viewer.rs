@@ -69,11 +69,13 @@ pub fn log_capture(viewer: &Viewer, set: &ViewSet) -> Result<(), VizError> {
 }
 
 /// The plans of an adaptive set (`/capture/plan`) on the capture timeline: at each plan's time,
-/// every candidate's frustum coloured by score and the chosen one marked (the estimates the plans
-/// were made from are shown live by `record --rig adaptive --rerun`; the log keeps the scores).
+/// every candidate's frustum coloured by score and the chosen one marked, and the depth and
+/// confidence the plan was made from, computed again by the plan's method from the views taken
+/// before it (the log keeps the scores, not the estimates).
 pub fn log_plans(viewer: &Viewer, set: &ViewSet, plans: &[record::adaptive::PlanStep]) -> Result<(), VizError> {
     let camera = &set.reference.camera;
     for step in plans.iter().filter(|p| p.set_index == set.index) {
+        let estimate = estimate_before(set, step);
         viewer.set_capture_time(step.time_nanos);
         viewer.log_plan(
             &step.frusta(),
@@ -81,10 +83,62 @@ pub fn log_plans(viewer: &Viewer, set: &ViewSet, plans: &[record::adaptive::Plan
                 [camera.fx, camera.fy, camera.cx, camera.cy],
                 [camera.width, camera.height],
             ),
-            None,
+            estimate
+                .as_ref()
+                .map(|(e, c, fb)| (e.data.as_slice(), c.as_slice(), *fb)),
         )?;
     }
     Ok(())
+}
+
+/// What `step` was planned from: its method's disparity and confidence on the reference and the
+/// views taken before it, with the focal length × baseline of that estimate. `None` for the
+/// first step (planned before any depth) and where the views or the method are not there.
+fn estimate_before(set: &ViewSet, step: &record::adaptive::PlanStep) -> Option<(fuse::DisparityImage, Vec<f32>, f64)> {
+    let name = step.method.as_deref()?;
+    // The set's offsets are the plan's divided by the factor the set was stored at.
+    let stored = (set.baseline_m / step.baseline_m).round().max(1.0) as i32;
+    let taken: Vec<&View> = set
+        .neighbours
+        .iter()
+        .filter(|n| step.taken.contains(&n.offset.map(|o| o * stored)))
+        .collect();
+    if taken.is_empty() || taken.len() != step.taken.len() {
+        return None;
+    }
+    // As the loop ran it: at the common factor of the views taken so far.
+    let factor = record::adaptive::common_factor(step.taken.iter().copied());
+    let ratio = f64::from(factor) / f64::from(stored);
+    let (min_disparity, num_disparities) = set.search_range(None, None);
+    let subset = ViewSet {
+        neighbours: taken
+            .into_iter()
+            .map(|v| {
+                let offset = v.offset.map(|o| o * stored / factor);
+                View {
+                    role: record::rig::role_for_offset(offset),
+                    offset,
+                    ..v.clone()
+                }
+            })
+            .collect(),
+        baseline_m: step.baseline_m * f64::from(factor),
+        ..set.clone()
+    };
+    let problem = subset
+        .problem(
+            (f64::from(min_disparity) * ratio).floor() as i32,
+            (num_disparities as f64 * ratio).ceil() as usize,
+            false,
+        )
+        .ok()?;
+    let method = fuse::methods::build(name, None).ok()?;
+    let estimate = method.run(&problem, &|_| {}).ok()?;
+    let confidence = estimate
+        .confidence
+        .clone()
+        .unwrap_or_else(|| vec![0.0; estimate.data.len()]);
+    Some((estimate, confidence, set.reference.camera.fx * subset.baseline_m))
 }
 
 /// Box-averages an image by `factor` (rows and columns beyond a whole block are dropped).

@@ -28,6 +28,14 @@ fn columns_of(printed: &str, entity: &str) -> String {
         .join("\n")
 }
 
+/// The rows `rerun rrd print` counts for `entity` (each chunk's "with N rows").
+fn rows_of(printed: &str, entity: &str) -> usize {
+    columns_of(printed, entity)
+        .lines()
+        .filter_map(|l| l.split(" with ").nth(1)?.split(' ').next()?.parse::<usize>().ok())
+        .sum()
+}
+
 /// Asserts that `rerun rrd print` lists `column` for `entity`.
 fn assert_column(printed: &str, entity: &str, column: &str) {
     let columns = columns_of(printed, entity);
@@ -342,9 +350,19 @@ fn the_adaptive_demo_records_plans_and_shows_their_candidates() {
     assert_column(&printed, "/world/plan", "LineStrips3D:strips");
     assert_column(&printed, "/world/plan", "LineStrips3D:colors");
     // Four plans (views 2 … 5), one row each.
-    let rows: usize = columns_of(&printed, "/world/plan")
-        .lines()
-        .filter_map(|l| l.split(" with ").nth(1)?.split(' ').next()?.parse::<usize>().ok())
-        .sum();
-    assert_eq!(rows, 4, "{}", columns_of(&printed, "/world/plan"));
+    assert_eq!(
+        rows_of(&printed, "/world/plan"),
+        4,
+        "{}",
+        columns_of(&printed, "/world/plan")
+    );
+    // The depth and confidence each plan after the first was made from, computed again from the
+    // views taken before it.
+    assert_column(&printed, "/world/camera/center/plan", "DepthImage:buffer");
+    assert_eq!(
+        rows_of(&printed, "/results/plan/confidence"),
+        3,
+        "{}",
+        columns_of(&printed, "/results/plan/confidence")
+    );
 }
