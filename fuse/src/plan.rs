@@ -20,8 +20,9 @@
 //!   (another look from there adds little); one seen only from other directions counts fully
 //!   (its occlusions and reflections move differently).
 //!
-//! A candidate whose disparities would pass [`PlanInput::max_disparity_px`] (the search range
-//! the methods can afford) is not feasible. The gain is reported as pixels resolved (the sum)
+//! A candidate whose disparities would not fit [`PlanInput::max_disparity_px`] (the widest
+//! search the methods can afford: from the known working range's far end to its near end, or
+//! from 0 to the estimate's largest) is not feasible. The gain is reported as pixels resolved (the sum)
 //! and as a share of the image. Methods that need views in opposite pairs (MFuseNet's three- and
 //! five-view networks) plan with [`LayoutRule::Pairs`]: a candidate is a pair `{o, −o}` on an
 //! axis, scored by the pixels either member resolves.
@@ -136,7 +137,10 @@ pub struct PlanInput<'a> {
     pub confidence: &'a [f32],
     /// Offsets already taken (the reference excluded).
     pub taken: &'a [[i32; 2]],
-    /// Largest disparity (px, at the candidate's own offset) the methods can search.
+    /// The widest disparity search (px, at the candidate's own offset) the methods can afford:
+    /// a candidate is feasible when the disparities it would have to search fit, from the known
+    /// range's far end to its near end ([`Self::expected_range_px`]) or else from 0 to the
+    /// estimate's largest.
     pub max_disparity_px: f32,
     /// The disparities (px per baseline) of the farthest and nearest points the scene is known
     /// to span (a workcell's table and tallest part): with no estimate yet they stand in for the
@@ -346,7 +350,7 @@ fn box_mean(width: usize, height: usize, values: &[f32], r: usize) -> Vec<f32> {
 
 /// What the planner computes once per input: per pixel need, the taken views' visibility (and
 /// directions, in the same order) and whether any of them sees it, the texture tensor, and the
-/// median and largest disparities ([`largest_disparity`]).
+/// median disparity and the span a search must cover.
 struct Prepared {
     need: Vec<f32>,
     seen_from: Vec<Vec<bool>>,
@@ -357,7 +361,9 @@ struct Prepared {
     /// The disparity of pixels without an estimate, for their resolution term (from
     /// [`PlanInput::expected_range_px`] before anything is measured).
     assumed_disparity: Option<f32>,
-    largest_disparity: f32,
+    /// The disparities (px per baseline) a search must span: the known range's (narrowed by
+    /// the estimate), else 0 … the estimate's largest ([`largest_disparity`]).
+    search_span: f32,
 }
 
 fn prepare(input: &PlanInput<'_>, config: &PlanConfig) -> Prepared {
@@ -388,11 +394,12 @@ fn prepare(input: &PlanInput<'_>, config: &PlanConfig) -> Prepared {
         tensor: structure_tensor(w, h, input.luma, config.window_radius_px),
         median_disparity: expected.map_or(median_disparity, |[far, near]| 0.5 * (far + near)),
         assumed_disparity: expected.map(|[far, near]| 0.5 * (far + near)),
-        // The estimate may rule a baseline in that the known range rules out, not the reverse:
-        // disparities past the range are mismatches (on a mirror, say).
-        largest_disparity: match (measured, input.expected_range_px) {
-            (false, Some([far, near])) => far.abs().max(near.abs()),
-            (true, Some([far, near])) => largest_disparity(input.disparity_px).min(far.abs().max(near.abs())),
+        // With a known range the search spans it (from its far end), without one it starts at
+        // 0. The estimate may narrow the range, not widen it: disparities past it are
+        // mismatches (on a mirror, say).
+        search_span: match (measured, input.expected_range_px) {
+            (false, Some([far, near])) => (near - far).abs(),
+            (true, Some([far, near])) => (largest_disparity(input.disparity_px).min(near) - far).abs(),
             (_, None) => largest_disparity(input.disparity_px),
         },
     }
@@ -420,7 +427,7 @@ fn score_offset(input: &PlanInput<'_>, config: &PlanConfig, prepared: &Prepared,
     let (ux, uy) = (unit[0] as f32, unit[1] as f32);
     let norm = (ux * ux + uy * uy).sqrt();
     let (ux, uy) = (ux / norm, uy / norm);
-    let feasible = k as f32 * prepared.largest_disparity <= input.max_disparity_px;
+    let feasible = k as f32 * prepared.search_span <= input.max_disparity_px;
     let same_direction: Vec<usize> = prepared
         .taken_directions
         .iter()
@@ -793,7 +800,8 @@ mod tests {
             ..PlanConfig::default()
         };
         let longest = |ranked: &[Candidate]| ranked[0].offsets[0].iter().map(|v| v.abs()).max();
-        // A table at 9 px and parts up to 12 px: twice the baseline (24 px) fits a 32 px search.
+        // A table at 9 px and parts up to 12 px: twice the baseline spans 18 … 24 px, which a
+        // 32 px search covers.
         let far = PlanInput {
             max_disparity_px: 32.0,
             expected_range_px: Some([9.0, 12.0]),
@@ -802,14 +810,15 @@ mod tests {
         let ranked = plan(&far, &pairs).unwrap_or_else(|e| panic!("{e}"));
         assert_eq!(longest(&ranked), Some(2), "{ranked:#?}");
         assert_eq!(ranked[0].offsets.len(), 2, "a pair: {ranked:#?}");
-        // Parts up to 20 px: twice is 40 px, past the search; one baseline it is.
+        // A table at 4 px and parts up to 24 px: twice spans 40 px, past the search; one baseline
+        // it is.
         let near = PlanInput {
-            expected_range_px: Some([9.0, 20.0]),
+            expected_range_px: Some([4.0, 24.0]),
             ..far
         };
         let ranked = plan(&near, &pairs).unwrap_or_else(|e| panic!("{e}"));
         assert!(ranked[0].feasible && longest(&ranked) == Some(1), "{ranked:#?}");
-        // An estimate that finds nothing nearer than 10 px narrows the range: twice fits again.
+        // An estimate that finds nothing nearer than 10 px narrows the range (4 … 10): twice fits.
         let measured = vec![10.0f32; w * h];
         let estimated = PlanInput {
             disparity_px: &measured,

@@ -41,8 +41,9 @@ pub struct AdaptiveConfig {
     /// Candidates as single views or opposite pairs (default: pairs for MFuseNet, whose networks
     /// take left and right or top and bottom; single views otherwise).
     pub layout: Option<LayoutRule>,
-    /// Largest disparity (px) a candidate may reach at its own offset (`None`: the search a
-    /// replay of the log makes by default, `fuse::default_num_disparities` of the width).
+    /// The widest disparity search (px) a candidate may need at its own offset, from the working
+    /// range's far end to its near end (`None`: the search a replay makes by default,
+    /// `fuse::default_num_disparities` of the width).
     pub max_disparity_px: Option<f32>,
 }
 

@@ -36,8 +36,8 @@ pub struct SimulateArgs {
     /// lets it take twice the baseline where the disparities stay in the search).
     #[arg(long, default_value = "2", value_parser = clap::value_parser!(i32).range(1..=4))]
     pub(crate) plan_max_offset: i32,
-    /// Adaptive rig: the disparity search (px) a candidate must stay within at its offset
-    /// (default: replay's default search, a fifteenth of the width rounded up to 16).
+    /// Adaptive rig: the widest disparity search (px) a candidate may need at its offset, table to
+    /// tallest part (default: replay's default search, a fifteenth of the width rounded up to 16).
     #[arg(long, value_name = "PX")]
     pub(crate) plan_max_disparity: Option<f32>,
     /// Log the scene's working disparity range (table to tallest part, at the set's baseline)
