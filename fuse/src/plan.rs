@@ -154,7 +154,8 @@ pub struct Candidate {
     /// Grid offsets of the views to take (one, or a pair; a pair member already taken is left
     /// out).
     pub offsets: Vec<[i32; 2]>,
-    /// Pixels the candidate is expected to resolve (sum of the per-pixel scores).
+    /// Pixels the candidate is expected to resolve (sum of the per-pixel scores; a vertical
+    /// candidate's times [`PlanConfig::vertical_weight`]).
     pub expected_pixels: f64,
     /// `expected_pixels` as a share of the image.
     pub gain: f64,
@@ -385,15 +386,19 @@ fn prepare(input: &PlanInput<'_>, config: &PlanConfig) -> Prepared {
         })
         .collect();
     let measured = input.disparity_px.iter().any(|d| d.is_finite());
-    let expected = input.expected_range_px.filter(|_| !measured);
+    // Before anything is measured the range's middle stands in for the depth.
+    let assumed_disparity = input
+        .expected_range_px
+        .filter(|_| !measured)
+        .map(|[far, near]| 0.5 * (far + near));
     Prepared {
         need,
         taken_directions: input.taken.iter().map(|o| direction(*o).map(|d| d.0)).collect(),
         seen_from,
         hidden,
         tensor: structure_tensor(w, h, input.luma, config.window_radius_px),
-        median_disparity: expected.map_or(median_disparity, |[far, near]| 0.5 * (far + near)),
-        assumed_disparity: expected.map(|[far, near]| 0.5 * (far + near)),
+        median_disparity: assumed_disparity.unwrap_or(median_disparity),
+        assumed_disparity,
         // With a known range the search spans it (from its far end), without one it starts at
         // 0. The estimate may narrow the range, not widen it: disparities past it are
         // mismatches (on a mirror, say).

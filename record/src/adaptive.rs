@@ -81,6 +81,18 @@ pub struct PlanCandidate {
     pub world_from_camera: Vec<PoseJson>,
 }
 
+impl PlanCandidate {
+    /// Its offsets and whether it could be taken, or what ruled it out.
+    pub fn verdict(&self) -> String {
+        let verdict = match (&self.unreachable_because, self.score.feasible) {
+            (Some(why), _) => format!("unreachable ({why})"),
+            (None, false) => "past the disparity search".to_owned(),
+            (None, true) => "takeable".to_owned(),
+        };
+        format!("{:?} {verdict}", self.score.offsets)
+    }
+}
+
 /// One step of the loop: what was known, what was scored, what was taken.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct PlanStep {
@@ -182,10 +194,11 @@ fn problem(views: &[CapturedView], sim: &Simulation) -> Result<(fuse::Problem, i
         neighbours: views[1..]
             .iter()
             .map(|v| {
+                let offset = v.grid_offset.map(|o| o / factor);
                 Ok(fuse::Neighbour {
-                    role: role_for_offset(v.grid_offset.map(|o| o / factor)),
+                    role: role_for_offset(offset),
                     image: image(v)?,
-                    offset: v.grid_offset.map(|o| o / factor),
+                    offset,
                     baseline_ratio: 1.0,
                 })
             })
@@ -294,17 +307,7 @@ impl Simulation {
                     step,
                     candidates: candidates
                         .iter()
-                        .map(|c| {
-                            format!(
-                                "{:?} {}",
-                                c.score.offsets,
-                                match (&c.unreachable_because, c.score.feasible) {
-                                    (Some(why), _) => format!("unreachable ({why})"),
-                                    (None, false) => "past the disparity search".to_owned(),
-                                    (None, true) => "takeable".to_owned(),
-                                }
-                            )
-                        })
+                        .map(PlanCandidate::verdict)
                         .collect::<Vec<_>>()
                         .join("; "),
                 })?;

@@ -70,9 +70,16 @@ pub struct EvalOptions {
     pub at_baseline_m: Option<f64>,
 }
 
-/// `values` times `scale` (the identity for 1).
-fn scaled(values: &[f32], scale: f64) -> Vec<f32> {
-    values.iter().map(|v| (f64::from(*v) * scale) as f32).collect()
+/// `values` times `scale`, borrowed as they are for 1 (no common baseline asked for).
+fn scaled(values: &[f32], scale: f64) -> std::borrow::Cow<'_, [f32]> {
+    if scale == 1.0 {
+        return values.into();
+    }
+    values
+        .iter()
+        .map(|v| (f64::from(*v) * scale) as f32)
+        .collect::<Vec<_>>()
+        .into()
 }
 
 /// Runs `methods` on every set with ground truth and tabulates the results.
@@ -112,7 +119,7 @@ pub fn evaluate_sets(
             let scale = options.at_baseline_m.map_or(1.0, |b| b / set.baseline_m);
             let missing_error_px = prepared.num_disparities as f64 * scale;
             let estimate = scaled(&result.disparity.data, scale);
-            let truth = set.ground_truth_disparity().map(|t| scaled(&t, scale));
+            let truth = set.ground_truth_disparity().map(|t| scaled(&t, scale).into_owned());
             if let (Some(confidence), Some(truth)) = (&result.disparity.confidence, &truth) {
                 pooled.extend(RankedErrors::new(&estimate, confidence, truth, missing_error_px));
             }

@@ -118,11 +118,6 @@ fn mount(arm: &Ur10, world_from_camera: &Isometry3<f64>, joints: &[f64; 6]) -> I
     arm.forward_kinematics(joints).inverse() * world_from_camera
 }
 
-/// The layout rule a method needs: opposite pairs for MFuseNet's networks, any offset otherwise.
-pub fn layout_for(method: &dyn Method) -> LayoutRule {
-    LayoutRule::for_family(fuse::methods::entry(method.name()).map(|e| e.family))
-}
-
 /// Scores the candidates of `set` from a disparity and confidence already computed, and checks
 /// their poses against the arm.
 pub fn plan_from_estimate(
@@ -195,11 +190,10 @@ pub fn plan_set(set: &ViewSet, method: &dyn Method, options: &PlanOptions) -> Re
     let prepared = PreparedSet::new(set, &options.run)?;
     let result = prepared.run(method, &|_| {})?;
     let started = Instant::now();
-    let layout = options.layout.unwrap_or_else(|| layout_for(method));
-    let family = fuse::methods::entry(method.name()).map(|e| e.family);
+    let family = PlanConfig::for_family(fuse::methods::entry(method.name()).map(|e| e.family));
     let config = PlanConfig {
-        layout,
-        vertical_weight: PlanConfig::for_family(family).vertical_weight,
+        layout: options.layout.unwrap_or(family.layout),
+        vertical_weight: family.vertical_weight,
         ..options.config
     };
     let searched_px = (prepared.min_disparity + prepared.num_disparities as i32) as f32;
@@ -218,7 +212,7 @@ pub fn plan_set(set: &ViewSet, method: &dyn Method, options: &PlanOptions) -> Re
         method: method.name().to_owned(),
         method_seconds: result.seconds,
         planning_seconds,
-        layout,
+        layout: config.layout,
         taken: prepared.selected.neighbours.iter().map(|n| n.offset).collect(),
         chosen,
         candidates,
