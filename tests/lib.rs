@@ -166,7 +166,7 @@ pub fn python_with_mcap() -> PathBuf {
     let found = PYTHON.get_or_init(|| {
         let has_clients = |python: &Path| {
             Command::new(python)
-                .args(["-c", "import mcap, mcap_protobuf, rerun, safetensors, numpy"])
+                .args(["-c", "import mcap, mcap_protobuf, rerun, safetensors, numpy, rosbags, mcap_ros2, PIL"])
                 .output()
                 .is_ok_and(|o| o.status.success())
         };
@@ -175,7 +175,7 @@ pub fn python_with_mcap() -> PathBuf {
                 Ok(explicit)
             } else {
                 Err(format!(
-                    "MULTISCOPIC_PYTHON={} cannot import mcap, mcap_protobuf, rerun, safetensors and numpy",
+                    "MULTISCOPIC_PYTHON={} cannot import mcap, mcap_protobuf, rerun, safetensors, numpy, rosbags, mcap_ros2 and PIL",
                     explicit.display()
                 ))
             };
@@ -382,13 +382,29 @@ pub fn f32_pixels(image: &RawImage) -> Vec<f32> {
 /// Copies a log without its capture events: a "foreign" log whose sets must be inferred from
 /// the poses.
 pub fn strip_capture_events(from: &Path, to: &Path) {
-    let bytes = std::fs::read(from).unwrap_or_else(|e| panic!("{e}"));
+    copy_messages(from, to, |topic, _| topic != CAPTURE_EVENTS_TOPIC);
+}
+
+/// Copies the messages of a log (or one ROS 2 bag file) that `keep(topic, log_time)` accepts
+/// into a new log with the same schemas, channels (and their metadata) and header profile.
+pub fn copy_messages(from: &Path, to: &Path, keep: impl Fn(&str, u64) -> bool) {
+    let bytes = std::fs::read(from).unwrap_or_else(|e| panic!("{}: {e}", from.display()));
+    let profile = match mcap::read::LinearReader::new(&bytes)
+        .unwrap_or_else(|e| panic!("{e}"))
+        .next()
+    {
+        Some(Ok(mcap::records::Record::Header(header))) => header.profile,
+        _ => String::new(),
+    };
     let file = std::io::BufWriter::new(std::fs::File::create(to).unwrap_or_else(|e| panic!("{e}")));
-    let mut writer = mcap::WriteOptions::new().create(file).unwrap_or_else(|e| panic!("{e}"));
+    let mut writer = mcap::WriteOptions::new()
+        .profile(profile)
+        .create(file)
+        .unwrap_or_else(|e| panic!("{e}"));
     let mut channels = std::collections::HashMap::new();
     for message in mcap::MessageStream::new(&bytes).unwrap_or_else(|e| panic!("{e}")) {
         let message = message.unwrap_or_else(|e| panic!("{e}"));
-        if message.channel.topic == CAPTURE_EVENTS_TOPIC {
+        if !keep(&message.channel.topic, message.log_time) {
             continue;
         }
         let id = *channels.entry(message.channel.topic.clone()).or_insert_with(|| {
@@ -401,7 +417,7 @@ pub fn strip_capture_events(from: &Path, to: &Path) {
                     schema_id,
                     &message.channel.topic,
                     &message.channel.message_encoding,
-                    &BTreeMap::new(),
+                    &message.channel.metadata,
                 )
                 .unwrap_or_else(|e| panic!("{e}"))
         });

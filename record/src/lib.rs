@@ -10,6 +10,7 @@
 //! Both produce [`CapturedSet`]s, which [`log::LogWriter`] writes as Foxglove-schema messages.
 
 pub mod adaptive;
+pub mod bag;
 pub mod camera;
 pub mod capture;
 pub mod import;

@@ -255,6 +255,33 @@ pub enum LogError {
     },
 }
 
+impl CaptureEvent {
+    /// The event of `view` in `set`, with the topics of our own log (`/camera/<role>/…`; ground
+    /// truth named only when the view has it).
+    pub fn of_view(set: &CapturedSet, view: &CapturedView) -> Self {
+        Self {
+            set_index: set.index,
+            set_name: set.name.clone(),
+            rig: set.rig.clone(),
+            views_in_set: set.views.len() as u32,
+            role: view.role.clone(),
+            grid_offset: view.grid_offset,
+            baseline_m: set.baseline_m,
+            capture_time_nanos: view.capture_time_nanos,
+            image_topic: image_topic(&view.role),
+            calibration_topic: calibration_topic(&view.role),
+            depth_topic: view.depth_m.as_ref().map(|_| depth_topic(&view.role)),
+            surface_topic: view.surface_class.as_ref().map(|_| surface_topic(&view.role)),
+            world_from_camera: (&view.world_from_camera).into(),
+            commanded_world_from_camera: view.commanded_world_from_camera.as_ref().map(Into::into),
+            true_world_from_camera: view.true_world_from_camera.as_ref().map(Into::into),
+            joint_positions_rad: view.joints,
+            exposure_gain: view.exposure_gain,
+            disparity_range: set.disparity_range,
+        }
+    }
+}
+
 /// Options of a log, builder style with a terminal [`LogOptions::create`].
 #[derive(Debug, Clone)]
 pub struct LogOptions {
@@ -297,6 +324,16 @@ impl LogOptions {
     pub fn image_format(mut self, format: ImageFormat) -> Self {
         self.image_format = format;
         self
+    }
+
+    /// How images are stored.
+    pub fn image_format_of(&self) -> ImageFormat {
+        self.image_format
+    }
+
+    /// The PNG compression of images stored as PNG.
+    pub fn png_compression(&self) -> png::Compression {
+        self.png_compression
     }
 
     /// The `mcap` writer settings of every log: zstd chunks of this size and level, indexes,
@@ -679,24 +716,11 @@ impl<W: Write + Seek> LogWriter<W> {
             )?;
         }
         let event = CaptureEvent {
-            set_index: set.index,
-            set_name: set.name.clone(),
-            rig: set.rig.clone(),
-            views_in_set: set.views.len() as u32,
-            role: view.role.clone(),
-            grid_offset: view.grid_offset,
-            baseline_m: set.baseline_m,
-            capture_time_nanos: t,
             image_topic: image,
             calibration_topic: calibration,
             depth_topic: depth,
             surface_topic: surface,
-            world_from_camera: (&view.world_from_camera).into(),
-            commanded_world_from_camera: view.commanded_world_from_camera.as_ref().map(Into::into),
-            true_world_from_camera: view.true_world_from_camera.as_ref().map(Into::into),
-            joint_positions_rad: view.joints,
-            exposure_gain: view.exposure_gain,
-            disparity_range: set.disparity_range,
+            ..CaptureEvent::of_view(set, view)
         };
         self.write_event(t, &event)
     }

@@ -4,12 +4,17 @@
 //! before the log is started, so that a bad file leaves nothing behind ([`record_import`]).
 
 use std::collections::BTreeMap;
+use std::io::Write as _;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use crate::adaptive::PlanStep;
+use crate::bag::BagWriter;
 use crate::capture::{Simulation, SimulationError};
-use crate::log::{CAPTURE_PLAN_SCHEMA, CAPTURE_PLAN_TOPIC, LogError, LogOptions, METADATA_NAME, OutputFile, PoseJson};
+use crate::log::{
+    CAPTURE_PLAN_SCHEMA, CAPTURE_PLAN_TOPIC, LogError, LogOptions, LogWriter, METADATA_NAME, OutputFile, PoseJson,
+    SyncedWriter,
+};
 use crate::rig::RigKind;
 use crate::{CapturedSet, CapturedView, TOOL_VERSION};
 
@@ -82,6 +87,157 @@ fn json<T: serde::Serialize>(what: &'static str, value: &T) -> Result<String, Se
     serde_json::to_string(value).map_err(|source| SessionError::Json { what, source })
 }
 
+/// What a recording writes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum LogFormat {
+    /// Our own log: one MCAP file with Foxglove schemas (the format documented in ARCHITECTURE.md).
+    #[default]
+    Mcap,
+    /// A ROS 2 bag (`record::bag`): a directory `NAME/` with `NAME_0.mcap` and `metadata.yaml`,
+    /// or, when the output ends in `.mcap`, that one file with the `ros2` profile.
+    Ros2,
+}
+
+/// Where a recording goes and how it is written.
+#[derive(Debug, Clone)]
+pub struct Output {
+    /// The log file, or the bag directory.
+    pub path: PathBuf,
+    /// The format.
+    pub format: LogFormat,
+    /// Chunk compression level.
+    pub zstd_level: u32,
+}
+
+impl Output {
+    /// Our own log at `path`, chunks at the default zstd level.
+    pub fn mcap(path: &Path) -> Self {
+        Self {
+            path: path.to_path_buf(),
+            format: LogFormat::Mcap,
+            zstd_level: crate::log::DEFAULT_ZSTD_LEVEL,
+        }
+    }
+
+    /// The bag directory, when the output is one (a ROS 2 bag not named `*.mcap`).
+    fn bag_directory(&self) -> Option<&Path> {
+        (self.format == LogFormat::Ros2 && self.path.extension().is_none_or(|e| e != "mcap")).then_some(&self.path)
+    }
+
+    /// The MCAP file written: the output itself, or `NAME/NAME_0.mcap` in a bag directory.
+    pub fn mcap_file(&self) -> PathBuf {
+        match self.bag_directory() {
+            Some(dir) => {
+                let name = dir
+                    .file_name()
+                    .map_or_else(|| "bag".into(), |n| n.to_string_lossy().into_owned());
+                dir.join(format!("{name}_0.mcap"))
+            }
+            None => self.path.clone(),
+        }
+    }
+}
+
+/// A log of either format being written.
+enum SetWriter {
+    Log(Box<LogWriter<SyncedWriter>>),
+    Bag(Box<BagWriter<SyncedWriter>>),
+}
+
+impl SetWriter {
+    fn write_set(
+        &mut self,
+        set: &CapturedSet,
+        flange_from_camera: Option<&nalgebra::Isometry3<f64>>,
+    ) -> Result<(), LogError> {
+        match self {
+            Self::Log(log) => log.write_set(set, flange_from_camera),
+            Self::Bag(bag) => bag.write_set(set, flange_from_camera),
+        }
+    }
+
+    fn write_metadata(&mut self, name: &str, metadata: BTreeMap<String, String>) -> Result<(), LogError> {
+        match self {
+            Self::Log(log) => log.write_metadata(name, metadata),
+            Self::Bag(bag) => bag.write_metadata(name, metadata),
+        }
+    }
+
+    fn attach(&mut self, name: &str, media_type: &str, log_time: u64, data: &[u8]) -> Result<(), LogError> {
+        match self {
+            Self::Log(log) => log.attach(name, media_type, log_time, data),
+            Self::Bag(bag) => bag.attach(name, media_type, log_time, data),
+        }
+    }
+
+    fn write_plan(&mut self, step: &PlanStep) -> Result<(), LogError> {
+        let value = serde_json::to_value(step).map_err(|e| LogError::Encode {
+            topic: CAPTURE_PLAN_TOPIC.into(),
+            reason: e.to_string(),
+        })?;
+        match self {
+            Self::Log(log) => log.write_json(CAPTURE_PLAN_TOPIC, CAPTURE_PLAN_SCHEMA, step.time_nanos, &value),
+            Self::Bag(bag) => bag.write_json(CAPTURE_PLAN_TOPIC, step.time_nanos, &value),
+        }
+    }
+
+    fn finish(self) -> Result<(SyncedWriter, Option<ros2::bag::BagInfo>), LogError> {
+        match self {
+            Self::Log(log) => Ok((log.finish()?, None)),
+            Self::Bag(bag) => bag.finish().map(|(writer, info)| (writer, Some(info))),
+        }
+    }
+}
+
+/// Creates the output (the bag directory first, for a bag) and starts its writer.
+fn open_output(output: &Output, options: LogOptions) -> Result<(OutputFile, SetWriter), LogError> {
+    if let Some(dir) = output.bag_directory() {
+        std::fs::create_dir_all(dir).map_err(|source| LogError::Io {
+            action: "cannot create the bag directory",
+            path: dir.to_path_buf(),
+            source,
+        })?;
+    }
+    let path = output.mcap_file();
+    let (file, writer) = OutputFile::create(&path)?;
+    let writer = match output.format {
+        LogFormat::Mcap => SetWriter::Log(Box::new(options.create(writer)?)),
+        LogFormat::Ros2 => {
+            let name = path
+                .file_name()
+                .map_or_else(String::new, |n| n.to_string_lossy().into_owned());
+            SetWriter::Bag(Box::new(BagWriter::create(options, &name, writer)?))
+        }
+    };
+    Ok((file, writer))
+}
+
+/// Commits the finished file; for a bag directory also writes its `metadata.yaml` (atomically,
+/// after the file it lists). Returns the output's path.
+fn commit_output(
+    output: &Output,
+    file: OutputFile,
+    (writer, info): (SyncedWriter, Option<ros2::bag::BagInfo>),
+) -> Result<PathBuf, LogError> {
+    let path = file.commit(writer)?;
+    match (output.bag_directory(), info) {
+        (Some(dir), Some(info)) => {
+            let (metadata, mut writer) = OutputFile::create(&dir.join(ros2::bag::METADATA_FILE))?;
+            writer
+                .write_all(info.to_yaml().as_bytes())
+                .map_err(|source| LogError::Io {
+                    action: "cannot write",
+                    path: metadata.temp_path().to_path_buf(),
+                    source,
+                })?;
+            metadata.commit(writer)?;
+            Ok(dir.to_path_buf())
+        }
+        _ => Ok(path),
+    }
+}
+
 /// Records every set of `sim` into `output` (written under a temporary name, renamed when
 /// finished). When `stop` is raised, the log is finished with the sets completed so far.
 /// `on_view(set, view)` follows every view; `on_plan(step, estimate)` every plan of an adaptive
@@ -90,19 +246,17 @@ fn json<T: serde::Serialize>(what: &'static str, value: &T) -> Result<String, Se
 /// [`crate::log::CAPTURE_PLAN_TOPIC`] with the set.
 pub fn record_simulation(
     sim: &mut Simulation,
-    output: &Path,
-    zstd_level: u32,
+    output: &Output,
     stop: &AtomicBool,
     mut on_view: impl FnMut(u32, &CapturedView),
     mut on_plan: impl FnMut(&PlanStep, Option<&fuse::DisparityImage>),
     mut on_set: impl FnMut(&CapturedSet),
 ) -> Result<RecordingOutcome, SessionError> {
     let config = sim.config().clone();
-    let (file, writer) = OutputFile::create(output)?;
-    let mut log = LogOptions::new()
+    let options = LogOptions::new()
         .image_format(config.image_format)
-        .zstd_level(zstd_level)
-        .create(writer)?;
+        .zstd_level(output.zstd_level);
+    let (file, mut log) = open_output(output, options)?;
     let scene =
         serde_json::to_vec_pretty(sim.scene()).map_err(|source| SessionError::Json { what: "scene", source })?;
     log.attach("scene.json", "application/json", sim.time_nanos(), &scene)?;
@@ -150,13 +304,7 @@ pub fn record_simulation(
         };
         let hand_eye = *sim.hand_eye_believed();
         // The plans first: they go into the set's chunk, flushed with it.
-        let plans = steps.iter().try_for_each(|step| {
-            let value = serde_json::to_value(step).map_err(|e| LogError::Encode {
-                topic: CAPTURE_PLAN_TOPIC.into(),
-                reason: e.to_string(),
-            })?;
-            log.write_json(CAPTURE_PLAN_TOPIC, CAPTURE_PLAN_SCHEMA, step.time_nanos, &value)
-        });
+        let plans = steps.iter().try_for_each(|step| log.write_plan(step));
         if let Err(source) = plans.and_then(|()| log.write_set(&set, Some(&hand_eye))) {
             return Err(failed(format!("writing set {index}"), completed, file, source));
         }
@@ -182,7 +330,7 @@ pub fn record_simulation(
         Ok(writer) => writer,
         Err(source) => return Err(failed("writing the summary".into(), completed, file, source)),
     };
-    Ok(outcome(Some(file.commit(writer)?)))
+    Ok(outcome(Some(commit_output(output, file, writer)?)))
 }
 
 /// What an import produced.
@@ -203,7 +351,7 @@ pub fn record_import(
     settings: &crate::import::ImportOverrides,
     min_disparity: Option<i32>,
     num_disparities: Option<u32>,
-    output: &Path,
+    output: &Output,
     mut on_set: impl FnMut(&CapturedSet),
 ) -> Result<ImportOutcome, SessionError> {
     let mut plan = crate::import::plan_import(dir, settings).map_err(|e| SessionError::Plan(Box::new(e)))?;
@@ -220,8 +368,7 @@ pub fn record_import(
         on_set(&set);
         sets.push(set);
     }
-    let (file, writer) = OutputFile::create(output)?;
-    let mut log = LogOptions::new().create(writer)?;
+    let (file, mut log) = open_output(output, LogOptions::new().zstd_level(output.zstd_level))?;
     for set in &sets {
         log.write_set(set, None)?;
     }
@@ -234,7 +381,7 @@ pub fn record_import(
         ("completed_sets".to_owned(), sets.len().to_string()),
     ]);
     log.write_metadata(METADATA_NAME, metadata)?;
-    let writer = log.finish()?;
-    let path = file.commit(writer)?;
+    let finished = log.finish()?;
+    let path = commit_output(output, file, finished)?;
     Ok(ImportOutcome { path, sets })
 }

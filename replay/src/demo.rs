@@ -101,8 +101,7 @@ pub fn record_capture(
     let mut layout = None;
     let recorded = record_simulation(
         &mut sim,
-        &log,
-        record::log::DEFAULT_ZSTD_LEVEL,
+        &record::session::Output::mcap(&log),
         &stop,
         |set, view| on_view(set, &view.role),
         |_, _| {},

@@ -1,12 +1,31 @@
-//! Logs without capture events (foreign logs: images, calibrations and `/tf` from another
-//! recorder): view sets are inferred from the camera poses. Consecutive images whose cameras keep
-//! one orientation and stay close to the first of them form a set; the medoid view is the
-//! reference; the baseline is the distance to its nearest neighbour; each view's grid offset is
-//! its position in the reference camera frame in baselines, which names its role.
+//! Logs without capture events (foreign logs: images, calibrations and transforms from another
+//! recorder, ROS 2 bags of a real arm translated by `crate::ros2`): view sets are inferred from
+//! the camera's stream, the way a real capture looks. The camera may stream at 10–30 Hz while
+//! the arm moves between stations:
+//!
+//! 1. each image's camera pose is the transform from the root of its TF tree (or `--base-frame`)
+//!    to its `frame_id` at its own stamp (the acquisition time, not the log time), looked up the
+//!    way tf2 does: each edge interpolated between its two samples around the stamp (lerp and
+//!    slerp), an exact stamp taken as it is, never extrapolated; `/tf_static` edges hold at all
+//!    times. An image with no transform at its stamp is left out and reported.
+//! 2. an image is *moving* when the joint states nearest its stamp (within 60 ms) have a joint
+//!    faster than 0.01 rad/s, or, without joint states near it, when its camera pose 50 ms
+//!    before and after the stamp differs by more than 0.2 mm or 0.02°; moving images are left
+//!    out.
+//! 3. consecutive settled images whose poses stay within 0.5 mm and 0.05° of the first of them
+//!    form a *station*; one frame of each station becomes its view ([`StationFrame`]: the middle
+//!    one by default, or the first, the last, or the mean of them all).
+//! 4. consecutive stations whose cameras keep one orientation and stay close to the first of them
+//!    form a set; the medoid station is the reference; the baseline is the distance to its
+//!    nearest neighbour; each view's grid offset is its position in the reference camera frame in
+//!    baselines, which names its role.
+//!
+//! Images whose calibration has lens distortion (`plumb_bob`, `rational_polynomial`) are
+//! undistorted to their K before matching; other distortion models are refused.
 
 use std::collections::HashMap;
 
-use foxglove::messages::{CameraCalibration, CompressedImage, FrameTransforms, RawImage};
+use foxglove::messages::{CameraCalibration, CompressedImage, FrameTransforms, JointStates, RawImage};
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion, Vector2};
 use record::camera::PinholeCamera;
 
@@ -28,20 +47,126 @@ const SET_RADIUS_IN_STEPS: f64 = 3.0;
 const GRID_TOLERANCE: f64 = 0.25;
 /// Encodings that are colour or grey images (not depth or masks).
 const IMAGE_ENCODINGS: [&str; 6] = ["rgb8", "bgr8", "rgba8", "bgra8", "8UC3", "mono8"];
+/// A joint faster than this (rad/s) means the arm moves.
+const MOVING_JOINT_RAD_PER_S: f64 = 0.01;
+/// Joint states further than this from an image's stamp say nothing about it (ns).
+const JOINT_STATE_REACH_NANOS: u64 = 60_000_000;
+/// The camera pose is compared this long before and after an image's stamp (ns).
+const MOTION_PROBE_NANOS: u64 = 50_000_000;
+/// The camera moved between the probes when it moved further (m) or turned more (deg).
+const MOVING_TRANSLATION_M: f64 = 0.0002;
+const MOVING_ROTATION_DEG: f64 = 0.02;
+/// A settled image belongs to the current station while it stays this close to its first image.
+const STATION_TRANSLATION_M: f64 = 0.0005;
+const STATION_ROTATION_DEG: f64 = 0.05;
+
+/// Which frame of a settled station becomes its view.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum StationFrame {
+    /// The first settled frame.
+    First,
+    /// The middle one (the default: clear of the settling at the start and the next move).
+    #[default]
+    Middle,
+    /// The last one.
+    Last,
+    /// The mean of every settled frame (less sensor noise).
+    Mean,
+}
+
+/// How views are taken from a camera stream.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct StreamOptions {
+    /// Only the images of this topic (default: every colour or grey image topic).
+    pub image_topic: Option<String>,
+    /// The frame the camera poses are expressed in (default: the root of the camera's TF tree).
+    pub base_frame: Option<String>,
+    /// Which frame of a station becomes its view.
+    pub station_frame: StationFrame,
+}
 
 /// Whether a schema is one foreign-log inference needs.
 pub fn is_foreign_input(schema: &str) -> bool {
     matches!(
         schema,
-        TRANSFORMS_SCHEMA | RAW_IMAGE_SCHEMA | COMPRESSED_IMAGE_SCHEMA | CALIBRATION_SCHEMA
+        TRANSFORMS_SCHEMA
+            | RAW_IMAGE_SCHEMA
+            | COMPRESSED_IMAGE_SCHEMA
+            | CALIBRATION_SCHEMA
+            | crate::ros2::JOINT_STATES_SCHEMA
     )
 }
 
-/// Time-stamped transforms, parent ← child.
+/// Whether a schema carries poses or joints (read whatever the time window: a view's pose needs
+/// the transforms around it).
+pub fn is_pose_source(schema: &str) -> bool {
+    matches!(
+        schema,
+        TRANSFORMS_SCHEMA | crate::ros2::JOINT_STATES_SCHEMA | "tf2_msgs/msg/TFMessage" | "sensor_msgs/msg/JointState"
+    )
+}
+
+/// One edge of the transform tree: `parent_from_child` samples, or one static transform.
+#[derive(Debug)]
+struct Edge {
+    /// (stamp, parent, parent_from_child), sorted by stamp once read.
+    samples: Vec<(u64, String, Isometry3<f64>)>,
+    /// Static (`/tf_static`): valid at all times (the latest static transform of the edge).
+    fixed: Option<(String, Isometry3<f64>)>,
+}
+
+/// Why a camera pose cannot be had at a time.
+#[derive(Debug, Clone, PartialEq)]
+enum TfError {
+    /// No transform names the frame.
+    Unknown { frame: String },
+    /// The time lies outside an edge's samples (tf2 never extrapolates).
+    OutOfRange {
+        parent: String,
+        child: String,
+        first: u64,
+        last: u64,
+    },
+    /// The base frame is not above the frame.
+    NotConnected { frame: String, base: String, root: String },
+}
+
+impl std::fmt::Display for TfError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Unknown { frame } => write!(f, "no transform (on /tf or /tf_static) names the frame '{frame}'"),
+            Self::OutOfRange {
+                parent,
+                child,
+                first,
+                last,
+            } => write!(
+                f,
+                "the transform {parent} → {child} is known from {first} to {last} ns only (transforms are interpolated, never extrapolated)"
+            ),
+            Self::NotConnected { frame, base, root } => {
+                write!(
+                    f,
+                    "'{base}' is not above '{frame}' in the transform tree (its root is '{root}')"
+                )
+            }
+        }
+    }
+}
+
+/// A camera pose looked up.
+#[derive(Debug, Clone, Copy)]
+struct Lookup {
+    root_from_frame: Isometry3<f64>,
+    /// The widest gap between the two samples an edge was interpolated between (ns; 0: exact).
+    gap_nanos: u64,
+}
+
+/// Time-stamped transforms, child → edge.
 #[derive(Debug, Default)]
 struct TfBuffer {
-    /// child → (time, parent, parent_from_child), sorted by time.
-    edges: HashMap<String, Vec<(u64, String, Isometry3<f64>)>>,
+    edges: HashMap<String, Edge>,
     /// The first transform whose rotation is not one (reported when the poses are needed).
     invalid: Option<ReplayError>,
 }
@@ -50,10 +175,11 @@ struct TfBuffer {
 const MIN_QUATERNION_NORM: f64 = 1e-6;
 
 impl TfBuffer {
-    /// Adds the transforms of one message. A transform without a rotation field is a pure
-    /// translation (identity rotation); a rotation that is zero or not finite is kept out and
-    /// remembered as an error naming the topic and frames.
+    /// Adds the transforms of one message (static when its topic is `…tf_static`). A transform
+    /// without a rotation field is a pure translation (identity rotation); a rotation that is zero
+    /// or not finite is kept out and remembered as an error naming the topic and frames.
     fn add(&mut self, topic: &str, time: u64, message: &FrameTransforms) {
+        let fixed = topic.ends_with("tf_static");
         for t in &message.transforms {
             let translation = t.translation.unwrap_or_default();
             let rotation = match t.rotation {
@@ -90,45 +216,117 @@ impl TfBuffer {
                 continue;
             }
             let pose = Isometry3::from_parts(Translation3::new(translation.x, translation.y, translation.z), rotation);
-            let stamp = t.timestamp.map_or(time, |s| s.total_nanos());
-            self.edges
-                .entry(t.child_frame_id.clone())
-                .or_default()
-                .push((stamp, t.parent_frame_id.clone(), pose));
+            // tf2 takes frame ids without a leading '/'.
+            let parent = t.parent_frame_id.trim_start_matches('/').to_owned();
+            let child = t.child_frame_id.trim_start_matches('/').to_owned();
+            let edge = self.edges.entry(child).or_insert_with(|| Edge {
+                samples: Vec::new(),
+                fixed: None,
+            });
+            if fixed {
+                edge.fixed = Some((parent, pose));
+            } else {
+                let stamp = t.timestamp.map_or(time, |s| s.total_nanos());
+                edge.samples.push((stamp, parent, pose));
+            }
         }
     }
 
     fn sort(&mut self) {
-        for samples in self.edges.values_mut() {
-            samples.sort_by_key(|s| s.0);
+        for edge in self.edges.values_mut() {
+            edge.samples.sort_by_key(|s| s.0);
         }
     }
 
-    /// `root_from_frame` at `time`: each edge interpolated between its samples around `time`.
-    fn root_from(&self, frame: &str, time: u64) -> Option<Isometry3<f64>> {
+    /// `base_from_frame` at `time` (the root of the tree when `base` is `None`).
+    fn lookup(&self, frame: &str, time: u64, base: Option<&str>) -> Result<Lookup, TfError> {
+        let frame = frame.trim_start_matches('/');
         let mut pose = Isometry3::identity();
+        let mut gap_nanos = 0;
         let mut child = frame.to_owned();
+        if !self.edges.contains_key(frame) && base != Some(frame) {
+            return Err(TfError::Unknown { frame: frame.into() });
+        }
         for _ in 0..64 {
-            let Some(samples) = self.edges.get(&child) else {
-                return Some(pose);
+            if base == Some(child.as_str()) {
+                break;
+            }
+            let Some(edge) = self.edges.get(&child) else {
+                return match base {
+                    Some(base) => Err(TfError::NotConnected {
+                        frame: frame.into(),
+                        base: base.into(),
+                        root: child,
+                    }),
+                    None => Ok(Lookup {
+                        root_from_frame: pose,
+                        gap_nanos,
+                    }),
+                };
             };
-            let after = samples.partition_point(|s| s.0 < time);
-            let (parent, edge) = match (after.checked_sub(1).map(|i| &samples[i]), samples.get(after)) {
-                (Some(a), Some(b)) if b.0 > a.0 => {
-                    let t = (time - a.0) as f64 / (b.0 - a.0) as f64;
-                    let translation = a.2.translation.vector.lerp(&b.2.translation.vector, t);
-                    let rotation = a.2.rotation.slerp(&b.2.rotation, t);
-                    (a.1.clone(), Isometry3::from_parts(translation.into(), rotation))
+            let (parent, parent_from_child) = match &edge.fixed {
+                Some((parent, p)) => (parent.clone(), *p),
+                None => {
+                    let samples = &edge.samples;
+                    let (Some(first), Some(last)) = (samples.first(), samples.last()) else {
+                        return Err(TfError::Unknown { frame: child });
+                    };
+                    if time < first.0 || time > last.0 {
+                        return Err(TfError::OutOfRange {
+                            parent: first.1.clone(),
+                            child,
+                            first: first.0,
+                            last: last.0,
+                        });
+                    }
+                    let after = samples.partition_point(|s| s.0 < time);
+                    let b = &samples[after.min(samples.len() - 1)];
+                    if b.0 == time || after == 0 {
+                        (b.1.clone(), b.2)
+                    } else {
+                        let a = &samples[after - 1];
+                        let t = (time - a.0) as f64 / (b.0 - a.0) as f64;
+                        let translation = a.2.translation.vector.lerp(&b.2.translation.vector, t);
+                        let rotation = a.2.rotation.slerp(&b.2.rotation, t);
+                        gap_nanos = gap_nanos.max(b.0 - a.0);
+                        (a.1.clone(), Isometry3::from_parts(translation.into(), rotation))
+                    }
                 }
-                (Some(a), _) => (a.1.clone(), a.2),
-                (None, Some(b)) => (b.1.clone(), b.2),
-                (None, None) => return None,
             };
-            pose = edge * pose;
+            pose = parent_from_child * pose;
             child = parent;
         }
-        None
+        Ok(Lookup {
+            root_from_frame: pose,
+            gap_nanos,
+        })
     }
+}
+
+/// What the stream inference found and used, for `replay info` and the run's report.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
+pub struct StreamReport {
+    /// Image topics and how many colour or grey images each had.
+    pub image_topics: Vec<(String, usize)>,
+    /// The camera frames the images named.
+    pub camera_frames: Vec<String>,
+    /// The frame poses are expressed in.
+    pub base_frame: Option<String>,
+    /// Images with a pose, and of them those taken while the arm moved.
+    pub images_with_pose: usize,
+    /// Images taken while the arm moved (left out).
+    pub moving_images: usize,
+    /// Images left out for want of a transform at their stamp, with the first reason.
+    pub images_without_pose: usize,
+    /// Why the first image without a pose has none.
+    pub first_missing_pose: Option<String>,
+    /// Settled stations: (first stamp, last stamp, frames, the chosen frame's widest
+    /// interpolation gap in ns).
+    pub stations: Vec<(u64, u64, usize, u64)>,
+    /// Which frame of each station was used.
+    pub station_frame: StationFrame,
+    /// Joint-state messages read.
+    pub joint_states: usize,
 }
 
 /// What a scan keeps for inference.
@@ -136,6 +334,9 @@ impl TfBuffer {
 pub struct ForeignMessages {
     images: Vec<(String, u64)>,
     calibrations: Vec<(String, u64)>,
+    /// (stamp, largest |joint velocity|), when the message had velocities.
+    joint_speeds: Vec<(u64, f64)>,
+    joint_states: usize,
     tf: TfBuffer,
 }
 
@@ -146,6 +347,18 @@ impl ForeignMessages {
             TRANSFORMS_SCHEMA => {
                 if let Ok(message) = <FrameTransforms as prost::Message>::decode(data) {
                     self.tf.add(topic, time, &message);
+                }
+                false
+            }
+            crate::ros2::JOINT_STATES_SCHEMA => {
+                if let Ok(message) = <JointStates as prost::Message>::decode(data) {
+                    self.joint_states += 1;
+                    let speeds: Vec<f64> = message.joints.iter().filter_map(|j| j.velocity).collect();
+                    if !speeds.is_empty() {
+                        let stamp = message.timestamp.map_or(time, |s| s.total_nanos());
+                        self.joint_speeds
+                            .push((stamp, speeds.iter().fold(0.0f64, |m, v| m.max(v.abs()))));
+                    }
                 }
                 false
             }
@@ -166,88 +379,234 @@ impl ForeignMessages {
         !self.images.is_empty()
     }
 
+    /// Whether the arm moved at `stamp`: the joint states when there are some near it (the
+    /// arm's own 125–500 Hz measurement), else the transforms around it; `None` when neither says.
+    fn moving(&self, frame: &str, stamp: u64, base: Option<&str>) -> Option<bool> {
+        let by_joints = {
+            let after = self.joint_speeds.partition_point(|s| s.0 < stamp);
+            [after.checked_sub(1), Some(after)]
+                .into_iter()
+                .flatten()
+                .filter_map(|i| self.joint_speeds.get(i))
+                .filter(|s| s.0.abs_diff(stamp) <= JOINT_STATE_REACH_NANOS)
+                .min_by_key(|s| s.0.abs_diff(stamp))
+                .map(|s| s.1 > MOVING_JOINT_RAD_PER_S)
+        };
+        if by_joints.is_some() {
+            return by_joints;
+        }
+        match (
+            self.tf.lookup(frame, stamp.saturating_sub(MOTION_PROBE_NANOS), base),
+            self.tf.lookup(frame, stamp.saturating_add(MOTION_PROBE_NANOS), base),
+        ) {
+            (Ok(before), Ok(after)) => {
+                let (a, b) = (before.root_from_frame, after.root_from_frame);
+                let moved = (a.translation.vector - b.translation.vector).norm();
+                let turned = a.rotation.angle_to(&b.rotation).to_degrees();
+                Some(moved > MOVING_TRANSLATION_M || turned > MOVING_ROTATION_DEG)
+            }
+            _ => None,
+        }
+    }
+
     /// Infers the view sets.
-    pub fn infer_sets(mut self, payloads: &HashMap<(String, u64), Vec<u8>>) -> Result<Vec<ViewSet>, ReplayError> {
+    pub fn infer_sets(
+        self,
+        payloads: &HashMap<(String, u64), Vec<u8>>,
+    ) -> Result<(Vec<ViewSet>, StreamReport), ReplayError> {
+        self.infer_sets_with(payloads, &StreamOptions::default())
+    }
+
+    /// Infers the view sets with the stream options given.
+    pub fn infer_sets_with(
+        mut self,
+        payloads: &HashMap<(String, u64), Vec<u8>>,
+        options: &StreamOptions,
+    ) -> Result<(Vec<ViewSet>, StreamReport), ReplayError> {
         if let Some(error) = self.tf.invalid.take() {
             return Err(error);
         }
         self.tf.sort();
+        self.joint_speeds.sort_by(|a, b| a.0.cmp(&b.0));
+        let base = options.base_frame.as_deref();
+        let mut report = StreamReport {
+            base_frame: options.base_frame.clone(),
+            station_frame: options.station_frame,
+            joint_states: self.joint_states,
+            ..StreamReport::default()
+        };
         let payload = |key: &(String, u64)| payloads.get(key).map(Vec::as_slice).unwrap_or_default();
         // Calibrations by frame id (the latest wins).
         let mut calibrations: HashMap<String, CameraCalibration> = HashMap::new();
         for key in &self.calibrations {
             if let Ok(c) = <CameraCalibration as prost::Message>::decode(payload(key)) {
-                calibrations.insert(c.frame_id.clone(), c);
+                calibrations.insert(c.frame_id.trim_start_matches('/').to_owned(), c);
             }
         }
-        // Colour/grey images with a pose; one per (frame, time), preferring colour.
-        let mut views: Vec<(u64, String, View)> = Vec::new();
-        self.images.sort_by_key(|(topic, time)| (*time, topic.clone()));
+        // Colour/grey images: (stamp, frame, key); one per (frame, stamp), preferring colour.
+        let mut frames: Vec<Frame> = Vec::new();
         for key in &self.images {
+            if options.image_topic.as_ref().is_some_and(|t| *t != key.0) {
+                continue;
+            }
             let data = payload(key);
-            let frame_id = match <RawImage as prost::Message>::decode(data) {
+            let (frame_id, stamp, grey) = match <RawImage as prost::Message>::decode(data) {
                 Ok(raw) if raw.width > 0 => {
                     if !IMAGE_ENCODINGS.contains(&raw.encoding.as_str()) {
                         continue;
                     }
-                    raw.frame_id
+                    let grey = raw.encoding == "mono8";
+                    (raw.frame_id, raw.timestamp.map(|t| t.total_nanos()), grey)
                 }
                 _ => match <CompressedImage as prost::Message>::decode(data) {
-                    Ok(c) if c.format.eq_ignore_ascii_case("png") => c.frame_id,
+                    Ok(c) if c.format.eq_ignore_ascii_case("png") => {
+                        (c.frame_id, c.timestamp.map(|t| t.total_nanos()), false)
+                    }
                     _ => continue,
                 },
             };
-            let time = key.1;
-            if let Some(existing) = views.iter_mut().find(|(t, f, _)| *t == time && *f == frame_id) {
-                // A grey mask or second stream of the same camera at the same time: keep colour.
-                if existing.2.rgb.chunks_exact(3).all(|p| p[0] == p[1] && p[1] == p[2]) {
-                    let (w, h, rgb) = decode_rgb(0, &key.0, data)?;
-                    if (w, h) == (existing.2.camera.width, existing.2.camera.height) {
-                        existing.2.rgb = rgb;
-                    }
+            let frame_id = frame_id.trim_start_matches('/').to_owned();
+            let stamp = stamp.filter(|s| *s > 0).unwrap_or(key.1);
+            match report.image_topics.iter_mut().find(|(t, _)| *t == key.0) {
+                Some((_, count)) => *count += 1,
+                None => report.image_topics.push((key.0.clone(), 1)),
+            }
+            if !report.camera_frames.contains(&frame_id) {
+                report.camera_frames.push(frame_id.clone());
+            }
+            frames.push(Frame {
+                key: key.clone(),
+                stamp,
+                frame_id,
+                grey,
+                lookup: None,
+                moving: false,
+            });
+        }
+        // Colour before grey at one stamp: of a camera seen twice at once, the colour view is kept.
+        frames.sort_by(|a, b| (a.stamp, a.grey, &a.key.0).cmp(&(b.stamp, b.grey, &b.key.0)));
+        // Poses and motion.
+        let mut first_error = None;
+        for frame in &mut frames {
+            match self.tf.lookup(&frame.frame_id, frame.stamp, base) {
+                Ok(lookup) => {
+                    frame.lookup = Some(lookup);
+                    frame.moving = self.moving(&frame.frame_id, frame.stamp, base).unwrap_or(false);
+                    report.images_with_pose += 1;
+                    report.moving_images += usize::from(frame.moving);
                 }
+                Err(error) => {
+                    report.images_without_pose += 1;
+                    first_error.get_or_insert_with(|| error.to_string());
+                    report.first_missing_pose.get_or_insert_with(|| {
+                        format!(
+                            "{} image at stamp {} ns in frame '{}': {error}",
+                            frame.key.0, frame.stamp, frame.frame_id
+                        )
+                    });
+                }
+            }
+        }
+        if report.images_with_pose == 0
+            && let Some(first) = frames.first()
+        {
+            let reason = first_error.unwrap_or_default();
+            return Err(ReplayError::NoPose {
+                topic: first.key.0.clone(),
+                frame: first.frame_id.clone(),
+                stamp_nanos: first.stamp,
+                reason,
+            });
+        }
+        // Stations: runs of settled frames that stay put; a moving frame ends a run.
+        let mut stations: Vec<Vec<&Frame>> = Vec::new();
+        let mut open = false;
+        for frame in &frames {
+            let Some(lookup) = frame.lookup else { continue };
+            if frame.moving {
+                open = false;
                 continue;
             }
-            let calibration = calibrations.get(&frame_id).ok_or_else(|| ReplayError::BadField {
-                set: 0,
-                topic: key.0.clone(),
-                field: "frame_id",
-                value: format!("'{frame_id}' has no foxglove.CameraCalibration in the log"),
-            })?;
-            let pose = self
-                .tf
-                .root_from(&frame_id, time)
-                .ok_or_else(|| ReplayError::BadField {
-                    set: 0,
-                    topic: key.0.clone(),
-                    field: "frame_id",
-                    value: format!("no transform reaches '{frame_id}' at log time {time}"),
-                })?;
-            let (width, height, rgb) = decode_rgb(0, &key.0, data)?;
-            let camera = PinholeCamera {
-                width,
-                height,
-                fx: calibration.k.first().copied().unwrap_or(0.0),
-                fy: calibration.k.get(4).copied().unwrap_or(0.0),
-                cx: calibration.k.get(2).copied().unwrap_or(0.0),
-                cy: calibration.k.get(5).copied().unwrap_or(0.0),
-            };
-            views.push((
-                time,
-                frame_id,
-                View {
-                    role: String::new(),
-                    offset: [0, 0],
-                    camera,
-                    rgb,
-                    world_from_camera: pose,
-                    true_world_from_camera: None,
-                    capture_time_nanos: time,
-                    joints: None,
-                },
-            ));
+            let joins = open
+                && stations.last().and_then(|s| s.first()).is_some_and(|first| {
+                    let a = first.lookup.map_or(lookup.root_from_frame, |l| l.root_from_frame);
+                    let b = lookup.root_from_frame;
+                    first.frame_id == frame.frame_id
+                        && (a.translation.vector - b.translation.vector).norm() <= STATION_TRANSLATION_M
+                        && a.rotation.angle_to(&b.rotation).to_degrees() <= STATION_ROTATION_DEG
+                });
+            // The same camera seen twice at one stamp (a colour and a grey stream): keep one.
+            if let Some(last) = stations.last_mut().and_then(|s| s.last_mut())
+                && last.stamp == frame.stamp
+                && last.frame_id == frame.frame_id
+            {
+                continue;
+            }
+            if joins {
+                if let Some(station) = stations.last_mut() {
+                    station.push(frame);
+                }
+            } else {
+                stations.push(vec![frame]);
+            }
+            open = true;
         }
-        let views: Vec<View> = views.into_iter().map(|(_, _, v)| v).collect();
+        // One view per station.
+        let mut views: Vec<View> = Vec::with_capacity(stations.len());
+        for station in &stations {
+            let chosen = match options.station_frame {
+                StationFrame::First => station[0],
+                StationFrame::Last => station[station.len() - 1],
+                StationFrame::Middle | StationFrame::Mean => station[(station.len() - 1) / 2],
+            };
+            let Some(lookup) = chosen.lookup else { continue };
+            report.stations.push((
+                station[0].stamp,
+                station[station.len() - 1].stamp,
+                station.len(),
+                lookup.gap_nanos,
+            ));
+            let calibration = calibrations.get(&chosen.frame_id).ok_or_else(|| ReplayError::BadField {
+                set: 0,
+                topic: chosen.key.0.clone(),
+                field: "frame_id",
+                value: format!(
+                    "'{}' has no camera calibration in the log (sensor_msgs/msg/CameraInfo or foxglove.CameraCalibration with that frame_id)",
+                    chosen.frame_id
+                ),
+            })?;
+            let (width, height, mut rgb) = decode_rgb(0, &chosen.key.0, payload(&chosen.key))?;
+            if options.station_frame == StationFrame::Mean && station.len() > 1 {
+                let mut sum: Vec<u32> = rgb.iter().map(|v| u32::from(*v)).collect();
+                let mut count = 1;
+                for other in station.iter().filter(|f| f.key != chosen.key) {
+                    let (w, h, more) = decode_rgb(0, &other.key.0, payload(&other.key))?;
+                    if (w, h) == (width, height) {
+                        sum.iter_mut().zip(&more).for_each(|(s, v)| *s += u32::from(*v));
+                        count += 1;
+                    }
+                }
+                rgb = sum.iter().map(|s| ((s + count / 2) / count) as u8).collect();
+            }
+            let camera = camera_of(calibration, width, height, &chosen.key.0)?;
+            let rgb =
+                crate::undistort::undistort(calibration, &camera, &rgb).map_err(|reason| ReplayError::BadField {
+                    set: 0,
+                    topic: chosen.key.0.clone(),
+                    field: "distortion_model",
+                    value: reason,
+                })?;
+            views.push(View {
+                role: String::new(),
+                offset: [0, 0],
+                camera,
+                rgb,
+                world_from_camera: lookup.root_from_frame,
+                true_world_from_camera: None,
+                capture_time_nanos: chosen.key.1,
+                joints: None,
+            });
+        }
         let mut sets = Vec::new();
         let mut start = 0;
         while start < views.len() {
@@ -275,8 +634,57 @@ impl ForeignMessages {
             }
             start = end;
         }
-        Ok(sets)
+        Ok((sets, report))
     }
+}
+
+/// One image of the stream.
+#[derive(Debug, Clone)]
+struct Frame {
+    key: (String, u64),
+    stamp: u64,
+    frame_id: String,
+    /// A grey (mono8) image: a colour one of the same camera and stamp is preferred.
+    grey: bool,
+    lookup: Option<Lookup>,
+    moving: bool,
+}
+
+/// The pinhole camera of a calibration for an image of `width × height`.
+fn camera_of(
+    calibration: &CameraCalibration,
+    width: u32,
+    height: u32,
+    topic: &str,
+) -> Result<PinholeCamera, ReplayError> {
+    let k = &calibration.k;
+    if k.len() != 9 || !(k[0].is_finite() && k[0] > 0.0 && k[4].is_finite() && k[4] > 0.0) {
+        return Err(ReplayError::BadField {
+            set: 0,
+            topic: topic.to_owned(),
+            field: "k",
+            value: format!("{k:?} (the calibration of frame '{}')", calibration.frame_id),
+        });
+    }
+    if (calibration.width, calibration.height) != (0, 0) && (calibration.width, calibration.height) != (width, height) {
+        return Err(ReplayError::BadField {
+            set: 0,
+            topic: topic.to_owned(),
+            field: "width/height",
+            value: format!(
+                "the image is {width}x{height}, its calibration (frame '{}') is for {}x{}",
+                calibration.frame_id, calibration.width, calibration.height
+            ),
+        });
+    }
+    Ok(PinholeCamera {
+        width,
+        height,
+        fx: k[0],
+        fy: k[4],
+        cx: k[2],
+        cy: k[5],
+    })
 }
 
 fn assemble(index: u32, mut views: Vec<View>) -> Result<ViewSet, ReplayError> {
@@ -368,7 +776,10 @@ mod tests {
         let mut tf = TfBuffer::default();
         tf.add("/tf", 10, &transform("camera", None));
         tf.sort();
-        let pose = tf.root_from("camera", 10).unwrap_or_else(|| panic!("no pose"));
+        let pose = tf
+            .lookup("camera", 10, None)
+            .unwrap_or_else(|e| panic!("{e}"))
+            .root_from_frame;
         assert_eq!(pose.rotation, UnitQuaternion::identity());
         assert!((pose.translation.vector - nalgebra::Vector3::new(0.1, 0.0, 0.5)).norm() < 1e-12);
         assert!(tf.invalid.is_none());
@@ -384,10 +795,73 @@ mod tests {
         messages.add("/tf", TRANSFORMS_SCHEMA, 20, &bytes);
         let error = match messages.infer_sets(&HashMap::new()) {
             Err(e) => e.to_string(),
-            Ok(sets) => panic!("a zero quaternion was accepted ({} sets)", sets.len()),
+            Ok((sets, _)) => panic!("a zero quaternion was accepted ({} sets)", sets.len()),
         };
         assert!(
             error.contains("/tf") && error.contains("world → camera_left") && error.contains("not a rotation"),
+            "{error}"
+        );
+    }
+
+    fn sampled(child: &str, samples: &[(u64, f64)]) -> TfBuffer {
+        let mut tf = TfBuffer::default();
+        for (time, x) in samples {
+            let message = FrameTransforms {
+                transforms: vec![FrameTransform {
+                    timestamp: Some(foxglove::messages::Timestamp::new(0, *time as u32)),
+                    parent_frame_id: "base_link".into(),
+                    child_frame_id: child.into(),
+                    translation: Some(Vector3 { x: *x, y: 0.0, z: 0.0 }),
+                    rotation: None,
+                }],
+            };
+            tf.add("/tf", *time, &message);
+        }
+        tf.sort();
+        tf
+    }
+
+    #[test]
+    fn transforms_interpolate_between_samples_and_never_extrapolate() {
+        let mut tf = sampled("tool0", &[(100, 0.0), (200, 1.0)]);
+        let at = |tf: &TfBuffer, frame: &str, time| tf.lookup(frame, time, None);
+        let mid = at(&tf, "tool0", 150).unwrap_or_else(|e| panic!("{e}"));
+        assert!((mid.root_from_frame.translation.x - 0.5).abs() < 1e-12);
+        assert_eq!(mid.gap_nanos, 100);
+        assert_eq!(
+            at(&tf, "tool0", 200).map(|l| l.gap_nanos),
+            Ok(0).map_err(|e: TfError| e)
+        );
+        let error = at(&tf, "tool0", 201).map(|_| ()).unwrap_err().to_string();
+        assert!(
+            error.contains("base_link → tool0") && error.contains("from 100 to 200"),
+            "{error}"
+        );
+        // A static edge below holds at every time; the dynamic one above still bounds the time.
+        let hand_eye = FrameTransforms {
+            transforms: vec![FrameTransform {
+                timestamp: Some(foxglove::messages::Timestamp::new(0, 0)),
+                parent_frame_id: "tool0".into(),
+                child_frame_id: "/camera_optical".into(),
+                translation: Some(Vector3 { x: 0.0, y: 0.0, z: 0.1 }),
+                rotation: None,
+            }],
+        };
+        tf.add("/tf_static", 0, &hand_eye);
+        tf.sort();
+        let pose = at(&tf, "camera_optical", 150)
+            .unwrap_or_else(|e| panic!("{e}"))
+            .root_from_frame;
+        assert!((pose.translation.vector - nalgebra::Vector3::new(0.5, 0.0, 0.1)).norm() < 1e-12);
+        assert!(at(&tf, "camera_optical", 250).is_err());
+        assert!(matches!(at(&tf, "elsewhere", 150), Err(TfError::Unknown { .. })));
+        let error = tf
+            .lookup("camera_optical", 150, Some("world"))
+            .map(|_| ())
+            .unwrap_err()
+            .to_string();
+        assert!(
+            error.contains("'world' is not above 'camera_optical'") && error.contains("root is 'base_link'"),
             "{error}"
         );
     }

@@ -24,9 +24,11 @@ pub mod pipeline;
 pub mod plan;
 pub mod recover;
 pub mod regions;
+pub mod ros2;
 pub mod run;
 pub mod salvage;
 pub mod train;
+pub mod undistort;
 pub mod viewer;
 pub mod viewset;
 
@@ -39,6 +41,26 @@ pub enum ReplayError {
         /// Cause.
         #[source]
         source: mcap::McapError,
+    },
+    /// No image of a camera stream has a pose.
+    #[error(
+        "no image on {topic} has a camera pose: the first (stamp {stamp_nanos} ns, frame '{frame}') has none because {reason}"
+    )]
+    NoPose {
+        /// The image topic.
+        topic: String,
+        /// The image's frame id.
+        frame: String,
+        /// Its stamp (ns).
+        stamp_nanos: u64,
+        /// Why.
+        reason: String,
+    },
+    /// A ROS 2 bag directory cannot be listed.
+    #[error(transparent)]
+    Bag {
+        /// Cause.
+        source: ::ros2::bag::BagError,
     },
     /// A file could not be read.
     #[error("cannot read '{path}'")]
@@ -94,7 +116,7 @@ pub enum ReplayError {
     },
     /// An image encoding replay does not read.
     #[error(
-        "set {set} topic {topic}: unsupported image encoding '{encoding}' (supported: rgb8, bgr8, rgba8, bgra8, mono8, png)"
+        "set {set} topic {topic}: unsupported image encoding '{encoding}' (supported: rgb8, bgr8, rgba8, bgra8, mono8, png; from ROS 2 also mono16 and jpeg)"
     )]
     UnknownEncoding {
         /// Set.

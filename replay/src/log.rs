@@ -35,6 +35,21 @@ pub struct LogContents {
     pub metadata: BTreeMap<String, BTreeMap<String, String>>,
     /// The plans of adaptive sets (`/capture/plan`), in log order.
     pub plans: Vec<PlanStep>,
+    /// How the sets of a log without capture events were taken from its camera stream.
+    pub stream: Option<crate::foreign::StreamReport>,
+    /// ROS 2 topics of types that are not read: (topic, type, messages).
+    pub ignored: Vec<(String, String, usize)>,
+}
+
+/// How a log is read.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct ReadOptions {
+    /// Seconds after the log's first message before which images are left out.
+    pub start_secs: Option<f64>,
+    /// Seconds after the log's first message after which images are left out.
+    pub end_secs: Option<f64>,
+    /// How sets are taken from a camera stream (logs without capture events).
+    pub stream: crate::foreign::StreamOptions,
 }
 
 /// Reads a log file (memory-mapped).
@@ -49,13 +64,35 @@ pub fn read_log_file_in(
     start_secs: Option<f64>,
     end_secs: Option<f64>,
 ) -> Result<LogContents, ReplayError> {
-    let io = |source| ReplayError::Io {
-        path: path.to_path_buf(),
-        source,
-    };
-    let file = std::fs::File::open(path).map_err(io)?;
-    let bytes = map_read_only(&file).map_err(io)?;
-    let origin = crate::salvage::trusted_summary(&bytes)
+    read_log_file_with(
+        path,
+        &ReadOptions {
+            start_secs,
+            end_secs,
+            ..ReadOptions::default()
+        },
+    )
+}
+
+/// Reads a log file (memory-mapped) or a ROS 2 bag directory as `options` say.
+pub fn read_log_file_with(path: &Path, options: &ReadOptions) -> Result<LogContents, ReplayError> {
+    let (start_secs, end_secs) = (options.start_secs, options.end_secs);
+    let paths = log_files(path)?;
+    let maps = paths
+        .iter()
+        .map(|path| {
+            let io = |source| ReplayError::Io {
+                path: path.clone(),
+                source,
+            };
+            let file = std::fs::File::open(path).map_err(io)?;
+            map_read_only(&file).map_err(io)
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    let files: Vec<&[u8]> = maps.iter().map(|m| &m[..]).collect();
+    let origin = files
+        .first()
+        .and_then(|bytes| crate::salvage::trusted_summary(bytes))
         .and_then(|s| s.stats.map(|stats| stats.message_start_time))
         .unwrap_or(0);
     let at = |secs: f64| origin.saturating_add((secs.max(0.0) * 1e9) as u64);
@@ -63,7 +100,270 @@ pub fn read_log_file_in(
         start_nanos: start_secs.map_or(0, at),
         end_nanos: end_secs.map_or(u64::MAX, at),
     };
-    read_log_in(&bytes, &range)
+    read_logs_in(&files, &range, options)
+}
+
+/// The files of a log: the file itself, or a ROS 2 bag directory's storage files in order
+/// (`metadata.yaml`'s list, else its `*_N.mcap` files).
+pub fn log_files(path: &Path) -> Result<Vec<std::path::PathBuf>, ReplayError> {
+    if path.is_dir() {
+        ros2::bag::file_list(path).map_err(|source| ReplayError::Bag { source })
+    } else {
+        Ok(vec![path.to_path_buf()])
+    }
+}
+
+/// One file of a log, as `replay info` lists it.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct FileDescription {
+    /// The file.
+    pub path: std::path::PathBuf,
+    /// The MCAP header's profile (`ros2` for a ROS 2 bag, empty for our own logs).
+    pub profile: String,
+    /// The library that wrote it.
+    pub library: String,
+    /// Whether it has a summary (indexes, statistics): a finished file.
+    pub finished: bool,
+}
+
+/// One topic of a log.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct TopicDescription {
+    /// Topic.
+    pub topic: String,
+    /// Schema (message type) name.
+    pub schema: String,
+    /// Message encoding (`cdr`, `protobuf`, `json`).
+    pub encoding: String,
+    /// Messages (summed over the files).
+    pub messages: u64,
+}
+
+/// What `replay info` reports: the files and topics of a log, what replay took from them.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct LogDescription {
+    /// The files, in order.
+    pub files: Vec<FileDescription>,
+    /// Every topic.
+    pub topics: Vec<TopicDescription>,
+    /// How a camera stream became sets (logs without capture events).
+    pub stream: Option<crate::foreign::StreamReport>,
+    /// The sets: index, name, rig, baseline (m), and per view its role, grid offset and time.
+    pub sets: Vec<SetDescription>,
+    /// What was read besides the sets ([`LogContents::notes`]).
+    pub notes: Vec<String>,
+    /// What was lost ([`LogContents::damage`]).
+    pub lost: Vec<String>,
+}
+
+/// One set of a log.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct SetDescription {
+    /// Index.
+    pub index: u32,
+    /// Name.
+    pub name: String,
+    /// Layout.
+    pub rig: String,
+    /// Baseline (m).
+    pub baseline_m: f64,
+    /// Image size.
+    pub size: [u32; 2],
+    /// (role, grid offset, image time in ns, camera position in the log's root frame in m).
+    pub views: Vec<(String, [i32; 2], u64, [f64; 3])>,
+}
+
+/// Describes a log file or ROS 2 bag directory: its files and topics (from each file's summary,
+/// else counted by walking it) and the sets replay reads from it.
+pub fn describe(path: &Path, options: &ReadOptions) -> Result<LogDescription, ReplayError> {
+    let contents = read_log_file_with(path, options)?;
+    let mut files = Vec::new();
+    let mut topics: Vec<TopicDescription> = Vec::new();
+    for file in log_files(path)? {
+        let bytes = std::fs::read(&file).map_err(|source| ReplayError::Io {
+            path: file.clone(),
+            source,
+        })?;
+        let (profile, library) = match crate::salvage::record_at(&bytes, 8) {
+            Some(mcap::records::Record::Header(header)) => (header.profile, header.library),
+            _ => (String::new(), String::new()),
+        };
+        let mut add = |topic: &str, schema: &str, encoding: &str, messages: u64| match topics
+            .iter_mut()
+            .find(|t| t.topic == topic)
+        {
+            Some(t) => t.messages += messages,
+            None => topics.push(TopicDescription {
+                topic: topic.to_owned(),
+                schema: schema.to_owned(),
+                encoding: encoding.to_owned(),
+                messages,
+            }),
+        };
+        let summary = crate::salvage::trusted_summary(&bytes);
+        let finished = summary.is_some();
+        match summary {
+            Some(summary) => {
+                let counts = summary
+                    .stats
+                    .as_ref()
+                    .map(|s| s.channel_message_counts.clone())
+                    .unwrap_or_default();
+                for (id, channel) in &summary.channels {
+                    let schema = channel.schema.as_ref().map_or("", |s| s.name.as_str());
+                    add(
+                        &channel.topic,
+                        schema,
+                        &channel.message_encoding,
+                        counts.get(id).copied().unwrap_or(0),
+                    );
+                }
+            }
+            None => {
+                let mut channels: HashMap<u16, (String, u16, String)> = HashMap::new();
+                let mut schemas: HashMap<u16, String> = HashMap::new();
+                let mut counts: BTreeMap<u16, u64> = BTreeMap::new();
+                let _walked = crate::salvage::walk(&bytes, |record, trusted| -> Result<(), std::convert::Infallible> {
+                    match record {
+                        mcap::records::Record::Schema { header, .. } if trusted => {
+                            schemas.insert(header.id, header.name);
+                        }
+                        mcap::records::Record::Channel(c) if trusted => {
+                            channels.insert(c.id, (c.topic, c.schema_id, c.message_encoding));
+                        }
+                        mcap::records::Record::Message { header, .. } if trusted => {
+                            *counts.entry(header.channel_id).or_default() += 1;
+                        }
+                        _ => {}
+                    }
+                    Ok(())
+                });
+                for (id, (topic, schema_id, encoding)) in &channels {
+                    let schema = schemas.get(schema_id).map_or("", String::as_str);
+                    add(topic, schema, encoding, counts.get(id).copied().unwrap_or(0));
+                }
+            }
+        }
+        files.push(FileDescription {
+            path: file,
+            profile,
+            library,
+            finished,
+        });
+    }
+    topics.sort_by(|a, b| a.topic.cmp(&b.topic));
+    let sets = contents
+        .sets
+        .iter()
+        .map(|set| SetDescription {
+            index: set.index,
+            name: set.name.clone(),
+            rig: set.rig.clone(),
+            baseline_m: set.baseline_m,
+            size: [set.reference.camera.width, set.reference.camera.height],
+            views: std::iter::once(&set.reference)
+                .chain(&set.neighbours)
+                .map(|v| {
+                    let p = v.world_from_camera.translation.vector;
+                    (v.role.clone(), v.offset, v.capture_time_nanos, [p.x, p.y, p.z])
+                })
+                .collect(),
+        })
+        .collect();
+    Ok(LogDescription {
+        files,
+        topics,
+        notes: contents.notes(),
+        lost: contents.damage(),
+        stream: contents.stream,
+        sets,
+    })
+}
+
+impl LogDescription {
+    /// The report as text.
+    pub fn to_text(&self) -> String {
+        use std::fmt::Write as _;
+        let mut out = String::new();
+        for f in &self.files {
+            let kind = if f.profile == ros2::bag::PROFILE {
+                "ROS 2 bag file"
+            } else {
+                "MCAP log"
+            };
+            let _ = writeln!(
+                out,
+                "{} — {kind}, written by {}{}",
+                f.path.display(),
+                if f.library.is_empty() { "?" } else { &f.library },
+                if f.finished {
+                    ""
+                } else {
+                    " (no summary: unfinished or cut)"
+                }
+            );
+        }
+        let _ = writeln!(out, "\ntopics:");
+        for t in &self.topics {
+            let _ = writeln!(
+                out,
+                "  {:<40} {:<36} {:>7} msgs  {}",
+                t.topic, t.schema, t.messages, t.encoding
+            );
+        }
+        if let Some(stream) = &self.stream {
+            let _ = writeln!(
+                out,
+                "\ncamera stream: images on {} in frame(s) {}, poses in '{}'",
+                stream
+                    .image_topics
+                    .iter()
+                    .map(|(t, n)| format!("{t} ({n})"))
+                    .collect::<Vec<_>>()
+                    .join(", "),
+                stream.camera_frames.join(", "),
+                stream.base_frame.as_deref().unwrap_or("the tree's root")
+            );
+            let _ = writeln!(out, "  {} joint-state message(s) read", stream.joint_states);
+            for (i, (first, last, frames, gap)) in stream.stations.iter().enumerate() {
+                let _ = writeln!(
+                    out,
+                    "  station {i}: {frames} settled frame(s), stamps {first} … {last} ns, transforms interpolated over at most {:.1} ms",
+                    *gap as f64 / 1e6
+                );
+            }
+        }
+        let _ = writeln!(out, "\nsets:");
+        if self.sets.is_empty() {
+            let _ = writeln!(out, "  none");
+        }
+        for set in &self.sets {
+            let _ = writeln!(
+                out,
+                "  set {} '{}': {} at {:.2} mm, {}x{}",
+                set.index,
+                set.name,
+                set.rig,
+                set.baseline_m * 1000.0,
+                set.size[0],
+                set.size[1]
+            );
+            for (role, offset, time, p) in &set.views {
+                let _ = writeln!(
+                    out,
+                    "    {role:<12} offset {:>2},{:>2}  at {time} ns  camera at ({:.4}, {:.4}, {:.4}) m",
+                    offset[0], offset[1], p[0], p[1], p[2]
+                );
+            }
+        }
+        for line in &self.notes {
+            let _ = writeln!(out, "note: {line}");
+        }
+        for line in &self.lost {
+            let _ = writeln!(out, "lost: {line}");
+        }
+        out
+    }
 }
 
 /// Maps a log file read-only.
@@ -266,13 +566,14 @@ fn scan_indexed(
 }
 
 /// What a scan keeps: capture events, payloads of the topics a set may need, and what
-/// foreign-log inference needs.
+/// foreign-log inference needs. ROS 2 messages are translated first (`crate::ros2`).
 #[derive(Default)]
 struct Collected {
     events: Vec<CaptureEvent>,
     plans: Vec<PlanStep>,
     payloads: HashMap<(String, u64), Vec<u8>>,
     foreign: crate::foreign::ForeignMessages,
+    ros2: crate::ros2::Ros2Translator,
 }
 
 impl Collected {
@@ -284,6 +585,13 @@ impl Collected {
         log_time: u64,
         data: &[u8],
     ) -> Result<(), ReplayError> {
+        if crate::ros2::is_ros2_schema(schema) {
+            return match self.ros2.translate(topic, schema, data)? {
+                crate::ros2::Translated::Foxglove { schema, data } => self.keep(range, topic, schema, log_time, &data),
+                crate::ros2::Translated::Text(text) => self.keep(range, topic, "json", log_time, &text),
+                crate::ros2::Translated::Ignored => Ok(()),
+            };
+        }
         let parse = |topic: &'static str| {
             move |source| ReplayError::BadEvent {
                 topic,
@@ -301,7 +609,7 @@ impl Collected {
                 self.plans
                     .push(serde_json::from_slice(data).map_err(parse(CAPTURE_PLAN_TOPIC))?);
             }
-        } else if (range.contains(log_time) || schema == crate::foreign::TRANSFORMS_SCHEMA)
+        } else if (range.contains(log_time) || crate::foreign::is_pose_source(schema))
             && self.foreign.add(topic, schema, log_time, data)
         {
             self.payloads.insert((topic.to_owned(), log_time), data.to_vec());
@@ -342,59 +650,57 @@ impl TimeRange {
 /// Reads the view sets of a log whose images fall within `range`. Logs without capture events
 /// (foreign logs with images, calibrations and `/tf`) get their sets inferred from the poses.
 pub fn read_log_in(bytes: &[u8], range: &TimeRange) -> Result<LogContents, ReplayError> {
+    read_logs_in(&[bytes], range, &ReadOptions::default())
+}
+
+/// Reads the view sets of the files of one log (a ROS 2 bag split into `NAME_0.mcap`,
+/// `NAME_1.mcap`, …: their messages are taken in file order as one stream) whose images fall
+/// within `range` (`options.stream` says how a stream becomes sets).
+pub fn read_logs_in(files: &[&[u8]], range: &TimeRange, options: &ReadOptions) -> Result<LogContents, ReplayError> {
     let wanted = |topic: &str, schema: &str| {
         topic == CAPTURE_EVENTS_TOPIC
             || topic == CAPTURE_PLAN_TOPIC
             || topic.starts_with("/camera/")
             || crate::foreign::is_foreign_input(schema)
+            || crate::ros2::is_ros2_schema(schema)
     };
     let mut collected = Collected::default();
-    let indexed = if *range == TimeRange::default() {
-        None
-    } else {
-        // Images, events and calibrations in the window; transforms whenever they were logged.
-        let mut keep = |t: &str, s: &str, time: u64, data: &[u8]| collected.keep(range, t, s, time, data);
-        scan_indexed(
-            bytes,
-            range,
-            |t, s| wanted(t, s) && s != crate::foreign::TRANSFORMS_SCHEMA,
-            &mut keep,
-        )
-        .and_then(|first| {
-            scan_indexed(
-                bytes,
-                &TimeRange::default(),
-                |_, s| s == crate::foreign::TRANSFORMS_SCHEMA,
-                &mut keep,
-            )
-            .map(|second| first.and_then(|a| second.map(|b| a + b)))
-        })
-    };
-    let (messages, mut damage) = match indexed {
-        Some(result) => (result?, ScanDamage::default()),
-        None => {
-            // No usable summary (or it contradicted the file): start over with a linear scan.
-            collected = Collected::default();
-            scan(bytes, wanted, |t, s, time, data| {
-                collected.keep(range, t, s, time, data)
-            })?
-        }
-    };
+    let mut messages = 0;
+    let mut damage = ScanDamage::default();
+    let mut metadata = BTreeMap::new();
+    for bytes in files {
+        let (count, file_damage) = read_one(bytes, range, files.len() == 1, &wanted, &mut collected)?;
+        messages += count;
+        metadata.extend(read_metadata(bytes, file_damage.metadata.clone()));
+        // The first cut ends the stream's trustworthy part; corrupt chunks of every file count.
+        damage.cut = damage.cut.or(file_damage.cut);
+        damage.bad_chunks.extend(file_damage.bad_chunks);
+    }
     let Collected {
         events,
         mut plans,
         payloads,
         foreign,
+        ros2,
     } = collected;
+    let ignored = ros2
+        .ignored()
+        .iter()
+        .map(|((topic, schema), count)| (topic.clone(), schema.clone(), *count))
+        .collect();
     plans.sort_by_key(|p| (p.set_index, p.step));
     let truncation = damage.cut;
     let damaged = truncation.is_some() || !damage.bad_chunks.is_empty();
     let bad_chunks: Vec<String> = damage.bad_chunks.iter().map(|(reason, _)| reason.clone()).collect();
     let (mut sets, mut incomplete_sets) = (Vec::new(), Vec::new());
+    let mut stream = None;
     if events.is_empty() && foreign.has_images() {
         // A cut-off log may have lost what the inference needs: report, do not fail.
-        match (foreign.infer_sets(&payloads), damaged) {
-            (Ok(inferred), _) => sets = inferred,
+        match (foreign.infer_sets_with(&payloads, &options.stream), damaged) {
+            (Ok((inferred, report)), _) => {
+                sets = inferred;
+                stream = Some(report);
+            }
             (Err(error), true) => incomplete_sets.push((0, error.to_string())),
             (Err(error), false) => return Err(error),
         }
@@ -430,8 +736,39 @@ pub fn read_log_in(bytes: &[u8], range: &TimeRange) -> Result<LogContents, Repla
         messages,
         truncation,
         bad_chunks,
-        metadata: read_metadata(bytes, damage.metadata.take()),
+        metadata,
         plans,
+        stream,
+        ignored,
+    })
+}
+
+/// Scans one file into `collected`: through its summary's indexes when it is the log's only
+/// file and only a time window is wanted, else linearly (a file without a usable summary starts
+/// over with a linear scan).
+fn read_one(
+    bytes: &[u8],
+    range: &TimeRange,
+    only_file: bool,
+    wanted: &impl Fn(&str, &str) -> bool,
+    collected: &mut Collected,
+) -> Result<(usize, ScanDamage), ReplayError> {
+    if only_file && *range != TimeRange::default() {
+        // Images, events and calibrations in the window; transforms and joints whenever logged.
+        let mut keep = |t: &str, s: &str, time: u64, data: &[u8]| collected.keep(range, t, s, time, data);
+        let pose_source = crate::foreign::is_pose_source;
+        let indexed = scan_indexed(bytes, range, |t, s| wanted(t, s) && !pose_source(s), &mut keep).and_then(|first| {
+            scan_indexed(bytes, &TimeRange::default(), |_, s| pose_source(s), &mut keep)
+                .map(|second| first.and_then(|a| second.map(|b| a + b)))
+        });
+        if let Some(result) = indexed {
+            return Ok((result?, ScanDamage::default()));
+        }
+        // No usable summary (or it contradicted the file): start over with a linear scan.
+        *collected = Collected::default();
+    }
+    scan(bytes, wanted, |t, s, time, data| {
+        collected.keep(range, t, s, time, data)
     })
 }
 
@@ -475,6 +812,36 @@ impl LogContents {
     /// Whether anything of the log was lost (a cut, a corrupt chunk, an incomplete set).
     pub fn lost_anything(&self) -> bool {
         self.truncation.is_some() || !self.bad_chunks.is_empty() || !self.incomplete_sets.is_empty()
+    }
+
+    /// What was read besides the sets, one line each: a camera stream's stations and the images
+    /// it left out, the ROS 2 topics of types not read.
+    pub fn notes(&self) -> Vec<String> {
+        let mut lines = Vec::new();
+        if let Some(stream) = &self.stream {
+            lines.push(format!(
+                "sets taken from the camera stream: {} image(s) with a pose, {} while the arm moved (left out), {} settled station(s), the {} frame of each",
+                stream.images_with_pose,
+                stream.moving_images,
+                stream.stations.len(),
+                match stream.station_frame {
+                    crate::foreign::StationFrame::First => "first",
+                    crate::foreign::StationFrame::Middle => "middle",
+                    crate::foreign::StationFrame::Last => "last",
+                    crate::foreign::StationFrame::Mean => "mean",
+                }
+            ));
+            if let Some(first) = &stream.first_missing_pose {
+                lines.push(format!(
+                    "{} image(s) left out without a camera pose; the first: {first}",
+                    stream.images_without_pose
+                ));
+            }
+        }
+        for (topic, schema, count) in &self.ignored {
+            lines.push(format!("{topic} ({schema}, {count} messages) is not read"));
+        }
+        lines
     }
 
     /// One line per thing lost: where the file was cut, each corrupt chunk, each incomplete set.

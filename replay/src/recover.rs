@@ -25,6 +25,19 @@ pub enum RecoverError {
         #[source]
         source: std::io::Error,
     },
+    /// A bag directory of several storage files.
+    #[error(
+        "'{}' is a bag of {} storage files; recover each one (`replay recover FILE -o FIXED.mcap`): {}",
+        path.display(),
+        files.len(),
+        files.iter().map(|f| f.display().to_string()).collect::<Vec<_>>().join(", ")
+    )]
+    SeveralFiles {
+        /// The bag directory.
+        path: PathBuf,
+        /// Its files.
+        files: Vec<PathBuf>,
+    },
     /// The input is not an MCAP file.
     #[error("'{path}' is not an MCAP log (it does not start with the MCAP magic; {bytes} bytes)")]
     NotMcap {
@@ -99,17 +112,34 @@ fn describe_bad_chunk(chunk: &BadChunk) -> String {
 
 /// Recovers `input` into `output` (written atomically).
 pub fn recover_file(input: &Path, output: &Path) -> Result<RecoverReport, RecoverError> {
+    // A ROS 2 bag directory of one storage file: that file.
+    let input = &match crate::log::log_files(input) {
+        Ok(files) if files.len() == 1 => files[0].clone(),
+        Ok(files) if input.is_dir() => {
+            return Err(RecoverError::SeveralFiles {
+                path: input.to_path_buf(),
+                files,
+            });
+        }
+        _ => input.to_path_buf(),
+    };
     let bytes = std::fs::read(input).map_err(|source| RecoverError::Read {
         path: input.to_path_buf(),
         source,
     })?;
+    // Keep the header's profile (`ros2` for a ROS 2 bag), so that ROS tools take the result.
+    let profile = match crate::salvage::record_at(&bytes, 8) {
+        Some(Record::Header(header)) => header.profile,
+        _ => String::new(),
+    };
     let (file, writer) = record::log::OutputFile::create(output)?;
     let write_error = |what: String| {
         let path = output.to_path_buf();
         move |source| RecoverError::Write { path, what, source }
     };
     let options = record::log::LogOptions::new()
-        .mcap_options(format!("multiscopic-replay-recover {}", env!("CARGO_PKG_VERSION")));
+        .mcap_options(format!("multiscopic-replay-recover {}", env!("CARGO_PKG_VERSION")))
+        .profile(profile);
     let mut mcap = options.create(writer).map_err(write_error("header".into()))?;
     let mut report = RecoverReport {
         output: output.to_path_buf(),

@@ -39,6 +39,8 @@ pub struct RunRequest<'a> {
     pub start_secs: Option<f64>,
     /// See `start_secs`.
     pub end_secs: Option<f64>,
+    /// How sets are taken from a camera stream (logs without capture events: ROS 2 bags).
+    pub stream: crate::foreign::StreamOptions,
     /// Folder of the result files and `summary.json`.
     pub out: &'a Path,
     /// Also write the results as an MCAP log here.
@@ -189,9 +191,19 @@ fn report_result(set: &ViewSet, method: &str, result: &crate::pipeline::MethodRe
 
 /// Reads the log, keeps the requested sets and says what a damaged log lost.
 fn read_sets(request: &RunRequest<'_>) -> Result<LogContents, ReplayError> {
-    let contents = crate::log::read_log_file_in(request.log, request.start_secs, request.end_secs)?;
+    let contents = crate::log::read_log_file_with(
+        request.log,
+        &crate::log::ReadOptions {
+            start_secs: request.start_secs,
+            end_secs: request.end_secs,
+            stream: request.stream.clone(),
+        },
+    )?;
     for line in contents.damage() {
         warn!("{}: {line}", request.log.display());
+    }
+    for line in contents.notes() {
+        info!("{}: {line}", request.log.display());
     }
     if contents.lost_anything() {
         warn!(

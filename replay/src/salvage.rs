@@ -289,9 +289,11 @@ fn fields_fit(opcode: u8, body: &[u8]) -> bool {
             .and_then(|()| f.skip(4)),
         // Metadata: name, map.
         0x0C => f.prefixed32().and_then(|()| f.map()),
+        // Header: profile, library.
+        0x01 => f.prefixed32().and_then(|()| f.prefixed32()),
         // Message: channel id, sequence, log time, publish time, then the payload.
         0x05 => f.skip(22),
-        // Everything else (header, indexes, statistics, summary offsets, …) is not handed over.
+        // Everything else (indexes, statistics, summary offsets, …) is not handed over.
         _ => None,
     };
     fits.is_some()
@@ -401,13 +403,22 @@ pub fn walk<E>(
                 // Cut inside the chunk: keep the complete records that decompress.
                 let (count, _) = walk_inner(&records, true, &mut on_record).map_err(WalkError::Handler)?;
                 report.records += count;
+                // A chunk still being written has placeholders for its times and length.
+                let times = if (frame.start_time, frame.end_time) == (0, 0) {
+                    String::new()
+                } else {
+                    format!(" (messages {} … {} ns)", frame.start_time, frame.end_time)
+                };
+                let declared = u64_at(data, 32 + frame.compression.len())
+                    .filter(|n| *n != u64::MAX && *n != 0)
+                    .map_or_else(
+                        || " (a chunk still being written: its length was not yet known)".to_owned(),
+                        |n| format!(" of its {n}"),
+                    );
                 report.cut = Some(cut(
                     format!(
-                        "a chunk (messages {} … {} ns) is cut after {} of its {} compressed bytes",
-                        frame.start_time,
-                        frame.end_time,
-                        frame.records.len(),
-                        u64_at(data, 32 + frame.compression.len()).unwrap_or(0)
+                        "a chunk{times} is cut after {} compressed bytes{declared}",
+                        frame.records.len()
                     ),
                     count,
                 ));

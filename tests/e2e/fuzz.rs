@@ -203,3 +203,24 @@ fn the_weights_loader_survives_mutated_safetensors() {
         let _ = fuse::mfusenet::weights::from_bytes(data, "fuzz.safetensors", "", None);
     });
 }
+
+#[test]
+fn the_ros2_decoder_survives_mutated_cdr() {
+    // The golden payloads rosbags wrote (tests/corpus/ros2), each through the translator of its
+    // type: CDR decoding (either byte order) and the conversion to the reader's messages.
+    for (file, schema) in [
+        ("image_rgb8.cdr", "sensor_msgs/msg/Image"),
+        ("image_32fc1.cdr", "sensor_msgs/msg/Image"),
+        ("compressed_image.cdr", "sensor_msgs/msg/CompressedImage"),
+        ("camera_info.cdr", "sensor_msgs/msg/CameraInfo"),
+        ("camera_info_be.cdr", "sensor_msgs/msg/CameraInfo"),
+        ("tf.cdr", "tf2_msgs/msg/TFMessage"),
+        ("joint_state.cdr", "sensor_msgs/msg/JointState"),
+        ("string.cdr", "std_msgs/msg/String"),
+    ] {
+        fuzz(file, &[corpus(&format!("ros2/{file}"))], |data| {
+            let mut translator = replay::ros2::Ros2Translator::default();
+            let _ = translator.translate("/fuzz", schema, data);
+        });
+    }
+}

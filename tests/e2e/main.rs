@@ -15,5 +15,6 @@ mod replay_check;
 mod replay_eval;
 mod replay_input;
 mod replay_plan;
+mod ros2_bags;
 mod signed_ranges;
 mod viz_rerun;

@@ -30,9 +30,12 @@ record import middlebury2014/Adirondack --views im0.png@0,im1.png@1 --ground-tru
 pub struct ImportArgs {
     /// Folder with the view files of one set, or with one sub-folder per set (Middlebury layout).
     dir: PathBuf,
-    /// Output log.
+    /// Output log (a ROS 2 bag directory with `--format ros2`, unless it ends in .mcap).
     #[arg(short, long, default_value = "import.mcap")]
     output: PathBuf,
+    /// Log format: mcap (our own log, Foxglove schemas) or ros2 (a ROS 2 bag: sensor_msgs, tf2, CDR).
+    #[arg(long, value_enum, default_value = "mcap")]
+    format: record::session::LogFormat,
     #[command(flatten)]
     settings: ImportOverrides,
     /// Smallest disparity to search (px, signed: negative for a converged rig), written into the
@@ -58,7 +61,11 @@ pub fn run(args: &ImportArgs, quiet: bool) -> Result<Outcome> {
         &args.settings,
         args.min_disparity,
         args.num_disparities,
-        &args.output,
+        &record::session::Output {
+            path: args.output.clone(),
+            format: args.format,
+            zstd_level: record::log::DEFAULT_ZSTD_LEVEL,
+        },
         |set| {
             bar.suspend(|| info!("{}", describe_set(set)));
             bar.inc(1);
@@ -73,6 +80,7 @@ pub fn run(args: &ImportArgs, quiet: bool) -> Result<Outcome> {
     bar.finish_and_clear();
     crate::simulate::report(&imported.path, imported.sets.len() as u32, started);
     let layout_lost = !args.no_blueprint
+        && args.format == record::session::LogFormat::Mcap
         && imported.sets.first().is_some_and(|set| {
             !report_log_layout(
                 &imported.path,

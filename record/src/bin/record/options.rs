@@ -97,9 +97,13 @@ pub struct SimulateArgs {
     /// Force a view's exposure gain: ROLE:GAIN. Repeatable.
     #[arg(long, value_parser = parse_exposure, value_name = "ROLE:GAIN")]
     pub(crate) exposure: Vec<ViewExposure>,
-    /// Output log.
+    /// Output log (a ROS 2 bag directory with `--format ros2`, unless it ends in .mcap).
     #[arg(short, long, default_value = "capture.mcap")]
     pub(crate) output: PathBuf,
+    /// Log format: mcap (our own log, Foxglove schemas) or ros2 (a ROS 2 bag: sensor_msgs, tf2,
+    /// CDR; a directory NAME/ with NAME_0.mcap and metadata.yaml, for ros2 bag play, rviz, Foxglove).
+    #[arg(long, value_enum, default_value = "mcap")]
+    pub(crate) format: record::session::LogFormat,
     /// zstd level of the log's chunks (1 fastest … 19 smallest).
     #[arg(long, default_value = "3", value_parser = clap::value_parser!(u32).range(1..=19))]
     pub(crate) zstd_level: u32,

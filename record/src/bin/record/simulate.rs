@@ -55,10 +55,14 @@ pub fn run(args: &SimulateArgs, quiet: bool) -> Result<Outcome> {
     let viewer_error = std::cell::Cell::new(None::<viz::stream::VizError>);
     let camera = *sim.camera();
     let mut layout_of_log = None;
+    let output = record::session::Output {
+        path: args.output.clone(),
+        format: args.format,
+        zstd_level: args.zstd_level,
+    };
     let outcome = record_simulation(
         &mut sim,
-        &args.output,
-        args.zstd_level,
+        &output,
         &stop,
         |set, view| {
             bar.set_message(format!("set {set} {}", view.role));
@@ -110,7 +114,9 @@ pub fn run(args: &SimulateArgs, quiet: bool) -> Result<Outcome> {
         return Ok(Outcome::Incomplete);
     };
     report(path, outcome.completed_sets, started);
+    // A bag's topics are ROS ones: the layout of our own log does not fit it.
     if !args.no_blueprint
+        && args.format == record::session::LogFormat::Mcap
         && let Some(layout) = &layout_of_log
         && !report_log_layout(path, record::live::write_log_blueprint(path, layout))
     {
@@ -131,7 +137,15 @@ pub fn run(args: &SimulateArgs, quiet: bool) -> Result<Outcome> {
 
 /// Logs what was written.
 pub(crate) fn report(path: &Path, sets: u32, started: Instant) {
-    let size = std::fs::metadata(path).map(|m| m.len()).unwrap_or(0);
+    // A bag directory's size is its files'.
+    let size = match std::fs::read_dir(path) {
+        Ok(entries) => entries
+            .filter_map(Result::ok)
+            .filter_map(|e| e.metadata().ok())
+            .map(|m| m.len())
+            .sum(),
+        Err(_) => std::fs::metadata(path).map(|m| m.len()).unwrap_or(0),
+    };
     info!(
         "wrote {} ({:.1} MB, {} set(s)) in {:.1} s",
         path.display(),

@@ -30,12 +30,21 @@ pub struct CheckArgs {
     /// Only images logged at most this many seconds after the log's first message.
     #[arg(long, value_name = "SECS")]
     end: Option<f64>,
+    #[command(flatten)]
+    stream: crate::info::StreamArgs,
 }
 
 /// Runs `replay check`.
 pub fn run(args: &CheckArgs) -> Result<Outcome> {
-    let contents = replay::log::read_log_file_in(&args.log, args.start, args.end)
-        .with_context(|| format!("reading {}", args.log.display()))?;
+    let contents = replay::log::read_log_file_with(
+        &args.log,
+        &replay::log::ReadOptions {
+            start_secs: args.start,
+            end_secs: args.end,
+            stream: args.stream.options(),
+        },
+    )
+    .with_context(|| format!("reading {}", args.log.display()))?;
     if !(args.warn_px > 0.0 && args.fail_px >= args.warn_px) {
         return Err(cli::UsageError(format!(
             "--warn-px {} and --fail-px {} must be positive, the second at least the first",

@@ -102,6 +102,11 @@ pub fn run(args: &DemoArgs, quiet: bool) -> Result<Outcome> {
             out_mcap: None,
             weights: None,
             rerun,
+            stream: crate::info::StreamArgs {
+                image_topic: None,
+                base_frame: None,
+                station_frame: replay::foreign::StationFrame::Middle,
+            },
         },
         quiet,
     )?;

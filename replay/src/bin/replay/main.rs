@@ -7,6 +7,7 @@
 mod check;
 mod demo;
 mod eval;
+mod info;
 mod plan;
 mod recover;
 mod run;
@@ -59,6 +60,9 @@ enum Command {
     Eval(eval::EvalArgs),
     /// Check the alignment of every view set of a log (exit 3 when a set fails).
     Check(check::CheckArgs),
+    /// What a log or ROS 2 bag holds: its files and topics, what replay reads of them, the
+    /// settled stations of a camera stream and the sets they form.
+    Info(info::InfoArgs),
     /// Write what survived of a cut or corrupt log (e.g. the recorder's temporary file after a
     /// crash) as a finished, indexed log, and say what was lost (exit 3 when something was).
     Recover(recover::RecoverArgs),
@@ -87,6 +91,7 @@ fn dispatch(cli: &Cli) -> Result<Outcome> {
         Some(Command::Eval(args)) => eval::run(args, cli.quiet),
         Some(Command::Demo(args)) => demo::run(args, cli.quiet),
         Some(Command::Check(args)) => check::run(args),
+        Some(Command::Info(args)) => info::run(args),
         Some(Command::Recover(args)) => recover::run(args),
         Some(Command::Plan(args)) => plan::run(args),
         Some(Command::Train(args)) => train::run(args, cli.quiet),

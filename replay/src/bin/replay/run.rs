@@ -58,6 +58,8 @@ pub struct RunArgs {
     /// MFuseNet weights (safetensors, e.g. from `replay train` or exported from PyTorch) instead of the shipped ones.
     #[arg(long, value_name = "FILE")]
     pub(crate) weights: Option<PathBuf>,
+    #[command(flatten)]
+    pub(crate) stream: crate::info::StreamArgs,
 }
 
 /// A method's progress bar, cleared when the method is done.
@@ -98,6 +100,7 @@ pub fn run(args: &RunArgs, quiet: bool) -> Result<Outcome> {
         sets: &args.sets,
         start_secs: args.start,
         end_secs: args.end,
+        stream: args.stream.options(),
         out: &args.out,
         out_mcap: args.out_mcap.as_deref(),
         rerun: &args.rerun,
