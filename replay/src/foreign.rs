@@ -427,7 +427,7 @@ impl ForeignMessages {
             return Err(error);
         }
         self.tf.sort();
-        self.joint_speeds.sort_by(|a, b| a.0.cmp(&b.0));
+        self.joint_speeds.sort_by_key(|s| s.0);
         let base = options.base_frame.as_deref();
         let mut report = StreamReport {
             base_frame: options.base_frame.clone(),

@@ -98,7 +98,7 @@ impl Ros2Translator {
         Ok(match schema {
             IMAGE => {
                 let image: msg::Image = ros2::decode(data).map_err(cdr)?;
-                self.image(topic, image)?
+                self.image(topic, &image)?
             }
             COMPRESSED_IMAGE => {
                 let image: msg::CompressedImage = ros2::decode(data).map_err(cdr)?;
@@ -177,7 +177,7 @@ impl Ros2Translator {
         })
     }
 
-    fn image(&mut self, topic: &str, image: msg::Image<'_>) -> Result<Translated, ReplayError> {
+    fn image(&mut self, topic: &str, image: &msg::Image<'_>) -> Result<Translated, ReplayError> {
         let bad = |value: String| ReplayError::BadField {
             set: 0,
             topic: topic.to_owned(),
