@@ -295,7 +295,7 @@ pub fn csv(rows: &[EvalRow]) -> Result<String, ReplayError> {
 }
 
 /// The view sets of `replay eval`'s inputs: a folder is read as `record import` reads it (with
-/// `dataset`'s settings), a file as a log whose sets are renamed `STEM/SET` so that several logs
+/// `dataset`'s settings), a file or a ROS 2 bag directory as a log whose sets are renamed `STEM/SET` so that several logs
 /// keep apart in the table.
 pub fn read_inputs(
     inputs: &[std::path::PathBuf],
@@ -303,7 +303,7 @@ pub fn read_inputs(
 ) -> Result<Vec<ViewSet>, ReplayError> {
     let mut sets = Vec::new();
     for input in inputs {
-        if input.is_dir() {
+        if input.is_dir() && !crate::log::is_bag_directory(input) {
             sets.extend(crate::dataset::read_dataset_with(input, dataset)?);
             continue;
         }

@@ -25,7 +25,7 @@
 
 use std::collections::HashMap;
 
-use foxglove::messages::{CameraCalibration, CompressedImage, FrameTransforms, JointStates, RawImage};
+use foxglove::messages::{CameraCalibration, FrameTransforms, JointStates};
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion, Vector2};
 use record::camera::PinholeCamera;
 
@@ -59,6 +59,67 @@ const MOVING_ROTATION_DEG: f64 = 0.02;
 /// A settled image belongs to the current station while it stays this close to its first image.
 const STATION_TRANSLATION_M: f64 = 0.0005;
 const STATION_ROTATION_DEG: f64 = 0.05;
+
+/// The fields of a `foxglove.RawImage` that say what it is, decoded without its pixels (prost
+/// skips the fields a message type does not name).
+#[derive(Clone, PartialEq, prost::Message)]
+struct RawImageHeader {
+    #[prost(message, optional, tag = "1")]
+    timestamp: Option<foxglove::messages::Timestamp>,
+    #[prost(fixed32, tag = "2")]
+    width: u32,
+    #[prost(string, tag = "4")]
+    encoding: String,
+    #[prost(string, tag = "7")]
+    frame_id: String,
+}
+
+/// The same of a `foxglove.CompressedImage`.
+#[derive(Clone, PartialEq, prost::Message)]
+struct CompressedImageHeader {
+    #[prost(message, optional, tag = "1")]
+    timestamp: Option<foxglove::messages::Timestamp>,
+    #[prost(string, tag = "3")]
+    format: String,
+    #[prost(string, tag = "4")]
+    frame_id: String,
+}
+
+/// A colour or grey image of the stream: its key, frame, stamp and whether it is grey.
+#[derive(Debug, Clone)]
+struct ImageEntry {
+    key: (String, u64),
+    frame_id: String,
+    stamp: Option<u64>,
+    grey: bool,
+}
+
+impl ImageEntry {
+    /// What an image message is, when it is a colour or grey view (not depth, not a mask).
+    fn of(key: (String, u64), data: &[u8]) -> Option<Self> {
+        let (frame_id, stamp, grey) = match <RawImageHeader as prost::Message>::decode(data) {
+            Ok(raw) if raw.width > 0 => {
+                if !IMAGE_ENCODINGS.contains(&raw.encoding.as_str()) {
+                    return None;
+                }
+                let grey = raw.encoding == "mono8";
+                (raw.frame_id, raw.timestamp.map(|t| t.total_nanos()), grey)
+            }
+            _ => match <CompressedImageHeader as prost::Message>::decode(data) {
+                Ok(c) if c.format.eq_ignore_ascii_case("png") => {
+                    (c.frame_id, c.timestamp.map(|t| t.total_nanos()), false)
+                }
+                _ => return None,
+            },
+        };
+        Some(Self {
+            key,
+            frame_id: frame_id.trim_start_matches('/').to_owned(),
+            stamp: stamp.filter(|s| *s > 0),
+            grey,
+        })
+    }
+}
 
 /// Which frame of a settled station becomes its view.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
@@ -96,6 +157,11 @@ pub fn is_foreign_input(schema: &str) -> bool {
             | CALIBRATION_SCHEMA
             | crate::ros2::JOINT_STATES_SCHEMA
     )
+}
+
+/// Whether a schema is an image's (colour, grey, depth or mask).
+pub fn is_image_schema(schema: &str) -> bool {
+    matches!(schema, RAW_IMAGE_SCHEMA | COMPRESSED_IMAGE_SCHEMA)
 }
 
 /// Whether a schema carries poses or joints (read whatever the time window: a view's pose needs
@@ -332,7 +398,9 @@ pub struct StreamReport {
 /// What a scan keeps for inference.
 #[derive(Debug, Default)]
 pub struct ForeignMessages {
-    images: Vec<(String, u64)>,
+    images: Vec<ImageEntry>,
+    /// Image messages seen (views or not): whether the log has images at all.
+    image_messages: usize,
     calibrations: Vec<(String, u64)>,
     /// (stamp, largest |joint velocity|), when the message had velocities.
     joint_speeds: Vec<(u64, f64)>,
@@ -363,7 +431,8 @@ impl ForeignMessages {
                 false
             }
             RAW_IMAGE_SCHEMA | COMPRESSED_IMAGE_SCHEMA => {
-                self.images.push((topic.to_owned(), time));
+                self.image_messages += 1;
+                self.images.extend(ImageEntry::of((topic.to_owned(), time), data));
                 true
             }
             CALIBRATION_SCHEMA => {
@@ -376,7 +445,7 @@ impl ForeignMessages {
 
     /// Whether the log had any image.
     pub fn has_images(&self) -> bool {
-        !self.images.is_empty()
+        self.image_messages > 0
     }
 
     /// Whether the arm moved at `stamp`: the joint states when there are some near it (the
@@ -419,10 +488,18 @@ impl ForeignMessages {
 
     /// Infers the view sets with the stream options given.
     pub fn infer_sets_with(
-        mut self,
+        self,
         payloads: &HashMap<(String, u64), Vec<u8>>,
         options: &StreamOptions,
     ) -> Result<(Vec<ViewSet>, StreamReport), ReplayError> {
+        let plan = self.plan(options)?;
+        plan.build(payloads)
+    }
+
+    /// The stations of the stream and the frames that make their views, from the image headers,
+    /// transforms and joints alone (no pixels): [`StreamPlan::needed`] names the payloads that
+    /// [`StreamPlan::build`] then decodes.
+    pub fn plan(mut self, options: &StreamOptions) -> Result<StreamPlan, ReplayError> {
         if let Some(error) = self.tf.invalid.take() {
             return Err(error);
         }
@@ -435,38 +512,16 @@ impl ForeignMessages {
             joint_states: self.joint_states,
             ..StreamReport::default()
         };
-        let payload = |key: &(String, u64)| payloads.get(key).map(Vec::as_slice).unwrap_or_default();
-        // Calibrations by frame id (the latest wins).
-        let mut calibrations: HashMap<String, CameraCalibration> = HashMap::new();
-        for key in &self.calibrations {
-            if let Ok(c) = <CameraCalibration as prost::Message>::decode(payload(key)) {
-                calibrations.insert(c.frame_id.trim_start_matches('/').to_owned(), c);
-            }
-        }
         // Colour/grey images: (stamp, frame, key); one per (frame, stamp), preferring colour.
         let mut frames: Vec<Frame> = Vec::new();
-        for key in &self.images {
+        for image in &self.images {
+            let key = &image.key;
             if options.image_topic.as_ref().is_some_and(|t| *t != key.0) {
                 continue;
             }
-            let data = payload(key);
-            let (frame_id, stamp, grey) = match <RawImage as prost::Message>::decode(data) {
-                Ok(raw) if raw.width > 0 => {
-                    if !IMAGE_ENCODINGS.contains(&raw.encoding.as_str()) {
-                        continue;
-                    }
-                    let grey = raw.encoding == "mono8";
-                    (raw.frame_id, raw.timestamp.map(|t| t.total_nanos()), grey)
-                }
-                _ => match <CompressedImage as prost::Message>::decode(data) {
-                    Ok(c) if c.format.eq_ignore_ascii_case("png") => {
-                        (c.frame_id, c.timestamp.map(|t| t.total_nanos()), false)
-                    }
-                    _ => continue,
-                },
-            };
-            let frame_id = frame_id.trim_start_matches('/').to_owned();
-            let stamp = stamp.filter(|s| *s > 0).unwrap_or(key.1);
+            let frame_id = image.frame_id.clone();
+            let stamp = image.stamp.unwrap_or(key.1);
+            let grey = image.grey;
             match report.image_topics.iter_mut().find(|(t, _)| *t == key.0) {
                 Some((_, count)) => *count += 1,
                 None => report.image_topics.push((key.0.clone(), 1)),
@@ -519,7 +574,7 @@ impl ForeignMessages {
             });
         }
         // Stations: runs of settled frames that stay put; a moving frame ends a run.
-        let mut stations: Vec<Vec<&Frame>> = Vec::new();
+        let mut stations: Vec<Vec<Frame>> = Vec::new();
         let mut open = false;
         for frame in &frames {
             let Some(lookup) = frame.lookup else { continue };
@@ -544,21 +599,74 @@ impl ForeignMessages {
             }
             if joins {
                 if let Some(station) = stations.last_mut() {
-                    station.push(frame);
+                    station.push(frame.clone());
                 }
             } else {
-                stations.push(vec![frame]);
+                stations.push(vec![frame.clone()]);
             }
             open = true;
         }
+        let calibrations = self.calibrations;
+        Ok(StreamPlan {
+            stations,
+            calibrations,
+            options: options.clone(),
+            report,
+        })
+    }
+}
+
+/// The stations of a camera stream and the frames of each that make its view.
+#[derive(Debug)]
+pub struct StreamPlan {
+    stations: Vec<Vec<Frame>>,
+    calibrations: Vec<(String, u64)>,
+    options: StreamOptions,
+    report: StreamReport,
+}
+
+impl StreamPlan {
+    /// The messages whose payloads [`StreamPlan::build`] reads: every calibration, and the
+    /// frames that make the views (every frame of a station for `--station-frame mean`).
+    pub fn needed(&self) -> Vec<(String, u64)> {
+        let mut keys = self.calibrations.clone();
+        for station in &self.stations {
+            if self.options.station_frame == StationFrame::Mean {
+                keys.extend(station.iter().map(|f| f.key.clone()));
+            } else {
+                keys.push(self.chosen(station).key.clone());
+            }
+        }
+        keys
+    }
+
+    fn chosen<'a>(&self, station: &'a [Frame]) -> &'a Frame {
+        match self.options.station_frame {
+            StationFrame::First => &station[0],
+            StationFrame::Last => &station[station.len() - 1],
+            StationFrame::Middle | StationFrame::Mean => &station[(station.len() - 1) / 2],
+        }
+    }
+
+    /// Decodes the views of the stations and groups them into sets.
+    pub fn build(
+        self,
+        payloads: &HashMap<(String, u64), Vec<u8>>,
+    ) -> Result<(Vec<ViewSet>, StreamReport), ReplayError> {
+        let mut report = self.report.clone();
+        let (stations, options) = (&self.stations, &self.options);
+        let payload = |key: &(String, u64)| payloads.get(key).map(Vec::as_slice).unwrap_or_default();
+        // Calibrations by frame id (the latest wins).
+        let mut calibrations: HashMap<String, CameraCalibration> = HashMap::new();
+        for key in &self.calibrations {
+            if let Ok(c) = <CameraCalibration as prost::Message>::decode(payload(key)) {
+                calibrations.insert(c.frame_id.trim_start_matches('/').to_owned(), c);
+            }
+        }
         // One view per station.
         let mut views: Vec<View> = Vec::with_capacity(stations.len());
-        for station in &stations {
-            let chosen = match options.station_frame {
-                StationFrame::First => station[0],
-                StationFrame::Last => station[station.len() - 1],
-                StationFrame::Middle | StationFrame::Mean => station[(station.len() - 1) / 2],
-            };
+        for station in stations {
+            let chosen = self.chosen(station);
             let Some(lookup) = chosen.lookup else { continue };
             report.stations.push((
                 station[0].stamp,

@@ -50,6 +50,8 @@ pub struct ReadOptions {
     pub end_secs: Option<f64>,
     /// How sets are taken from a camera stream (logs without capture events).
     pub stream: crate::foreign::StreamOptions,
+    /// Image payloads the first pass keeps (default [`IMAGE_PAYLOAD_BUDGET_BYTES`]).
+    pub image_budget_bytes: Option<usize>,
 }
 
 /// Reads a log file (memory-mapped).
@@ -101,6 +103,17 @@ pub fn read_log_file_with(path: &Path, options: &ReadOptions) -> Result<LogConte
         end_nanos: end_secs.map_or(u64::MAX, at),
     };
     read_logs_in(&files, &range, options)
+}
+
+/// Whether a directory is a ROS 2 bag (it has a `metadata.yaml` or `.mcap` files), not an image
+/// folder.
+pub fn is_bag_directory(path: &Path) -> bool {
+    path.join(::ros2::bag::METADATA_FILE).is_file()
+        || std::fs::read_dir(path).is_ok_and(|entries| {
+            entries
+                .filter_map(Result::ok)
+                .any(|e| e.path().extension().is_some_and(|x| x == "mcap"))
+        })
 }
 
 /// The files of a log: the file itself, or a ROS 2 bag directory's storage files in order
@@ -180,10 +193,11 @@ pub fn describe(path: &Path, options: &ReadOptions) -> Result<LogDescription, Re
     let mut files = Vec::new();
     let mut topics: Vec<TopicDescription> = Vec::new();
     for file in log_files(path)? {
-        let bytes = std::fs::read(&file).map_err(|source| ReplayError::Io {
+        let io = |source| ReplayError::Io {
             path: file.clone(),
             source,
-        })?;
+        };
+        let bytes = map_read_only(&std::fs::File::open(&file).map_err(io)?).map_err(io)?;
         let (profile, library) = match crate::salvage::record_at(&bytes, 8) {
             Some(mcap::records::Record::Header(header)) => (header.profile, header.library),
             _ => (String::new(), String::new()),
@@ -565,6 +579,11 @@ fn scan_indexed(
     result.ok()
 }
 
+/// Image payloads kept by the first pass over a log: past this many bytes (a camera that
+/// streamed through a long capture) the reader drops them, remembers only what each image is, and
+/// reads the images the sets need in a second pass, so that memory holds the sets, not the stream.
+pub const IMAGE_PAYLOAD_BUDGET_BYTES: usize = 256 << 20;
+
 /// What a scan keeps: capture events, payloads of the topics a set may need, and what
 /// foreign-log inference needs. ROS 2 messages are translated first (`crate::ros2`).
 #[derive(Default)]
@@ -574,6 +593,52 @@ struct Collected {
     payloads: HashMap<(String, u64), Vec<u8>>,
     foreign: crate::foreign::ForeignMessages,
     ros2: crate::ros2::Ros2Translator,
+    /// Bytes of image payloads kept, their keys, and the budget.
+    image_bytes: usize,
+    image_keys: Vec<(String, u64)>,
+    image_budget_bytes: usize,
+    /// Image payloads were dropped: the needed ones are read again.
+    deferred: bool,
+}
+
+/// Reads the payloads of `needed` (topic, log time) from the files (a second pass, after the
+/// first one dropped the image payloads of a long stream), translating ROS 2 messages with the
+/// first pass's translator (so a 16-bit topic keeps its shift).
+fn fetch(
+    files: &[&[u8]],
+    needed: &[(String, u64)],
+    ros2: &mut crate::ros2::Ros2Translator,
+    payloads: &mut HashMap<(String, u64), Vec<u8>>,
+) -> Result<(), ReplayError> {
+    let missing: std::collections::HashSet<&(String, u64)> =
+        needed.iter().filter(|key| !payloads.contains_key(*key)).collect();
+    if missing.is_empty() {
+        return Ok(());
+    }
+    let topics: std::collections::HashSet<&str> = missing.iter().map(|(topic, _)| topic.as_str()).collect();
+    for bytes in files {
+        scan(
+            bytes,
+            |topic, _| topics.contains(topic),
+            |topic, schema, time, data| {
+                let key = (topic.to_owned(), time);
+                if !missing.contains(&key) || payloads.contains_key(&key) {
+                    return Ok(());
+                }
+                let data = if crate::ros2::is_ros2_schema(schema) {
+                    match ros2.translate(topic, schema, data)? {
+                        crate::ros2::Translated::Foxglove { data, .. } => data,
+                        _ => return Ok(()),
+                    }
+                } else {
+                    data.to_vec()
+                };
+                payloads.insert(key, data);
+                Ok(())
+            },
+        )?;
+    }
+    Ok(())
 }
 
 impl Collected {
@@ -612,7 +677,23 @@ impl Collected {
         } else if (range.contains(log_time) || crate::foreign::is_pose_source(schema))
             && self.foreign.add(topic, schema, log_time, data)
         {
-            self.payloads.insert((topic.to_owned(), log_time), data.to_vec());
+            let key = (topic.to_owned(), log_time);
+            if crate::foreign::is_image_schema(schema) {
+                if self.deferred {
+                    return Ok(());
+                }
+                self.image_bytes += data.len();
+                if self.image_bytes > self.image_budget_bytes {
+                    // A long stream: from here on, images are read again when needed.
+                    for key in self.image_keys.drain(..) {
+                        self.payloads.remove(&key);
+                    }
+                    self.deferred = true;
+                    return Ok(());
+                }
+                self.image_keys.push(key.clone());
+            }
+            self.payloads.insert(key, data.to_vec());
         }
         Ok(())
     }
@@ -664,7 +745,10 @@ pub fn read_logs_in(files: &[&[u8]], range: &TimeRange, options: &ReadOptions) -
             || crate::foreign::is_foreign_input(schema)
             || crate::ros2::is_ros2_schema(schema)
     };
-    let mut collected = Collected::default();
+    let mut collected = Collected {
+        image_budget_bytes: options.image_budget_bytes.unwrap_or(IMAGE_PAYLOAD_BUDGET_BYTES),
+        ..Collected::default()
+    };
     let mut messages = 0;
     let mut damage = ScanDamage::default();
     let mut metadata = BTreeMap::new();
@@ -679,9 +763,11 @@ pub fn read_logs_in(files: &[&[u8]], range: &TimeRange, options: &ReadOptions) -
     let Collected {
         events,
         mut plans,
-        payloads,
+        mut payloads,
         foreign,
-        ros2,
+        mut ros2,
+        deferred,
+        ..
     } = collected;
     let ignored = ros2
         .ignored()
@@ -696,7 +782,13 @@ pub fn read_logs_in(files: &[&[u8]], range: &TimeRange, options: &ReadOptions) -
     let mut stream = None;
     if events.is_empty() && foreign.has_images() {
         // A cut-off log may have lost what the inference needs: report, do not fail.
-        match (foreign.infer_sets_with(&payloads, &options.stream), damaged) {
+        let inferred = foreign.plan(&options.stream).and_then(|plan| {
+            if deferred {
+                fetch(files, &plan.needed(), &mut ros2, &mut payloads)?;
+            }
+            plan.build(&payloads)
+        });
+        match (inferred, damaged) {
             (Ok((inferred, report)), _) => {
                 sets = inferred;
                 stream = Some(report);
@@ -704,6 +796,22 @@ pub fn read_logs_in(files: &[&[u8]], range: &TimeRange, options: &ReadOptions) -
             (Err(error), true) => incomplete_sets.push((0, error.to_string())),
             (Err(error), false) => return Err(error),
         }
+    } else if deferred {
+        let needed: Vec<(String, u64)> = events
+            .iter()
+            .flat_map(|e| {
+                [
+                    Some(&e.image_topic),
+                    Some(&e.calibration_topic),
+                    e.depth_topic.as_ref(),
+                    e.surface_topic.as_ref(),
+                ]
+                .into_iter()
+                .flatten()
+                .map(|topic| (topic.clone(), e.capture_time_nanos))
+            })
+            .collect();
+        fetch(files, &needed, &mut ros2, &mut payloads)?;
     }
     let mut by_set: BTreeMap<u32, Vec<CaptureEvent>> = BTreeMap::new();
     for event in events {

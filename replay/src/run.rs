@@ -197,6 +197,7 @@ fn read_sets(request: &RunRequest<'_>) -> Result<LogContents, ReplayError> {
             start_secs: request.start_secs,
             end_secs: request.end_secs,
             stream: request.stream.clone(),
+            ..crate::log::ReadOptions::default()
         },
     )?;
     for line in contents.damage() {

@@ -164,6 +164,33 @@ fn every_readme_command_runs_and_exits_as_documented() {
                 );
                 continue;
             }
+            Some("ros2") => {
+                // `ros2 bag record -s mcap -o NAME TOPICS` runs on the robot; here `rosbags` writes
+                // a bag of that shape (the camera streaming through the moves, TF, joints) from a
+                // dev scene, and the README's topics must be the ones it holds.
+                let name = words
+                    .iter()
+                    .position(|w| w == "-o")
+                    .and_then(|at| words.get(at + 1))
+                    .unwrap_or_else(|| panic!("README line {}: `ros2 bag record` without -o", command.line));
+                let bag = dir.path().join(name);
+                let output = run(Command::new(multiscopic_tests::python_with_mcap())
+                    .arg(workspace_root().join("tests/python/write_ros2_capture.py"))
+                    .arg(multiscopic_tests::middlebury_dev("Aloe"))
+                    .arg(&bag)
+                    .args(["--views", "view1@0,view0@-1,view2@1"]));
+                multiscopic_tests::assert_success(&output, "write_ros2_capture.py");
+                let written = std::fs::read_to_string(bag.join("metadata.yaml")).unwrap_or_else(|e| panic!("{e}"));
+                for topic in words.iter().filter(|w| w.starts_with('/')) {
+                    assert!(
+                        written.contains(&format!("name: {topic}\n")),
+                        "README line {}: the bag of the test has no {topic}",
+                        command.line
+                    );
+                }
+                ran += 1;
+                continue;
+            }
             Some("rerun") => {
                 // Opens a window: the test checks that the files it opens exist.
                 for file in words[1..].iter().filter(|w| !w.starts_with('-')) {

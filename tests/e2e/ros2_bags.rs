@@ -244,6 +244,18 @@ fn a_robot_bag_gives_the_set_that_importing_its_images_gives() {
         contents.notes()
     );
 
+    // With room for a few images only, the reader keeps what each image is, drops the pixels,
+    // and reads the chosen frames again: the same set.
+    let bounded = replay::log::read_log_file_with(
+        &bag,
+        &replay::log::ReadOptions {
+            image_budget_bytes: Some(2 << 20),
+            ..replay::log::ReadOptions::default()
+        },
+    )
+    .unwrap_or_else(|e| panic!("{e}"));
+    assert!(bounded.sets == contents.sets, "a bounded read gives other sets");
+
     // The same images, cameras and offsets as `record import` of the same views.
     let imported = dir.path().join("import.mcap");
     let scene = middlebury_dev("Aloe");

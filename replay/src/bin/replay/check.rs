@@ -42,6 +42,7 @@ pub fn run(args: &CheckArgs) -> Result<Outcome> {
             start_secs: args.start,
             end_secs: args.end,
             stream: args.stream.options(),
+            ..replay::log::ReadOptions::default()
         },
     )
     .with_context(|| format!("reading {}", args.log.display()))?;
