@@ -121,6 +121,15 @@ impl ImageEntry {
     }
 }
 
+/// The `frame_id` of a `foxglove.RawImage` or `CompressedImage` (without decoding its pixels).
+pub fn image_frame_id(data: &[u8]) -> Option<String> {
+    let frame = match <RawImageHeader as prost::Message>::decode(data) {
+        Ok(raw) if raw.width > 0 => raw.frame_id,
+        _ => <CompressedImageHeader as prost::Message>::decode(data).ok()?.frame_id,
+    };
+    (!frame.is_empty()).then(|| frame.trim_start_matches('/').to_owned())
+}
+
 /// Which frame of a settled station becomes its view.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
 #[serde(rename_all = "kebab-case")]
@@ -711,8 +720,10 @@ impl StreamPlan {
                 rgb,
                 world_from_camera: lookup.root_from_frame,
                 true_world_from_camera: None,
-                capture_time_nanos: chosen.key.1,
+                // The acquisition time: results written beside the log are stamped with it.
+                capture_time_nanos: chosen.stamp,
                 joints: None,
+                frame_id: chosen.frame_id.clone(),
             });
         }
         let mut sets = Vec::new();

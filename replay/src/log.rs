@@ -116,6 +116,23 @@ pub fn is_bag_directory(path: &Path) -> bool {
         })
 }
 
+/// Whether a log is a ROS 2 bag (its first file's header has the `ros2` profile).
+pub fn is_ros2_log(path: &Path) -> bool {
+    log_files(path)
+        .ok()
+        .and_then(|files| files.into_iter().next())
+        .and_then(|file| {
+            let mut head = vec![0u8; 4096];
+            let read = std::io::Read::read(&mut std::fs::File::open(file).ok()?, &mut head).ok()?;
+            head.truncate(read);
+            match crate::salvage::record_at(&head, 8) {
+                Some(mcap::records::Record::Header(header)) => Some(header.profile == ::ros2::bag::PROFILE),
+                _ => None,
+            }
+        })
+        .unwrap_or(false)
+}
+
 /// The files of a log: the file itself, or a ROS 2 bag directory's storage files in order
 /// (`metadata.yaml`'s list, else its `*_N.mcap` files).
 pub fn log_files(path: &Path) -> Result<Vec<std::path::PathBuf>, ReplayError> {
@@ -1220,6 +1237,8 @@ fn assemble_set(
             true_world_from_camera: event.true_world_from_camera.as_ref().map(PoseJson::to_isometry),
             capture_time_nanos: event.capture_time_nanos,
             joints: event.joint_positions_rad,
+            frame_id: crate::foreign::image_frame_id(payload(payloads, index, event, &event.image_topic)?)
+                .unwrap_or_else(|| record::log::view_frame(&event.role)),
         });
     }
     let reference_position = views.iter().position(|v| v.role == REFERENCE_ROLE).unwrap_or(0);

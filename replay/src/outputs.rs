@@ -182,10 +182,42 @@ pub const RESULT_CALIBRATION_TOPIC: &str = "/results/calibration";
 /// Topic of per-set result summaries (JSON: set, method, metrics, timing).
 pub const RESULT_SUMMARY_TOPIC: &str = "/results/summary";
 
+/// Topic of a method's disparity as `stereo_msgs/msg/DisparityImage` (ROS 2 result logs).
+pub fn result_disparity_image_topic(method: &str) -> String {
+    format!("/results/{method}/disparity_image")
+}
+
+/// Topic of a method's points as `sensor_msgs/msg/PointCloud2` (ROS 2 result logs).
+pub fn result_points_topic(method: &str) -> String {
+    format!("/results/{method}/points")
+}
+
+/// The ROS 2 result log's camera info topic.
+pub const RESULT_CAMERA_INFO_TOPIC: &str = "/results/camera_info";
+
+/// How a result log is written.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ResultFormat {
+    /// Our own log's Foxglove schemas (`foxglove.RawImage` 32FC1, …).
+    Mcap,
+    /// ROS 2 (`sensor_msgs/msg/Image` 32FC1 disparity, depth and confidence,
+    /// `stereo_msgs/msg/DisparityImage`, `sensor_msgs/msg/PointCloud2`, `CameraInfo`), stamped
+    /// and framed as the reference image, so that rviz and Foxglove show them beside the bag.
+    Ros2,
+}
+
+/// The writer of a result log.
+enum ResultWriter {
+    Foxglove(Box<record::log::LogWriter<record::log::SyncedWriter>>),
+    Ros2(Box<record::bag::BagWriter<record::log::SyncedWriter>>),
+}
+
 /// Writes results as a new log: the inputs' metadata records, then per set (at the reference
-/// image's log time) the disparity, depth, colour map, calibration and a JSON summary.
+/// image's log time) the disparity, depth, colour map, calibration and a JSON summary (ROS 2:
+/// also a `DisparityImage` and the points).
 pub struct ResultLog {
-    writer: record::log::LogWriter<record::log::SyncedWriter>,
+    writer: ResultWriter,
     file: record::log::OutputFile,
 }
 
@@ -205,19 +237,56 @@ fn raw_f32(time: u64, width: usize, height: usize, data: &[f32]) -> foxglove::me
     }
 }
 
+/// A little-endian `32FC1` image; values that are not finite become NaN (ROS's "no data").
+fn ros_f32<'a>(time: u64, frame: &str, width: usize, height: usize, data: &[f32]) -> ros2::msg::Image<'a> {
+    let mut bytes = Vec::with_capacity(data.len() * 4);
+    for v in data {
+        let v = if v.is_finite() { *v } else { f32::NAN };
+        bytes.extend_from_slice(&v.to_le_bytes());
+    }
+    ros2::msg::Image {
+        header: record::bag::stamp(time, frame),
+        height: height as u32,
+        width: width as u32,
+        encoding: "32FC1".into(),
+        is_bigendian: 0,
+        step: (width * 4) as u32,
+        data: std::borrow::Cow::Owned(bytes),
+    }
+}
+
 impl ResultLog {
     /// Starts the log, copying the input's metadata records.
     pub fn create(
         path: &Path,
+        format: ResultFormat,
         input_metadata: &std::collections::BTreeMap<String, std::collections::BTreeMap<String, String>>,
         run: std::collections::BTreeMap<String, String>,
     ) -> Result<Self, record::log::LogError> {
         let (file, writer) = record::log::OutputFile::create(path)?;
-        let mut writer = record::log::LogOptions::new().create(writer)?;
-        for (name, records) in input_metadata {
-            writer.write_metadata(name, records.clone())?;
+        let options = record::log::LogOptions::new();
+        let mut writer = match format {
+            ResultFormat::Mcap => ResultWriter::Foxglove(Box::new(options.create(writer)?)),
+            ResultFormat::Ros2 => {
+                let name = path
+                    .file_name()
+                    .map_or_else(String::new, |n| n.to_string_lossy().into_owned());
+                ResultWriter::Ros2(Box::new(record::bag::BagWriter::create(options, &name, writer)?))
+            }
+        };
+        for (name, records) in input_metadata
+            .iter()
+            .filter(|(name, _)| *name != ros2::bag::METADATA_RECORD)
+        {
+            match &mut writer {
+                ResultWriter::Foxglove(w) => w.write_metadata(name, records.clone())?,
+                ResultWriter::Ros2(w) => w.write_metadata(name, records.clone())?,
+            }
         }
-        writer.write_metadata("multiscopic.replay", run)?;
+        match &mut writer {
+            ResultWriter::Foxglove(w) => w.write_metadata("multiscopic.replay", run)?,
+            ResultWriter::Ros2(w) => w.write_metadata("multiscopic.replay", run)?,
+        }
         Ok(Self { writer, file })
     }
 
@@ -229,6 +298,9 @@ impl ResultLog {
         disparity: &DisparityImage,
         summary: &serde_json::Value,
     ) -> Result<(), record::log::LogError> {
+        let ResultWriter::Foxglove(writer) = &mut self.writer else {
+            return self.write_ros2_set(set, method, disparity, summary);
+        };
         let time = set.reference.capture_time_nanos;
         let (w, h) = (disparity.width, disparity.height);
         let depth_m = set.disparity_to_depth_m();
@@ -237,25 +309,23 @@ impl ResultLog {
             .iter()
             .map(|d| depth_m(*d).map_or(0.0, |z| z as f32))
             .collect();
-        self.writer.write_message(
+        writer.write_message(
             &result_disparity_topic(method),
             time,
             &raw_f32(time, w, h, &disparity.data),
         )?;
-        self.writer
-            .write_message(&result_depth_topic(method), time, &raw_f32(time, w, h, &depth))?;
+        writer.write_message(&result_depth_topic(method), time, &raw_f32(time, w, h, &depth))?;
         if let Some(confidence) = &disparity.confidence {
-            self.writer
-                .write_message(&result_confidence_topic(method), time, &raw_f32(time, w, h, confidence))?;
+            writer.write_message(&result_confidence_topic(method), time, &raw_f32(time, w, h, confidence))?;
         }
         if let Some((lo, hi)) = viz::files::finite_range(&disparity.data) {
             let mut color = raw_f32(time, w, h, &[]);
             color.encoding = "rgb8".into();
             color.step = (w * 3) as u32;
             color.data = viz::files::colorize(&disparity.data, lo, hi).into();
-            self.writer.write_message(&result_color_topic(method), time, &color)?;
+            writer.write_message(&result_color_topic(method), time, &color)?;
         }
-        self.writer.write_message(
+        writer.write_message(
             RESULT_CALIBRATION_TOPIC,
             time,
             &record::log::calibration_message(
@@ -264,13 +334,134 @@ impl ResultLog {
                 &record::log::view_frame(&set.reference.role),
             ),
         )?;
-        self.writer
-            .write_json(RESULT_SUMMARY_TOPIC, "multiscopic.SetResult", time, summary)
+        writer.write_json(RESULT_SUMMARY_TOPIC, "multiscopic.SetResult", time, summary)
+    }
+
+    /// One set's results as ROS 2 messages, stamped and framed as the reference image.
+    fn write_ros2_set(
+        &mut self,
+        set: &ViewSet,
+        method: &str,
+        disparity: &DisparityImage,
+        summary: &serde_json::Value,
+    ) -> Result<(), record::log::LogError> {
+        use ros2::{msg, schema};
+        let ResultWriter::Ros2(bag) = &mut self.writer else {
+            return Ok(());
+        };
+        let time = set.reference.capture_time_nanos;
+        let frame = set.reference.frame_id.as_str();
+        let camera = &set.reference.camera;
+        let (w, h) = (disparity.width, disparity.height);
+        let depth_m = set.disparity_to_depth_m();
+        let depth: Vec<f32> = disparity
+            .data
+            .iter()
+            .map(|d| depth_m(*d).map_or(f32::NAN, |z| z as f32))
+            .collect();
+        bag.write(
+            &result_disparity_topic(method),
+            schema::IMAGE,
+            time,
+            &ros_f32(time, frame, w, h, &disparity.data),
+        )?;
+        bag.write(
+            &result_depth_topic(method),
+            schema::IMAGE,
+            time,
+            &ros_f32(time, frame, w, h, &depth),
+        )?;
+        if let Some(confidence) = &disparity.confidence {
+            bag.write(
+                &result_confidence_topic(method),
+                schema::IMAGE,
+                time,
+                &ros_f32(time, frame, w, h, confidence),
+            )?;
+        }
+        let range = viz::files::finite_range(&disparity.data);
+        if let Some((lo, hi)) = range {
+            let color = msg::Image {
+                encoding: "rgb8".into(),
+                step: (w * 3) as u32,
+                data: std::borrow::Cow::Owned(viz::files::colorize(&disparity.data, lo, hi)),
+                ..ros_f32(time, frame, w, h, &[])
+            };
+            bag.write(&result_color_topic(method), schema::IMAGE, time, &color)?;
+        }
+        // stereo_msgs: Z = f·T / d, so the disparity carries Middlebury's doffs.
+        let doffs = set.disparity_offset_px() as f32;
+        let shifted: Vec<f32> = disparity.data.iter().map(|d| d + doffs).collect();
+        let (lo, hi) = range.unwrap_or((0.0, 0.0));
+        let stereo = msg::DisparityImage {
+            header: record::bag::stamp(time, frame),
+            image: ros_f32(time, frame, w, h, &shifted),
+            f: camera.fx as f32,
+            t: set.baseline_m as f32,
+            valid_window: msg::RegionOfInterest {
+                x_offset: 0,
+                y_offset: 0,
+                height: h as u32,
+                width: w as u32,
+                do_rectify: false,
+            },
+            min_disparity: lo + doffs,
+            max_disparity: hi + doffs,
+            delta_d: 1.0 / 16.0,
+        };
+        bag.write(
+            &result_disparity_image_topic(method),
+            schema::DISPARITY_IMAGE,
+            time,
+            &stereo,
+        )?;
+        // The points in the camera's optical frame, organised as the image (NaN: no estimate),
+        // coloured by the reference image (PCL's packed float `rgb`).
+        let mut points = Vec::with_capacity(w * h * 16);
+        for (i, z) in depth.iter().enumerate() {
+            let (u, v) = ((i % w) as f64, (i / w) as f64);
+            let z = f64::from(*z);
+            let (x, y) = ((u - camera.cx) / camera.fx * z, (v - camera.cy) / camera.fy * z);
+            for c in [x as f32, y as f32, z as f32] {
+                points.extend_from_slice(&c.to_le_bytes());
+            }
+            let p = set.reference.rgb.get(i * 3..i * 3 + 3).unwrap_or(&[0, 0, 0]);
+            let packed = (u32::from(p[0]) << 16) | (u32::from(p[1]) << 8) | u32::from(p[2]);
+            points.extend_from_slice(&packed.to_le_bytes());
+        }
+        let field = |name: &str, offset: u32| msg::PointField {
+            name: name.into(),
+            offset,
+            datatype: msg::POINT_FIELD_FLOAT32,
+            count: 1,
+        };
+        let cloud = msg::PointCloud2 {
+            header: record::bag::stamp(time, frame),
+            height: h as u32,
+            width: w as u32,
+            fields: vec![field("x", 0), field("y", 4), field("z", 8), field("rgb", 12)],
+            is_bigendian: false,
+            point_step: 16,
+            row_step: (w * 16) as u32,
+            data: std::borrow::Cow::Owned(points),
+            is_dense: false,
+        };
+        bag.write(&result_points_topic(method), schema::POINT_CLOUD2, time, &cloud)?;
+        bag.write(
+            RESULT_CAMERA_INFO_TOPIC,
+            schema::CAMERA_INFO,
+            time,
+            &record::bag::camera_info(camera, time, frame),
+        )?;
+        bag.write_json(RESULT_SUMMARY_TOPIC, time, summary)
     }
 
     /// Finishes and renames the log into place.
     pub fn finish(self) -> Result<PathBuf, record::log::LogError> {
-        let writer = self.writer.finish()?;
+        let writer = match self.writer {
+            ResultWriter::Foxglove(w) => w.finish()?,
+            ResultWriter::Ros2(w) => w.finish()?.0,
+        };
         self.file.commit(writer)
     }
 }

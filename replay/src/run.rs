@@ -45,6 +45,8 @@ pub struct RunRequest<'a> {
     pub out: &'a Path,
     /// Also write the results as an MCAP log here.
     pub out_mcap: Option<&'a Path>,
+    /// Its format (default: ROS 2 for a ROS 2 bag's results, else our own log's).
+    pub out_format: Option<crate::outputs::ResultFormat>,
     /// `--rerun` words (`spawn`, `save FILE.rrd`, `connect [URL]`), empty for none.
     pub rerun: &'a [String],
 }
@@ -249,6 +251,11 @@ pub fn replay_log(
     let mut result_log = match request.out_mcap {
         Some(path) => Some(ResultLog::create(
             path,
+            request.out_format.unwrap_or(if crate::log::is_ros2_log(request.log) {
+                crate::outputs::ResultFormat::Ros2
+            } else {
+                crate::outputs::ResultFormat::Mcap
+            }),
             &contents.metadata,
             result_log_metadata(request, &names, &configs),
         )?),

@@ -27,6 +27,9 @@ pub struct View {
     pub capture_time_nanos: u64,
     /// Arm joint positions at the image time (rad), when the log has them.
     pub joints: Option<[f64; 6]>,
+    /// The image's frame in the log (its `frame_id`; our own logs: `camera_<role>`), which
+    /// results written beside it name.
+    pub frame_id: String,
 }
 
 /// A multiscopic view set.
@@ -62,6 +65,7 @@ fn view_from_captured(view: &CapturedView) -> View {
         true_world_from_camera: view.true_world_from_camera,
         capture_time_nanos: view.capture_time_nanos,
         joints: view.joints,
+        frame_id: record::log::view_frame(&view.role),
     }
 }
 

@@ -204,6 +204,64 @@ fn our_bags_are_read_by_rosbags_mcap_ros2_foxglove_and_rerun() {
         assert!(text.contains(archetype), "Rerun's conversion has no {archetype}");
     }
     assert_success(&run(rerun_cli().args(["rrd", "verify"]).arg(&rrd)), "rerun rrd verify");
+
+    // Results of a bag are ROS 2 too, in the reference image's frame and at its stamp.
+    let results = dir.path().join("results.mcap");
+    let out = dir.path().join("out");
+    replay_summary(
+        &bag,
+        &out,
+        &format!("--method sgm-heuristic --out-mcap {}", results.display()),
+    );
+    let output = python("check_ros2_bag.py", &[&results]);
+    assert_success(&output, "check_ros2_bag.py on the results");
+    let report: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap_or_else(|e| panic!("{e}"));
+    for (topic, kind) in [
+        ("/results/sgm-heuristic/disparity", "sensor_msgs/msg/Image"),
+        ("/results/sgm-heuristic/depth", "sensor_msgs/msg/Image"),
+        ("/results/sgm-heuristic/confidence", "sensor_msgs/msg/Image"),
+        (
+            "/results/sgm-heuristic/disparity_image",
+            "stereo_msgs/msg/DisparityImage",
+        ),
+        ("/results/sgm-heuristic/points", "sensor_msgs/msg/PointCloud2"),
+        ("/results/camera_info", "sensor_msgs/msg/CameraInfo"),
+        ("/results/summary", "std_msgs/msg/String"),
+    ] {
+        assert_eq!(report["rosbags"][topic]["type"], kind, "{topic}: {report}");
+        assert_eq!(report["mcap_ros2"][topic]["count"], 1, "{topic}");
+    }
+    let depth = report["images"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .find(|i| i["topic"] == "/results/sgm-heuristic/depth")
+        .unwrap_or_else(|| panic!("no depth result"));
+    let input = report_of_first_image(&bag);
+    assert_eq!(depth["frame_id"], "camera_optical_frame");
+    assert_eq!(
+        depth["stamp"], input,
+        "the result is not stamped as the reference image"
+    );
+    let rrd = dir.path().join("results.rrd");
+    assert_success(
+        &run(rerun_cli().args(["mcap", "convert"]).arg(&results).arg("-o").arg(&rrd)),
+        "rerun mcap convert of the results",
+    );
+    let printed = run(rerun_cli().args(["rrd", "print", "-v"]).arg(&rrd));
+    let text = String::from_utf8_lossy(&printed.stdout);
+    for archetype in ["DepthImage", "Points3D", "Pinhole"] {
+        assert!(
+            text.contains(archetype),
+            "Rerun's conversion of the results has no {archetype}"
+        );
+    }
+}
+
+/// The stamp of the reference (centre) image of a bag of ours: its first capture event's time.
+fn report_of_first_image(bag: &Path) -> serde_json::Value {
+    let contents = read(bag);
+    serde_json::json!(contents.sets[0].reference.capture_time_nanos)
 }
 
 /// Writes the "real robot" bag of Aloe's views 0–4 (a row of five) with rosbags.

@@ -2,10 +2,10 @@
 the `rosbags` library (not our code): the test's "real robot" input.
 
     write_ros2_capture.py SCENE_DIR OUT_BAG --views view2@0,view1@-1,view3@1,view0@-2,view4@2
-        [--baseline-mm 40] [--focal-px 1246.667] [--split]
+        [--baseline-mm 40] [--focal-px 1246.667] [--split] [--rest-secs 1.2]
 
 The views are visited in the order given (stations). Between stations the arm moves for 1 s
-(smoothstep) and then rests for 1.2 s; the camera streams at 10 Hz throughout (stamps 3 ms past
+(smoothstep) and then rests for 1.2 s (--rest-secs); the camera streams at 10 Hz throughout (stamps 3 ms past
 the tenth of a second, logged 30 ms later), showing the previous station's image while it moves.
 robot_state_publisher-style `/tf` at 20 Hz carries base_link -> wrist_3_link; `/tf_static` the
 fixed chain wrist_3_link -> flange -> tool0 and the hand-eye result tool0 ->
@@ -92,6 +92,7 @@ def main():
     parser.add_argument("--baseline-mm", type=float, default=40.0)
     parser.add_argument("--focal-px", type=float, default=3740 / 3)  # Middlebury 2006 third size
     parser.add_argument("--split", action="store_true")
+    parser.add_argument("--rest-secs", type=float, default=1.2, help="how long the arm rests at each station")
     args = parser.parse_args()
     views = []
     for item in args.views.split(","):
@@ -115,7 +116,7 @@ def main():
         return compose(camera, inverse(wrist_from_camera))
 
     # Timeline: rest 1.2 s at each station, move 1 s between stations.
-    rest, move = 1_200_000_000, 1_000_000_000
+    rest, move = int(args.rest_secs * 1e9), 1_000_000_000
     start = 1_700_000_000_000_000_000
     segments = []  # (t0, t1, from_offset, to_offset, station index or None)
     t = start

@@ -100,6 +100,7 @@ pub fn run(args: &DemoArgs, quiet: bool) -> Result<Outcome> {
             neighbours: Vec::new(),
             rectify: true,
             out_mcap: None,
+            out_format: None,
             weights: None,
             rerun,
             stream: crate::info::StreamArgs {

@@ -51,6 +51,12 @@ pub struct RunArgs {
     /// Also write the results as a new MCAP log (with the input's metadata), readable by Foxglove.
     #[arg(long, value_name = "FILE")]
     pub(crate) out_mcap: Option<PathBuf>,
+    /// The --out-mcap log's messages: mcap (Foxglove schemas) or ros2 (sensor_msgs Image 32FC1
+    /// disparity, depth and confidence, stereo_msgs DisparityImage, PointCloud2, CameraInfo, in
+    /// the reference image's frame and stamp: rviz and Foxglove show them beside the bag).
+    /// Default: ros2 for a ROS 2 bag, else mcap.
+    #[arg(long, value_enum, value_name = "FORMAT")]
+    pub(crate) out_format: Option<replay::outputs::ResultFormat>,
     /// Show the run in the Rerun viewer: `spawn` (start a viewer), `save FILE.rrd`, or
     /// `connect [URL]` (default rerun+http://127.0.0.1:9876/proxy).
     #[arg(long, num_args = 1..=2, value_names = ["MODE", "ARG"])]
@@ -103,6 +109,7 @@ pub fn run(args: &RunArgs, quiet: bool) -> Result<Outcome> {
         stream: args.stream.options(),
         out: &args.out,
         out_mcap: args.out_mcap.as_deref(),
+        out_format: args.out_format,
         rerun: &args.rerun,
     };
     let progress = |message: &str| -> Box<dyn Progress> {
