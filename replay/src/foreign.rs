@@ -47,6 +47,10 @@ const SET_RADIUS_IN_STEPS: f64 = 3.0;
 const GRID_TOLERANCE: f64 = 0.25;
 /// Encodings that are colour or grey images (not depth or masks).
 const IMAGE_ENCODINGS: [&str; 6] = ["rgb8", "bgr8", "rgba8", "bgra8", "8UC3", "mono8"];
+/// Frames the UR10's forward kinematics ends at (the DH flange: UR's `tool0`, our `flange`).
+const FLANGE_FRAMES: [&str; 2] = ["tool0", "flange"];
+/// The frame the forward kinematics starts from (the arm's base, as the UR controller's).
+const FK_BASE_FRAME: &str = "base";
 /// A joint faster than this (rad/s) means the arm moves.
 const MOVING_JOINT_RAD_PER_S: f64 = 0.01;
 /// Joint states further than this from an image's stamp say nothing about it (ns).
@@ -231,11 +235,13 @@ impl std::fmt::Display for TfError {
 }
 
 /// A camera pose looked up.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone)]
 struct Lookup {
     root_from_frame: Isometry3<f64>,
     /// The widest gap between the two samples an edge was interpolated between (ns; 0: exact).
     gap_nanos: u64,
+    /// The frame the pose is in (the tree's root, or the base asked for).
+    root: String,
 }
 
 /// Time-stamped transforms, child → edge.
@@ -336,6 +342,7 @@ impl TfBuffer {
                     None => Ok(Lookup {
                         root_from_frame: pose,
                         gap_nanos,
+                        root: child,
                     }),
                 };
             };
@@ -374,6 +381,7 @@ impl TfBuffer {
         Ok(Lookup {
             root_from_frame: pose,
             gap_nanos,
+            root: child,
         })
     }
 }
@@ -413,6 +421,8 @@ pub struct ForeignMessages {
     calibrations: Vec<(String, u64)>,
     /// (stamp, largest |joint velocity|), when the message had velocities.
     joint_speeds: Vec<(u64, f64)>,
+    /// (stamp, the UR's six joint positions in its order), when the message named all six.
+    joint_positions: Vec<(u64, [f64; 6])>,
     joint_states: usize,
     tf: TfBuffer,
 }
@@ -430,9 +440,21 @@ impl ForeignMessages {
             crate::ros2::JOINT_STATES_SCHEMA => {
                 if let Ok(message) = <JointStates as prost::Message>::decode(data) {
                     self.joint_states += 1;
+                    let stamp = message.timestamp.map_or(time, |s| s.total_nanos());
+                    // By name (a tf_prefix allowed), never by place: drivers publish them in any order.
+                    let position = |name: &str| {
+                        message
+                            .joints
+                            .iter()
+                            .find(|j| j.name.ends_with(name))
+                            .and_then(|j| j.position)
+                    };
+                    let positions: Vec<f64> = record::ur10::JOINT_NAMES.iter().filter_map(|n| position(n)).collect();
+                    if let Ok(positions) = <[f64; 6]>::try_from(positions) {
+                        self.joint_positions.push((stamp, positions));
+                    }
                     let speeds: Vec<f64> = message.joints.iter().filter_map(|j| j.velocity).collect();
                     if !speeds.is_empty() {
-                        let stamp = message.timestamp.map_or(time, |s| s.total_nanos());
                         self.joint_speeds
                             .push((stamp, speeds.iter().fold(0.0f64, |m, v| m.max(v.abs()))));
                     }
@@ -457,6 +479,61 @@ impl ForeignMessages {
         self.image_messages > 0
     }
 
+    /// The arm's joints at `stamp`, interpolated between the two joint states around it (never
+    /// extrapolated).
+    fn joints_at(&self, stamp: u64) -> Option<([f64; 6], u64)> {
+        let samples = &self.joint_positions;
+        let after = samples.partition_point(|s| s.0 < stamp);
+        let b = samples.get(after)?;
+        if b.0 == stamp {
+            return Some((b.1, 0));
+        }
+        let a = samples.get(after.checked_sub(1)?)?;
+        let t = (stamp - a.0) as f64 / (b.0 - a.0) as f64;
+        Some((std::array::from_fn(|i| a.1[i] + (b.1[i] - a.1[i]) * t), b.0 - a.0))
+    }
+
+    /// `base_from_frame` at `stamp` (the tree's root when `base` is `None`) from the transforms;
+    /// where the tree stops at the arm's flange (`flange`, `tool0`: a bag without the arm's
+    /// `/tf`), the UR10's forward kinematics of `/joint_states` at the stamp carries it on to the
+    /// arm's `base`, and the transforms above `base` (if any) beyond.
+    fn pose(&self, frame: &str, stamp: u64, base: Option<&str>) -> Result<Lookup, TfError> {
+        let direct = self.tf.lookup(frame, stamp, base);
+        let root = match &direct {
+            Ok(lookup) if base.is_none() => lookup.root.clone(),
+            Err(TfError::NotConnected { root, .. }) => root.clone(),
+            _ => return direct,
+        };
+        if !FLANGE_FRAMES.contains(&root.as_str()) || self.joint_positions.is_empty() {
+            return direct;
+        }
+        let below = self.tf.lookup(frame, stamp, Some(&root))?;
+        let (Some(first), Some(last)) = (self.joint_positions.first(), self.joint_positions.last()) else {
+            return direct;
+        };
+        let (joints, joint_gap) = self.joints_at(stamp).ok_or_else(|| TfError::OutOfRange {
+            parent: format!("{FK_BASE_FRAME} (forward kinematics of /joint_states)"),
+            child: root.clone(),
+            first: first.0,
+            last: last.0,
+        })?;
+        let base_from_flange = record::ur10::Ur10::default().forward_kinematics(&joints);
+        let above = match self.tf.lookup(FK_BASE_FRAME, stamp, base) {
+            Ok(above) => above,
+            Err(TfError::Unknown { .. }) if base.is_none() || base == Some(FK_BASE_FRAME) => Lookup {
+                root_from_frame: Isometry3::identity(),
+                gap_nanos: 0,
+                root: FK_BASE_FRAME.into(),
+            },
+            Err(error) => return Err(error),
+        };
+        Ok(Lookup {
+            root_from_frame: above.root_from_frame * base_from_flange * below.root_from_frame,
+            gap_nanos: below.gap_nanos.max(above.gap_nanos).max(joint_gap),
+            root: above.root,
+        })
+    }
+
     /// Whether the arm moved at `stamp`: the joint states when there are some near it (the
     /// arm's own 125–500 Hz measurement), else the transforms around it; `None` when neither says.
     fn moving(&self, frame: &str, stamp: u64, base: Option<&str>) -> Option<bool> {
@@ -474,8 +551,8 @@ impl ForeignMessages {
             return by_joints;
         }
         match (
-            self.tf.lookup(frame, stamp.saturating_sub(MOTION_PROBE_NANOS), base),
-            self.tf.lookup(frame, stamp.saturating_add(MOTION_PROBE_NANOS), base),
+            self.pose(frame, stamp.saturating_sub(MOTION_PROBE_NANOS), base),
+            self.pose(frame, stamp.saturating_add(MOTION_PROBE_NANOS), base),
         ) {
             (Ok(before), Ok(after)) => {
                 let (a, b) = (before.root_from_frame, after.root_from_frame);
@@ -514,6 +591,7 @@ impl ForeignMessages {
         }
         self.tf.sort();
         self.joint_speeds.sort_by_key(|s| s.0);
+        self.joint_positions.sort_by_key(|s| s.0);
         let base = options.base_frame.as_deref();
         let mut report = StreamReport {
             base_frame: options.base_frame.clone(),
@@ -552,7 +630,7 @@ impl ForeignMessages {
         // Poses and motion.
         let mut first_error = None;
         for frame in &mut frames {
-            match self.tf.lookup(&frame.frame_id, frame.stamp, base) {
+            match self.pose(&frame.frame_id, frame.stamp, base) {
                 Ok(lookup) => {
                     frame.lookup = Some(lookup);
                     frame.moving = self.moving(&frame.frame_id, frame.stamp, base).unwrap_or(false);
@@ -586,14 +664,17 @@ impl ForeignMessages {
         let mut stations: Vec<Vec<Frame>> = Vec::new();
         let mut open = false;
         for frame in &frames {
-            let Some(lookup) = frame.lookup else { continue };
+            let Some(lookup) = &frame.lookup else { continue };
             if frame.moving {
                 open = false;
                 continue;
             }
             let joins = open
                 && stations.last().and_then(|s| s.first()).is_some_and(|first| {
-                    let a = first.lookup.map_or(lookup.root_from_frame, |l| l.root_from_frame);
+                    let a = first
+                        .lookup
+                        .as_ref()
+                        .map_or(lookup.root_from_frame, |l| l.root_from_frame);
                     let b = lookup.root_from_frame;
                     first.frame_id == frame.frame_id
                         && (a.translation.vector - b.translation.vector).norm() <= STATION_TRANSLATION_M
@@ -676,7 +757,7 @@ impl StreamPlan {
         let mut views: Vec<View> = Vec::with_capacity(stations.len());
         for station in stations {
             let chosen = self.chosen(station);
-            let Some(lookup) = chosen.lookup else { continue };
+            let Some(lookup) = &chosen.lookup else { continue };
             report.stations.push((
                 station[0].stamp,
                 station[station.len() - 1].stamp,

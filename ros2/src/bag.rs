@@ -181,12 +181,15 @@ pub enum BagError {
     },
     /// The directory holds no storage file.
     #[error(
-        "'{}' is a directory without a rosbag2 metadata.yaml or any .mcap file (a ROS 2 bag is a directory written by `ros2 bag record -s mcap`, or one .mcap file)",
-        dir.display()
+        "'{}' is a directory without a rosbag2 metadata.yaml or any .mcap file (a ROS 2 bag is a directory written by `ros2 bag record -s mcap`, or one .mcap file){}",
+        dir.display(),
+        partial_hint(partial)
     )]
     Empty {
         /// The directory.
         dir: PathBuf,
+        /// Temporary files of a recording that did not finish (`.NAME.partial-PID`).
+        partial: Vec<PathBuf>,
     },
     /// The metadata names a storage other than MCAP.
     #[error("'{}' is a {storage} bag; only MCAP storage is read (convert it with `ros2 bag convert`)", metadata.display())]
@@ -242,9 +245,33 @@ pub fn file_list(dir: &Path) -> Result<Vec<PathBuf>, BagError> {
         .collect();
     files.sort();
     if files.is_empty() {
-        return Err(BagError::Empty { dir: dir.to_path_buf() });
+        let partial = std::fs::read_dir(dir)
+            .map(|entries| {
+                entries
+                    .filter_map(Result::ok)
+                    .map(|e| e.path())
+                    .filter(|p| p.file_name().is_some_and(|n| n.to_string_lossy().contains(".partial-")))
+                    .collect()
+            })
+            .unwrap_or_default();
+        return Err(BagError::Empty {
+            dir: dir.to_path_buf(),
+            partial,
+        });
     }
     Ok(files.into_iter().map(|(_, p)| p).collect())
+}
+
+/// What to do with the temporary files of a recording that stopped before it finished.
+fn partial_hint(partial: &[PathBuf]) -> String {
+    match partial.first() {
+        None => String::new(),
+        Some(first) => format!(
+            "; it holds {} unfinished recording file(s): `replay recover {} -o FIXED.mcap` finishes one",
+            partial.len(),
+            first.display()
+        ),
+    }
 }
 
 /// The `N` of `NAME_N.mcap`.
@@ -317,6 +344,22 @@ mod tests {
         assert!(yaml.contains("      offered_qos_profiles:\n      - avoid_ros_namespace_conventions: false"));
         assert!(yaml.contains("        durability: transient_local\n"));
         assert!(yaml.contains("  duration:\n    nanoseconds: 10\n"));
+    }
+
+    #[test]
+    fn a_directory_with_only_an_unfinished_recording_says_how_to_recover_it() {
+        let dir = std::env::temp_dir().join(format!("ros2-bag-partial-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap_or_else(|e| panic!("{e}"));
+        std::fs::write(dir.join(".cap_0.mcap.partial-42"), b"").unwrap_or_else(|e| panic!("{e}"));
+        let error = file_list(&dir).map(|_| ()).unwrap_err().to_string();
+        assert!(
+            error.contains("1 unfinished recording file(s)")
+                && error.contains("replay recover")
+                && error.contains(".cap_0.mcap.partial-42"),
+            "{error}"
+        );
+        std::fs::remove_dir_all(&dir).unwrap_or_else(|e| panic!("{e}"));
     }
 
     #[test]

@@ -120,6 +120,17 @@ fn a_simulated_capture_as_a_ros2_bag_replays_like_our_own_log() {
         assert_same_pose(x, y, "stream");
     }
 
+    // Without the arm's /tf, the UR10's forward kinematics of /joint_states at each stamp carries
+    // the camera's pose on from the flange (the hand-eye transform stays on /tf_static).
+    let no_tf = dir.path().join("no-tf.mcap");
+    copy_messages(&file, &no_tf, |topic, _| topic != "/capture/events" && topic != "/tf");
+    let by_kinematics = read(&no_tf);
+    assert_eq!(by_kinematics.sets.len(), 1, "{:?}", by_kinematics.notes());
+    for (x, y) in views(a).into_iter().zip(views(&by_kinematics.sets[0])) {
+        assert_eq!(x.offset, y.offset);
+        assert_same_pose(x, y, "forward kinematics");
+    }
+
     // The same disparities from both, bit for bit.
     let (out_a, out_b) = (dir.path().join("out-own"), dir.path().join("out-bag"));
     replay_summary(&own, &out_a, "--method bm-heuristic,sgm-heuristic");
