@@ -28,12 +28,14 @@ awk '{ n[$1]++; w[$1, n[$1]] = $2; m[$1] = ($3 > m[$1] ? $3 : m[$1]) }
        printf "bag / own log: %.2fx wall (goal <= 1.2x)\n", med["bag"] / med["own.mcap"]
      }' "$T/times"
 if [ -x "$PY" ] && [ -d ../shared/data/middlebury2006-third-dev/Aloe ]; then
-    "$PY" tests/python/write_ros2_capture.py ../shared/data/middlebury2006-third-dev/Aloe "$T/stream" \
-        --views view2@0,view1@-1,view3@1,view0@-2,view4@2 --rest-secs 20 > /dev/null
-    frames=$("$R" info "$T/stream" --json | "$PY" -c 'import json,sys; d=json.load(sys.stdin); print(sum(n for _, n in d["stream"]["image_topics"]))')
-    /usr/bin/time -f "%e %M" -o "$T/time" "$R" info "$T/stream" --json > /dev/null
-    read -r wall rss < "$T/time"
-    echo "streamed bag: $frames frames of 427x370 rgb8 ($(( frames * 427 * 370 * 3 / 1048576 )) MB of pixels): $wall s, peak RSS $(( rss / 1024 )) MB"
+    for rest in 10 40; do
+        "$PY" tests/python/write_ros2_capture.py ../shared/data/middlebury2006-third-dev/Aloe "$T/stream$rest" \
+            --views view2@0,view1@-1,view3@1,view0@-2,view4@2 --rest-secs "$rest" > /dev/null
+        frames=$("$R" info "$T/stream$rest" --json | "$PY" -c 'import json,sys; d=json.load(sys.stdin); print(sum(n for _, n in d["stream"]["image_topics"]))')
+        /usr/bin/time -f "%e %M" -o "$T/time" "$R" info "$T/stream$rest" --json > /dev/null
+        read -r wall rss < "$T/time"
+        echo "streamed bag, ${rest} s per station: $frames frames of 427x370 rgb8 ($(( frames * 427 * 370 * 3 / 1048576 )) MB of pixels, file $(du -sm "$T/stream$rest" | cut -f1) MB): $wall s, peak RSS $(( rss / 1024 )) MB"
+    done
 else
-    echo "streamed bag skipped: needs .venv (scripts/test.sh makes it) and ../shared/data"
+    echo "streamed bags skipped: need .venv (scripts/test.sh makes it) and ../shared/data"
 fi

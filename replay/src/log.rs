@@ -5,6 +5,7 @@
 //! [`LogContents::truncation`] says what was lost. Capture events say which image is which view
 //! of which set; the images, calibrations and ground truth are looked up by topic and log time.
 
+use std::borrow::Cow;
 use std::collections::{BTreeMap, HashMap};
 use std::path::Path;
 
@@ -668,12 +669,31 @@ impl Collected {
         data: &[u8],
     ) -> Result<(), ReplayError> {
         if crate::ros2::is_ros2_schema(schema) {
-            return match self.ros2.translate(topic, schema, data)? {
-                crate::ros2::Translated::Foxglove { schema, data } => self.keep(range, topic, schema, log_time, &data),
-                crate::ros2::Translated::Text(text) => self.keep(range, topic, "json", log_time, &text),
+            // Past the image budget only what an image is matters: its pixels are not kept.
+            let translated = if self.deferred && crate::ros2::is_image_type(schema) {
+                self.ros2.translate_header(topic, schema, data)?
+            } else {
+                self.ros2.translate(topic, schema, data)?
+            };
+            return match translated {
+                crate::ros2::Translated::Foxglove { schema, data } => {
+                    self.keep_data(range, topic, schema, log_time, Cow::Owned(data))
+                }
+                crate::ros2::Translated::Text(text) => self.keep_data(range, topic, "json", log_time, Cow::Owned(text)),
                 crate::ros2::Translated::Ignored => Ok(()),
             };
         }
+        self.keep_data(range, topic, schema, log_time, Cow::Borrowed(data))
+    }
+
+    fn keep_data(
+        &mut self,
+        range: &TimeRange,
+        topic: &str,
+        schema: &str,
+        log_time: u64,
+        data: Cow<'_, [u8]>,
+    ) -> Result<(), ReplayError> {
         let parse = |topic: &'static str| {
             move |source| ReplayError::BadEvent {
                 topic,
@@ -684,15 +704,15 @@ impl Collected {
         if topic == CAPTURE_EVENTS_TOPIC {
             if range.contains(log_time) {
                 self.events
-                    .push(serde_json::from_slice(data).map_err(parse(CAPTURE_EVENTS_TOPIC))?);
+                    .push(serde_json::from_slice(&data).map_err(parse(CAPTURE_EVENTS_TOPIC))?);
             }
         } else if topic == CAPTURE_PLAN_TOPIC {
             if range.contains(log_time) {
                 self.plans
-                    .push(serde_json::from_slice(data).map_err(parse(CAPTURE_PLAN_TOPIC))?);
+                    .push(serde_json::from_slice(&data).map_err(parse(CAPTURE_PLAN_TOPIC))?);
             }
         } else if (range.contains(log_time) || crate::foreign::is_pose_source(schema))
-            && self.foreign.add(topic, schema, log_time, data)
+            && self.foreign.add(topic, schema, log_time, &data)
         {
             let key = (topic.to_owned(), log_time);
             if crate::foreign::is_image_schema(schema) {
@@ -710,7 +730,7 @@ impl Collected {
                 }
                 self.image_keys.push(key.clone());
             }
-            self.payloads.insert(key, data.to_vec());
+            self.payloads.insert(key, data.into_owned());
         }
         Ok(())
     }

@@ -38,6 +38,23 @@ const STRING: &str = "std_msgs/msg/String";
 /// The Foxglove schema of joint states (what `crate::foreign` reads for motion).
 pub const JOINT_STATES_SCHEMA: &str = "foxglove.JointStates";
 
+/// Whether a ROS 2 type is an image (raw or compressed).
+pub fn is_image_type(schema: &str) -> bool {
+    matches!(schema, IMAGE | COMPRESSED_IMAGE)
+}
+
+/// A `foxglove.RawImage` with its pixels: the fields encoded by prost, then the data field
+/// appended (field order does not matter to a protobuf reader), so the pixels are copied once.
+fn raw_image_with(header: &RawImage, data: &[u8]) -> Vec<u8> {
+    use prost::Message as _;
+    let mut out = Vec::with_capacity(header.encoded_len() + data.len() + 16);
+    header.encode_raw(&mut out);
+    prost::encoding::encode_key(6, prost::encoding::WireType::LengthDelimited, &mut out);
+    prost::encoding::encode_varint(data.len() as u64, &mut out);
+    out.extend_from_slice(data);
+    out
+}
+
 /// Whether a schema name is a ROS 2 type (`pkg/msg/Type`).
 pub fn is_ros2_schema(schema: &str) -> bool {
     schema.contains("/msg/")
@@ -85,6 +102,67 @@ impl Ros2Translator {
     /// The (topic, type) pairs left out, with their message counts.
     pub fn ignored(&self) -> &BTreeMap<(String, String), usize> {
         &self.ignored
+    }
+
+    /// What an image message is, without its pixels (a `RawImage` or `CompressedImage` whose
+    /// data is empty): for a stream whose pixels are read again only for the frames kept.
+    pub fn translate_header(&mut self, topic: &str, schema: &str, data: &[u8]) -> Result<Translated, ReplayError> {
+        let cdr = |e: ros2::CdrError| ReplayError::Decode {
+            set: 0,
+            topic: topic.to_owned(),
+            schema: "CDR",
+            reason: format!("{schema}: {e}"),
+        };
+        Ok(match schema {
+            IMAGE => {
+                let image: msg::Image = ros2::decode(data).map_err(cdr)?;
+                let encoding = match image.encoding.as_str() {
+                    "mono16" | "16UC1" => "mono8".to_owned(),
+                    other => other.to_owned(),
+                };
+                encode(
+                    "foxglove.RawImage",
+                    &RawImage {
+                        timestamp: timestamp(&image.header.stamp),
+                        frame_id: image.header.frame_id,
+                        width: image.width,
+                        height: image.height,
+                        encoding,
+                        step: image.step,
+                        data: Bytes::new(),
+                    },
+                )
+            }
+            COMPRESSED_IMAGE => {
+                let image: msg::CompressedImage = ros2::decode(data).map_err(cdr)?;
+                if image.data.starts_with(&[0x89, b'P', b'N', b'G']) {
+                    encode(
+                        "foxglove.CompressedImage",
+                        &CompressedImage {
+                            timestamp: timestamp(&image.header.stamp),
+                            frame_id: image.header.frame_id,
+                            data: Bytes::new(),
+                            format: "png".into(),
+                        },
+                    )
+                } else {
+                    // A JPEG (or worse): decoded when kept; its size is not needed to place it.
+                    encode(
+                        "foxglove.RawImage",
+                        &RawImage {
+                            timestamp: timestamp(&image.header.stamp),
+                            frame_id: image.header.frame_id,
+                            width: 1,
+                            height: 1,
+                            encoding: "rgb8".into(),
+                            step: 3,
+                            data: Bytes::new(),
+                        },
+                    )
+                }
+            }
+            _ => self.translate(topic, schema, data)?,
+        })
     }
 
     /// Translates one message of `topic` whose schema is the ROS 2 type `schema`.
@@ -185,14 +263,20 @@ impl Ros2Translator {
             value,
         };
         let (w, h, step) = (image.width as usize, image.height as usize, image.step as usize);
-        let raw = |encoding: &str, step: u32, data: Vec<u8>| RawImage {
-            timestamp: timestamp(&image.header.stamp),
-            frame_id: image.header.frame_id.clone(),
-            width: image.width,
-            height: image.height,
-            encoding: encoding.to_owned(),
-            step,
-            data: Bytes::from(data),
+        let raw = |encoding: &str, step: u32, data: &[u8]| {
+            let header = RawImage {
+                timestamp: timestamp(&image.header.stamp),
+                frame_id: image.header.frame_id.clone(),
+                width: image.width,
+                height: image.height,
+                encoding: encoding.to_owned(),
+                step,
+                data: Bytes::new(),
+            };
+            Translated::Foxglove {
+                schema: "foxglove.RawImage",
+                data: raw_image_with(&header, data),
+            }
         };
         let rows = |bytes_per_pixel: usize| -> Result<Vec<&[u8]>, ReplayError> {
             let row = w.saturating_mul(bytes_per_pixel);
@@ -206,9 +290,9 @@ impl Ros2Translator {
             }
             Ok((0..h).map(|y| &image.data[y * step..y * step + row]).collect())
         };
-        let message = match image.encoding.as_str() {
+        Ok(match image.encoding.as_str() {
             "rgb8" | "bgr8" | "rgba8" | "bgra8" | "mono8" | "8UC1" | "8UC3" => {
-                raw(&image.encoding, image.step, image.data.to_vec())
+                raw(&image.encoding, image.step, &image.data)
             }
             "mono16" | "16UC1" => {
                 let big = image.is_bigendian != 0;
@@ -228,8 +312,12 @@ impl Ros2Translator {
                     let max = values.iter().copied().max().unwrap_or(0);
                     (16 - max.leading_zeros()).saturating_sub(8)
                 });
-                let grey = values.iter().map(|v| (v >> shift).min(255) as u8).collect();
-                raw("mono8", image.width, grey)
+                let grey: Vec<u8> = values.iter().map(|v| (v >> shift).min(255) as u8).collect();
+                raw("mono8", image.width, &grey)
+            }
+            // Little-endian floats in whole rows: as they are.
+            "32FC1" if image.is_bigendian == 0 && step == w * 4 && image.data.len() == step * h => {
+                raw("32FC1", image.step, &image.data)
             }
             "32FC1" => {
                 let big = image.is_bigendian != 0;
@@ -245,8 +333,8 @@ impl Ros2Translator {
                             v.to_le_bytes()
                         })
                     })
-                    .collect();
-                raw("32FC1", image.width * 4, data)
+                    .collect::<Vec<u8>>();
+                raw("32FC1", image.width * 4, &data)
             }
             other => {
                 return Err(ReplayError::UnknownEncoding {
@@ -255,8 +343,7 @@ impl Ros2Translator {
                     encoding: other.to_owned(),
                 });
             }
-        };
-        Ok(encode("foxglove.RawImage", &message))
+        })
     }
 }
 
