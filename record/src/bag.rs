@@ -242,25 +242,12 @@ impl<W: Write + Seek> BagWriter<W> {
 
     /// Writes a metadata record.
     pub fn write_metadata(&mut self, name: &str, metadata: BTreeMap<String, String>) -> Result<(), LogError> {
-        self.writer
-            .write_metadata(&mcap::records::Metadata {
-                name: name.to_owned(),
-                metadata,
-            })
-            .map_err(Self::mcap_error("metadata"))
+        crate::log::write_metadata_record(&mut self.writer, name, metadata)
     }
 
     /// Writes an attachment.
     pub fn attach(&mut self, name: &str, media_type: &str, log_time: u64, data: &[u8]) -> Result<(), LogError> {
-        self.writer
-            .attach(&mcap::Attachment {
-                log_time,
-                create_time: log_time,
-                name: name.to_owned(),
-                media_type: media_type.to_owned(),
-                data: Cow::Borrowed(data),
-            })
-            .map_err(Self::mcap_error("attachment"))
+        crate::log::write_attachment(&mut self.writer, name, media_type, log_time, data)
     }
 
     fn write_static(&mut self, nanos: u64, flange_from_camera: Option<&Isometry3<f64>>) -> Result<(), LogError> {

@@ -381,6 +381,45 @@ pub struct LogWriter<W: Write + Seek> {
     arm: Ur10,
 }
 
+/// Writes a metadata record into any log (ours, a bag, a result log).
+pub fn write_metadata_record<W: Write + Seek>(
+    writer: &mut mcap::Writer<W>,
+    name: &str,
+    metadata: BTreeMap<String, String>,
+) -> Result<(), LogError> {
+    writer
+        .write_metadata(&mcap::records::Metadata {
+            name: name.to_owned(),
+            metadata,
+        })
+        .map_err(|source| LogError::Mcap {
+            topic: "metadata".into(),
+            source,
+        })
+}
+
+/// Writes an attachment (created when logged) into any log.
+pub fn write_attachment<W: Write + Seek>(
+    writer: &mut mcap::Writer<W>,
+    name: &str,
+    media_type: &str,
+    log_time: u64,
+    data: &[u8],
+) -> Result<(), LogError> {
+    writer
+        .attach(&mcap::Attachment {
+            log_time,
+            create_time: log_time,
+            name: name.to_owned(),
+            media_type: media_type.to_owned(),
+            data: std::borrow::Cow::Borrowed(data),
+        })
+        .map_err(|source| LogError::Mcap {
+            topic: "attachment".into(),
+            source,
+        })
+}
+
 /// A `foxglove` timestamp from nanoseconds since the Unix epoch.
 pub fn timestamp(nanos: u64) -> Timestamp {
     Timestamp::new((nanos / 1_000_000_000) as u32, (nanos % 1_000_000_000) as u32)
@@ -518,25 +557,12 @@ impl<W: Write + Seek> LogWriter<W> {
 
     /// Writes a metadata record.
     pub fn write_metadata(&mut self, name: &str, metadata: BTreeMap<String, String>) -> Result<(), LogError> {
-        self.writer
-            .write_metadata(&mcap::records::Metadata {
-                name: name.to_owned(),
-                metadata,
-            })
-            .map_err(Self::mcap_error("metadata"))
+        write_metadata_record(&mut self.writer, name, metadata)
     }
 
     /// Writes an attachment.
     pub fn attach(&mut self, name: &str, media_type: &str, log_time: u64, data: &[u8]) -> Result<(), LogError> {
-        self.writer
-            .attach(&mcap::Attachment {
-                log_time,
-                create_time: log_time,
-                name: name.to_owned(),
-                media_type: media_type.to_owned(),
-                data: std::borrow::Cow::Borrowed(data),
-            })
-            .map_err(Self::mcap_error("attachment"))
+        write_attachment(&mut self.writer, name, media_type, log_time, data)
     }
 
     fn write_arm_state(

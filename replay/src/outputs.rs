@@ -255,6 +255,16 @@ fn ros_f32<'a>(time: u64, frame: &str, width: usize, height: usize, data: &[f32]
     }
 }
 
+/// The depth (m) of every pixel's disparity, `unknown` where there is none.
+fn depth_map(set: &ViewSet, disparity: &DisparityImage, unknown: f32) -> Vec<f32> {
+    let depth_m = set.disparity_to_depth_m();
+    disparity
+        .data
+        .iter()
+        .map(|d| depth_m(*d).map_or(unknown, |z| z as f32))
+        .collect()
+}
+
 impl ResultLog {
     /// Starts the log, copying the input's metadata records.
     pub fn create(
@@ -303,12 +313,7 @@ impl ResultLog {
         };
         let time = set.reference.capture_time_nanos;
         let (w, h) = (disparity.width, disparity.height);
-        let depth_m = set.disparity_to_depth_m();
-        let depth: Vec<f32> = disparity
-            .data
-            .iter()
-            .map(|d| depth_m(*d).map_or(0.0, |z| z as f32))
-            .collect();
+        let depth = depth_map(set, disparity, 0.0);
         writer.write_message(
             &result_disparity_topic(method),
             time,
@@ -353,12 +358,7 @@ impl ResultLog {
         let frame = set.reference.frame_id.as_str();
         let camera = &set.reference.camera;
         let (w, h) = (disparity.width, disparity.height);
-        let depth_m = set.disparity_to_depth_m();
-        let depth: Vec<f32> = disparity
-            .data
-            .iter()
-            .map(|d| depth_m(*d).map_or(f32::NAN, |z| z as f32))
-            .collect();
+        let depth = depth_map(set, disparity, f32::NAN);
         bag.write(
             &result_disparity_topic(method),
             schema::IMAGE,

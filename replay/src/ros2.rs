@@ -84,6 +84,16 @@ pub struct Ros2Translator {
     ignored: BTreeMap<(String, String), usize>,
 }
 
+/// The error of a payload that does not decode as its topic's type.
+fn cdr_error<'a>(topic: &'a str, schema: &'a str) -> impl Fn(ros2::CdrError) -> ReplayError + 'a {
+    move |e| ReplayError::Decode {
+        set: 0,
+        topic: topic.to_owned(),
+        schema: "CDR",
+        reason: format!("{schema}: {e}"),
+    }
+}
+
 fn timestamp(time: &msg::Time) -> Option<Timestamp> {
     // A stamp before the epoch (negative seconds) cannot be a capture time: no stamp.
     u32::try_from(time.sec)
@@ -107,12 +117,7 @@ impl Ros2Translator {
     /// What an image message is, without its pixels (a `RawImage` or `CompressedImage` whose
     /// data is empty): for a stream whose pixels are read again only for the frames kept.
     pub fn translate_header(&mut self, topic: &str, schema: &str, data: &[u8]) -> Result<Translated, ReplayError> {
-        let cdr = |e: ros2::CdrError| ReplayError::Decode {
-            set: 0,
-            topic: topic.to_owned(),
-            schema: "CDR",
-            reason: format!("{schema}: {e}"),
-        };
+        let cdr = cdr_error(topic, schema);
         Ok(match schema {
             IMAGE => {
                 let image: msg::Image = ros2::decode(data).map_err(cdr)?;
@@ -167,12 +172,7 @@ impl Ros2Translator {
 
     /// Translates one message of `topic` whose schema is the ROS 2 type `schema`.
     pub fn translate(&mut self, topic: &str, schema: &str, data: &[u8]) -> Result<Translated, ReplayError> {
-        let cdr = |e: ros2::CdrError| ReplayError::Decode {
-            set: 0,
-            topic: topic.to_owned(),
-            schema: "CDR",
-            reason: format!("{schema}: {e}"),
-        };
+        let cdr = cdr_error(topic, schema);
         Ok(match schema {
             IMAGE => {
                 let image: msg::Image = ros2::decode(data).map_err(cdr)?;
