@@ -746,13 +746,27 @@ impl StreamPlan {
         let mut report = self.report.clone();
         let (stations, options) = (&self.stations, &self.options);
         let payload = |key: &(String, u64)| payloads.get(key).map(Vec::as_slice).unwrap_or_default();
-        // Calibrations by frame id (the latest wins).
-        let mut calibrations: HashMap<String, CameraCalibration> = HashMap::new();
+        // Calibrations by frame id, in time: an image takes the latest one at or before its
+        // stamp (else the first after it), so a camera reconfigured mid-capture keeps each
+        // image with its own.
+        let mut calibrations: HashMap<String, Vec<(u64, CameraCalibration)>> = HashMap::new();
         for key in &self.calibrations {
             if let Ok(c) = <CameraCalibration as prost::Message>::decode(payload(key)) {
-                calibrations.insert(c.frame_id.trim_start_matches('/').to_owned(), c);
+                let stamp = c.timestamp.map_or(key.1, |t| t.total_nanos());
+                calibrations
+                    .entry(c.frame_id.trim_start_matches('/').to_owned())
+                    .or_default()
+                    .push((stamp, c));
             }
         }
+        for list in calibrations.values_mut() {
+            list.sort_by_key(|(stamp, _)| *stamp);
+        }
+        let calibration_at = |frame: &str, stamp: u64| {
+            let list = calibrations.get(frame)?;
+            let after = list.partition_point(|(s, _)| *s <= stamp);
+            list.get(after.checked_sub(1).unwrap_or(0)).map(|(_, c)| c)
+        };
         // One view per station.
         let mut views: Vec<View> = Vec::with_capacity(stations.len());
         for station in stations {
@@ -764,7 +778,7 @@ impl StreamPlan {
                 station.len(),
                 lookup.gap_nanos,
             ));
-            let calibration = calibrations.get(&chosen.frame_id).ok_or_else(|| ReplayError::BadField {
+            let calibration = calibration_at(&chosen.frame_id, chosen.stamp).ok_or_else(|| ReplayError::BadField {
                 set: 0,
                 topic: chosen.key.0.clone(),
                 field: "frame_id",
@@ -930,6 +944,20 @@ fn assemble(index: u32, mut views: Vec<View>) -> Result<ViewSet, ReplayError> {
         view.role = record::rig::role_for_offset(offset);
         if neighbours.iter().any(|n: &View| n.offset == offset) {
             continue;
+        }
+        if (view.camera.width, view.camera.height) != (reference.camera.width, reference.camera.height) {
+            return Err(ReplayError::SizeMismatch {
+                set: index,
+                role: view.role,
+                topic: format!(
+                    "the image in frame '{}' at stamp {} ns",
+                    view.frame_id, view.capture_time_nanos
+                ),
+                width: view.camera.width,
+                height: view.camera.height,
+                reference_width: reference.camera.width,
+                reference_height: reference.camera.height,
+            });
         }
         neighbours.push(view);
     }

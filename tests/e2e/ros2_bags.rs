@@ -477,6 +477,16 @@ fn bad_bags_fail_clearly_naming_topic_frame_and_time() {
     let contents = read(&fixed);
     assert!(contents.truncation.is_none());
     assert_eq!(contents.sets.len(), 1, "{:?}", contents.notes());
+    // One station's images of another size (a camera reconfigured mid-capture).
+    let cropped = robot_bag(dir.path(), "cropped", "view1@0,view0@-1,view2@1", &["--crop", "view2"]);
+    let output = run_replay(&cropped);
+    assert_eq!(output.status.code(), Some(1), "{}", stderr(&output));
+    assert!(
+        stderr(&output).contains("is 417x370, the reference is 427x370")
+            && stderr(&output).contains("camera_color_optical_frame"),
+        "{}",
+        stderr(&output)
+    );
     // Not a bag at all: an empty directory.
     let empty = dir.path().join("empty");
     std::fs::create_dir_all(&empty).unwrap_or_else(|e| panic!("{e}"));

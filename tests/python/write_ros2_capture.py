@@ -2,7 +2,7 @@
 the `rosbags` library (not our code): the test's "real robot" input.
 
     write_ros2_capture.py SCENE_DIR OUT_BAG --views view2@0,view1@-1,view3@1,view0@-2,view4@2
-        [--baseline-mm 40] [--focal-px 1246.667] [--split] [--rest-secs 1.2]
+        [--baseline-mm 40] [--focal-px 1246.667] [--split] [--rest-secs 1.2] [--crop NAME]
 
 The views are visited in the order given (stations). Between stations the arm moves for 1 s
 (smoothstep) and then rests for 1.2 s (--rest-secs); the camera streams at 10 Hz throughout (stamps 3 ms past
@@ -93,11 +93,14 @@ def main():
     parser.add_argument("--focal-px", type=float, default=3740 / 3)  # Middlebury 2006 third size
     parser.add_argument("--split", action="store_true")
     parser.add_argument("--rest-secs", type=float, default=1.2, help="how long the arm rests at each station")
+    parser.add_argument("--crop", help="NAME: that view's images lose their last 10 columns (a bad bag)")
     args = parser.parse_args()
     views = []
     for item in args.views.split(","):
         name, offset = item.rsplit("@", 1)
         rgb = np.asarray(PILImage.open(args.scene / (name if "." in name else name + ".png")).convert("RGB"))
+        if name == args.crop:
+            rgb = np.ascontiguousarray(rgb[:, :-10])
         views.append((rgb, float(offset)))
     height, width = views[0][0].shape[:2]
     baseline = args.baseline_mm / 1000.0
@@ -189,6 +192,7 @@ def main():
     for ns in range(start + 3_000_000, end, 100_000_000):
         _, _, shown = state(ns)
         rgb = views[shown][0]
+        height, width = rgb.shape[:2]
         put(ns + 30_000_000, "image", T["sensor_msgs/msg/Image"](
             header=hdr(ns, CAMERA_FRAME), height=height, width=width, encoding="rgb8", is_bigendian=0, step=3 * width,
             data=rgb.reshape(-1)), "sensor_msgs/msg/Image")
