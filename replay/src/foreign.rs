@@ -765,7 +765,7 @@ impl StreamPlan {
         let calibration_at = |frame: &str, stamp: u64| {
             let list = calibrations.get(frame)?;
             let after = list.partition_point(|(s, _)| *s <= stamp);
-            list.get(after.checked_sub(1).unwrap_or(0)).map(|(_, c)| c)
+            list.get(after.saturating_sub(1)).map(|(_, c)| c)
         };
         // One view per station.
         let mut views: Vec<View> = Vec::with_capacity(stations.len());
