@@ -373,6 +373,13 @@ fn a_robot_bag_gives_the_set_that_importing_its_images_gives() {
         assert!(mean <= 0.01, "{method}: disparities differ by {mean} px on average");
     }
 
+    // `replay check` grades the bag's set as it grades our own logs' (ideal poses: nothing fails).
+    let checked = replay(&["check", bag.to_str().unwrap_or_default(), "--json"]);
+    assert_success(&checked, "replay check of the bag");
+    let report: serde_json::Value = serde_json::from_slice(&checked.stdout).unwrap_or_else(|e| panic!("{e}"));
+    let text = report.to_string();
+    assert!(text.contains("\"ok\"") && !text.contains("\"fail\""), "{report}");
+
     // A bag split into two storage files reads as one stream.
     let split = robot_bag(dir.path(), "split", "view1@0,view0@-1,view2@1", &["--split"]);
     let contents = read(&split);
