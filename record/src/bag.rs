@@ -212,17 +212,13 @@ impl<W: Write + Seek> BagWriter<W> {
             topic: topic.to_owned(),
             reason: e.to_string(),
         })?;
-        let sequence = self.sequences.entry(channel_id).or_insert(0);
-        *sequence += 1;
-        let header = mcap::records::MessageHeader {
-            channel_id,
-            sequence: *sequence,
+        crate::log::write_sequenced(
+            &mut self.writer,
+            &mut self.sequences,
+            (channel_id, topic),
             log_time,
-            publish_time: log_time,
-        };
-        self.writer
-            .write_to_known_channel(&header, &data)
-            .map_err(Self::mcap_error(topic))?;
+            &data,
+        )?;
         self.topics[topic_index].message_count += 1;
         self.time_span = Some(match self.time_span {
             None => (log_time, log_time),

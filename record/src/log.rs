@@ -381,6 +381,31 @@ pub struct LogWriter<W: Write + Seek> {
     arm: Ur10,
 }
 
+/// Writes one message on a known channel with that channel's next sequence number (1, 2, …),
+/// logged and published at `log_time`, into any log (ours, a bag, a result log).
+pub fn write_sequenced<W: Write + Seek>(
+    writer: &mut mcap::Writer<W>,
+    sequences: &mut HashMap<u16, u32>,
+    (channel_id, topic): (u16, &str),
+    log_time: u64,
+    data: &[u8],
+) -> Result<(), LogError> {
+    let sequence = sequences.entry(channel_id).or_insert(0);
+    *sequence += 1;
+    let header = mcap::records::MessageHeader {
+        channel_id,
+        sequence: *sequence,
+        log_time,
+        publish_time: log_time,
+    };
+    writer
+        .write_to_known_channel(&header, data)
+        .map_err(|source| LogError::Mcap {
+            topic: topic.to_owned(),
+            source,
+        })
+}
+
 /// Writes a metadata record into any log (ours, a bag, a result log).
 pub fn write_metadata_record<W: Write + Seek>(
     writer: &mut mcap::Writer<W>,
@@ -487,17 +512,13 @@ impl<W: Write + Seek> LogWriter<W> {
     }
 
     fn write_raw(&mut self, channel_id: u16, topic: &str, log_time: u64, data: &[u8]) -> Result<(), LogError> {
-        let sequence = self.sequences.entry(channel_id).or_insert(0);
-        *sequence += 1;
-        let header = mcap::records::MessageHeader {
-            channel_id,
-            sequence: *sequence,
+        write_sequenced(
+            &mut self.writer,
+            &mut self.sequences,
+            (channel_id, topic),
             log_time,
-            publish_time: log_time,
-        };
-        self.writer
-            .write_to_known_channel(&header, data)
-            .map_err(Self::mcap_error(topic))
+            data,
+        )
     }
 
     /// Writes a Foxglove message.
