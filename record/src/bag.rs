@@ -6,8 +6,8 @@
 //! One camera streams on [`IMAGE_TOPIC`] (`sensor_msgs/msg/Image` rgb8, or `CompressedImage`
 //! png) with its `CameraInfo`, in the REP 103 optical frame [`OPTICAL_FRAME`] (x right, y down,
 //! z forward) under `camera_link` (x forward, z up); the arm's links go to `/tf` at the motion
-//! rate (`world` → `base` static, `base` → … → `flange` from the UR10's kinematics), the hand-eye
-//! transform `flange` → `camera_link` → `camera_optical_frame` to `/tf_static` (transient local),
+//! rate (`world` → `base` static, `base` → … → `tool0` from the UR10's kinematics), the hand-eye
+//! transform `tool0` → `camera_link` → `camera_optical_frame` to `/tf_static` (transient local),
 //! joints to `/joint_states` by name; ground truth as `32FC1` depth (m) and `mono8` surface
 //! classes; the capture events and plans as JSON in `std_msgs/msg/String` on the topics of our own
 //! log. An import (no arm) puts `world` → `camera_optical_frame` on `/tf` at each view's time.
@@ -47,6 +47,8 @@ pub const TF_STATIC_TOPIC: &str = "/tf_static";
 pub const OPTICAL_FRAME: &str = "camera_optical_frame";
 /// The camera's body frame (x forward, y left, z up).
 pub const CAMERA_LINK_FRAME: &str = "camera_link";
+/// The arm's flange as the UR description names it (z out of the flange: the DH chain's end).
+pub const TOOL_FRAME: &str = "tool0";
 /// The arm's base frame.
 pub const BASE_FRAME: &str = "base";
 /// The root frame (the table, z up).
@@ -259,10 +261,9 @@ impl<W: Write + Seek> BagWriter<W> {
         )];
         if let Some(flange_from_optical) = flange_from_camera {
             let link_from_optical = Isometry3::from_parts(nalgebra::Translation3::identity(), link_from_optical());
-            let flange = LINK_FRAME_NAMES[JOINT_COUNT - 1];
             transforms.push(transform_stamped(
                 nanos,
-                flange,
+                TOOL_FRAME,
                 CAMERA_LINK_FRAME,
                 &(flange_from_optical * link_from_optical.inverse()),
             ));
@@ -286,7 +287,9 @@ impl<W: Write + Seek> BagWriter<W> {
         let links = self.arm.link_transforms(&sample.joints);
         let mut transforms = Vec::with_capacity(JOINT_COUNT);
         let mut parent = BASE_FRAME;
-        for (link, name) in links.iter().zip(LINK_FRAME_NAMES) {
+        for (index, (link, name)) in links.iter().zip(LINK_FRAME_NAMES).enumerate() {
+            // The DH chain's end is the UR description's `tool0`.
+            let name = if index == JOINT_COUNT - 1 { TOOL_FRAME } else { name };
             transforms.push(transform_stamped(nanos, parent, name, link));
             parent = name;
         }

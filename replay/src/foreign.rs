@@ -47,8 +47,9 @@ const SET_RADIUS_IN_STEPS: f64 = 3.0;
 const GRID_TOLERANCE: f64 = 0.25;
 /// Encodings that are colour or grey images (not depth or masks).
 const IMAGE_ENCODINGS: [&str; 6] = ["rgb8", "bgr8", "rgba8", "bgra8", "8UC3", "mono8"];
-/// Frames the UR10's forward kinematics ends at (the DH flange: UR's `tool0`, our `flange`).
-const FLANGE_FRAMES: [&str; 2] = ["tool0", "flange"];
+/// The frame the UR10's forward kinematics ends at (the DH flange frame, UR's `tool0`; UR's own
+/// `flange` frame is rotated from it).
+const FLANGE_FRAMES: [&str; 1] = ["tool0"];
 /// The frame the forward kinematics starts from (the arm's base, as the UR controller's).
 const FK_BASE_FRAME: &str = "base";
 /// A joint faster than this (rad/s) means the arm moves.
@@ -177,12 +178,17 @@ pub fn is_image_schema(schema: &str) -> bool {
     matches!(schema, RAW_IMAGE_SCHEMA | COMPRESSED_IMAGE_SCHEMA)
 }
 
-/// Whether a schema carries poses or joints (read whatever the time window: a view's pose needs
-/// the transforms around it).
+/// Whether a schema carries poses, joints or calibrations (read whatever the time window: a
+/// view's pose needs the transforms around it, and its calibration may have been sent once).
 pub fn is_pose_source(schema: &str) -> bool {
     matches!(
         schema,
-        TRANSFORMS_SCHEMA | crate::ros2::JOINT_STATES_SCHEMA | "tf2_msgs/msg/TFMessage" | "sensor_msgs/msg/JointState"
+        TRANSFORMS_SCHEMA
+            | crate::ros2::JOINT_STATES_SCHEMA
+            | CALIBRATION_SCHEMA
+            | "tf2_msgs/msg/TFMessage"
+            | "sensor_msgs/msg/JointState"
+            | "sensor_msgs/msg/CameraInfo"
     )
 }
 
@@ -209,6 +215,8 @@ enum TfError {
     },
     /// The base frame is not above the frame.
     NotConnected { frame: String, base: String, root: String },
+    /// The transforms above the frame loop (or climb past 64 frames).
+    Cycle { frame: String },
 }
 
 impl std::fmt::Display for TfError {
@@ -230,6 +238,7 @@ impl std::fmt::Display for TfError {
                     "'{base}' is not above '{frame}' in the transform tree (its root is '{root}')"
                 )
             }
+            Self::Cycle { frame } => write!(f, "the transforms above '{frame}' form a loop"),
         }
     }
 }
@@ -330,7 +339,11 @@ impl TfBuffer {
         }
         for _ in 0..64 {
             if base == Some(child.as_str()) {
-                break;
+                return Ok(Lookup {
+                    root_from_frame: pose,
+                    gap_nanos,
+                    root: child,
+                });
             }
             let Some(edge) = self.edges.get(&child) else {
                 return match base {
@@ -378,11 +391,7 @@ impl TfBuffer {
             pose = parent_from_child * pose;
             child = parent;
         }
-        Ok(Lookup {
-            root_from_frame: pose,
-            gap_nanos,
-            root: child,
-        })
+        Err(TfError::Cycle { frame: frame.into() })
     }
 }
 
@@ -624,6 +633,25 @@ impl ForeignMessages {
                 lookup: None,
                 moving: false,
             });
+        }
+        // One camera: where several frames stream (a RealSense's colour and infrared), the one
+        // with the most colour images (then the most images); `--image-topic` picks another.
+        if report.camera_frames.len() > 1 {
+            let score = |frame: &str| {
+                let of = frames.iter().filter(|f| f.frame_id == frame);
+                (
+                    of.clone().filter(|f| !f.grey).count(),
+                    of.count(),
+                    std::cmp::Reverse(frame.to_owned()),
+                )
+            };
+            if let Some(best) = report.camera_frames.iter().max_by_key(|f| score(f)).cloned() {
+                frames.retain(|f| f.frame_id == best);
+                report.camera_frames.retain(|f| *f == best);
+                report
+                    .image_topics
+                    .retain(|(t, _)| frames.iter().any(|f| f.key.0 == *t));
+            }
         }
         // Colour before grey at one stamp: of a camera seen twice at once, the colour view is kept.
         frames.sort_by(|a, b| (a.stamp, a.grey, &a.key.0).cmp(&(b.stamp, b.grey, &b.key.0)));
@@ -1083,6 +1111,20 @@ mod tests {
         assert!((pose.translation.vector - nalgebra::Vector3::new(0.5, 0.0, 0.1)).norm() < 1e-12);
         assert!(at(&tf, "camera_optical", 250).is_err());
         assert!(matches!(at(&tf, "elsewhere", 150), Err(TfError::Unknown { .. })));
+        // Transforms that loop are an error, not a pose.
+        let mut looped = sampled("a", &[(100, 0.0)]);
+        let back = FrameTransforms {
+            transforms: vec![FrameTransform {
+                timestamp: Some(foxglove::messages::Timestamp::new(0, 100)),
+                parent_frame_id: "a".into(),
+                child_frame_id: "base_link".into(),
+                translation: None,
+                rotation: None,
+            }],
+        };
+        looped.add("/tf", 100, &back);
+        looped.sort();
+        assert!(matches!(at(&looped, "a", 100), Err(TfError::Cycle { .. })));
         let error = tf
             .lookup("camera_optical", 150, Some("world"))
             .map(|_| ())

@@ -671,9 +671,18 @@ impl Collected {
         if crate::ros2::is_ros2_schema(schema) {
             // Past the image budget only what an image is matters: its pixels are not kept.
             let translated = if self.deferred && crate::ros2::is_image_type(schema) {
-                self.ros2.translate_header(topic, schema, data)?
+                self.ros2.translate_header(topic, schema, data)
             } else {
-                self.ros2.translate(topic, schema, data)?
+                self.ros2.translate(topic, schema, data)
+            };
+            // A topic whose messages do not translate (an encoding not read, a corrupt payload)
+            // is left out and listed; the views that need it say so when they are assembled.
+            let translated = match translated {
+                Ok(translated) => translated,
+                Err(error) => {
+                    self.ros2.unreadable(topic, schema, &error);
+                    return Ok(());
+                }
             };
             return match translated {
                 crate::ros2::Translated::Foxglove { schema, data } => {
@@ -910,7 +919,10 @@ fn read_one(
             return Ok((result?, ScanDamage::default()));
         }
         // No usable summary (or it contradicted the file): start over with a linear scan.
-        *collected = Collected::default();
+        *collected = Collected {
+            image_budget_bytes: collected.image_budget_bytes,
+            ..Collected::default()
+        };
     }
     scan(bytes, wanted, |t, s, time, data| {
         collected.keep(range, t, s, time, data)

@@ -108,7 +108,22 @@ fn encode<M: prost::Message>(schema: &'static str, message: &M) -> Translated {
     }
 }
 
+/// `sensor_msgs/msg/Image` encodings read as views (besides mono16, read as mono8).
+const VIEW_ENCODINGS: [&str; 7] = ["rgb8", "bgr8", "rgba8", "bgra8", "mono8", "8UC1", "8UC3"];
+
 impl Ros2Translator {
+    /// Counts a message left out under `kind` (its type, and why when it is not the type).
+    fn ignore(&mut self, topic: &str, kind: &str) -> Translated {
+        *self.ignored.entry((topic.to_owned(), kind.to_owned())).or_default() += 1;
+        Translated::Ignored
+    }
+
+    /// Counts a message that did not translate (an encoding not read, a corrupt payload): it is
+    /// left out and listed, so that one bad topic does not stop the reading of the others.
+    pub fn unreadable(&mut self, topic: &str, schema: &str, error: &ReplayError) {
+        self.ignore(topic, &format!("{schema}: {error}"));
+    }
+
     /// The (topic, type) pairs left out, with their message counts.
     pub fn ignored(&self) -> &BTreeMap<(String, String), usize> {
         &self.ignored
@@ -122,8 +137,9 @@ impl Ros2Translator {
             IMAGE => {
                 let image: msg::Image = ros2::decode(data).map_err(cdr)?;
                 let encoding = match image.encoding.as_str() {
-                    "mono16" | "16UC1" => "mono8".to_owned(),
-                    other => other.to_owned(),
+                    "mono16" => "mono8".to_owned(),
+                    other if VIEW_ENCODINGS.contains(&other) || other == "32FC1" => other.to_owned(),
+                    other => return Ok(self.ignore(topic, &format!("{schema} ({other})"))),
                 };
                 encode(
                     "foxglove.RawImage",
@@ -150,8 +166,10 @@ impl Ros2Translator {
                             format: "png".into(),
                         },
                     )
+                } else if !image.data.starts_with(&[0xFF, 0xD8]) {
+                    return Ok(self.ignore(topic, &format!("{schema} ({})", image.format)));
                 } else {
-                    // A JPEG (or worse): decoded when kept; its size is not needed to place it.
+                    // A JPEG: decoded when kept; its size is not needed to place it.
                     encode(
                         "foxglove.RawImage",
                         &RawImage {
@@ -291,10 +309,10 @@ impl Ros2Translator {
             Ok((0..h).map(|y| &image.data[y * step..y * step + row]).collect())
         };
         Ok(match image.encoding.as_str() {
-            "rgb8" | "bgr8" | "rgba8" | "bgra8" | "mono8" | "8UC1" | "8UC3" => {
-                raw(&image.encoding, image.step, &image.data)
-            }
-            "mono16" | "16UC1" => {
+            encoding if VIEW_ENCODINGS.contains(&encoding) => raw(&image.encoding, image.step, &image.data),
+            // REP 118 depth (a RealSense's aligned depth): not a view.
+            "16UC1" => self.ignore(topic, "sensor_msgs/msg/Image (16UC1 depth)"),
+            "mono16" => {
                 let big = image.is_bigendian != 0;
                 let values: Vec<u16> = rows(2)?
                     .into_iter()

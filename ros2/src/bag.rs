@@ -129,7 +129,7 @@ impl BagInfo {
         for f in &self.files {
             let _ = writeln!(out, "  - duration:\n      nanoseconds: {}", f.duration_nanos);
             let _ = writeln!(out, "    message_count: {}", f.message_count);
-            let _ = writeln!(out, "    path: {}", f.path);
+            let _ = writeln!(out, "    path: {}", yaml_string(&f.path));
             let _ = writeln!(
                 out,
                 "    starting_time:\n      nanoseconds_since_epoch: {}",
@@ -139,7 +139,7 @@ impl BagInfo {
         let _ = writeln!(out, "  message_count: {count}");
         let _ = writeln!(out, "  relative_file_paths:");
         for f in &self.files {
-            let _ = writeln!(out, "  - {}", f.path);
+            let _ = writeln!(out, "  - {}", yaml_string(&f.path));
         }
         let _ = writeln!(out, "  ros_distro: {}", self.ros_distro);
         let _ = writeln!(out, "  starting_time:\n    nanoseconds_since_epoch: {start}");
@@ -156,6 +156,21 @@ impl BagInfo {
         }
         let _ = writeln!(out, "  version: 9");
         out
+    }
+}
+
+/// A YAML scalar: as it is when plain, else single-quoted (a name with `: `, ` #`, or a leading
+/// indicator such as `[`, `*`, `&`, `!`).
+fn yaml_string(text: &str) -> String {
+    let plain = !text.is_empty()
+        && !text.contains(": ")
+        && !text.contains(" #")
+        && !text.ends_with(':')
+        && !text.starts_with(|c: char| "[]{}*&!|>'\"%@`#,?:- ".contains(c));
+    if plain {
+        text.to_owned()
+    } else {
+        format!("'{}'", text.replace('\'', "''"))
     }
 }
 
@@ -284,16 +299,19 @@ fn split_index(path: &Path) -> Option<u64> {
 fn yaml_scalar(text: &str, key: &str) -> Option<String> {
     text.lines().find_map(|line| {
         let rest = line.trim_start().strip_prefix(key)?.strip_prefix(':')?;
-        Some(unquote(rest.trim()).to_owned())
+        Some(unquote(rest.trim()))
     })
 }
 
-fn unquote(value: &str) -> &str {
-    value
-        .strip_prefix('\'')
-        .and_then(|v| v.strip_suffix('\''))
-        .or_else(|| value.strip_prefix('"').and_then(|v| v.strip_suffix('"')))
-        .unwrap_or(value)
+fn unquote(value: &str) -> String {
+    match value.strip_prefix('\'').and_then(|v| v.strip_suffix('\'')) {
+        Some(quoted) => quoted.replace("''", "'"),
+        None => value
+            .strip_prefix('"')
+            .and_then(|v| v.strip_suffix('"'))
+            .unwrap_or(value)
+            .to_owned(),
+    }
 }
 
 /// The items of the `relative_file_paths:` block list.
@@ -309,7 +327,7 @@ fn relative_file_paths(text: &str) -> Vec<String> {
             let t = l.trim_start();
             t.starts_with("- ") && i >= indent
         })
-        .map(|l| unquote(l.trim_start().trim_start_matches("- ").trim()).to_owned())
+        .map(|l| unquote(l.trim_start().trim_start_matches("- ").trim()))
         .collect()
 }
 
@@ -334,6 +352,15 @@ mod tests {
             }],
             ros_distro: "jazzy".into(),
         }
+    }
+
+    #[test]
+    fn file_names_yaml_would_misread_are_quoted_and_read_back() {
+        let mut odd = info();
+        odd.files[0].path = "it's: [a]_0.mcap".into();
+        let yaml = odd.to_yaml();
+        assert!(yaml.contains("  - 'it''s: [a]_0.mcap'\n"), "{yaml}");
+        assert_eq!(relative_file_paths(&yaml), vec!["it's: [a]_0.mcap".to_owned()]);
     }
 
     #[test]

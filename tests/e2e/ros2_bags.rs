@@ -184,7 +184,7 @@ fn our_bags_are_read_by_rosbags_mcap_ros2_foxglove_and_rerun() {
         assert_eq!(report["qos"]["/tf_static"][0], "QosDurability.TRANSIENT_LOCAL");
         let static_frames = multiscopic_tests::json_strings(&report["static_frames"]);
         assert!(
-            static_frames.contains(&"flange->camera_link")
+            static_frames.contains(&"tool0->camera_link")
                 && static_frames.contains(&"camera_link->camera_optical_frame"),
             "{static_frames:?}"
         );
