@@ -52,6 +52,8 @@ const IMAGE_ENCODINGS: [&str; 6] = ["rgb8", "bgr8", "rgba8", "bgra8", "8UC3", "m
 const FLANGE_FRAMES: [&str; 1] = ["tool0"];
 /// The frame the forward kinematics starts from (the arm's base, as the UR controller's).
 const FK_BASE_FRAME: &str = "base";
+/// Two cameras stream at once when their images come within this of each other (ns).
+const CONCURRENT_NANOS: u64 = 50_000_000;
 /// A joint faster than this (rad/s) means the arm moves.
 const MOVING_JOINT_RAD_PER_S: f64 = 0.01;
 /// Joint states further than this from an image's stamp say nothing about it (ns).
@@ -634,8 +636,10 @@ impl ForeignMessages {
                 moving: false,
             });
         }
-        // One camera: where several frames stream (a RealSense's colour and infrared), the one
-        // with the most colour images (then the most images); `--image-topic` picks another.
+        // One camera: where several cameras stream at once (a RealSense's colour and infrared:
+        // most of one's images have one of the other's within 50 ms), the one with the most
+        // colour images (then the most images); `--image-topic` picks another. Frames that do
+        // not stream at once (a log with one fixed frame per view) all stay.
         if report.camera_frames.len() > 1 {
             let score = |frame: &str| {
                 let of = frames.iter().filter(|f| f.frame_id == frame);
@@ -646,8 +650,28 @@ impl ForeignMessages {
                 )
             };
             if let Some(best) = report.camera_frames.iter().max_by_key(|f| score(f)).cloned() {
-                frames.retain(|f| f.frame_id == best);
-                report.camera_frames.retain(|f| *f == best);
+                let mut best_stamps: Vec<u64> = frames.iter().filter(|f| f.frame_id == best).map(|f| f.stamp).collect();
+                best_stamps.sort_unstable();
+                let near_best = |stamp: u64| {
+                    let after = best_stamps.partition_point(|s| *s < stamp);
+                    [after.checked_sub(1), Some(after)]
+                        .into_iter()
+                        .flatten()
+                        .filter_map(|i| best_stamps.get(i))
+                        .any(|s| s.abs_diff(stamp) <= CONCURRENT_NANOS)
+                };
+                let concurrent = |frame: &str| {
+                    let stamps: Vec<u64> = frames.iter().filter(|f| f.frame_id == frame).map(|f| f.stamp).collect();
+                    2 * stamps.iter().filter(|s| near_best(**s)).count() >= stamps.len()
+                };
+                let dropped: Vec<String> = report
+                    .camera_frames
+                    .iter()
+                    .filter(|f| **f != best && concurrent(f))
+                    .cloned()
+                    .collect();
+                frames.retain(|f| !dropped.contains(&f.frame_id));
+                report.camera_frames.retain(|f| !dropped.contains(f));
                 report
                     .image_topics
                     .retain(|(t, _)| frames.iter().any(|f| f.key.0 == *t));

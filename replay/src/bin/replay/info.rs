@@ -12,8 +12,8 @@ use replay::foreign::{StationFrame, StreamOptions};
 /// How a camera stream (a ROS 2 bag of a real arm, a log without capture events) becomes sets.
 #[derive(Debug, Clone, Args)]
 pub struct StreamArgs {
-    /// Only the images of this topic (default: every colour or grey image topic), e.g.
-    /// /camera/camera/color/image_raw.
+    /// Only the images of this topic, e.g. /camera/camera/color/image_raw (default: every colour
+    /// or grey image topic, of the camera frame with the most colour images).
     #[arg(long, value_name = "TOPIC")]
     pub(crate) image_topic: Option<String>,
     /// Camera poses in this frame (default: the root of the camera's transform tree, e.g.
