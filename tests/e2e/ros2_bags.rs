@@ -290,7 +290,14 @@ fn robot_bag(dir: &Path, name: &str, views: &str, extra: &[&str]) -> PathBuf {
 #[test]
 fn a_robot_bag_gives_the_set_that_importing_its_images_gives() {
     let dir = temp_dir();
-    let bag = robot_bag(dir.path(), "aloe", "view2@0,view1@-1,view3@1,view0@-2,view4@2", &[]);
+    // With what a RealSense streams besides (infrared in its own frame, 16UC1 depth, a yuv422
+    // stream replay does not decode): the colour camera is the one used, the rest is listed.
+    let bag = robot_bag(
+        dir.path(),
+        "aloe",
+        "view2@0,view1@-1,view3@1,view0@-2,view4@2",
+        &["--realsense"],
+    );
     let contents = read(&bag);
     assert_eq!(
         contents.sets.len(),
@@ -304,14 +311,18 @@ fn a_robot_bag_gives_the_set_that_importing_its_images_gives() {
     assert_eq!(report.stations.len(), 5, "{report:?}");
     assert!(report.moving_images > 20, "{report:?}");
     assert!((set.baseline_m - 0.040).abs() < 1e-5, "baseline {}", set.baseline_m);
-    assert!(
-        contents
-            .notes()
-            .iter()
-            .any(|n| n.contains("/diagnostics") && n.contains("std_msgs/msg/Float64")),
-        "{:?}",
-        contents.notes()
-    );
+    let notes = contents.notes();
+    for (topic, what) in [
+        ("/diagnostics", "std_msgs/msg/Float64"),
+        ("/camera/camera/depth/image_rect_raw", "16UC1"),
+        ("/camera/camera/color/image_yuv", "yuv422"),
+    ] {
+        assert!(
+            notes.iter().any(|n| n.contains(topic) && n.contains(what)),
+            "{topic}: {notes:?}"
+        );
+    }
+    assert_eq!(report.camera_frames, ["camera_color_optical_frame"], "{report:?}");
 
     // With room for a few images only, the reader keeps what each image is, drops the pixels,
     // and reads the chosen frames again: the same set.

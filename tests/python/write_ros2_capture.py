@@ -94,6 +94,9 @@ def main():
     parser.add_argument("--split", action="store_true")
     parser.add_argument("--rest-secs", type=float, default=1.2, help="how long the arm rests at each station")
     parser.add_argument("--crop", help="NAME: that view's images lose their last 10 columns (a bad bag)")
+    parser.add_argument("--realsense", action="store_true",
+                        help="also stream what a RealSense adds: infrared (mono8, its own optical frame 15 mm "
+                             "beside the colour one, 5 ms later), depth (16UC1) and a yuv422 colour stream")
     args = parser.parse_args()
     views = []
     for item in args.views.split(","):
@@ -165,6 +168,11 @@ def main():
                                           offered_qos_profiles=[LATCHED]),
             "joints": w.add_connection("/joint_states", "sensor_msgs/msg/JointState", typestore=ts),
             "diagnostics": w.add_connection("/diagnostics", "std_msgs/msg/Float64", typestore=ts),
+            "infra": w.add_connection("/camera/camera/infra1/image_rect_raw", "sensor_msgs/msg/Image", typestore=ts),
+            "infra_info": w.add_connection("/camera/camera/infra1/camera_info", "sensor_msgs/msg/CameraInfo",
+                                           typestore=ts),
+            "depth": w.add_connection("/camera/camera/depth/image_rect_raw", "sensor_msgs/msg/Image", typestore=ts),
+            "yuv": w.add_connection("/camera/camera/color/image_yuv", "sensor_msgs/msg/Image", typestore=ts),
         })
     messages = []  # (log time, kind, payload)
 
@@ -178,6 +186,10 @@ def main():
     put(start, "tf_static", T["tf2_msgs/msg/TFMessage"](transforms=static), "tf2_msgs/msg/TFMessage")
     put(start + 1, "tf_static", T["tf2_msgs/msg/TFMessage"](transforms=[tf(start, "tool0", CAMERA_FRAME, hand_eye)]),
         "tf2_msgs/msg/TFMessage")
+    if args.realsense:
+        put(start + 2, "tf_static", T["tf2_msgs/msg/TFMessage"](transforms=[
+            tf(start, CAMERA_FRAME, "camera_infra1_optical_frame", (np.array([-0.015, 0.0, 0.0]), (0.0, 0.0, 0.0, 1.0)))]),
+            "tf2_msgs/msg/TFMessage")
     for ns in range(start, end + 1, 50_000_000):
         offset, _, _ = state(ns)
         put(ns + 2_000_000, "tf", T["tf2_msgs/msg/TFMessage"](
@@ -205,6 +217,28 @@ def main():
             roi=T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)),
             "sensor_msgs/msg/CameraInfo")
         put(ns + 30_000_002, "diagnostics", T["std_msgs/msg/Float64"](data=1.0), "std_msgs/msg/Float64")
+        if args.realsense:
+            grey = np.ascontiguousarray(rgb.mean(axis=2).astype(np.uint8)[:, ::-1])
+            put(ns + 35_000_000, "infra", T["sensor_msgs/msg/Image"](
+                header=hdr(ns + 5_000_000, "camera_infra1_optical_frame"), height=height, width=width, encoding="mono8",
+                is_bigendian=0, step=width, data=grey.reshape(-1)), "sensor_msgs/msg/Image")
+            put(ns + 35_000_001, "infra_info", T["sensor_msgs/msg/CameraInfo"](
+                header=hdr(ns + 5_000_000, "camera_infra1_optical_frame"), height=height, width=width,
+                distortion_model="plumb_bob", d=np.zeros(5),
+                k=np.array([args.focal_px, 0, (width - 1) / 2, 0, args.focal_px, (height - 1) / 2, 0, 0, 1]),
+                r=np.eye(3).ravel(),
+                p=np.array([args.focal_px, 0, (width - 1) / 2, 0, 0, args.focal_px, (height - 1) / 2, 0, 0, 0, 1, 0]),
+                binning_x=0, binning_y=0,
+                roi=T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)),
+                "sensor_msgs/msg/CameraInfo")
+            put(ns + 35_000_002, "depth", T["sensor_msgs/msg/Image"](
+                header=hdr(ns, "camera_depth_optical_frame"), height=height, width=width, encoding="16UC1",
+                is_bigendian=0, step=2 * width, data=np.full(height * width, 800, np.uint16).view(np.uint8)),
+                "sensor_msgs/msg/Image")
+            put(ns + 35_000_003, "yuv", T["sensor_msgs/msg/Image"](
+                header=hdr(ns, CAMERA_FRAME), height=height, width=width, encoding="yuv422",
+                is_bigendian=0, step=2 * width, data=np.zeros(height * width * 2, np.uint8)),
+                "sensor_msgs/msg/Image")
     messages.sort(key=lambda m: m[0])
     half = messages[len(messages) // 2][0]
     for log_time, kind, data in messages:
