@@ -347,22 +347,7 @@ impl<W: Write + Seek> BagWriter<W> {
     fn write_view(&mut self, set: &CapturedSet, view: &CapturedView) -> Result<(), LogError> {
         let t = view.capture_time_nanos;
         let (width, height) = (view.camera.width, view.camera.height);
-        let pixels = view.camera.pixel_count();
-        let check = |field: &'static str, actual: usize, per_pixel: usize| {
-            if actual == pixels * per_pixel {
-                Ok(())
-            } else {
-                Err(LogError::BufferSize {
-                    set: set.index,
-                    role: view.role.clone(),
-                    field,
-                    actual,
-                    expected: pixels * per_pixel,
-                    width,
-                    height,
-                })
-            }
-        };
+        let check = |field, actual, per_pixel| crate::log::check_buffer_len(set, view, field, actual, per_pixel);
         check("rgb", view.rgb.len(), 3)?;
         fn image<'a>(
             t: u64,

@@ -406,6 +406,30 @@ pub fn write_sequenced<W: Write + Seek>(
         })
 }
 
+/// Checks that a view's buffer `field` holds `per_pixel` values per pixel of its camera.
+pub(crate) fn check_buffer_len(
+    set: &CapturedSet,
+    view: &CapturedView,
+    field: &'static str,
+    actual: usize,
+    per_pixel: usize,
+) -> Result<(), LogError> {
+    let expected = view.camera.pixel_count() * per_pixel;
+    if actual == expected {
+        Ok(())
+    } else {
+        Err(LogError::BufferSize {
+            set: set.index,
+            role: view.role.clone(),
+            field,
+            actual,
+            expected,
+            width: view.camera.width,
+            height: view.camera.height,
+        })
+    }
+}
+
 /// Writes a metadata record into any log (ours, a bag, a result log).
 pub fn write_metadata_record<W: Write + Seek>(
     writer: &mut mcap::Writer<W>,
@@ -667,33 +691,10 @@ impl<W: Write + Seek> LogWriter<W> {
         self.writer.flush().map_err(Self::mcap_error("end of set"))
     }
 
-    fn check_len(
-        set: &CapturedSet,
-        view: &CapturedView,
-        field: &'static str,
-        actual: usize,
-        per_pixel: usize,
-    ) -> Result<(), LogError> {
-        let expected = view.camera.pixel_count() * per_pixel;
-        if actual == expected {
-            Ok(())
-        } else {
-            Err(LogError::BufferSize {
-                set: set.index,
-                role: view.role.clone(),
-                field,
-                actual,
-                expected,
-                width: view.camera.width,
-                height: view.camera.height,
-            })
-        }
-    }
-
     fn write_view(&mut self, set: &CapturedSet, view: &CapturedView) -> Result<(), LogError> {
         let t = view.capture_time_nanos;
         let (width, height) = (view.camera.width, view.camera.height);
-        Self::check_len(set, view, "rgb", view.rgb.len(), 3)?;
+        check_buffer_len(set, view, "rgb", view.rgb.len(), 3)?;
         let image = image_topic(&view.role);
         // A raw image of this view on `topic`: `encoding`, `bytes_per_pixel`, little-endian data.
         let raw = |encoding: &str, bytes_per_pixel: u32, data: Bytes| RawImage {
@@ -731,7 +732,7 @@ impl<W: Write + Seek> LogWriter<W> {
         self.write_message(&calibration, t, &calibration_message(&view.camera, t, &frame))?;
         let depth = match &view.depth_m {
             Some(depth_m) => {
-                Self::check_len(set, view, "depth_m", depth_m.len(), 1)?;
+                check_buffer_len(set, view, "depth_m", depth_m.len(), 1)?;
                 let topic = depth_topic(&view.role);
                 let data: Vec<u8> = depth_m.iter().flat_map(|d| d.to_le_bytes()).collect();
                 self.write_message(&topic, t, &raw(DEPTH_ENCODING, 4, Bytes::from(data)))?;
@@ -741,7 +742,7 @@ impl<W: Write + Seek> LogWriter<W> {
         };
         let surface = match &view.surface_class {
             Some(classes) => {
-                Self::check_len(set, view, "surface_class", classes.len(), 1)?;
+                check_buffer_len(set, view, "surface_class", classes.len(), 1)?;
                 let topic = surface_topic(&view.role);
                 self.write_message(&topic, t, &raw(SURFACE_ENCODING, 1, Bytes::copy_from_slice(classes)))?;
                 Some(topic)

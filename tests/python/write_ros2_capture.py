@@ -84,6 +84,16 @@ def tf(ns, parent, child, pose):
             rotation=T["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3])))
 
 
+def camera_info(header, width, height, focal_px):
+    """An ideal pinhole's CameraInfo: f, a centred principal point, no distortion."""
+    cx, cy = (width - 1) / 2, (height - 1) / 2
+    return T["sensor_msgs/msg/CameraInfo"](
+        header=header, height=height, width=width, distortion_model="plumb_bob", d=np.zeros(5),
+        k=np.array([focal_px, 0, cx, 0, focal_px, cy, 0, 0, 1]), r=np.eye(3).ravel(),
+        p=np.array([focal_px, 0, cx, 0, 0, focal_px, cy, 0, 0, 0, 1, 0]), binning_x=0, binning_y=0,
+        roi=T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False))
+
+
 def main():
     parser = argparse.ArgumentParser()
     parser.add_argument("scene", type=Path)
@@ -208,13 +218,7 @@ def main():
         put(ns + 30_000_000, "image", T["sensor_msgs/msg/Image"](
             header=hdr(ns, CAMERA_FRAME), height=height, width=width, encoding="rgb8", is_bigendian=0, step=3 * width,
             data=rgb.reshape(-1)), "sensor_msgs/msg/Image")
-        put(ns + 30_000_001, "info", T["sensor_msgs/msg/CameraInfo"](
-            header=hdr(ns, CAMERA_FRAME), height=height, width=width, distortion_model="plumb_bob", d=np.zeros(5),
-            k=np.array([args.focal_px, 0, (width - 1) / 2, 0, args.focal_px, (height - 1) / 2, 0, 0, 1]),
-            r=np.eye(3).ravel(),
-            p=np.array([args.focal_px, 0, (width - 1) / 2, 0, 0, args.focal_px, (height - 1) / 2, 0, 0, 0, 1, 0]),
-            binning_x=0, binning_y=0,
-            roi=T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)),
+        put(ns + 30_000_001, "info", camera_info(hdr(ns, CAMERA_FRAME), width, height, args.focal_px),
             "sensor_msgs/msg/CameraInfo")
         put(ns + 30_000_002, "diagnostics", T["std_msgs/msg/Float64"](data=1.0), "std_msgs/msg/Float64")
         if args.realsense:
@@ -222,14 +226,7 @@ def main():
             put(ns + 35_000_000, "infra", T["sensor_msgs/msg/Image"](
                 header=hdr(ns + 5_000_000, "camera_infra1_optical_frame"), height=height, width=width, encoding="mono8",
                 is_bigendian=0, step=width, data=grey.reshape(-1)), "sensor_msgs/msg/Image")
-            put(ns + 35_000_001, "infra_info", T["sensor_msgs/msg/CameraInfo"](
-                header=hdr(ns + 5_000_000, "camera_infra1_optical_frame"), height=height, width=width,
-                distortion_model="plumb_bob", d=np.zeros(5),
-                k=np.array([args.focal_px, 0, (width - 1) / 2, 0, args.focal_px, (height - 1) / 2, 0, 0, 1]),
-                r=np.eye(3).ravel(),
-                p=np.array([args.focal_px, 0, (width - 1) / 2, 0, 0, args.focal_px, (height - 1) / 2, 0, 0, 0, 1, 0]),
-                binning_x=0, binning_y=0,
-                roi=T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)),
+            put(ns + 35_000_001, "infra_info", camera_info(hdr(ns + 5_000_000, "camera_infra1_optical_frame"), width, height, args.focal_px),
                 "sensor_msgs/msg/CameraInfo")
             put(ns + 35_000_002, "depth", T["sensor_msgs/msg/Image"](
                 header=hdr(ns, "camera_depth_optical_frame"), height=height, width=width, encoding="16UC1",
