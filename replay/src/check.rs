@@ -8,6 +8,7 @@
 //! perpendicular shift. Each gets ok / warn / fail against the thresholds below.
 
 use nalgebra::{Matrix3, Vector2, Vector3};
+use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::viewset::{View, ViewSet};
@@ -496,9 +497,10 @@ fn image_shift(set: &ViewSet, neighbour: &View, num_disparities: usize, depth_ra
 /// error and the image shift.
 pub fn check_set(set: &ViewSet, num_disparities: usize, limits: PixelLimits) -> SetCheck {
     let range = depth_range(set);
+    // One neighbour per task: the image-shift search is most of a check.
     let neighbours: Vec<NeighbourCheck> = set
         .neighbours
-        .iter()
+        .par_iter()
         .map(|n| {
             let relative = set.reference.world_from_camera.inverse() * n.world_from_camera;
             let t = relative.translation.vector;

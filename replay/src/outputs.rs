@@ -45,60 +45,76 @@ pub fn write_set_outputs(
         source,
     })?;
     let (w, h) = (disparity.width, disparity.height);
-    let mut files = Vec::new();
-    let disparity_path = set_dir.join(format!("{method}_disparity.pfm"));
-    viz::files::write_pfm(&disparity_path, w, h, &disparity.data)?;
-    files.push(disparity_path);
-    let depth_m = set.disparity_to_depth_m();
-    let depth: Vec<f32> = disparity
-        .data
-        .iter()
-        .map(|d| depth_m(*d).map_or(f32::INFINITY, |z| z as f32))
-        .collect();
-    let depth_pfm = set_dir.join(format!("{method}_depth_m.pfm"));
-    viz::files::write_pfm(&depth_pfm, w, h, &depth)?;
-    files.push(depth_pfm);
-    let depth_png = set_dir.join(format!("{method}_depth_mm.png"));
-    viz::files::write_depth_png_mm(&depth_png, w, h, &depth)?;
-    files.push(depth_png);
-    if let Some(confidence) = &disparity.confidence {
-        let pfm = set_dir.join(format!("{method}_confidence.pfm"));
-        viz::files::write_pfm(&pfm, w, h, confidence)?;
-        files.push(pfm);
-        let png = set_dir.join(format!("{method}_confidence.png"));
-        viz::files::write_unit_png16(&png, w, h, confidence)?;
-        files.push(png);
-    }
     let range = viz::files::finite_range(&disparity.data);
-    if let Some(range) = range {
-        files.push(viz::files::write_colormap_png(
-            &set_dir,
-            &format!("{method}_disparity"),
-            w,
-            h,
-            &disparity.data,
-            range,
-        )?);
+    // Each file is written by its own task (PNG compression and the PLY's text are the costly
+    // ones): the files of a 1080p set in about the time of the slowest.
+    type Writer<'w> = Box<dyn FnOnce() -> Result<Vec<PathBuf>, viz::files::FileError> + Send + 'w>;
+    let set_dir = &set_dir;
+    let mut writers: Vec<Writer<'_>> = vec![
+        Box::new(move || {
+            let path = set_dir.join(format!("{method}_disparity.pfm"));
+            viz::files::write_pfm(&path, w, h, &disparity.data)?;
+            Ok(vec![path])
+        }),
+        Box::new(move || {
+            let depth_m = set.disparity_to_depth_m();
+            let depth: Vec<f32> = disparity
+                .data
+                .iter()
+                .map(|d| depth_m(*d).map_or(f32::INFINITY, |z| z as f32))
+                .collect();
+            let pfm = set_dir.join(format!("{method}_depth_m.pfm"));
+            viz::files::write_pfm(&pfm, w, h, &depth)?;
+            let png = set_dir.join(format!("{method}_depth_mm.png"));
+            viz::files::write_depth_png_mm(&png, w, h, &depth)?;
+            Ok(vec![pfm, png])
+        }),
+    ];
+    if let Some(confidence) = &disparity.confidence {
+        writers.push(Box::new(move || {
+            let pfm = set_dir.join(format!("{method}_confidence.pfm"));
+            viz::files::write_pfm(&pfm, w, h, confidence)?;
+            let png = set_dir.join(format!("{method}_confidence.png"));
+            viz::files::write_unit_png16(&png, w, h, confidence)?;
+            Ok(vec![pfm, png])
+        }));
     }
-    let ply = set_dir.join(format!("{method}_points.ply"));
-    // The PLY writer takes z = f·b/d: hand it d + doffs (0 unless the set's calibration has one).
-    let doffs = set.disparity_offset_px() as f32;
-    let shifted: Vec<f32> = disparity.data.iter().map(|d| d + doffs).collect();
-    viz::files::write_ply_points(
-        &ply,
-        (w, h),
-        &shifted,
-        &set.reference.rgb,
-        [
-            set.reference.camera.fx,
-            set.reference.camera.fy,
-            set.reference.camera.cx,
-            set.reference.camera.cy,
-        ],
-        set.baseline_m,
-    )?;
-    files.push(ply);
-    if let Some(truth) = set.ground_truth_disparity() {
+    if let Some(range) = range {
+        writers.push(Box::new(move || {
+            Ok(vec![viz::files::write_colormap_png(
+                set_dir,
+                &format!("{method}_disparity"),
+                w,
+                h,
+                &disparity.data,
+                range,
+            )?])
+        }));
+    }
+    writers.push(Box::new(move || {
+        let ply = set_dir.join(format!("{method}_points.ply"));
+        // The PLY writer takes z = f·b/d: hand it d + doffs (0 unless the set's calibration has one).
+        let doffs = set.disparity_offset_px() as f32;
+        let shifted: Vec<f32> = disparity.data.iter().map(|d| d + doffs).collect();
+        viz::files::write_ply_points(
+            &ply,
+            (w, h),
+            &shifted,
+            &set.reference.rgb,
+            [
+                set.reference.camera.fx,
+                set.reference.camera.fy,
+                set.reference.camera.cx,
+                set.reference.camera.cy,
+            ],
+            set.baseline_m,
+        )?;
+        Ok(vec![ply])
+    }));
+    writers.push(Box::new(move || {
+        let Some(truth) = set.ground_truth_disparity() else {
+            return Ok(Vec::new());
+        };
         // |estimate − truth| where the truth is known (no estimate counts as the largest error).
         let error: Vec<f32> = disparity
             .data
@@ -110,14 +126,22 @@ pub fn write_set_outputs(
                 _ => f32::NAN,
             })
             .collect();
-        files.push(viz::files::write_colormap_png(
-            &set_dir,
+        Ok(vec![viz::files::write_colormap_png(
+            set_dir,
             &format!("{method}_error"),
             w,
             h,
             &error,
             ERROR_MAP_RANGE_PX,
-        )?);
+        )?])
+    }));
+    let written: Vec<Result<Vec<PathBuf>, viz::files::FileError>> = {
+        use rayon::prelude::*;
+        writers.into_par_iter().map(|write| write()).collect()
+    };
+    let mut files = Vec::new();
+    for paths in written {
+        files.extend(paths?);
     }
     if let Some(metrics) = metrics {
         let path = set_dir.join(format!("{method}_metrics.json"));
@@ -137,7 +161,7 @@ pub fn write_set_outputs(
     Ok(SetOutputs {
         set: set.index,
         name: set.name.clone(),
-        dir: set_dir,
+        dir: set_dir.to_path_buf(),
         files,
         metrics,
         disparity_range_px: range,

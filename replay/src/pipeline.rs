@@ -142,6 +142,7 @@ impl<'a> PreparedSet<'a> {
                 source,
             })?;
         let seconds = started.elapsed().as_secs_f64();
+        let evaluating = Instant::now();
         let regions = self.occluded.as_deref().and_then(|mask| {
             self.set.region_metrics_with(
                 &disparity.data,
@@ -150,6 +151,11 @@ impl<'a> PreparedSet<'a> {
                 mask,
             )
         });
+        tracing::debug!(
+            "set {}: evaluated in {:.3} s",
+            self.set.index,
+            evaluating.elapsed().as_secs_f64()
+        );
         Ok(MethodResult {
             disparity,
             seconds,

@@ -225,6 +225,7 @@ pub fn replay_log(
 ) -> Result<RunReport, ReplayError> {
     let started = Instant::now();
     let contents = read_sets(request)?;
+    debug!("read the log in {:.3} s", started.elapsed().as_secs_f64());
     let sets: Vec<&ViewSet> = contents
         .sets
         .iter()
@@ -263,7 +264,13 @@ pub fn replay_log(
     };
     let mut summaries = Vec::new();
     for set in sets {
+        let preparing = Instant::now();
         let prepared = PreparedSet::new(set, &request.options)?;
+        debug!(
+            "set {}: alignment check, problem and occlusion mask in {:.3} s",
+            set.index,
+            preparing.elapsed().as_secs_f64()
+        );
         report_alignment(set, &prepared, request.options.rectify);
         viewer.log(|v| crate::viewer::log_capture(v, &prepared.selected));
         viewer.log(|v| crate::viewer::log_plans(v, &prepared.selected, &contents.plans));
@@ -287,7 +294,13 @@ pub fn replay_log(
                     source: Box::new(source),
                 })?;
             drop(bar);
+            let writing = Instant::now();
             let outputs = write_set_outputs(out, set, name, &result.disparity, result.regions)?;
+            debug!(
+                "set {} {name}: result files in {:.3} s",
+                set.index,
+                writing.elapsed().as_secs_f64()
+            );
             report_result(set, name, &result, &outputs.dir);
             viewer.log(|v| {
                 crate::viewer::log_result(

@@ -153,6 +153,9 @@ fn write_png(
     let mut encoder = png::Encoder::new(BufWriter::new(file), width as u32, height as u32);
     encoder.set_color(color);
     encoder.set_depth(depth);
+    // fdeflate's fast mode: 1080p result images in tens of milliseconds instead of a third of a
+    // second each with the default level, for files about 10–30 % larger.
+    encoder.set_compression(png::Compression::Fast);
     let mut writer = encoder.write_header().map_err(png_error)?;
     writer.write_image_data(data).map_err(png_error)?;
     writer.finish().map_err(png_error)
