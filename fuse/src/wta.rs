@@ -195,16 +195,19 @@ pub fn peak_confidence(costs: &[u16], best: usize) -> f32 {
     if c1 == INVALID_COST {
         return 0.0;
     }
-    let c2 = costs
+    // The least cost left of `best − 1` and right of `best + 1`: two plain slice minima that
+    // vectorise (an invalid cost is `u16::MAX`, so it never wins unless every one is invalid).
+    let below = costs.get(..best.saturating_sub(1)).unwrap_or(&[]);
+    let above = costs.get(best + 2..).unwrap_or(&[]);
+    let c2 = below
         .iter()
-        .enumerate()
-        .filter(|(d, c)| d.abs_diff(best) >= 2 && **c != INVALID_COST)
-        .map(|(_, c)| *c)
-        .min();
+        .copied()
+        .fold(INVALID_COST, u16::min)
+        .min(above.iter().copied().fold(INVALID_COST, u16::min));
     match c2 {
-        None => 1.0,
-        Some(0) => 0.0,
-        Some(c2) => (1.0 - f32::from(c1) / f32::from(c2)).clamp(0.0, 1.0),
+        INVALID_COST => 1.0,
+        0 => 0.0,
+        c2 => (1.0 - f32::from(c1) / f32::from(c2)).clamp(0.0, 1.0),
     }
 }
 

@@ -39,6 +39,19 @@ pub fn write_set_outputs(
     disparity: &DisparityImage,
     metrics: Option<RegionMetrics>,
 ) -> Result<SetOutputs, viz::files::FileError> {
+    write_set_outputs_evaluating(dir, set, method, disparity, || metrics)
+}
+
+/// [`write_set_outputs`] with the metrics computed by `evaluate` while the files are written
+/// (the evaluation's sorts and the files' compression take turns on the cores instead of
+/// following each other).
+pub fn write_set_outputs_evaluating(
+    dir: &Path,
+    set: &ViewSet,
+    method: &str,
+    disparity: &DisparityImage,
+    evaluate: impl FnOnce() -> Option<RegionMetrics> + Send,
+) -> Result<SetOutputs, viz::files::FileError> {
     let set_dir = dir.join(sanitize(&format!("{:03}-{}", set.index, set.name)));
     std::fs::create_dir_all(&set_dir).map_err(|source| viz::files::FileError::Io {
         path: set_dir.clone(),
@@ -135,10 +148,13 @@ pub fn write_set_outputs(
             ERROR_MAP_RANGE_PX,
         )?])
     }));
-    let written: Vec<Result<Vec<PathBuf>, viz::files::FileError>> = {
-        use rayon::prelude::*;
-        writers.into_par_iter().map(|write| write()).collect()
-    };
+    let (written, metrics): (Vec<Result<Vec<PathBuf>, viz::files::FileError>>, _) = rayon::join(
+        || {
+            use rayon::prelude::*;
+            writers.into_par_iter().map(|write| write()).collect()
+        },
+        evaluate,
+    );
     let mut files = Vec::new();
     for paths in written {
         files.extend(paths?);

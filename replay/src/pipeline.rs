@@ -134,6 +134,18 @@ impl<'a> PreparedSet<'a> {
 
     /// Runs a method and evaluates it; `progress` gets the fraction done.
     pub fn run(&self, method: &dyn Method, progress: &(dyn Fn(f32) + Sync)) -> Result<MethodResult, ReplayError> {
+        let mut result = self.run_unevaluated(method, progress)?;
+        result.regions = self.evaluate(&result.disparity);
+        Ok(result)
+    }
+
+    /// Runs a method without evaluating it (`regions` is `None`): `replay LOG` evaluates while
+    /// it writes the result files ([`crate::outputs::write_set_outputs_evaluating`]).
+    pub fn run_unevaluated(
+        &self,
+        method: &dyn Method,
+        progress: &(dyn Fn(f32) + Sync),
+    ) -> Result<MethodResult, ReplayError> {
         let started = Instant::now();
         let disparity = method
             .run(&self.problem, progress)
@@ -141,7 +153,17 @@ impl<'a> PreparedSet<'a> {
                 set: self.set.index,
                 source,
             })?;
-        let seconds = started.elapsed().as_secs_f64();
+        Ok(MethodResult {
+            disparity,
+            seconds: started.elapsed().as_secs_f64(),
+            regions: None,
+            details: method.details(&self.problem),
+        })
+    }
+
+    /// Metrics of a disparity against the set's ground truth (overall, occluded, visible,
+    /// specular), when it has one.
+    pub fn evaluate(&self, disparity: &DisparityImage) -> Option<RegionMetrics> {
         let evaluating = Instant::now();
         let regions = self.occluded.as_deref().and_then(|mask| {
             self.set.region_metrics_with(
@@ -156,12 +178,7 @@ impl<'a> PreparedSet<'a> {
             self.set.index,
             evaluating.elapsed().as_secs_f64()
         );
-        Ok(MethodResult {
-            disparity,
-            seconds,
-            regions,
-            details: method.details(&self.problem),
-        })
+        regions
     }
 }
 

@@ -12,7 +12,7 @@ use viz::stream::{Viewer, ViewerSink, VizError};
 
 use crate::ReplayError;
 use crate::log::LogContents;
-use crate::outputs::{ResultLog, write_set_outputs};
+use crate::outputs::{ResultLog, write_set_outputs_evaluating};
 use crate::pipeline::{PreparedSet, RunOptions, RunSummary, SetSummary};
 use crate::viewset::ViewSet;
 
@@ -286,8 +286,8 @@ pub fn replay_log(
                 prepared.min_disparity,
                 prepared.problem.end_disparity()
             ));
-            let result = prepared
-                .run(method.as_ref(), &|fraction| bar.set(fraction))
+            let mut result = prepared
+                .run_unevaluated(method.as_ref(), &|fraction| bar.set(fraction))
                 .map_err(|source| ReplayError::InSet {
                     set: set.index,
                     method: name.to_owned(),
@@ -295,7 +295,10 @@ pub fn replay_log(
                 })?;
             drop(bar);
             let writing = Instant::now();
-            let outputs = write_set_outputs(out, set, name, &result.disparity, result.regions)?;
+            let outputs = write_set_outputs_evaluating(out, set, name, &result.disparity, || {
+                prepared.evaluate(&result.disparity)
+            })?;
+            result.regions = outputs.metrics;
             debug!(
                 "set {} {name}: result files in {:.3} s",
                 set.index,
