@@ -135,6 +135,9 @@ struct PreparedMaterial {
     class: SurfaceClass,
     /// Seed of this material's grain.
     grain_seed: u64,
+    /// `n·h` at or below which the highlight `(n·h)^shininess` is under 1e-12 (left out: the
+    /// `powf` was an eighth of the renderer's time).
+    highlight_cutoff: f64,
 }
 
 struct Hit {
@@ -318,6 +321,11 @@ impl PreparedScene {
                 material: m.clone(),
                 class: m.surface_class(),
                 grain_seed: hash4(0x6772, i as u64, 0, 0),
+                highlight_cutoff: if m.shininess > 0.0 {
+                    (-27.7 / m.shininess).exp()
+                } else {
+                    0.0
+                },
             })
             .collect();
         let objects = scene
@@ -423,9 +431,21 @@ impl PreparedScene {
     }
 
     fn closest_hit(&self, origin: &V3, dir: &V3, t_max: f64) -> Option<Hit> {
+        self.closest_hit_among(self.objects.iter(), origin, dir, t_max)
+    }
+
+    /// [`Self::closest_hit`] over some of the objects (in the scene's order, so that ties are
+    /// broken as over all of them).
+    fn closest_hit_among<'o>(
+        &self,
+        objects: impl Iterator<Item = &'o Object>,
+        origin: &V3,
+        dir: &V3,
+        t_max: f64,
+    ) -> Option<Hit> {
         let mut best: Option<Hit> = None;
         let mut limit = t_max;
-        for object in &self.objects {
+        for object in objects {
             if !bound_overlaps(object, origin, dir, limit) {
                 continue;
             }
@@ -444,7 +464,12 @@ impl PreparedScene {
     }
 
     fn trace(&self, origin: &V3, dir: &V3, bounces_left: u32) -> V3 {
-        let Some(hit) = self.closest_hit(origin, dir, f64::INFINITY) else {
+        self.shade(self.closest_hit(origin, dir, f64::INFINITY), origin, dir, bounces_left)
+    }
+
+    /// The colour seen along a ray whose first hit (if any) is `hit`.
+    fn shade(&self, hit: Option<Hit>, origin: &V3, dir: &V3, bounces_left: u32) -> V3 {
+        let Some(hit) = hit else {
             return self.background;
         };
         let prepared = &self.materials[hit.material];
@@ -473,7 +498,9 @@ impl PreparedScene {
             if material.specular > 0.0 {
                 let half = (l - dir).normalize();
                 let n_dot_h = normal.dot(&half).max(0.0);
-                specular += intensity * (material.specular * n_dot_h.powf(material.shininess));
+                if n_dot_h > prepared.highlight_cutoff {
+                    specular += intensity * (material.specular * n_dot_h.powf(material.shininess));
+                }
             }
         }
         let local = albedo.component_mul(&diffuse) + specular;
@@ -502,6 +529,34 @@ impl PreparedScene {
         let gamma_lut: Vec<f64> = (0..=GAMMA_LUT_SIZE)
             .map(|i| 255.0 * (i as f64 / GAMMA_LUT_SIZE as f64).powf(1.0 / 2.2))
             .collect();
+        // Where each object can appear in the image (pixels, with a pixel of margin for the
+        // sub-pixel samples): a primary ray only tests the objects whose box holds its pixel,
+        // a few of the scene's dozens. The box is that of the projected corners of the cube
+        // around the object's bounding sphere; an object reaching behind the camera, or
+        // unbounded (a plane), may appear anywhere.
+        let camera_from_world = world_from_camera.inverse();
+        let everywhere = [f64::NEG_INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::INFINITY];
+        let boxes: Vec<[f64; 4]> = self
+            .objects
+            .iter()
+            .map(|object| {
+                if !object.bound_radius.is_finite() {
+                    return everywhere;
+                }
+                let mut bounds = [f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY];
+                for corner in 0..8 {
+                    let sign = |bit: usize| if corner >> bit & 1 == 1 { 1.0 } else { -1.0 };
+                    let world = object.bound_center
+                        + V3::new(sign(0), sign(1), sign(2)) * object.bound_radius;
+                    let point = camera_from_world * nalgebra::Point3::from(world);
+                    let Some((u, v)) = camera.project(&point.coords).filter(|_| point.z > 1e-9) else {
+                        return everywhere;
+                    };
+                    bounds = [bounds[0].min(u), bounds[1].min(v), bounds[2].max(u), bounds[3].max(v)];
+                }
+                [bounds[0] - 1.0, bounds[1] - 1.0, bounds[2] + 1.0, bounds[3] + 1.0]
+            })
+            .collect();
         let mut rgb = vec![0u8; width * height * 3];
         let mut depth_m = vec![0f32; width * height];
         let mut surface_class = vec![0u8; width * height];
@@ -510,16 +565,32 @@ impl PreparedScene {
             .zip(surface_class.par_chunks_mut(width))
             .enumerate()
             .for_each(|(row, ((rgb_row, depth_row), class_row))| {
+                let y = row as f64;
+                let in_row: Vec<(&Object, [f64; 4])> = self
+                    .objects
+                    .iter()
+                    .zip(&boxes)
+                    .filter(|(_, b)| b[1] <= y && y <= b[3])
+                    .map(|(o, b)| (o, *b))
+                    .collect();
                 for col in 0..width {
+                    let x = col as f64;
+                    let candidates = || {
+                        in_row
+                            .iter()
+                            .filter(move |(_, b)| b[0] <= x && x <= b[2])
+                            .map(|(o, _)| *o)
+                    };
                     let mut color = V3::zeros();
                     for (dx, dy) in &offsets {
                         let dir_camera = camera.ray_direction(col as f64 + dx, row as f64 + dy);
                         let dir = rotation * dir_camera;
-                        color += self.trace(&origin, &dir, settings.max_bounces);
+                        let hit = self.closest_hit_among(candidates(), &origin, &dir, f64::INFINITY);
+                        color += self.shade(hit, &origin, &dir, settings.max_bounces);
                     }
                     let dir_camera = camera.ray_direction(col as f64, row as f64);
                     let dir = rotation * dir_camera;
-                    match self.closest_hit(&origin, &dir, f64::INFINITY) {
+                    match self.closest_hit_among(candidates(), &origin, &dir, f64::INFINITY) {
                         Some(hit) => {
                             depth_row[col] = (hit.t * dir_camera.z) as f32;
                             class_row[col] = self.materials[hit.material].class as u8;
