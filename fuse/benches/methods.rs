@@ -147,5 +147,25 @@ fn graph_cuts(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, methods, mfusenet, graph_cuts);
+/// The winner-take-all with its peak-ratio confidence on one band of fused costs (1920 pixels ×
+/// 128 disparities, what block matching reads per image row), against the winners alone: the
+/// confidence's share of the readout.
+fn winners(c: &mut Criterion) {
+    let (pixels, nd) = (1920, 128);
+    let costs: Vec<u16> = (0..pixels * nd)
+        .map(|i| ((i * 2_654_435_761) % 4000) as u16 + if i % nd == (i / nd) % nd { 0 } else { 500 })
+        .collect();
+    let mut out = vec![0.0f32; pixels];
+    let mut confidence = vec![0.0f32; pixels];
+    let mut group = c.benchmark_group("winners_1920x128");
+    group.bench_function("winners", |b| {
+        b.iter(|| fuse::wta::winner_take_all(black_box(&costs), nd, 0, None, &mut out))
+    });
+    group.bench_function("winners_with_confidence", |b| {
+        b.iter(|| fuse::wta::winner_take_all_confident(black_box(&costs), nd, 0, None, &mut out, &mut confidence))
+    });
+    group.finish();
+}
+
+criterion_group!(benches, methods, mfusenet, graph_cuts, winners);
 criterion_main!(benches);

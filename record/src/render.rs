@@ -555,8 +555,7 @@ impl PreparedScene {
                 let mut bounds = [f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY];
                 for corner in 0..8 {
                     let sign = |bit: usize| if corner >> bit & 1 == 1 { 1.0 } else { -1.0 };
-                    let world = object.bound_center
-                        + V3::new(sign(0), sign(1), sign(2)) * object.bound_radius;
+                    let world = object.bound_center + V3::new(sign(0), sign(1), sign(2)) * object.bound_radius;
                     let point = camera_from_world * nalgebra::Point3::from(world);
                     let Some((u, v)) = camera.project(&point.coords).filter(|_| point.z > 1e-9) else {
                         return everywhere;
