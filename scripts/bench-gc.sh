@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Graph-cuts benchmarks (issue 10): prints the host's CPU, then
+# Graph-cuts benchmarks: prints the host's CPU, then
 #  1. a three-view gc-heuristic run on each of the seven Middlebury third-size dev scenes (≈430×370,
 #     the default 32 disparities, `replay` on an imported log): seconds per scene (the method's own
 #     time and the whole process) and peak RSS, then the median;

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# MFuseNet benchmarks (issue 9): prints the host's CPU, then
+# MFuseNet benchmarks: prints the host's CPU, then
 #  1. three-view Middlebury third-size inference, cost volumes included (`replay` on each of the
 #     seven dev scenes, 32 disparities): seconds per scene and peak RSS;
 #  2. one training step on the shipped weights' crops (128 × 128 × 32 for N = 1, 2; 96 × 96 × 32 for
@@ -9,7 +9,7 @@
 #  4. the PyTorch peer (`scripts/bench-pytorch.py`: the reference network, same shapes, this host)
 #     when TORCH_PYTHON names a Python with torch and safetensors (e.g. `python3 -m venv
 #     .venv-torch && .venv-torch/bin/pip install torch safetensors`: about a minute, 5.4 GB with
-#     its CUDA libraries); else the issue's figures stand (12.7–13.0 s on AMD EPYC hosts, 14.0 s on
+#     its CUDA libraries); else the figures measured before stand (12.7–13.0 s on AMD EPYC hosts, 14.0 s on
 #     Intel; PyTorch 2.15 measured 9.3 s on the AMD host of docs/benchmarks.md's table).
 source "$(dirname "$0")/bench-common.sh"
 

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""PyTorch peer for `scripts/bench-mfusenet.sh` (issue 9): the MFuseNet reference network on CPU.
+"""PyTorch peer for `scripts/bench-mfusenet.sh`: the MFuseNet reference network on CPU.
 
 The network is written here from the paper and the layer list of the authors' `FuseNetwork`
 (`weihaosky/MFuseNet`, `network.py`): the same layers, shapes and `state_dict` names, so that our

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# MFuseNet on simulated five-view captures never used for training (issue 9, item 2): the stereo,
+# MFuseNet on simulated five-view captures never used for training: the stereo,
 # three-view and five-view networks on the same captures, with SGM peers, AvgErr and Bad1 overall
 # and in the occluded and specular regions of the ground truth.
 #
