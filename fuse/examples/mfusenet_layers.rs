@@ -4,7 +4,7 @@
 //! it computes (the stride-2 layers only their kept outputs; the transposed ones the
 //! zero-upsampled input they convolve), its GFLOP/s and its share of the peak.
 //!
-//! `cargo run --release -p fuse --example mfusenet_layers [D H W]` (default 36 136 240: the
+//! `MIMALLOC_PURGE_DELAY=-1 cargo run --release -p fuse --example mfusenet_layers [D H W]` (default 36 136 240: the
 //! demo's 36 slices on a quarter of its 960 × 540 image; the per-voxel cost does not depend on
 //! the size). The figures are in docs/benchmarks.md ("MFuseNet per layer").
 
@@ -16,6 +16,12 @@ use fuse::mfusenet::network::ConvKind;
 use fuse::nn::Tensor;
 use rayon::prelude::*;
 use wide::f32x8;
+
+/// The allocator `replay` runs the network with (run with `MIMALLOC_PURGE_DELAY=-1`, as `replay`
+/// sets it, so that a layer's output reuses the pages of the one before instead of faulting
+/// fresh ones).
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 /// FLOP/s of independent 8-lane FMA chains on every thread (12 accumulators per thread: more
 /// than the FMA latency × throughput of any x86 core, so the pipes stay full).

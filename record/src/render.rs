@@ -155,8 +155,62 @@ pub struct PreparedScene {
     objects: Vec<Object>,
     materials: Vec<PreparedMaterial>,
     lights: Vec<(V3, V3)>,
+    /// Per light, which objects can shadow which rays ([`ShadowCasters`]).
+    casters: Vec<ShadowCasters>,
     ambient: V3,
     background: V3,
+}
+
+/// The objects that may block the light of one point light, for shadow rays: seen from the
+/// light, a ray towards a point below it is the point `(dx, dy) / −dz` of its direction `d`, and
+/// an object wholly below the light can only block the rays whose point lies in the box of its
+/// projected bounding cube (the cube around its bounding sphere: its projection holds the
+/// sphere's). The rest (unbounded, reaching up to the light) is tested by every ray.
+struct ShadowCasters {
+    always: Vec<usize>,
+    /// `(object, [u_min, v_min, u_max, v_max])`.
+    boxed: Vec<(usize, [f64; 4])>,
+}
+
+impl ShadowCasters {
+    fn new(objects: &[Object], light: &V3) -> Self {
+        let mut always = Vec::new();
+        let mut boxed = Vec::new();
+        for (index, object) in objects.iter().enumerate() {
+            let mut bounds = [f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY];
+            let mut below = object.bound_radius.is_finite();
+            for corner in 0..8 {
+                if !below {
+                    break;
+                }
+                let sign = |bit: usize| if corner >> bit & 1 == 1 { 1.0 } else { -1.0 };
+                let d = object.bound_center + V3::new(sign(0), sign(1), sign(2)) * object.bound_radius - light;
+                below = d.z < -1e-6;
+                let (u, v) = (d.x / -d.z, d.y / -d.z);
+                bounds = [bounds[0].min(u), bounds[1].min(v), bounds[2].max(u), bounds[3].max(v)];
+            }
+            if below {
+                // A margin for rounding: a ray grazing the box's edge is still tested.
+                let m = 1e-6 * (1.0 + bounds.iter().map(|b| b.abs()).fold(0.0, f64::max));
+                boxed.push((index, [bounds[0] - m, bounds[1] - m, bounds[2] + m, bounds[3] + m]));
+            } else {
+                always.push(index);
+            }
+        }
+        Self { always, boxed }
+    }
+
+    /// The objects that may block the ray from `point` to the light at `light` (each once; in
+    /// no particular order).
+    fn for_ray<'a>(&'a self, point: &V3, light: &V3) -> impl Iterator<Item = usize> + 'a {
+        let d = point - light;
+        let projected = (d.z < -1e-9).then(|| (d.x / -d.z, d.y / -d.z));
+        let boxed = self.boxed.iter().filter(move |(_, b)| match projected {
+            Some((u, v)) => b[0] <= u && u <= b[2] && b[1] <= v && v <= b[3],
+            None => true,
+        });
+        self.always.iter().copied().chain(boxed.map(|(i, _)| *i))
+    }
 }
 
 fn v3(a: [f64; 3]) -> V3 {
@@ -333,7 +387,7 @@ impl PreparedScene {
                 },
             })
             .collect();
-        let objects = scene
+        let objects: Vec<Object> = scene
             .objects
             .iter()
             .map(|object| {
@@ -409,9 +463,15 @@ impl PreparedScene {
                 }
             })
             .collect();
+        let casters = scene
+            .lights
+            .iter()
+            .map(|l| ShadowCasters::new(&objects, &v3(l.position)))
+            .collect();
         Self {
             objects,
             materials,
+            casters,
             lights: scene.lights.iter().map(|l| (v3(l.position), v3(l.intensity))).collect(),
             ambient: v3(scene.ambient),
             background: v3(scene.background),
@@ -462,9 +522,10 @@ impl PreparedScene {
         best
     }
 
-    fn occluded(&self, origin: &V3, dir: &V3, t_max: f64) -> bool {
-        self.objects
-            .iter()
+    /// [`Self::occluded`] over some of the objects.
+    fn occluded_among(&self, objects: impl Iterator<Item = usize>, origin: &V3, dir: &V3, t_max: f64) -> bool {
+        objects
+            .map(|i| &self.objects[i])
             .any(|object| bound_overlaps(object, origin, dir, t_max) && intersect(object, origin, dir, t_max).is_some())
     }
 
@@ -491,12 +552,12 @@ impl PreparedScene {
         let lifted = point + normal * SURFACE_EPSILON_M * (1.0 + point.norm());
         let mut diffuse = self.ambient;
         let mut specular = V3::zeros();
-        for (position, intensity) in &self.lights {
+        for ((position, intensity), casters) in self.lights.iter().zip(&self.casters) {
             let to_light = position - point;
             let distance = to_light.norm();
             let l = to_light / distance;
             let n_dot_l = normal.dot(&l);
-            if n_dot_l <= 0.0 || self.occluded(&lifted, &l, distance) {
+            if n_dot_l <= 0.0 || self.occluded_among(casters.for_ray(&lifted, position), &lifted, &l, distance) {
                 continue;
             }
             diffuse += intensity * (material.diffuse * n_dot_l);
