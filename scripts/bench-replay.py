@@ -27,6 +27,8 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 DISPARITIES = 128
 REPEATS = 3
 PROCESS_LIMIT = 1.2
+# The replay binary measured (REPLAY=PATH for another build's).
+REPLAY = os.environ.get("REPLAY", os.path.join(ROOT, "target/release/replay"))
 RSS_LIMIT_MB = 1536
 
 
@@ -67,7 +69,7 @@ def best_of(fn):
 def run_replay(log, method, out):
     start = time.perf_counter()
     rss_file = os.path.join(tempfile.mkdtemp(), "rss")
-    subprocess.run(["/usr/bin/time", "-f", "%M", "-o", rss_file, os.path.join(ROOT, "target/release/replay"), log,
+    subprocess.run(["/usr/bin/time", "-f", "%M", "-o", rss_file, REPLAY, log,
                     "--method", method, "--num-disparities", str(DISPARITIES), "--out", out, "-q"], check=True)
     wall = time.perf_counter() - start
     peak_kb = int(open(rss_file).read().split()[-1])

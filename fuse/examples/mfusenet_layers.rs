@@ -1,12 +1,13 @@
-//! How near the host's FMA peak each layer of the five-view MFuseNet runs: the peak measured
+//! How near the host's FMA peak each layer of MFuseNet runs: the peak measured
 //! first (independent chains of 8-lane fused multiply-adds on every rayon thread), then each
 //! layer of the eval-mode forward pass timed on its own at a fixed shape, with the multiply-adds
 //! it computes (the stride-2 layers only their kept outputs; the transposed ones the
 //! zero-upsampled input they convolve), its GFLOP/s and its share of the peak.
 //!
-//! `MIMALLOC_PURGE_DELAY=-1 cargo run --release -p fuse --example mfusenet_layers [D H W]` (default 36 136 240: the
-//! demo's 36 slices on a quarter of its 960 × 540 image; the per-voxel cost does not depend on
-//! the size). The figures are in docs/benchmarks.md ("MFuseNet per layer").
+//! `MIMALLOC_PURGE_DELAY=-1 cargo run --release -p fuse --example mfusenet_layers [D H W [N]]`
+//! (default 36 136 240 4: the demo's 36 slices on a quarter of its 960 × 540 image, the
+//! five-view network's four volumes; N = 2 is the three-view network). The figures are in
+//! docs/benchmarks.md ("MFuseNet per layer").
 
 use std::hint::black_box;
 use std::time::Instant;
@@ -72,9 +73,10 @@ fn best_of_three<T>(mut f: impl FnMut() -> T) -> f64 {
 
 fn main() {
     let args: Vec<usize> = std::env::args().skip(1).filter_map(|a| a.parse().ok()).collect();
-    let [d, h, w] = match args.as_slice() {
-        [d, h, w] => [*d, *h, *w],
-        _ => [36, 136, 240],
+    let ([d, h, w], views) = match args.as_slice() {
+        [d, h, w, views] => ([*d, *h, *w], *views),
+        [d, h, w] => ([*d, *h, *w], 4),
+        _ => ([36, 136, 240], 4),
     };
     let peak = fma_peak();
     println!(
@@ -82,9 +84,9 @@ fn main() {
         peak / 1e9,
         rayon::current_num_threads()
     );
-    let net = Network::init(4, 1);
+    let net = Network::init(views, 1);
     let voxels = d * h * w;
-    println!("five-view network, input {d} × {h} × {w} ({voxels} voxels per view)");
+    println!("network for {views} volumes, input {d} × {h} × {w} ({voxels} voxels per volume)");
     println!("| layer | k | in → out | output voxels | GFLOP | seconds | GFLOP/s | of peak |");
     println!("|---|---|---|---|---|---|---|---|");
     let mut total_flop = 0.0;
@@ -93,7 +95,7 @@ fn main() {
     let full = [d, h, w];
     let half = [d / 2, h / 2, w / 2];
     let quarter = [d / 4, h / 4, w / 4];
-    let feature_runs = net.feature.iter().map(|layer| (layer, full, 4));
+    let feature_runs = net.feature.iter().map(|layer| (layer, full, views));
     let fuse_levels = [
         full, full, half, half, quarter, quarter, quarter, half, half, full, full,
     ];
