@@ -186,14 +186,30 @@ pub fn infer_with_confidence(
             .iter()
             .map(|v| super::input::to_tensor(v, (ry0, rx0), (rh, rw), dp))
             .collect();
-        let mut logits = net.logits(&inputs)?;
+        // Only the core's logits are read: the last layers skip most of the halo.
+        let (core_rows, core_columns) = (y0 - ry0..y1 - ry0, x0 - rx0..x1 - rx0);
+        let (mut logits, (oy, ox)) = net.logits_within(&inputs, (core_rows.clone(), core_columns.clone()))?;
         if let Some((vertical, horizontal)) = mirror {
             // The set's mirror image answered and mirrored back; the mean of the two passes'
             // logits is the network made symmetric, at its own temperature (where the logits
             // are peaked, the surer pass decides).
             let flipped = mirrored(&inputs, &offsets, vertical, horizontal).ok_or_else(no_mirror)?;
             drop(inputs);
-            let answer = net.logits(&flipped)?;
+            // The core mirrored: its margin, mirrored back, is the same rows and columns.
+            let mirror_range = |range: &std::ops::Range<usize>, length: usize, flip: bool| {
+                if flip {
+                    length - range.end..length - range.start
+                } else {
+                    range.clone()
+                }
+            };
+            let (answer, _) = net.logits_within(
+                &flipped,
+                (
+                    mirror_range(&core_rows, rh, vertical),
+                    mirror_range(&core_columns, rw, horizontal),
+                ),
+            )?;
             drop(flipped);
             let answer = answer.flipped(vertical, horizontal);
             logits
@@ -204,10 +220,11 @@ pub fn infer_with_confidence(
         } else {
             drop(inputs);
         }
-        let plane = rh * rw;
+        let (lh, lw) = (logits.shape[2], logits.shape[3]);
+        let plane = lh * lw;
         for y in y0..y1.min(h) {
             for x in x0..x1.min(w) {
-                let at = (y - ry0) * rw + (x - rx0);
+                let at = (y - ry0 - oy) * lw + (x - rx0 - ox);
                 let column = |d: usize| logits.data[d * plane + at];
                 let mut value = expected_disparity_from(column, nd, skip, estimate.window);
                 if estimate.refine {

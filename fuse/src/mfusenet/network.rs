@@ -261,6 +261,10 @@ pub struct Network {
     pub classify: Classify,
 }
 
+/// The receptive radius (px, in H and W) of the last full-resolution layers together:
+/// `uconv2` (k7: 3), `distill1` (k5: 2) and `classify` (k3: 1).
+pub const LAST_LAYERS_RADIUS: usize = 6;
+
 /// Indices into [`Network::fuse`].
 const CONCAT: usize = 0;
 const DOWN1: usize = 1;
@@ -401,6 +405,21 @@ impl Network {
     /// Eval-mode logits `[1, D, H, W]` of `views` cost volumes `[1, D, H, W]` (D, H, W multiples
     /// of 4), freeing each intermediate as soon as it is used.
     pub fn logits(&self, inputs: &[Tensor]) -> Result<Tensor, Error> {
+        let [_, _, h, w] = inputs.first().map_or([0; 4], |t| t.shape);
+        self.logits_within(inputs, (0..h, 0..w)).map(|(logits, _)| logits)
+    }
+
+    /// [`Network::logits`] where only the rows and columns `keep` are wanted: the last
+    /// full-resolution layers (`uconv2`, `distill1`, `classify`, whose receptive radius together
+    /// is [`LAST_LAYERS_RADIUS`] px) run on `keep` widened by that radius only, not on the whole
+    /// input (which the U-Net's coarse levels need). The logits of `keep` equal
+    /// [`Network::logits`]'s; returned with those of the margin around it, and the margin's
+    /// first row and column: `(logits [1, D, rows, columns], (row, column))`.
+    pub fn logits_within(
+        &self,
+        inputs: &[Tensor],
+        keep: (std::ops::Range<usize>, std::ops::Range<usize>),
+    ) -> Result<(Tensor, (usize, usize)), Error> {
         let [d, h, w] = self.check_inputs(inputs)?;
         // Each view's features straight into its channels of the concatenation (one copy of
         // the 4·N feature channels alive, not two).
@@ -431,14 +450,26 @@ impl Network {
         drop(skip1);
         let u2 = self.fuse[UP2].forward_eval(&cup1);
         drop(cup1);
-        // The widest point at full resolution: the 8 skip channels and their padded copy.
-        let skip2 = Tensor::concat(&[&u2, &c]);
+        // The widest point at full resolution: the 8 skip channels and their padded copy, over
+        // `keep` and the last layers' reach only (a row or column the crop cuts off is read as
+        // the zero padding: it only changes outputs within the margin, which are not kept).
+        let rows = keep.0.start.saturating_sub(LAST_LAYERS_RADIUS)..(keep.0.end + LAST_LAYERS_RADIUS).min(h);
+        let columns = keep.1.start.saturating_sub(LAST_LAYERS_RADIUS)..(keep.1.end + LAST_LAYERS_RADIUS).min(w);
+        let origin = (rows.start, columns.start);
+        let skip2 = if rows.len() == h && columns.len() == w {
+            Tensor::concat(&[&u2, &c])
+        } else {
+            Tensor::concat(&[&u2.crop_hw(rows.clone(), columns.clone()), &c.crop_hw(rows, columns)])
+        };
         drop((u2, c));
         let cup2 = self.fuse[UCONV2].forward_eval(&skip2);
         drop(skip2);
         let f = residual(self.fuse[DISTILL1].forward_eval(&cup2), &cup2);
         drop(cup2);
-        Ok(conv3d_same(&f, &self.classify.weight, 1, 3, Some(&self.classify.bias)))
+        Ok((
+            conv3d_same(&f, &self.classify.weight, 1, 3, Some(&self.classify.bias)),
+            origin,
+        ))
     }
 
     /// Train mode: the disparity with batch-statistics BatchNorms (running statistics updated,

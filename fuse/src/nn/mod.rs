@@ -89,6 +89,25 @@ impl Tensor {
         }
     }
 
+    /// The rows `rows` and columns `columns` of every channel and depth plane.
+    pub fn crop_hw(&self, rows: std::ops::Range<usize>, columns: std::ops::Range<usize>) -> Tensor {
+        let [c, d, h, w] = self.shape;
+        let (rows, columns) = (
+            rows.start.min(h)..rows.end.min(h),
+            columns.start.min(w)..columns.end.min(w),
+        );
+        let mut data = Vec::with_capacity(c * d * rows.len() * columns.len());
+        for plane in self.data.chunks_exact((h * w).max(1)) {
+            for y in rows.clone() {
+                data.extend_from_slice(&plane[y * w + columns.start..y * w + columns.end]);
+            }
+        }
+        Tensor {
+            shape: [c, d, rows.len(), columns.len()],
+            data,
+        }
+    }
+
     /// Splits the channels into tensors of `sizes` channels (the inverse of [`Tensor::concat`]).
     pub fn split(&self, sizes: &[usize]) -> Vec<Tensor> {
         let n = self.channel_len();
