@@ -188,7 +188,7 @@ pub fn infer_with_confidence(
             .collect();
         // Only the core's logits are read: the last layers skip most of the halo.
         let (core_rows, core_columns) = (y0 - ry0..y1 - ry0, x0 - rx0..x1 - rx0);
-        let (mut logits, (oy, ox)) = net.logits_within(&inputs, (core_rows.clone(), core_columns.clone()))?;
+        let (mut logits, (oy, ox)) = net.logits_within(&inputs, &(core_rows.clone(), core_columns.clone()))?;
         if let Some((vertical, horizontal)) = mirror {
             // The set's mirror image answered and mirrored back; the mean of the two passes'
             // logits is the network made symmetric, at its own temperature (where the logits
@@ -205,7 +205,7 @@ pub fn infer_with_confidence(
             };
             let (answer, _) = net.logits_within(
                 &flipped,
-                (
+                &(
                     mirror_range(&core_rows, rh, vertical),
                     mirror_range(&core_columns, rw, horizontal),
                 ),

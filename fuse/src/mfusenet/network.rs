@@ -406,7 +406,7 @@ impl Network {
     /// of 4), freeing each intermediate as soon as it is used.
     pub fn logits(&self, inputs: &[Tensor]) -> Result<Tensor, Error> {
         let [_, _, h, w] = inputs.first().map_or([0; 4], |t| t.shape);
-        self.logits_within(inputs, (0..h, 0..w)).map(|(logits, _)| logits)
+        self.logits_within(inputs, &(0..h, 0..w)).map(|(logits, _)| logits)
     }
 
     /// [`Network::logits`] where only the rows and columns `keep` are wanted: the last
@@ -418,7 +418,7 @@ impl Network {
     pub fn logits_within(
         &self,
         inputs: &[Tensor],
-        keep: (std::ops::Range<usize>, std::ops::Range<usize>),
+        keep: &(std::ops::Range<usize>, std::ops::Range<usize>),
     ) -> Result<(Tensor, (usize, usize)), Error> {
         let [d, h, w] = self.check_inputs(inputs)?;
         // Each view's features straight into its channels of the concatenation (one copy of
