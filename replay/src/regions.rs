@@ -277,6 +277,31 @@ mod tests {
     }
 
     #[test]
+    fn ties_in_confidence_keep_the_pixels_order_as_a_stable_sort_does() {
+        // Few confidence levels (many ties, negative and zero among them) and errors that differ
+        // within a tie: which pixels of a tie fall inside the top 50 / 75 / 90 % decides the
+        // curve, so it must be the stable order by descending confidence.
+        let n = 1001;
+        let truth = vec![0.0f32; n];
+        let estimate: Vec<f32> = (0..n).map(|i| ((i * 37) % 101) as f32 / 10.0).collect();
+        let confidence: Vec<f32> = (0..n).map(|i| [0.5, -0.0, 0.0, 0.25, -1.0, 0.5][(i * 7) % 6]).collect();
+        let curve = Sparsification::measure(&estimate, &confidence, &truth, 3.0).unwrap_or_else(|| panic!("none"));
+        let mut ranked: Vec<(f32, f64)> = confidence
+            .iter()
+            .zip(&estimate)
+            .map(|(c, e)| (*c, f64::from(*e)))
+            .collect();
+        ranked.sort_by(|a, b| b.0.total_cmp(&a.0));
+        let mean_of_first = |share: f64| {
+            let kept = ((n as f64 * share).round() as usize).max(1);
+            ranked.iter().take(kept).map(|(_, e)| e).sum::<f64>() / kept as f64
+        };
+        assert_eq!(curve.avg_err_top50_px, mean_of_first(0.5));
+        assert_eq!(curve.avg_err_top75_px, mean_of_first(0.75));
+        assert_eq!(curve.avg_err_top90_px, mean_of_first(0.9));
+    }
+
+    #[test]
     fn the_most_confident_pixels_are_kept_first() {
         // Errors 0, 1, 2, 3 (and one unknown truth), confidence highest where the error is least.
         let truth = [10.0, 10.0, 10.0, 10.0, f32::NAN];
