@@ -164,8 +164,8 @@ pub struct PreparedScene {
 /// The objects that may block the light of one point light, for shadow rays: seen from the
 /// light, a ray towards a point below it is the point `(dx, dy) / −dz` of its direction `d`, and
 /// an object wholly below the light can only block the rays whose point lies in the box of its
-/// projected bounding cube (the cube around its bounding sphere: its projection holds the
-/// sphere's). The rest (unbounded, reaching up to the light) is tested by every ray.
+/// projected bounding cube ([`bounding_cube_corners`]). The rest (unbounded, or reaching up to
+/// the light) is tested by every ray.
 struct ShadowCasters {
     always: Vec<usize>,
     /// `(object, [u_min, v_min, u_max, v_max])`.
@@ -179,12 +179,11 @@ impl ShadowCasters {
         for (index, object) in objects.iter().enumerate() {
             let mut bounds = [f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY];
             let mut below = object.bound_radius.is_finite();
-            for corner in 0..8 {
+            for corner in bounding_cube_corners(object) {
                 if !below {
                     break;
                 }
-                let sign = |bit: usize| if corner >> bit & 1 == 1 { 1.0 } else { -1.0 };
-                let d = object.bound_center + V3::new(sign(0), sign(1), sign(2)) * object.bound_radius - light;
+                let d = corner - light;
                 below = d.z < -1e-6;
                 let (u, v) = (d.x / -d.z, d.y / -d.z);
                 bounds = [bounds[0].min(u), bounds[1].min(v), bounds[2].max(u), bounds[3].max(v)];
@@ -211,6 +210,15 @@ impl ShadowCasters {
         });
         self.always.iter().copied().chain(boxed.map(|(i, _)| *i))
     }
+}
+
+/// The corners of the cube around an object's bounding sphere (its projection from any point
+/// outside holds the sphere's).
+fn bounding_cube_corners(object: &Object) -> impl Iterator<Item = V3> + '_ {
+    (0..8).map(move |corner: usize| {
+        let sign = |bit: usize| if corner >> bit & 1 == 1 { 1.0 } else { -1.0 };
+        object.bound_center + V3::new(sign(0), sign(1), sign(2)) * object.bound_radius
+    })
 }
 
 fn v3(a: [f64; 3]) -> V3 {
@@ -522,7 +530,7 @@ impl PreparedScene {
         best
     }
 
-    /// [`Self::occluded`] over some of the objects.
+    /// Whether any of `objects` blocks the ray from `origin` along `dir` before `t_max`.
     fn occluded_among(&self, objects: impl Iterator<Item = usize>, origin: &V3, dir: &V3, t_max: f64) -> bool {
         objects
             .map(|i| &self.objects[i])
@@ -614,10 +622,8 @@ impl PreparedScene {
                     return everywhere;
                 }
                 let mut bounds = [f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY];
-                for corner in 0..8 {
-                    let sign = |bit: usize| if corner >> bit & 1 == 1 { 1.0 } else { -1.0 };
-                    let world = object.bound_center + V3::new(sign(0), sign(1), sign(2)) * object.bound_radius;
-                    let point = camera_from_world * nalgebra::Point3::from(world);
+                for corner in bounding_cube_corners(object) {
+                    let point = camera_from_world * nalgebra::Point3::from(corner);
                     let Some((u, v)) = camera.project(&point.coords).filter(|_| point.z > 1e-9) else {
                         return everywhere;
                     };

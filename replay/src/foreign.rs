@@ -49,7 +49,7 @@ const GRID_TOLERANCE: f64 = 0.25;
 const IMAGE_ENCODINGS: [&str; 6] = ["rgb8", "bgr8", "rgba8", "bgra8", "8UC3", "mono8"];
 /// The frame the UR10's forward kinematics ends at (the DH flange frame, UR's `tool0`; UR's own
 /// `flange` frame is rotated from it).
-const FLANGE_FRAMES: [&str; 1] = ["tool0"];
+const FLANGE_FRAME: &str = "tool0";
 /// The frame the forward kinematics starts from (the arm's base, as the UR controller's).
 const FK_BASE_FRAME: &str = "base";
 /// Two cameras stream at once when their images come within this of each other (ns).
@@ -515,7 +515,7 @@ impl ForeignMessages {
             Err(TfError::NotConnected { root, .. }) => root.clone(),
             _ => return direct,
         };
-        if !FLANGE_FRAMES.contains(&root.as_str()) || self.joint_positions.is_empty() {
+        if root != FLANGE_FRAME || self.joint_positions.is_empty() {
             return direct;
         }
         let below = self.tf.lookup(frame, stamp, Some(&root))?;

@@ -70,12 +70,7 @@ pub fn write_set_outputs_evaluating(
             Ok(vec![path])
         }),
         Box::new(move || {
-            let depth_m = set.disparity_to_depth_m();
-            let depth: Vec<f32> = disparity
-                .data
-                .iter()
-                .map(|d| depth_m(*d).map_or(f32::INFINITY, |z| z as f32))
-                .collect();
+            let depth = depth_map(set, disparity, f32::INFINITY);
             let pfm = set_dir.join(format!("{method}_depth_m.pfm"));
             viz::files::write_pfm(&pfm, w, h, &depth)?;
             let png = set_dir.join(format!("{method}_depth_mm.png"));

@@ -107,40 +107,26 @@ impl RankedErrors {
         if self.pairs.is_empty() {
             return None;
         }
-        if u32::try_from(self.pairs.len()).is_err() {
-            // Beyond the index's 32 bits: the plain stable sort.
-            self.pairs.sort_by(|a, b| b.0.total_cmp(&a.0));
-            let mut errors: Vec<f64> = self.pairs.iter().map(|(_, e)| *e).collect();
-            errors.sort_by(f64::total_cmp);
-            return Some(self.curve_of_sorted(&errors));
-        }
         use rayon::prelude::*;
         // The ranking by confidence and the oracle's by error, at once. The ranking sorts one
-        // `u64` per pixel, the confidence's order-preserving bits (descending) above its index
-        // (ascending): the order of a stable sort, at the cost of an unstable one.
+        // key per pixel, the confidence's order-preserving bits (descending) then its index:
+        // the order of a stable sort, at the cost of an unstable one.
         let descending = |c: f32| {
             let bits = c.to_bits();
-            let ordered = if bits >> 31 == 1 { !bits } else { bits | 0x8000_0000 };
-            u64::from(!ordered) << 32
+            !(if bits >> 31 == 1 { !bits } else { bits | 0x8000_0000 })
         };
-        let mut keys: Vec<u64> = self
+        let mut keys: Vec<(u32, usize)> = self
             .pairs
             .iter()
             .enumerate()
-            .map(|(i, (c, _))| descending(*c) | i as u64)
+            .map(|(i, (c, _))| (descending(*c), i))
             .collect();
         let mut errors: Vec<f64> = self.pairs.iter().map(|(_, e)| *e).collect();
         rayon::join(
             || keys.par_sort_unstable(),
             || errors.par_sort_unstable_by(f64::total_cmp),
         );
-        let ranked: Vec<(f32, f64)> = keys.iter().map(|k| self.pairs[(k & 0xFFFF_FFFF) as usize]).collect();
-        self.pairs = ranked;
-        Some(self.curve_of_sorted(&errors))
-    }
-
-    /// The curve from the pairs ranked by confidence and the errors sorted ascending.
-    fn curve_of_sorted(&self, errors: &[f64]) -> Sparsification {
+        self.pairs = keys.iter().map(|(_, i)| self.pairs[*i]).collect();
         let count = self.pairs.len();
         let mean_of_first = |errors: &mut dyn Iterator<Item = f64>, share: f64| {
             let kept = ((count as f64 * share).round() as usize).max(1);
@@ -148,13 +134,13 @@ impl RankedErrors {
         };
         let [top50, top75, top90] =
             Sparsification::SHARES.map(|share| mean_of_first(&mut self.pairs.iter().map(|(_, e)| *e), share));
-        Sparsification {
+        Some(Sparsification {
             avg_err_top50_px: top50,
             avg_err_top75_px: top75,
             avg_err_top90_px: top90,
             avg_err_all_px: errors.iter().sum::<f64>() / count as f64,
             oracle_avg_err_px: Sparsification::SHARES.map(|share| mean_of_first(&mut errors.iter().copied(), share)),
-        }
+        })
     }
 }
 
@@ -211,40 +197,29 @@ pub fn region_metrics(
     surface_class: Option<&[u8]>,
     missing_error_px: f64,
 ) -> Option<RegionMetrics> {
-    // The regions are independent: evaluated at once (each sorts its errors for the medians).
-    let ((all, occluded), ((visible, specular), sparsification)) = rayon::join(
+    // The sparsification's sorts beside the regions' single passes.
+    let (regions, sparsification) = rayon::join(
         || {
-            rayon::join(
-                || evaluate(estimate, truth, None, missing_error_px),
-                || evaluate(estimate, truth, Some(occluded), missing_error_px),
+            let visible_mask: Vec<bool> = occluded.iter().map(|o| !o).collect();
+            let specular_mask: Option<Vec<bool>> = surface_class.map(|classes| {
+                classes
+                    .iter()
+                    .map(|c| {
+                        *c == record::scene::SurfaceClass::Glossy as u8
+                            || *c == record::scene::SurfaceClass::Mirror as u8
+                    })
+                    .collect()
+            });
+            (
+                evaluate(estimate, truth, None, missing_error_px),
+                evaluate(estimate, truth, Some(occluded), missing_error_px),
+                evaluate(estimate, truth, Some(&visible_mask), missing_error_px),
+                specular_mask.and_then(|mask| evaluate(estimate, truth, Some(&mask), missing_error_px)),
             )
         },
-        || {
-            rayon::join(
-                || {
-                    rayon::join(
-                        || {
-                            let visible_mask: Vec<bool> = occluded.iter().map(|o| !o).collect();
-                            evaluate(estimate, truth, Some(&visible_mask), missing_error_px)
-                        },
-                        || {
-                            surface_class.and_then(|classes| {
-                                let mask: Vec<bool> = classes
-                                    .iter()
-                                    .map(|c| {
-                                        *c == record::scene::SurfaceClass::Glossy as u8
-                                            || *c == record::scene::SurfaceClass::Mirror as u8
-                                    })
-                                    .collect();
-                                evaluate(estimate, truth, Some(&mask), missing_error_px)
-                            })
-                        },
-                    )
-                },
-                || confidence.and_then(|c| Sparsification::measure(estimate, c, truth, missing_error_px)),
-            )
-        },
+        || confidence.and_then(|c| Sparsification::measure(estimate, c, truth, missing_error_px)),
     );
+    let (all, occluded, visible, specular) = regions;
     Some(RegionMetrics {
         all: all?,
         occluded,

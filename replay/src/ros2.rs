@@ -139,7 +139,9 @@ impl Ros2Translator {
                 let encoding = match image.encoding.as_str() {
                     "mono16" => "mono8".to_owned(),
                     other if VIEW_ENCODINGS.contains(&other) || other == "32FC1" => other.to_owned(),
-                    other => return Ok(self.ignore(topic, &format!("{schema} ({other})"))),
+                    // Not a view (16UC1 depth) or not read: left out or refused as the whole
+                    // translation does, so that both list it alike.
+                    _ => return self.translate(topic, schema, data),
                 };
                 encode(
                     "foxglove.RawImage",
@@ -167,7 +169,8 @@ impl Ros2Translator {
                         },
                     )
                 } else if !image.data.starts_with(&[0xFF, 0xD8]) {
-                    return Ok(self.ignore(topic, &format!("{schema} ({})", image.format)));
+                    // Neither PNG nor JPEG: refused as the whole translation refuses it.
+                    return self.translate(topic, schema, data);
                 } else {
                     // A JPEG: decoded when kept; its size is not needed to place it.
                     encode(

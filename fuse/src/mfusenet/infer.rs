@@ -37,10 +37,13 @@ pub fn tile_side(views: usize, num_disparities: usize, budget_bytes: usize) -> u
     (region.saturating_sub(2 * HALO) / 4 * 4).max(16)
 }
 
+/// The tiles along one axis: each core and its region (the core with its halo).
+pub type AxisTiles = Vec<(std::ops::Range<usize>, std::ops::Range<usize>)>;
+
 /// One axis cut into tile cores of `core` pixels (a multiple of 4; the last may be shorter) over
 /// `length` pixels: the cores and their regions with `halo` pixels either side (clipped to the
 /// axis).
-fn axis_tiles(length: usize, core: usize, halo: usize) -> Vec<(std::ops::Range<usize>, std::ops::Range<usize>)> {
+fn axis_tiles(length: usize, core: usize, halo: usize) -> AxisTiles {
     (0..length)
         .step_by(core.max(4))
         .map(|start| {
@@ -57,16 +60,7 @@ fn axis_tiles(length: usize, core: usize, halo: usize) -> Vec<(std::ops::Range<u
 /// 3 × 2 tiles of 320 × 272 instead of 4 × 2 squares of 296, 11 % fewer voxels). The square
 /// tiles of [`tile_side`] are among the splits tried, so the plan is never worse than them.
 /// `(row cores and regions, column cores and regions)`.
-#[allow(clippy::type_complexity)]
-pub fn plan_tiles(
-    height: usize,
-    width: usize,
-    max_region_pixels: usize,
-    halo: usize,
-) -> (
-    Vec<(std::ops::Range<usize>, std::ops::Range<usize>)>,
-    Vec<(std::ops::Range<usize>, std::ops::Range<usize>)>,
-) {
+pub fn plan_tiles(height: usize, width: usize, max_region_pixels: usize, halo: usize) -> (AxisTiles, AxisTiles) {
     // Per axis and core size: (sum of region lengths, longest region, core).
     let options = |length: usize| -> Vec<(usize, usize, usize)> {
         let mut seen = Vec::new();
@@ -487,12 +481,9 @@ mod tests {
                 assert_eq!(covered, (0..length).collect::<Vec<_>>());
                 assert!(tiles.iter().all(|(core, _)| core.start % 4 == 0));
             }
-            let longest = |t: &[(std::ops::Range<usize>, std::ops::Range<usize>)]| {
-                t.iter().map(|(_, r)| r.len()).max().unwrap_or(0)
-            };
+            let longest = |t: &AxisTiles| t.iter().map(|(_, r)| r.len()).max().unwrap_or(0);
             assert!(longest(&rows) * longest(&columns) <= region * region, "{h}×{w}");
-            let total =
-                |t: &[(std::ops::Range<usize>, std::ops::Range<usize>)]| t.iter().map(|(_, r)| r.len()).sum::<usize>();
+            let total = |t: &AxisTiles| t.iter().map(|(_, r)| r.len()).sum::<usize>();
             let squares = (axis_tiles(h, side, HALO), axis_tiles(w, side, HALO));
             assert!(
                 total(&rows) * total(&columns) <= total(&squares.0) * total(&squares.1),
