@@ -18,7 +18,9 @@ use crate::image::DisparityImage;
 use crate::mfusenet::infer::{
     DEFAULT_REFINE_REACH, DEFAULT_SUBPIXEL_FIT, DEFAULT_TILE_BUDGET_BYTES, Estimate, infer_with_confidence,
 };
-use crate::mfusenet::input::{InputSpec, input_volumes_below, ordered_neighbours, views_for};
+use crate::mfusenet::input::{
+    InputSpec, input_volumes_below, ordered_neighbours, summed, summed_input_volume_below, views_for,
+};
 use crate::mfusenet::pyramid::{
     Band, DEFAULT_MAX_DIRECT_DISPARITIES, band_minimum, downsampled, pyramid_factor, reduced_range,
 };
@@ -249,13 +251,10 @@ impl Method for MFuseNet {
         let coarse_out = self.finish(&coarse, estimate)?;
         let loaded = self.network_for(problem)?;
         let neighbours = ordered_neighbours(problem, loaded.net.views)?;
-        let (volumes, first) = input_volumes_below(
-            problem,
-            &neighbours,
-            self.config.input.unwrap_or(loaded.input),
-            0,
-            &|| {},
-        )?;
+        // The full-size costs as one sum, made a neighbour at a time: the post-processing reads
+        // only the sum, and four full-size byte volumes would hold twice its memory.
+        let (costs, first) =
+            summed_input_volume_below(problem, &neighbours, self.config.input.unwrap_or(loaded.input), 0)?;
         progress(0.9);
         let band = Band {
             factor,
@@ -265,7 +264,7 @@ impl Method for MFuseNet {
         };
         let disparity = band_minimum(
             &coarse_out,
-            &volumes,
+            &costs,
             first,
             (problem.reference.width, problem.reference.height),
             band,
@@ -274,7 +273,7 @@ impl Method for MFuseNet {
             problem,
             NetworkEstimate {
                 disparity,
-                volumes,
+                costs,
                 first,
             },
         )
@@ -306,10 +305,10 @@ impl Method for MFuseNet {
 }
 
 /// What the network gives before the post-processing: the disparity (in the problem's range)
-/// with the network's confidence, and the input volumes it was read from.
+/// with the network's confidence, and the sum of the input volumes it was read from.
 struct NetworkEstimate {
     disparity: DisparityImage,
-    volumes: Vec<CostVolume<u8>>,
+    costs: CostVolume<u16>,
     /// The disparity of the volumes' first slice.
     first: i64,
 }
@@ -401,6 +400,13 @@ impl MFuseNet {
             },
             &|f| progress(0.1 + 0.9 * f),
         )?;
+        // The post-processing reads the neighbours' costs only summed.
+        let costs = summed(&volumes).ok_or(FuseError::Config {
+            field: "neighbours",
+            value: volumes.len().to_string(),
+            reason: "the network's inputs need at least one neighbour volume, all of one shape",
+        })?;
+        drop(volumes);
         // Back into the requested range when it was widened.
         let (low, high) = (requested.0 as f32, requested.0 as f32 + (requested.1 - 1) as f32);
         Ok(NetworkEstimate {
@@ -410,7 +416,7 @@ impl MFuseNet {
                 data: data.into_iter().map(|d| (d + origin).clamp(low, high)).collect(),
                 confidence: Some(confidence),
             },
-            volumes,
+            costs,
             first,
         })
     }
@@ -420,7 +426,7 @@ impl MFuseNet {
     fn finish(&self, problem: &Problem, estimate: NetworkEstimate) -> Result<DisparityImage, FuseError> {
         let NetworkEstimate {
             disparity,
-            volumes,
+            costs,
             first,
         } = estimate;
         let disparity = if self.config.median {
@@ -432,12 +438,12 @@ impl MFuseNet {
         let mut out = match &self.config.weighted_median {
             Some(filter) => {
                 let votes = (self.config.disagreeing_vote < 1.0)
-                    .then(|| cost_agreement(&disparity, &volumes, first, self.config.disagreeing_vote));
+                    .then(|| cost_agreement(&disparity, &costs, first, self.config.disagreeing_vote));
                 weighted_median_with_votes(&disparity, &problem.reference, filter, votes.as_deref())?
             }
             None => disparity,
         };
-        let data = data_support(&out, &volumes, first);
+        let data = data_support(&out, &costs, first);
         if let Some(confidence) = &mut out.confidence {
             // The network's margin and the inputs' own peak, where the filters kept the network's
             // answer (within 1 px): docs/experiments.md, "Confidence".
@@ -455,10 +461,9 @@ impl MFuseNet {
 
 /// How well the summed input costs single out each pixel's final disparity:
 /// [`crate::wta::peak_confidence`] of the sum over the neighbours at the nearest slice.
-fn data_support(disparity: &DisparityImage, volumes: &[CostVolume<u8>], first: i64) -> Vec<f32> {
-    let nd = volumes.first().map_or(0, |v| v.num_disparities);
+fn data_support(disparity: &DisparityImage, costs: &CostVolume<u16>, first: i64) -> Vec<f32> {
+    let nd = costs.num_disparities;
     let w = disparity.width;
-    let mut column = vec![0u16; nd];
     disparity
         .data
         .iter()
@@ -469,13 +474,7 @@ fn data_support(disparity: &DisparityImage, volumes: &[CostVolume<u8>], first: i
             }
             let (x, y) = (i % w, i / w);
             let at = (f64::from(d) - first as f64).round().clamp(0.0, (nd - 1) as f64) as usize;
-            column.fill(0);
-            for v in volumes {
-                for (c, s) in column.iter_mut().zip(v.costs(x, y)) {
-                    *c += u16::from(*s);
-                }
-            }
-            crate::wta::peak_confidence(&column, at)
+            crate::wta::peak_confidence(costs.costs(x, y), at)
         })
         .collect()
 }
@@ -483,8 +482,8 @@ fn data_support(disparity: &DisparityImage, volumes: &[CostVolume<u8>], first: i
 /// Each pixel's vote for the weighted median: 1 where a local minimum of the summed input
 /// costs lies within 1 px of its disparity (the network and the data agree), else
 /// `disagreeing`. `first` is the disparity of the volumes' first slice.
-fn cost_agreement(disparity: &DisparityImage, volumes: &[CostVolume<u8>], first: i64, disagreeing: f32) -> Vec<f32> {
-    let nd = volumes.first().map_or(0, |v| v.num_disparities);
+fn cost_agreement(disparity: &DisparityImage, costs: &CostVolume<u16>, first: i64, disagreeing: f32) -> Vec<f32> {
+    let nd = costs.num_disparities;
     let w = disparity.width;
     disparity
         .data
@@ -492,7 +491,7 @@ fn cost_agreement(disparity: &DisparityImage, volumes: &[CostVolume<u8>], first:
         .enumerate()
         .map(|(i, &d)| {
             let (x, y) = (i % w, i / w);
-            let cost = |k: usize| volumes.iter().map(|v| u32::from(v.costs(x, y)[k])).sum::<u32>();
+            let cost = |k: usize| costs.costs(x, y)[k];
             let at = f64::from(d) - first as f64;
             // Slices 1..nd-1 (a minimum needs both neighbours); negative `at` saturates to 0.
             let lo = ((at - 1.0).ceil() as usize).max(1);
@@ -708,7 +707,7 @@ mod tests {
                 (10 * (k - 6).abs() + tilt * k + 20) as u8
             })
         };
-        let volumes = [volume(1), volume(-1)];
+        let costs = summed(&[volume(1), volume(-1)]).unwrap_or_else(|| panic!("two volumes of one shape"));
         // The volumes start at disparity 10: slice 6 is disparity 16.
         let disparity = DisparityImage {
             width: 5,
@@ -716,9 +715,9 @@ mod tests {
             data: vec![16.0, 16.9, 15.2, 17.5, f32::INFINITY],
             confidence: None,
         };
-        let votes = cost_agreement(&disparity, &volumes, 10, 0.05);
+        let votes = cost_agreement(&disparity, &costs, 10, 0.05);
         assert_eq!(votes, vec![1.0, 1.0, 1.0, 0.05, 0.05]);
         // The same estimates against volumes starting at 0 are far from the minimum.
-        assert_eq!(cost_agreement(&disparity, &volumes, 0, 0.25), vec![0.25; 5]);
+        assert_eq!(cost_agreement(&disparity, &costs, 0, 0.25), vec![0.25; 5]);
     }
 }

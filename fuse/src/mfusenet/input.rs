@@ -200,18 +200,97 @@ pub fn input_volumes_below(
 
 /// `(S − min_d S) / (8 · P2)` in steps of 1/[`STEPS_PER_UNIT`], capped at 255 steps.
 pub fn normalise(sums: &CostVolume<u16>, p2: u16) -> CostVolume<u8> {
-    let scale = STEPS_PER_UNIT / (8.0 * f32::from(p2.max(1)));
     let mut data = vec![0u8; sums.data.len()];
-    for (out, pixel) in data
-        .chunks_exact_mut(sums.num_disparities)
-        .zip(sums.data.chunks_exact(sums.num_disparities))
-    {
-        let min = pixel.iter().copied().min().unwrap_or(0);
-        for (o, s) in out.iter_mut().zip(pixel) {
-            *o = (f32::from(s - min) * scale).round().min(255.0) as u8;
-        }
-    }
+    normalise_each(sums, p2, &mut data, |out, step| *out = step);
     sums.with_data(data, 255)
+}
+
+/// [`normalise`]'s steps of each voxel of `sums` handed to `put` with the voxel's place in `out`.
+fn normalise_each<T: Send>(sums: &CostVolume<u16>, p2: u16, out: &mut [T], put: impl Fn(&mut T, u8) + Sync) {
+    use rayon::prelude::*;
+    let scale = STEPS_PER_UNIT / (8.0 * f32::from(p2.max(1)));
+    let nd = sums.num_disparities.max(1);
+    // Rows of pixels in parallel: the volume is hundreds of MB at full size.
+    let row = nd * sums.width.max(1);
+    out.par_chunks_mut(row)
+        .zip(sums.data.par_chunks(row))
+        .for_each(|(out, sums)| {
+            for (out, pixel) in out.chunks_exact_mut(nd).zip(sums.chunks_exact(nd)) {
+                let min = pixel.iter().copied().min().unwrap_or(0);
+                for (o, s) in out.iter_mut().zip(pixel) {
+                    put(o, (f32::from(s - min) * scale).round().min(255.0) as u8);
+                }
+            }
+        });
+}
+
+/// The sum over `volumes` of their costs, voxel by voxel (what the post-processing reads: the
+/// set's costs, not each neighbour's), in one volume of `volumes[0]`'s shape; `None` without
+/// volumes or when their shapes differ.
+pub fn summed(volumes: &[CostVolume<u8>]) -> Option<CostVolume<u16>> {
+    use rayon::prelude::*;
+    let first = volumes.first()?;
+    if volumes.iter().any(|v| v.shape() != first.shape()) {
+        return None;
+    }
+    let mut data = vec![0u16; first.data.len()];
+    let chunk = first.num_disparities.max(1) * first.width.max(1);
+    data.par_chunks_mut(chunk).enumerate().for_each(|(i, out)| {
+        let range = i * chunk..i * chunk + out.len();
+        for v in volumes {
+            for (o, c) in out.iter_mut().zip(&v.data[range.clone()]) {
+                *o += u16::from(*c);
+            }
+        }
+    });
+    let max_cost = volumes.iter().map(|v| v.max_cost).sum();
+    let mut sum = first.with_data(data, max_cost);
+    // The sum is the neighbours' mean times their count.
+    sum.source = VolumeSource::Fused(Fusion::Mean);
+    Some(sum)
+}
+
+/// The sum over `neighbours` of their normalised volumes ([`input_volumes_below`], `below`
+/// disparities of context), made one neighbour at a time, so that only one neighbour's SGM sums
+/// and the total are held at once instead of every neighbour's bytes: the full-size costs of
+/// coarse to fine. The same numbers as [`summed`] of [`input_volumes_below`]'s volumes.
+pub fn summed_input_volume_below(
+    problem: &Problem,
+    neighbours: &[&Neighbour],
+    spec: InputSpec,
+    below: usize,
+) -> Result<(CostVolume<u16>, i64), FuseError> {
+    let below_i32 = i32::try_from(below).unwrap_or(i32::MAX);
+    let extended = Problem {
+        min_disparity: problem.min_disparity.saturating_sub(below_i32),
+        num_disparities: problem.num_disparities + below,
+        ..problem.clone()
+    };
+    let cost = CostSpec {
+        pixel: spec.cost,
+        block_radius_px: spec.block_radius_px,
+    };
+    let shift = quantisation_shift(cost.max_cost());
+    let (p1, p2) = (quantise_penalty(spec.p1, shift), quantise_penalty(spec.p2, shift));
+    let mut total: Option<CostVolume<u16>> = None;
+    for n in neighbours {
+        let volume = neighbour_volumes(&extended, &[*n], cost, shift, &|| {})?.remove(0);
+        let sums = aggregate_volume(&volume, p1, p2);
+        drop(volume);
+        let total = total.get_or_insert_with(|| {
+            let mut t = sums.with_data(vec![0u16; sums.data.len()], 0);
+            t.source = VolumeSource::Fused(Fusion::Mean);
+            t
+        });
+        normalise_each(&sums, p2, &mut total.data, |o, step| *o += u16::from(step));
+        total.max_cost += 255;
+    }
+    let total = total.ok_or(FuseError::Config {
+        field: "neighbours",
+        value: "0".into(),
+        reason: "the network's inputs need at least one neighbour",
+    })?;
+    Ok((total, i64::from(extended.min_disparity)))
 }
 
 /// The network's input tensor `[1, depth, rows, columns]` of a window of `volume` whose top-left

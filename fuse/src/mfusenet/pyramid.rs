@@ -108,23 +108,22 @@ pub struct Band {
 }
 
 /// The full-size disparity (and the coarse confidence, nearest coarse pixel) from a coarse
-/// answer: per pixel, the minimum of the summed `volumes` (`first` = the disparity of their first
-/// slice) over the slices within `band.half_width` px of `factor ×` any finite coarse answer in
+/// answer: per pixel, the minimum of the summed input `costs` (`first` = the disparity of their
+/// first slice) over the slices within `band.half_width` px of `factor ×` any finite coarse answer in
 /// the 3 × 3 coarse pixels around it, refined by the fit there. A pixel without a finite coarse
 /// answer nearby, or whose band misses the volumes, is `f32::INFINITY`.
 pub fn band_minimum(
     coarse: &DisparityImage,
-    volumes: &[CostVolume<u8>],
+    costs: &CostVolume<u16>,
     first: i64,
     (width, height): (usize, usize),
     band: Band,
 ) -> DisparityImage {
-    let nd = volumes.first().map_or(0, |v| v.num_disparities);
+    let nd = costs.num_disparities;
     let f = band.factor.max(1);
     let (cw, ch) = (coarse.width, coarse.height);
     let mut data = vec![f32::INFINITY; width * height];
     let mut confidence = vec![0.0f32; width * height];
-    let mut sums = vec![0u32; nd];
     let mut allowed = vec![false; nd];
     for y in 0..height {
         let cy = (y / f).min(ch.saturating_sub(1));
@@ -157,12 +156,7 @@ pub fn band_minimum(
             if !any {
                 continue;
             }
-            sums.fill(0);
-            for v in volumes {
-                for (s, c) in sums.iter_mut().zip(v.costs(x, y)) {
-                    *s += u32::from(*c);
-                }
-            }
+            let sums = costs.costs(x, y);
             let best = (0..nd).filter(|k| allowed[*k]).min_by_key(|k| sums[*k]).unwrap_or(0);
             let d = refined(best as f64, |k| f64::from(sums[k]), nd, 0.0, band.fit, band.locking);
             data[i] = (d + first as f64) as f32;
@@ -258,7 +252,8 @@ mod tests {
             fit: SubpixelFit::Equiangular,
             locking: None,
         };
-        let out = band_minimum(&coarse, &[volume], 10, (w, h), band);
+        let costs = crate::mfusenet::input::summed(&[volume]).unwrap_or_else(|| panic!("one volume"));
+        let out = band_minimum(&coarse, &costs, 10, (w, h), band);
         for d in &out.data {
             assert!((d - 31.4).abs() < 0.05, "{d}");
         }
@@ -268,17 +263,17 @@ mod tests {
             data: vec![f32::INFINITY; 8],
             ..coarse
         };
-        let volumes = [CostVolume {
+        let zero = CostVolume {
             width: w,
             height: h,
             min_disparity: 10,
             num_disparities: nd,
-            data: vec![0; w * h * nd],
+            data: vec![0u16; w * h * nd],
             max_cost: 255,
             source: VolumeSource::Fused(crate::fusion::Fusion::Mean),
-        }];
+        };
         assert!(
-            band_minimum(&unknown, &volumes, 10, (w, h), band)
+            band_minimum(&unknown, &zero, 10, (w, h), band)
                 .data
                 .iter()
                 .all(|d| d.is_infinite())
