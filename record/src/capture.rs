@@ -379,19 +379,39 @@ impl Simulation {
     }
 
     /// The station (reference camera pose) of set `index`: above the work area at the scene's
-    /// camera height, looking at the work-area centre; later sets circle around the first.
+    /// camera height, looking at the work-area centre; later sets circle around the first. A
+    /// later set's circle shrinks (halved, down to the first set's station) where the arm could
+    /// not take every view of the rig from it: a high camera over the far side of the work area.
     pub fn station(&self, index: u32) -> Isometry3<f64> {
         let c = WORK_AREA_CENTER_M;
         let height = self.scene.camera_height_m;
         let target = Point3::new(c[0], c[1], 0.0);
-        let eye = if index == 0 {
-            Point3::new(c[0], c[1], height)
-        } else {
-            let angle = f64::from(index) * 2.399_963; // golden angle: stations spread evenly
-            let radius = 0.05 + 0.1 * (f64::from(index) / f64::from(self.config.captures.max(1)));
-            Point3::new(c[0] + radius * angle.cos(), c[1] + radius * angle.sin(), height)
+        let angle = f64::from(index) * 2.399_963; // golden angle: stations spread evenly
+        let at = |radius: f64| {
+            let eye = Point3::new(c[0] + radius * angle.cos(), c[1] + radius * angle.sin(), height);
+            look_at(eye, target, Vector3::x())
         };
-        look_at(eye, target, Vector3::x())
+        if index == 0 {
+            return at(0.0);
+        }
+        let radius = 0.05 + 0.1 * (f64::from(index) / f64::from(self.config.captures.max(1)));
+        [1.0, 0.5, 0.25]
+            .into_iter()
+            .map(|f| at(f * radius))
+            .find(|station| self.reaches_every_view(station))
+            .unwrap_or_else(|| at(0.0))
+    }
+
+    /// Whether the arm has an inverse-kinematics solution within its joint limits for every view
+    /// of the rig from the reference pose `station` (what [`Self::capture_set`] asks of it).
+    fn reaches_every_view(&self, station: &Isometry3<f64>) -> bool {
+        let baseline_m = self.config.baseline_mm / 1000.0;
+        self.config.rig.capture_order().into_iter().all(|slot| {
+            let pose = crate::reach::view_pose(station, slot.grid_offset, baseline_m);
+            self.arm
+                .closest_solution(&(pose * self.hand_eye_believed.inverse()), &self.joints)
+                .is_ok()
+        })
     }
 
     fn move_to(&mut self, target: Joints, samples: &mut Vec<MotionSample>) {
@@ -694,6 +714,43 @@ mod tests {
             height: 40,
             samples_per_pixel: 1,
             ..config
+        }
+    }
+
+    #[test]
+    fn every_station_of_every_family_is_reachable_by_construction() {
+        // Seeds whose camera was once drawn out of the arm's reach (1.32–1.37 m from the base),
+        // then the highest of the first seeds of each family, with eight sets on the widest rig.
+        let mut cases = vec![(SceneKind::Random, 7004), (SceneKind::Random, 3101), (SceneKind::Random, 3104)];
+        for kind in [SceneKind::Random, SceneKind::Clutter, SceneKind::Bin] {
+            let highest = (0..200)
+                .max_by(|a, b| {
+                    let h = |s| Scene::build(kind, s).camera_height_m;
+                    h(*a).total_cmp(&h(*b))
+                })
+                .unwrap_or(0);
+            cases.push((kind, highest));
+        }
+        for (scene, seed) in cases {
+            for rig in [RigKind::FiveView, RigKind::Grid3x3, RigKind::Line5] {
+                let config = SimulationConfig {
+                    scene,
+                    seed,
+                    rig,
+                    captures: 8,
+                    ..SimulationConfig::default()
+                };
+                let sim = Simulation::new(config).unwrap_or_else(|e| panic!("{scene:?} {seed}: {e}"));
+                assert!(sim.scene.camera_height_m <= crate::scene::MAX_CAMERA_HEIGHT_M);
+                for set in 0..8 {
+                    let station = sim.station(set);
+                    assert!(
+                        sim.reaches_every_view(&station),
+                        "{scene:?} seed {seed}, {rig:?}, set {set}: a view out of reach at {:.3} m",
+                        sim.scene.camera_height_m
+                    );
+                }
+            }
         }
     }
 

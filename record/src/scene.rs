@@ -695,9 +695,27 @@ fn random_material(rng: &mut SplitMix64, name: &str, natural: u64) -> Material {
     }
 }
 
+/// The highest camera (m above the table, over [`WORK_AREA_CENTER_M`]) from which the UR10 takes
+/// every view of a 5 × 5 grid at the default 20 mm baseline (a cross reaches 0.95 m, a 5 × 5 grid
+/// at 40 mm 0.89 m): the families draw their heights under it, so that their stations are
+/// reachable by construction (`capture` tests every family on the five-view, 3 × 3 and line rigs).
+pub const MAX_CAMERA_HEIGHT_M: f64 = 0.93;
+
+/// A camera height drawn uniformly from `low..high` and kept within
+/// [`MAX_CAMERA_HEIGHT_M`]: a draw above it is mapped linearly from `MAX..high` onto
+/// `low..MAX`, so that the heights stay uniform over the reachable range and a draw that was
+/// reachable keeps its value (and its seed its scene).
+fn camera_height(rng: &mut SplitMix64, low: f64, high: f64) -> f64 {
+    let h = rng.range(low, high);
+    if h <= MAX_CAMERA_HEIGHT_M || high <= MAX_CAMERA_HEIGHT_M {
+        return h;
+    }
+    low + (h - MAX_CAMERA_HEIGHT_M) / (high - MAX_CAMERA_HEIGHT_M) * (MAX_CAMERA_HEIGHT_M - low)
+}
+
 fn random_scene(seed: u64) -> Scene {
     let mut rng = SplitMix64::new(seed ^ 0x7261_6e64);
-    let camera_height_m = rng.range(0.4, 1.1);
+    let camera_height_m = camera_height(&mut rng, 0.4, 1.1);
     let mut scene = Scene::empty(SceneKind::Random, seed, camera_height_m);
     let table_material = random_material(&mut rng, "table", 20);
     let table_material = scene.add_material(table_material);
@@ -787,7 +805,7 @@ fn random_scene(seed: u64) -> Scene {
 /// (fractal noise) textures with a few low-texture surfaces.
 fn clutter_scene(seed: u64) -> Scene {
     let mut rng = SplitMix64::new(seed ^ 0x636c_7574);
-    let camera_height_m = rng.range(0.5, 1.2);
+    let camera_height_m = camera_height(&mut rng, 0.5, 1.2);
     let mut scene = Scene::empty(SceneKind::Clutter, seed, camera_height_m);
     let floor = if rng.below(3) == 0 {
         Material::matte(
@@ -871,7 +889,7 @@ fn clutter_scene(seed: u64) -> Scene {
 /// table: the walls hide much of the floor from one view or another. Never used for training.
 fn bin_scene(seed: u64) -> Scene {
     let mut rng = SplitMix64::new(seed ^ 0x0062_696e);
-    let camera_height_m = rng.range(0.5, 0.9);
+    let camera_height_m = camera_height(&mut rng, 0.5, 0.9);
     let mut scene = Scene::empty(SceneKind::Bin, seed, camera_height_m);
     let concrete = scene.add_material(Material::matte(
         "concrete",
@@ -957,6 +975,28 @@ fn bin_scene(seed: u64) -> Scene {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn camera_heights_stay_uniform_within_reach_and_keep_reachable_draws() {
+        let mut rng = SplitMix64::new(1);
+        let heights: Vec<f64> = (0..20_000).map(|_| camera_height(&mut rng, 0.5, 1.2)).collect();
+        assert!(heights.iter().all(|h| (0.5..=MAX_CAMERA_HEIGHT_M).contains(h)));
+        // Uniform over 0.5 … MAX: each tenth of the range holds a tenth of the draws.
+        let tenth_m = (MAX_CAMERA_HEIGHT_M - 0.5) / 10.0;
+        for tenth in 0..10 {
+            let lo = 0.5 + tenth_m * f64::from(tenth);
+            let share = heights.iter().filter(|h| (lo..lo + tenth_m).contains(*h)).count() as f64 / 20_000.0;
+            assert!((share - 0.1).abs() < 0.01, "{lo:.2}: {share}");
+        }
+        // A reachable draw is the draw itself.
+        let (mut a, mut b) = (SplitMix64::new(7), SplitMix64::new(7));
+        for _ in 0..100 {
+            let (h, drawn) = (camera_height(&mut a, 0.4, 1.1), b.range(0.4, 1.1));
+            if drawn <= MAX_CAMERA_HEIGHT_M {
+                assert_eq!(h, drawn);
+            }
+        }
+    }
 
     #[test]
     fn random_scenes_vary_with_the_seed() {

@@ -254,7 +254,7 @@ impl TrainConfig {
             "input": self.input,
             "steps_per_unit": fuse::mfusenet::input::STEPS_PER_UNIT,
             // Bumped when what a seed draws changes (record's scene generator, the baseline draw).
-            "scene_generator": 6,
+            "scene_generator": 7,
         });
         // Only when set, so that the keys of datasets made without it stay as they were.
         if self.context_below > 0 {
