@@ -150,6 +150,18 @@ struct Hit {
     material: usize,
 }
 
+impl Hit {
+    /// A hit at `t` whose normal and texture coordinates are not needed.
+    fn at(t: f64, material: usize) -> Self {
+        Self {
+            t,
+            normal: V3::zeros(),
+            uv: (0.0, 0.0),
+            material,
+        }
+    }
+}
+
 /// A scene prepared for tracing: textures baked, shapes in intersection form.
 pub struct PreparedScene {
     objects: Vec<Object>,
@@ -516,15 +528,29 @@ impl PreparedScene {
         dir: &V3,
         t_max: f64,
     ) -> Option<Hit> {
-        let mut best: Option<Hit> = None;
+        // The normal and texture coordinates of the nearest object only: the same numbers, as
+        // its intersection is computed again under the same range.
+        let (object, _, limit) = Self::closest_among(objects, origin, dir, t_max)?;
+        intersect(object, origin, dir, limit)
+    }
+
+    /// The nearest of `objects` along the ray: the object, its distance, and the range it was
+    /// found under.
+    fn closest_among<'o>(
+        objects: impl Iterator<Item = &'o Object>,
+        origin: &V3,
+        dir: &V3,
+        t_max: f64,
+    ) -> Option<(&'o Object, f64, f64)> {
+        let mut best = None;
         let mut limit = t_max;
         for object in objects {
             if !bound_overlaps(object, origin, dir, limit) {
                 continue;
             }
-            if let Some(hit) = intersect(object, origin, dir, limit) {
-                limit = hit.t;
-                best = Some(hit);
+            if let Some(t) = hit_distance(object, origin, dir, limit) {
+                best = Some((object, t, limit));
+                limit = t;
             }
         }
         best
@@ -534,7 +560,7 @@ impl PreparedScene {
     fn occluded_among(&self, objects: impl Iterator<Item = usize>, origin: &V3, dir: &V3, t_max: f64) -> bool {
         objects
             .map(|i| &self.objects[i])
-            .any(|object| bound_overlaps(object, origin, dir, t_max) && intersect(object, origin, dir, t_max).is_some())
+            .any(|object| bound_overlaps(object, origin, dir, t_max) && hit_distance(object, origin, dir, t_max).is_some())
     }
 
     fn trace(&self, origin: &V3, dir: &V3, bounces_left: u32) -> V3 {
@@ -665,10 +691,10 @@ impl PreparedScene {
                     }
                     let dir_camera = camera.ray_direction(col as f64, row as f64);
                     let dir = rotation * dir_camera;
-                    match self.closest_hit_among(candidates(), &origin, &dir, f64::INFINITY) {
-                        Some(hit) => {
-                            depth_row[col] = (hit.t * dir_camera.z) as f32;
-                            class_row[col] = self.materials[hit.material].class as u8;
+                    match Self::closest_among(candidates(), &origin, &dir, f64::INFINITY) {
+                        Some((object, t, _)) => {
+                            depth_row[col] = (t * dir_camera.z) as f32;
+                            class_row[col] = self.materials[object.material].class as u8;
                         }
                         None => {
                             depth_row[col] = 0.0;
@@ -732,6 +758,18 @@ fn bound_overlaps(object: &Object, origin: &V3, dir: &V3, t_max: f64) -> bool {
 }
 
 fn intersect(object: &Object, origin: &V3, dir: &V3, t_max: f64) -> Option<Hit> {
+    intersect_with::<true>(object, origin, dir, t_max)
+}
+
+/// The distance along the ray to `object`'s surface (the `t` of [`intersect`], the same number).
+fn hit_distance(object: &Object, origin: &V3, dir: &V3, t_max: f64) -> Option<f64> {
+    intersect_with::<false>(object, origin, dir, t_max).map(|hit| hit.t)
+}
+
+/// [`intersect`]; without `DETAILS` the hit's normal and texture coordinates are left zero (the
+/// tests of shadow rays and of candidates that a nearer object may yet hide need only `t`).
+#[inline(always)]
+fn intersect_with<const DETAILS: bool>(object: &Object, origin: &V3, dir: &V3, t_max: f64) -> Option<Hit> {
     let t_min = SURFACE_EPSILON_M * 0.5;
     let material = object.material;
     match &object.geometry {
@@ -743,6 +781,9 @@ fn intersect(object: &Object, origin: &V3, dir: &V3, t_max: f64) -> Option<Hit> 
             let t = (point - origin).dot(normal) / denom;
             if t <= t_min || t >= t_max {
                 return None;
+            }
+            if !DETAILS {
+                return Some(Hit::at(t, material));
             }
             let p = origin + dir * t - point;
             Some(Hit {
@@ -764,6 +805,9 @@ fn intersect(object: &Object, origin: &V3, dir: &V3, t_max: f64) -> Option<Hit> 
             let t = if -b - sq > t_min { -b - sq } else { -b + sq };
             if t <= t_min || t >= t_max {
                 return None;
+            }
+            if !DETAILS {
+                return Some(Hit::at(t, material));
             }
             let local = origin + dir * t - center;
             let normal = local / *radius;
@@ -818,6 +862,9 @@ fn intersect(object: &Object, origin: &V3, dir: &V3, t_max: f64) -> Option<Hit> 
             if t <= t_min || t >= t_max {
                 return None;
             }
+            if !DETAILS {
+                return Some(Hit::at(t, material));
+            }
             let local = o + d * t;
             let mut local_normal = V3::zeros();
             local_normal[axis] = local[axis].signum();
@@ -858,9 +905,13 @@ fn intersect(object: &Object, origin: &V3, dir: &V3, t_max: f64) -> Option<Hit> 
                         if t > t_min && t < t_max {
                             let h = o_axial + d_axial * t;
                             if h.abs() <= *half_length {
-                                let radial = o_perp + d_perp * t;
-                                let angle = radial.dot(v).atan2(radial.dot(u));
-                                best = Some((t, radial / *radius, (angle * radius, h)));
+                                if DETAILS {
+                                    let radial = o_perp + d_perp * t;
+                                    let angle = radial.dot(v).atan2(radial.dot(u));
+                                    best = Some((t, radial / *radius, (angle * radius, h)));
+                                } else {
+                                    best = Some((t, V3::zeros(), (0.0, 0.0)));
+                                }
                                 break;
                             }
                         }
@@ -873,7 +924,11 @@ fn intersect(object: &Object, origin: &V3, dir: &V3, t_max: f64) -> Option<Hit> 
                     if t > t_min && t < t_max && best.as_ref().is_none_or(|(bt, _, _)| t < *bt) {
                         let radial = o_perp + d_perp * t;
                         if radial.norm_squared() <= radius * radius {
-                            best = Some((t, axis * cap.signum(), (radial.dot(u), radial.dot(v))));
+                            best = Some(if DETAILS {
+                                (t, axis * cap.signum(), (radial.dot(u), radial.dot(v)))
+                            } else {
+                                (t, V3::zeros(), (0.0, 0.0))
+                            });
                         }
                     }
                 }
