@@ -3,7 +3,9 @@
 //!
 //! `mfusenet` picks the network from the set's neighbours: five-view (left, right, top, bottom)
 //! when all four are there, else three-view (left and right, or top and bottom), else the
-//! stereo network; `mfusenet-stereo` always takes the stereo network and the `right` view.
+//! stereo network; `mfusenet-stereo` always takes the stereo network and the `right` view. A set
+//! with more views (a line of five, a 3 × 3 grid, crosses at several baselines) runs every
+//! cross and opposite pair through its network and averages their logits (`every_view`).
 //! The trained weights of the three variants are compiled into the binary (`fuse/weights/`,
 //! made by `replay train`, see `fuse/weights/README.md`); `{"weights": "FILE"}` (or replay's
 //! `--weights FILE`) takes a safetensors file instead, whose variant must fit the set.
@@ -16,11 +18,14 @@ use super::{Family, Method, MethodEntry, Progress, apply_overrides};
 use crate::FuseError;
 use crate::image::DisparityImage;
 use crate::mfusenet::infer::{
-    DEFAULT_REFINE_REACH, DEFAULT_SUBPIXEL_FIT, DEFAULT_TILE_BUDGET_BYTES, Estimate, infer_with_confidence,
+    DEFAULT_REFINE_REACH, DEFAULT_SUBPIXEL_FIT, DEFAULT_TILE_BUDGET_BYTES, Estimate, Member, infer_fused,
+    infer_with_confidence,
 };
 use crate::mfusenet::input::{
-    InputSpec, input_volumes_below, ordered_neighbours, summed, summed_input_volume_below, views_for,
+    InputSpec, ViewGroup, input_volumes_below, ordered_neighbours, summed, summed_input_volume_below, view_groups,
+    views_for,
 };
+use crate::volume::Neighbour;
 use crate::mfusenet::pyramid::{
     Band, DEFAULT_MAX_DIRECT_DISPARITIES, band_minimum, downsampled, pyramid_factor, reduced_range,
 };
@@ -126,6 +131,14 @@ pub struct MFuseNetConfig {
     /// (64 → 1/2, 96 → 1/3, 128 → 1/4), then the minimum of the summed input costs at full size
     /// within ± factor px of its answer. `replay` logs the level and range the network saw.
     pub max_direct_disparities: usize,
+    /// Every cross and opposite pair of the set, not only the nearest: each baseline's cross and
+    /// pairs (diagonal ones too) go to the network that takes them
+    /// (`mfusenet::input::view_groups`), and their logits are averaged with a vote per view
+    /// before the estimate is read; it is refined and filtered with the nearest group's costs.
+    /// `false`: one network on the nearest cross, pair or view, as the paper. Sets that one
+    /// network covers run the same either way; a view without its opposite stays unused (the run
+    /// summary lists the networks and the unused views).
+    pub every_view: bool,
 }
 
 impl Default for MFuseNetConfig {
@@ -146,6 +159,7 @@ impl Default for MFuseNetConfig {
             room_below: None,
             flips: false,
             max_direct_disparities: DEFAULT_MAX_DIRECT_DISPARITIES,
+            every_view: true,
         }
     }
 }
@@ -176,6 +190,10 @@ impl Loaded {
         })
     }
 }
+
+/// The networks of a set that several cover: each group with its loaded network, and the
+/// neighbours no group takes.
+type ViewPlan<'p, 'n> = (Vec<(ViewGroup<'p>, &'n Loaded)>, Vec<&'p Neighbour>);
 
 /// MFuseNet with its networks loaded.
 pub struct MFuseNet {
@@ -292,6 +310,19 @@ impl Method for MFuseNet {
         };
         let (min_disparity, num_disparities) = widened_range(range).unwrap_or(range);
         let room_below = self.config.room_below.unwrap_or(loaded.context_below);
+        if let Some(serde_json::Value::Object(plan)) = self.plan_details(problem) {
+            let mut out = serde_json::json!({
+                "network": "fused",
+                "scale": format!("1/{factor}"),
+                "network_width": width,
+                "network_height": height,
+                "full_size_band_px": (factor > 1).then_some(factor),
+            });
+            if let serde_json::Value::Object(map) = &mut out {
+                map.extend(plan);
+            }
+            return out;
+        }
         serde_json::json!({
             "network": match loaded.views { 1 => "stereo", 2 => "three-view", _ => "five-view" },
             "scale": format!("1/{factor}"),
@@ -314,6 +345,49 @@ struct NetworkEstimate {
 }
 
 impl MFuseNet {
+    /// The networks for a set that more than one network covers (`every_view`, shipped
+    /// weights): the groups, each with its loaded network, and the neighbours no group takes.
+    /// `None`: one network, [`Self::network_for`]'s.
+    fn view_plan<'p>(&self, problem: &'p Problem) -> Option<ViewPlan<'p, '_>> {
+        if self.stereo || !self.config.every_view || self.config.weights.is_some() {
+            return None;
+        }
+        let available: Vec<usize> = self.networks.iter().map(|n| n.views).collect();
+        let (groups, rest) = view_groups(problem, &available);
+        if groups.len() < 2 {
+            return None;
+        }
+        let groups = groups
+            .into_iter()
+            .filter_map(|g| {
+                let loaded = self.networks.iter().find(|n| n.views == g.views)?;
+                Some((g, loaded))
+            })
+            .collect();
+        Some((groups, rest))
+    }
+
+    /// What the run says about its networks: each group's variant and views.
+    fn plan_details(&self, problem: &Problem) -> Option<serde_json::Value> {
+        let (groups, rest) = self.view_plan(problem)?;
+        let name = |views: usize| match views {
+            1 => "stereo",
+            2 => "three-view",
+            _ => "five-view",
+        };
+        Some(serde_json::json!({
+            "networks": groups
+                .iter()
+                .map(|(g, _)| format!(
+                    "{} [{}]",
+                    name(g.views),
+                    g.neighbours.iter().map(|n| n.role.as_str()).collect::<Vec<_>>().join(", ")
+                ))
+                .collect::<Vec<_>>(),
+            "unused": rest.iter().map(|n| n.role.clone()).collect::<Vec<_>>(),
+        }))
+    }
+
     /// The configuration's checks, before minutes of work.
     fn validate_config(&self) -> Result<(), FuseError> {
         if !(self.config.refine_reach >= 0.0 && self.config.refine_reach.is_finite()) {
@@ -367,6 +441,9 @@ impl MFuseNet {
             }
             None => problem,
         };
+        if let Some(plan) = self.view_plan(problem) {
+            return self.fused_estimate(problem, requested, plan, progress);
+        }
         let loaded = self.network_for(problem)?;
         let net = &loaded.net;
         let neighbours = ordered_neighbours(problem, net.views)?;
@@ -408,6 +485,87 @@ impl MFuseNet {
         })?;
         drop(volumes);
         // Back into the requested range when it was widened.
+        let (low, high) = (requested.0 as f32, requested.0 as f32 + (requested.1 - 1) as f32);
+        Ok(NetworkEstimate {
+            disparity: DisparityImage {
+                width: problem.reference.width,
+                height: problem.reference.height,
+                data: data.into_iter().map(|d| (d + origin).clamp(low, high)).collect(),
+                confidence: Some(confidence),
+            },
+            costs,
+            first,
+        })
+    }
+
+    /// [`Self::network_estimate`] with several networks (`plan`, [`Self::view_plan`]): every
+    /// group's volumes, the networks' logits fused ([`infer_fused`]). How the estimate is read
+    /// (context, refinement, locking) follows the first group's network, the nearest
+    /// baseline's.
+    fn fused_estimate(
+        &self,
+        problem: &Problem,
+        requested: (i32, usize),
+        (groups, _unused): ViewPlan<'_, '_>,
+        progress: Progress<'_>,
+    ) -> Result<NetworkEstimate, FuseError> {
+        let Some((_, primary)) = groups.first() else {
+            return Err(FuseError::Config {
+                field: "neighbours",
+                value: String::new(),
+                reason: "no network takes any of the set's neighbours",
+            });
+        };
+        let room_below = self.config.room_below.unwrap_or(primary.context_below);
+        let mut neighbours: Vec<&Neighbour> = Vec::new();
+        let mut members = Vec::new();
+        for (group, loaded) in &groups {
+            let start = neighbours.len();
+            neighbours.extend(group.neighbours.iter().copied());
+            members.push(Member {
+                net: &loaded.net,
+                inputs: (start..neighbours.len()).collect(),
+            });
+        }
+        let (volumes, first) = input_volumes_below(
+            problem,
+            &neighbours,
+            self.config.input.unwrap_or(primary.input),
+            room_below,
+            &|| {},
+        )?;
+        let origin = first as f32 - volumes.first().map_or(0, |v| v.min_disparity) as f32;
+        // The estimate is refined and filtered with the nearest group's costs: the farther
+        // views' costs, summed in or taken side by side, raised AvgErr on the toy line of five
+        // and on Middlebury's lines (docs/experiments.md).
+        let costs = summed(&volumes[..members.first().map_or(0, |m| m.inputs.len())])
+        .ok_or(FuseError::Config {
+            field: "neighbours",
+            value: volumes.len().to_string(),
+            reason: "the network's inputs need at least one neighbour volume, all of one shape",
+        })?;
+        progress(0.1);
+        let (data, confidence) = infer_fused(
+            &members,
+            &volumes,
+            &costs,
+            self.config.tile_budget_mib << 20,
+            Estimate {
+                window: self.config.window,
+                refine: self.config.refine.unwrap_or(primary.refine),
+                refine_reach: self.config.refine_reach,
+                fit: self.config.subpixel_fit,
+                locking: self
+                    .config
+                    .locking
+                    .or(primary.locking)
+                    .map(|curve| curve.damped(self.config.locking_strength)),
+                context_below: usize::try_from(i64::from(problem.min_disparity) - first).unwrap_or(0),
+                flips: false,
+            },
+            &|f| progress(0.1 + 0.9 * f),
+        )?;
+        drop(volumes);
         let (low, high) = (requested.0 as f32, requested.0 as f32 + (requested.1 - 1) as f32);
         Ok(NetworkEstimate {
             disparity: DisparityImage {
@@ -582,7 +740,7 @@ mod tests {
             reference: view([0, 0]),
             neighbours: offsets
                 .iter()
-                .map(|&offset| crate::volume::Neighbour {
+                .map(|&offset| Neighbour {
                     role: match offset {
                         [-1, 0] => "left",
                         [1, 0] => "right",

@@ -234,6 +234,119 @@ pub fn infer_with_confidence(
     Ok((disparity, confidence))
 }
 
+/// One network's part in [`infer_fused`]: the network and the indices of its input volumes,
+/// in its input order.
+pub struct Member<'a> {
+    /// The network.
+    pub net: &'a Network,
+    /// Indices into the volumes, in the network's input order.
+    pub inputs: Vec<usize>,
+}
+
+/// [`infer_with_confidence`] for several networks over one set, each on its own neighbours'
+/// volumes (`members`), their logits averaged (each weighted by its number of inputs, so that
+/// every view has one vote) before the estimate is read; the refinement reads `costs` (the
+/// set's fused costs, of the volumes' shape). Test-time flips are not applied here.
+pub fn infer_fused(
+    members: &[Member<'_>],
+    volumes: &[CostVolume<u8>],
+    costs: &CostVolume<u16>,
+    budget_bytes: usize,
+    estimate: Estimate,
+    progress: &dyn Fn(f32),
+) -> Result<(Vec<f32>, Vec<f32>), Error> {
+    let Some(first) = volumes.first() else {
+        return Err(Error::InputCount { expected: 1, got: 0 });
+    };
+    let (w, h, nd) = (first.width, first.height, first.num_disparities);
+    if costs.shape() != first.shape() {
+        return Err(Error::InputShape {
+            shape: [1, costs.num_disparities, costs.height, costs.width],
+        });
+    }
+    for v in volumes {
+        if (v.width, v.height, v.num_disparities) != (w, h, nd) || v.data.len() != w * h * nd || w * h * nd == 0 {
+            return Err(Error::InputShape {
+                shape: [1, v.num_disparities, v.height, v.width],
+            });
+        }
+    }
+    for m in members {
+        if m.inputs.len() != m.net.views || m.inputs.iter().any(|i| *i >= volumes.len()) {
+            return Err(Error::InputCount {
+                expected: m.net.views,
+                got: m.inputs.iter().filter(|i| **i < volumes.len()).count(),
+            });
+        }
+    }
+    let skip = estimate.context_below;
+    if skip >= nd {
+        return Err(Error::ContextBelow {
+            context_below: skip,
+            num_disparities: nd,
+        });
+    }
+    let widest = members.iter().map(|m| m.net.views).max().unwrap_or(1);
+    let (dp, hp, wp) = (round4(nd), round4(h), round4(w));
+    let whole = dp * hp * wp * bytes_per_voxel(widest) <= budget_bytes;
+    let (row_tiles, column_tiles) = if whole {
+        (axis_tiles(hp, hp, 0), axis_tiles(wp, wp, 0))
+    } else {
+        let side = tile_side(widest, nd, budget_bytes) + 2 * HALO;
+        plan_tiles(hp, wp, side * side, HALO)
+    };
+    let tiles: Vec<_> = row_tiles
+        .iter()
+        .flat_map(|row| column_tiles.iter().map(move |column| (row.clone(), column.clone())))
+        .collect();
+    let total_weight: f32 = members.iter().map(|m| m.net.views as f32).sum();
+    let mut disparity = vec![0f32; w * h];
+    let mut confidence = vec![0f32; w * h];
+    let steps = (tiles.len() * members.len()).max(1);
+    for (t, ((rows, region_rows), (columns, region_columns))) in tiles.iter().enumerate() {
+        let (y0, y1, x0, x1) = (rows.start, rows.end, columns.start, columns.end);
+        let (ry0, rx0) = (region_rows.start, region_columns.start);
+        let (rh, rw) = (region_rows.len(), region_columns.len());
+        let (core_rows, core_columns) = (y0 - ry0..y1 - ry0, x0 - rx0..x1 - rx0);
+        let (ch, cw) = (core_rows.len(), core_columns.len());
+        // The members' logits over the core, `[d][row][column]`, weighted and summed.
+        let mut fused = vec![0f32; dp * ch * cw];
+        for (done, m) in members.iter().enumerate() {
+            let inputs: Vec<Tensor> = m
+                .inputs
+                .iter()
+                .map(|&i| super::input::to_tensor(&volumes[i], (ry0, rx0), (rh, rw), dp))
+                .collect();
+            let (logits, (oy, ox)) = m.net.logits_within(&inputs, &(core_rows.clone(), core_columns.clone()))?;
+            drop(inputs);
+            let core = logits.crop_hw(
+                core_rows.start - oy..core_rows.end - oy,
+                core_columns.start - ox..core_columns.end - ox,
+            );
+            drop(logits);
+            let weight = m.net.views as f32 / total_weight;
+            fused.iter_mut().zip(&core.data).for_each(|(f, l)| *f += weight * l);
+            progress((t * members.len() + done + 1) as f32 / steps as f32);
+        }
+        let plane = ch * cw;
+        for y in y0..y1.min(h) {
+            for x in x0..x1.min(w) {
+                let at = (y - y0) * cw + (x - x0);
+                let column = |d: usize| fused[d * plane + at];
+                let mut value = expected_disparity_from(column, nd, skip, estimate.window);
+                if estimate.refine {
+                    let pixel = costs.costs(x, y);
+                    let cost = |d: usize| f64::from(pixel[d]);
+                    value = refined(value, cost, nd, estimate.refine_reach, estimate.fit, estimate.locking);
+                }
+                disparity[y * w + x] = (first.min_disparity as f64 + value) as f32;
+                confidence[y * w + x] = peak_margin(column, nd, skip);
+            }
+        }
+    }
+    Ok((disparity, confidence))
+}
+
 /// How a pixel's disparity is read from the network's distribution. The default is the
 /// paper's soft-argmin over the whole range (with, for `refine`, the shipped reach and fit).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -495,6 +608,59 @@ mod tests {
         let side = tile_side(4, 36, DEFAULT_TILE_BUDGET_BYTES) + 2 * HALO;
         let (rows, columns) = plan_tiles(540, 960, side * side, HALO);
         assert_eq!((rows.len(), columns.len()), (2, 3));
+    }
+
+    #[test]
+    fn fused_networks_average_their_logits_and_equal_one_network_alone() {
+        let mut a = Network::init(2, 7);
+        let mut b = Network::init(2, 8);
+        for net in [&mut a, &mut b] {
+            for w in &mut net.classify.weight {
+                *w *= 40.0;
+            }
+        }
+        let (w, h, nd) = (60, 44, 10);
+        let volume = |seed: usize, offset: [i32; 2]| {
+            CostVolume::from_fn([w, h, nd], 3, ("v", offset), move |x, y, d| {
+                ((x * 7 + y * 3 + d * (11 + seed) + seed * 5 + (x * y + d) % 13) as u8) % 97
+            })
+        };
+        let volumes = [volume(0, [-1, 0]), volume(1, [1, 0]), volume(2, [-2, 0]), volume(3, [2, 0])];
+        let refine = Estimate {
+            refine: true,
+            ..Estimate::default()
+        };
+        let near = crate::mfusenet::input::summed(&volumes[..2]).unwrap_or_else(|| panic!("one shape"));
+        // One member: the single network's answer, refined with the same costs.
+        let alone = infer_with_confidence(&a, &volumes[..2], usize::MAX, refine, &|_| {}).unwrap_or_else(|e| panic!("{e}"));
+        let member = |net, inputs| Member { net, inputs };
+        let one = infer_fused(&[member(&a, vec![0, 1])], &volumes, &near, usize::MAX, refine, &|_| {})
+            .unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(one, alone);
+        // Two members: the estimate from the mean of their logits, tiled or not.
+        let members = [member(&a, vec![0, 1]), member(&b, vec![2, 3])];
+        let fused = infer_fused(&members, &volumes, &near, usize::MAX, Estimate::default(), &|_| {})
+            .unwrap_or_else(|e| panic!("{e}"));
+        let logits = |net: &Network, v: &[CostVolume<u8>]| {
+            let inputs: Vec<Tensor> = v.iter().map(|v| super::super::input::to_tensor(v, (0, 0), (h, w), 12)).collect();
+            net.logits(&inputs).unwrap_or_else(|e| panic!("{e}"))
+        };
+        let (la, lb) = (logits(&a, &volumes[..2]), logits(&b, &volumes[2..]));
+        let plane = h * w;
+        for (y, x) in [(0, 0), (20, 31), (43, 59)] {
+            let column = |d: usize| 0.5 * (la.data[d * plane + y * w + x] + lb.data[d * plane + y * w + x]);
+            let expected = 3.0 + expected_disparity_from(column, nd, 0, None);
+            assert!((f64::from(fused.0[y * w + x]) - expected).abs() < 1e-4, "({y}, {x})");
+        }
+        let differs = |a: &[f32], b: &[f32]| a.iter().zip(b).filter(|(a, b)| (*a - *b).abs() > 0.01).count();
+        let first_alone = infer(&a, &volumes[..2], usize::MAX, Estimate::default(), &|_| {}).unwrap_or_else(|e| panic!("{e}"));
+        assert!(differs(&fused.0, &first_alone) > 100, "the second network changed nothing");
+        let budget = (16 + 2 * HALO).pow(2) * 12 * bytes_per_voxel(2);
+        let tiled = infer_fused(&members, &volumes, &near, budget, Estimate::default(), &|_| {})
+            .unwrap_or_else(|e| panic!("{e}"));
+        assert!(fused.0.iter().zip(&tiled.0).all(|(a, b)| (a - b).abs() < 1e-3));
+        // A member whose inputs are not the network's count is refused.
+        assert!(infer_fused(&[member(&a, vec![0])], &volumes, &near, usize::MAX, refine, &|_| {}).is_err());
     }
 
     #[test]

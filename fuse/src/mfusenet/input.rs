@@ -89,6 +89,55 @@ pub fn ordered_neighbours(problem: &Problem, views: usize) -> Result<Vec<&Neighb
     })
 }
 
+/// One network's part of a set: which variant (by its number of inputs) and the neighbours it
+/// takes, in its input order.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ViewGroup<'a> {
+    /// Inputs of the network: 4 (five-view) or 2 (three-view).
+    pub views: usize,
+    /// The neighbours, in the network's order.
+    pub neighbours: Vec<&'a Neighbour>,
+}
+
+/// The set's neighbours placed in the networks that take them, nearest baselines first: at each
+/// multiple `k` of the baseline, the cross `(±k, 0), (0, ±k)` for the five-view network (when
+/// `available`), else its horizontal and vertical opposite pairs for the three-view one, then
+/// the diagonal pairs `(−k, −k), (k, k)` and `(−k, k), (k, −k)` for the three-view one. What no
+/// group takes (a view without its opposite, offsets such as `(2, 1)`) is returned apart: the
+/// stereo network on such a view did not move Middlebury's lines (docs/experiments.md).
+pub fn view_groups<'a>(problem: &'a Problem, available: &[usize]) -> (Vec<ViewGroup<'a>>, Vec<&'a Neighbour>) {
+    let mut left: Vec<&Neighbour> = problem.neighbours.iter().collect();
+    let has = |left: &Vec<&Neighbour>, offsets: &[[i32; 2]]| offsets.iter().all(|o| left.iter().any(|n| n.offset == *o));
+    let reach = problem
+        .neighbours
+        .iter()
+        .map(|n| n.offset[0].abs().max(n.offset[1].abs()))
+        .max()
+        .unwrap_or(0);
+    let mut groups = Vec::new();
+    let mut group = |views: usize, offsets: &[[i32; 2]], left: &mut Vec<&'a Neighbour>| {
+        let neighbours = offsets
+            .iter()
+            .filter_map(|o| left.iter().position(|n| n.offset == *o).map(|i| left.remove(i)))
+            .collect();
+        groups.push(ViewGroup { views, neighbours });
+    };
+    for k in 1..=reach {
+        let cross = [[-k, 0], [k, 0], [0, -k], [0, k]];
+        if available.contains(&4) && has(&left, &cross) {
+            group(4, &cross, &mut left);
+        }
+        if available.contains(&2) {
+            for pair in [[[-k, 0], [k, 0]], [[0, -k], [0, k]], [[-k, -k], [k, k]], [[-k, k], [k, -k]]] {
+                if has(&left, &pair) {
+                    group(2, &pair, &mut left);
+                }
+            }
+        }
+    }
+    (groups, left)
+}
+
 /// The grid offsets of the neighbours whose volumes these are (`None` if one is not a single
 /// neighbour's).
 pub fn neighbour_offsets<'a>(volumes: impl IntoIterator<Item = &'a CostVolume<u8>>) -> Option<Vec<[i32; 2]>> {
@@ -324,6 +373,72 @@ pub fn to_tensor(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn every_cross_and_opposite_pair_goes_to_its_network_nearest_first() {
+        let image = Image {
+            width: 4,
+            height: 4,
+            channels: 1,
+            data: vec![0; 16],
+        };
+        let problem = |offsets: &[[i32; 2]]| Problem {
+            reference: image.clone(),
+            neighbours: offsets
+                .iter()
+                .map(|o| Neighbour {
+                    role: format!("{o:?}"),
+                    image: image.clone(),
+                    offset: *o,
+                    baseline_ratio: 1.0,
+                })
+                .collect(),
+            min_disparity: 0,
+            num_disparities: 4,
+        };
+        let groups = |offsets: &[[i32; 2]], available: &[usize]| {
+            let p = problem(offsets);
+            let (groups, rest) = view_groups(&p, available);
+            (
+                groups
+                    .iter()
+                    .map(|g| (g.views, g.neighbours.iter().map(|n| n.offset).collect::<Vec<_>>()))
+                    .collect::<Vec<_>>(),
+                rest.iter().map(|n| n.offset).collect::<Vec<_>>(),
+            )
+        };
+        // A line of five: the near pair, then the far one.
+        let line = [[2, 0], [-1, 0], [1, 0], [-2, 0]];
+        assert_eq!(
+            groups(&line, &[1, 2, 4]),
+            (vec![(2, vec![[-1, 0], [1, 0]]), (2, vec![[-2, 0], [2, 0]])], vec![])
+        );
+        // A 3 × 3 grid: the cross in the five-view network's order, then the diagonal pairs.
+        let grid = [[-1, -1], [0, -1], [1, -1], [1, 0], [1, 1], [0, 1], [-1, 1], [-1, 0]];
+        assert_eq!(
+            groups(&grid, &[1, 2, 4]),
+            (
+                vec![
+                    (4, vec![[-1, 0], [1, 0], [0, -1], [0, 1]]),
+                    (2, vec![[-1, -1], [1, 1]]),
+                    (2, vec![[-1, 1], [1, -1]])
+                ],
+                vec![]
+            )
+        );
+        // Without the five-view network the cross is two pairs.
+        assert_eq!(groups(&grid[..0], &[2]), (vec![], vec![]));
+        let cross = [[-1, 0], [1, 0], [0, -1], [0, 1]];
+        assert_eq!(
+            groups(&cross, &[2]),
+            (vec![(2, vec![[-1, 0], [1, 0]]), (2, vec![[0, -1], [0, 1]])], vec![])
+        );
+        // Middlebury's line from view1: the farther views have no opposite.
+        assert_eq!(
+            groups(&[[-1, 0], [1, 0], [2, 0], [3, 0]], &[1, 2, 4]),
+            (vec![(2, vec![[-1, 0], [1, 0]])], vec![[2, 0], [3, 0]])
+        );
+    }
     use crate::image::Image;
 
     /// A textured fronto-parallel plane at (signed) disparity `d` seen from the left and right.
