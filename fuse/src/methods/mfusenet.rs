@@ -131,8 +131,8 @@ pub struct MFuseNetConfig {
     /// (64 → 1/2, 96 → 1/3, 128 → 1/4), then the minimum of the summed input costs at full size
     /// within ± factor px of its answer. `replay` logs the level and range the network saw.
     pub max_direct_disparities: usize,
-    /// Every cross and opposite pair of the set, not only the nearest: each baseline's cross and
-    /// pairs (diagonal ones too) go to the network that takes them
+    /// Every cross and opposite pair of the set, not only the nearest: each baseline's cross or
+    /// its horizontal and vertical pairs go to the network that takes them
     /// (`mfusenet::input::view_groups`), and their logits are averaged with a vote per view
     /// before the estimate is read; it is refined and filtered with the nearest group's costs.
     /// `false`: one network on the nearest cross, pair or view, as the paper. Sets that one
