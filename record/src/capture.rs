@@ -609,6 +609,7 @@ impl SimulationConfig {
             SceneKind::Random => "random",
             SceneKind::Clutter => "clutter",
             SceneKind::Bin => "bin",
+            SceneKind::Thin => "thin",
         }
     }
 }
@@ -721,8 +722,12 @@ mod tests {
     fn every_station_of_every_family_is_reachable_by_construction() {
         // Seeds whose camera was once drawn out of the arm's reach (1.32–1.37 m from the base),
         // then the highest of the first seeds of each family, with eight sets on the widest rig.
-        let mut cases = vec![(SceneKind::Random, 7004), (SceneKind::Random, 3101), (SceneKind::Random, 3104)];
-        for kind in [SceneKind::Random, SceneKind::Clutter, SceneKind::Bin] {
+        let mut cases = vec![
+            (SceneKind::Random, 7004),
+            (SceneKind::Random, 3101),
+            (SceneKind::Random, 3104),
+        ];
+        for kind in [SceneKind::Random, SceneKind::Clutter, SceneKind::Bin, SceneKind::Thin] {
             let highest = (0..200)
                 .max_by(|a, b| {
                     let h = |s| Scene::build(kind, s).camera_height_m;

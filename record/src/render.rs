@@ -558,9 +558,9 @@ impl PreparedScene {
 
     /// Whether any of `objects` blocks the ray from `origin` along `dir` before `t_max`.
     fn occluded_among(&self, objects: impl Iterator<Item = usize>, origin: &V3, dir: &V3, t_max: f64) -> bool {
-        objects
-            .map(|i| &self.objects[i])
-            .any(|object| bound_overlaps(object, origin, dir, t_max) && hit_distance(object, origin, dir, t_max).is_some())
+        objects.map(|i| &self.objects[i]).any(|object| {
+            bound_overlaps(object, origin, dir, t_max) && hit_distance(object, origin, dir, t_max).is_some()
+        })
     }
 
     fn trace(&self, origin: &V3, dir: &V3, bounces_left: u32) -> V3 {

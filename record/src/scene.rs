@@ -39,6 +39,10 @@ pub enum SceneKind {
     /// Bin picking: parts (some of metal) heaped in a tote whose walls hide much of them; never
     /// used for training (the held-out family).
     Bin,
+    /// Thin structures before a far floor: rods, wires, lamp arms, slats and leaves 1–6 px wide
+    /// at 640 px, 20+ px of disparity in front of it, and a near board whose occluded strip is
+    /// wider than a training crop; never used for training (held out, as `bin`).
+    Thin,
 }
 
 /// A texture: a function from surface coordinates (m) to albedo.
@@ -338,6 +342,7 @@ impl Scene {
             SceneKind::Random => random_scene(seed),
             SceneKind::Clutter => clutter_scene(seed),
             SceneKind::Bin => bin_scene(seed),
+            SceneKind::Thin => thin_scene(seed),
         }
     }
 
@@ -884,6 +889,170 @@ fn clutter_scene(seed: u64) -> Scene {
     scene
 }
 
+/// `thin`: what coarse levels and small crops lose. A far floor (plain in a third of the scenes),
+/// and between it and the camera: rods and wires at any angle, two or three lamp arms (a post
+/// and two jointed segments), a row of parallel slats, a handful of leaves (thin tilted plates)
+/// and one matte board near the camera, whose occluded strip on the floor is 20–40 px wide at
+/// 640 px. Each thin part's width is drawn as 1–6 px at its depth in a 640-px-wide 60° view
+/// (0.7–4 px at 448, 3–18 px at 1920): `diameter = depth × U(1.8, 11) / 1000`. Never used for
+/// training.
+fn thin_scene(seed: u64) -> Scene {
+    let mut rng = SplitMix64::new(seed ^ 0x7468_696e);
+    let camera_height_m = camera_height(&mut rng, 0.55, 0.93);
+    let mut scene = Scene::empty(SceneKind::Thin, seed, camera_height_m);
+    let floor = if rng.below(3) == 0 {
+        Material::matte(
+            "plain_floor",
+            Texture::Noise {
+                a: [0.45, 0.46, 0.44],
+                b: [0.52, 0.52, 0.5],
+                scale_m: rng.range(0.02, 0.2),
+                anisotropy: 1.0,
+                seed: rng.next_u64(),
+            },
+        )
+    } else {
+        random_material(&mut rng, "floor", 20)
+    };
+    let floor = scene.add_material(floor);
+    table(&mut scene, floor);
+    scene.add_room();
+    let h = camera_height_m;
+    let c = WORK_AREA_CENTER_M;
+    // A thin part's radius (m) at height `z` above the floor: 1–6 px wide at 640 px.
+    let radius_at = |rng: &mut SplitMix64, z: f64| 0.5 * (h - z) * rng.range(0.0018, 0.011);
+    // A place at height `z` within the middle of the 16:9 60° view (the camera looks down at
+    // the work-area centre with its x along the world's x).
+    let place = |rng: &mut SplitMix64, z: f64| {
+        let depth = h - z;
+        (
+            c[0] + rng.range(-0.3, 0.3) * depth,
+            c[1] + rng.range(-0.17, 0.17) * depth,
+        )
+    };
+    let rods = rng.range_usize(4, 10);
+    for index in 0..rods {
+        let material = random_material(&mut rng, &format!("rod_material_{index}"), 5);
+        let material = scene.add_material(material);
+        let z = h * rng.range(0.2, 0.65);
+        let (x, y) = place(&mut rng, z);
+        let (yaw, pitch) = (rng.range(0.0, std::f64::consts::TAU), rng.range(-0.5, 0.5));
+        let radius = radius_at(&mut rng, z);
+        scene.add(
+            &format!("rod_{index}"),
+            Shape::cylinder(
+                [x, y, z],
+                [yaw.cos() * pitch.cos(), yaw.sin() * pitch.cos(), pitch.sin()],
+                radius,
+                h * rng.range(0.15, 0.45),
+            ),
+            material,
+        );
+    }
+    let lamps = rng.range_usize(2, 4);
+    for index in 0..lamps {
+        let material = random_material(&mut rng, &format!("lamp_material_{index}"), 0);
+        let material = scene.add_material(material);
+        // A post from the floor, then two segments each turning at a joint.
+        let post = h * rng.range(0.25, 0.5);
+        let (x, y) = place(&mut rng, 0.0);
+        let mut joint = [x, y, post];
+        let radius = radius_at(&mut rng, post);
+        scene.add(
+            &format!("lamp_{index}_post"),
+            Shape::cylinder([x, y, post / 2.0], [0.0, 0.0, 1.0], radius, post / 2.0),
+            material,
+        );
+        for segment in 0..2 {
+            let (yaw, rise) = (rng.range(0.0, std::f64::consts::TAU), rng.range(-0.3, 0.6));
+            let length = h * rng.range(0.12, 0.25);
+            let axis = [yaw.cos() * rise.cos(), yaw.sin() * rise.cos(), rise.sin()];
+            let end = [
+                joint[0] + axis[0] * length,
+                joint[1] + axis[1] * length,
+                (joint[2] + axis[2] * length).clamp(0.05 * h, 0.75 * h),
+            ];
+            let mid = [
+                (joint[0] + end[0]) / 2.0,
+                (joint[1] + end[1]) / 2.0,
+                (joint[2] + end[2]) / 2.0,
+            ];
+            let along = [end[0] - joint[0], end[1] - joint[1], end[2] - joint[2]];
+            let half = 0.5 * (along[0] * along[0] + along[1] * along[1] + along[2] * along[2]).sqrt();
+            let radius = radius_at(&mut rng, mid[2]);
+            scene.add(
+                &format!("lamp_{index}_arm_{segment}"),
+                Shape::cylinder(mid, along, radius, half),
+                material,
+            );
+            scene.add(
+                &format!("lamp_{index}_joint_{segment}"),
+                Shape::sphere(joint, 1.5 * radius),
+                material,
+            );
+            joint = end;
+        }
+    }
+    // Slats: a row of parallel thin bars at one height, a gap of a few widths between them.
+    let material = random_material(&mut rng, "slat_material", 5);
+    let material = scene.add_material(material);
+    let z = h * rng.range(0.3, 0.6);
+    let (x, y) = place(&mut rng, z);
+    let (yaw, width) = (rng.range(0.0, 180.0), 2.0 * radius_at(&mut rng, z));
+    let (gap, length) = (width * rng.range(2.0, 6.0), h * rng.range(0.1, 0.25));
+    for index in 0..rng.range_usize(5, 12) {
+        let offset = index as f64 * (width + gap);
+        let (dx, dy) = (offset * (yaw.to_radians()).cos(), offset * (yaw.to_radians()).sin());
+        scene.add(
+            &format!("slat_{index}"),
+            Shape::Box {
+                center: [x + dx, y + dy, z],
+                half_extents_m: [width / 2.0, length, width / 2.0],
+                yaw_deg: yaw,
+                tilt_deg: 0.0,
+            },
+            material,
+        );
+    }
+    // Leaves: thin plates a few pixels across, tilted, floating.
+    for index in 0..rng.range_usize(4, 10) {
+        let material = random_material(&mut rng, &format!("leaf_material_{index}"), 10);
+        let material = scene.add_material(material);
+        let z = h * rng.range(0.15, 0.65);
+        let (x, y) = place(&mut rng, z);
+        let size = 4.0 * radius_at(&mut rng, z);
+        scene.add(
+            &format!("leaf_{index}"),
+            Shape::Box {
+                center: [x, y, z],
+                half_extents_m: [size, 0.5 * size, 0.1 * size],
+                yaw_deg: rng.range(0.0, 90.0),
+                tilt_deg: rng.range(-50.0, 50.0),
+            },
+            material,
+        );
+    }
+    // One board near the camera, matte and textured: the floor strip it hides from one side is
+    // its disparity jump wide (20–40 px at 640 px).
+    let texture = random_texture(&mut rng, 10);
+    let material = scene.add_material(Material::matte("board_material", texture));
+    let z = h * rng.range(0.45, 0.6);
+    let (x, y) = place(&mut rng, z);
+    scene.add(
+        "board",
+        Shape::Box {
+            center: [x, y, z],
+            half_extents_m: [0.02 * h, 0.12 * h, 0.005 * h],
+            yaw_deg: rng.range(0.0, 90.0),
+            tilt_deg: 0.0,
+        },
+        material,
+    );
+    scene.ambient = [rng.range(0.1, 0.3); 3];
+    scene.add_lights(&mut rng);
+    scene
+}
+
 /// `bin`: bin picking. A plastic tote (floor and four walls 12–25 cm high) on a table, 10–30
 /// parts heaped in it (boxes, cylinders, balls; some of metal), the camera 0.5–0.9 m above the
 /// table: the walls hide much of the floor from one view or another. Never used for training.
@@ -1036,6 +1205,39 @@ mod tests {
             assert!(bin.objects.iter().filter(|o| o.name.starts_with("part_")).count() >= 10);
         }
         assert_ne!(Scene::build(SceneKind::Bin, 1), Scene::build(SceneKind::Bin, 2));
+    }
+
+    #[test]
+    fn thin_scenes_hold_parts_one_to_six_pixels_wide_far_above_their_floor() {
+        // fx of a 640-px-wide 60° view.
+        let fx = 320.0 / 30f64.to_radians().tan();
+        for seed in 0..10 {
+            let scene = Scene::build(SceneKind::Thin, seed);
+            let h = scene.camera_height_m;
+            let mut thin = 0;
+            for o in &scene.objects {
+                let Shape::Cylinder { center, radius_m, .. } = &o.shape else {
+                    continue;
+                };
+                if o.name.starts_with("rod_") || o.name.contains("_arm_") {
+                    let width_px = fx * 2.0 * radius_m / (h - center[2]);
+                    assert!(
+                        (0.9..=6.1).contains(&width_px),
+                        "seed {seed} {}: {width_px:.2} px",
+                        o.name
+                    );
+                    thin += 1;
+                }
+            }
+            assert!(thin >= 8, "seed {seed}: {thin} thin parts");
+            for prefix in ["slat_", "leaf_", "board", "lamp_"] {
+                assert!(
+                    scene.objects.iter().any(|o| o.name.starts_with(prefix)),
+                    "seed {seed}: no {prefix}"
+                );
+            }
+        }
+        assert_ne!(Scene::build(SceneKind::Thin, 1), Scene::build(SceneKind::Thin, 2));
     }
 
     #[test]

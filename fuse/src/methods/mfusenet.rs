@@ -25,12 +25,12 @@ use crate::mfusenet::input::{
     InputSpec, ViewGroup, input_volumes_below, ordered_neighbours, summed, summed_input_volume_below, view_groups,
     views_for,
 };
-use crate::volume::Neighbour;
 use crate::mfusenet::pyramid::{
     Band, DEFAULT_MAX_DIRECT_DISPARITIES, band_minimum, downsampled, pyramid_factor, reduced_range,
 };
 use crate::mfusenet::{Network, weights};
 use crate::postprocess::{WeightedMedian, median3x3, scale_by_local_consistency, weighted_median_with_votes};
+use crate::volume::Neighbour;
 use crate::volume::{CostVolume, Problem};
 use crate::wta::{LockingCurve, SubpixelFit};
 
@@ -538,8 +538,7 @@ impl MFuseNet {
         // The estimate is refined and filtered with the nearest group's costs: the farther
         // views' costs, summed in or taken side by side, raised AvgErr on the toy line of five
         // and on Middlebury's lines (docs/experiments.md).
-        let costs = summed(&volumes[..members.first().map_or(0, |m| m.inputs.len())])
-        .ok_or(FuseError::Config {
+        let costs = summed(&volumes[..members.first().map_or(0, |m| m.inputs.len())]).ok_or(FuseError::Config {
             field: "neighbours",
             value: volumes.len().to_string(),
             reason: "the network's inputs need at least one neighbour volume, all of one shape",

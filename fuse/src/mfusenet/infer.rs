@@ -317,7 +317,9 @@ pub fn infer_fused(
                 .iter()
                 .map(|&i| super::input::to_tensor(&volumes[i], (ry0, rx0), (rh, rw), dp))
                 .collect();
-            let (logits, (oy, ox)) = m.net.logits_within(&inputs, &(core_rows.clone(), core_columns.clone()))?;
+            let (logits, (oy, ox)) = m
+                .net
+                .logits_within(&inputs, &(core_rows.clone(), core_columns.clone()))?;
             drop(inputs);
             let core = logits.crop_hw(
                 core_rows.start - oy..core_rows.end - oy,
@@ -625,14 +627,20 @@ mod tests {
                 ((x * 7 + y * 3 + d * (11 + seed) + seed * 5 + (x * y + d) % 13) as u8) % 97
             })
         };
-        let volumes = [volume(0, [-1, 0]), volume(1, [1, 0]), volume(2, [-2, 0]), volume(3, [2, 0])];
+        let volumes = [
+            volume(0, [-1, 0]),
+            volume(1, [1, 0]),
+            volume(2, [-2, 0]),
+            volume(3, [2, 0]),
+        ];
         let refine = Estimate {
             refine: true,
             ..Estimate::default()
         };
         let near = crate::mfusenet::input::summed(&volumes[..2]).unwrap_or_else(|| panic!("one shape"));
         // One member: the single network's answer, refined with the same costs.
-        let alone = infer_with_confidence(&a, &volumes[..2], usize::MAX, refine, &|_| {}).unwrap_or_else(|e| panic!("{e}"));
+        let alone =
+            infer_with_confidence(&a, &volumes[..2], usize::MAX, refine, &|_| {}).unwrap_or_else(|e| panic!("{e}"));
         let member = |net, inputs| Member { net, inputs };
         let one = infer_fused(&[member(&a, vec![0, 1])], &volumes, &near, usize::MAX, refine, &|_| {})
             .unwrap_or_else(|e| panic!("{e}"));
@@ -642,7 +650,10 @@ mod tests {
         let fused = infer_fused(&members, &volumes, &near, usize::MAX, Estimate::default(), &|_| {})
             .unwrap_or_else(|e| panic!("{e}"));
         let logits = |net: &Network, v: &[CostVolume<u8>]| {
-            let inputs: Vec<Tensor> = v.iter().map(|v| super::super::input::to_tensor(v, (0, 0), (h, w), 12)).collect();
+            let inputs: Vec<Tensor> = v
+                .iter()
+                .map(|v| super::super::input::to_tensor(v, (0, 0), (h, w), 12))
+                .collect();
             net.logits(&inputs).unwrap_or_else(|e| panic!("{e}"))
         };
         let (la, lb) = (logits(&a, &volumes[..2]), logits(&b, &volumes[2..]));
@@ -653,8 +664,12 @@ mod tests {
             assert!((f64::from(fused.0[y * w + x]) - expected).abs() < 1e-4, "({y}, {x})");
         }
         let differs = |a: &[f32], b: &[f32]| a.iter().zip(b).filter(|(a, b)| (*a - *b).abs() > 0.01).count();
-        let first_alone = infer(&a, &volumes[..2], usize::MAX, Estimate::default(), &|_| {}).unwrap_or_else(|e| panic!("{e}"));
-        assert!(differs(&fused.0, &first_alone) > 100, "the second network changed nothing");
+        let first_alone =
+            infer(&a, &volumes[..2], usize::MAX, Estimate::default(), &|_| {}).unwrap_or_else(|e| panic!("{e}"));
+        assert!(
+            differs(&fused.0, &first_alone) > 100,
+            "the second network changed nothing"
+        );
         let budget = (16 + 2 * HALO).pow(2) * 12 * bytes_per_voxel(2);
         let tiled = infer_fused(&members, &volumes, &near, budget, Estimate::default(), &|_| {})
             .unwrap_or_else(|e| panic!("{e}"));

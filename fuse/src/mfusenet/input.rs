@@ -107,7 +107,8 @@ pub struct ViewGroup<'a> {
 /// diagonal pair raised a simulated 3 × 3 grid's AvgErr by 5 %; docs/experiments.md).
 pub fn view_groups<'a>(problem: &'a Problem, available: &[usize]) -> (Vec<ViewGroup<'a>>, Vec<&'a Neighbour>) {
     let mut left: Vec<&Neighbour> = problem.neighbours.iter().collect();
-    let has = |left: &Vec<&Neighbour>, offsets: &[[i32; 2]]| offsets.iter().all(|o| left.iter().any(|n| n.offset == *o));
+    let has =
+        |left: &Vec<&Neighbour>, offsets: &[[i32; 2]]| offsets.iter().all(|o| left.iter().any(|n| n.offset == *o));
     let reach = problem
         .neighbours
         .iter()

@@ -190,11 +190,16 @@ impl TrainConfig {
                 "a multiple of 4 leaving at least 8 disparities",
             );
         }
-        if self.scenes.is_empty() || self.scenes.contains(&SceneKind::Bin) {
+        if self.scenes.is_empty()
+            || self
+                .scenes
+                .iter()
+                .any(|s| matches!(s, SceneKind::Bin | SceneKind::Thin))
+        {
             return bad(
                 "scenes",
                 format!("{:?}", self.scenes),
-                "one or more families, never `bin` (the held-out family, for checking generalisation)",
+                "one or more families, never `bin` or `thin` (the held-out families, for checking generalisation)",
             );
         }
         if !(0.0..0.5).contains(&self.exposure_jitter) {
