@@ -803,6 +803,25 @@ fn random_scene(seed: u64) -> Scene {
     scene
 }
 
+/// A far floor: in a third of the scenes plain (faint noise between `plain_a` and `plain_b`),
+/// else a random material.
+fn far_floor(rng: &mut SplitMix64, plain_a: Rgb, plain_b: Rgb) -> Material {
+    if rng.below(3) == 0 {
+        Material::matte(
+            "plain_floor",
+            Texture::Noise {
+                a: plain_a,
+                b: plain_b,
+                scale_m: rng.range(0.02, 0.2),
+                anisotropy: 1.0,
+                seed: rng.next_u64(),
+            },
+        )
+    } else {
+        random_material(rng, "floor", 20)
+    }
+}
+
 /// `clutter`: what real captures have and the `random` family rarely draws. A far floor (the
 /// start of the range; plain or faintly textured in a third of the scenes), stacks of boxes and
 /// upright cylinders reaching a quarter to a half of the way to the camera (depth jumps of many
@@ -812,20 +831,7 @@ fn clutter_scene(seed: u64) -> Scene {
     let mut rng = SplitMix64::new(seed ^ 0x636c_7574);
     let camera_height_m = camera_height(&mut rng, 0.5, 1.2);
     let mut scene = Scene::empty(SceneKind::Clutter, seed, camera_height_m);
-    let floor = if rng.below(3) == 0 {
-        Material::matte(
-            "plain_floor",
-            Texture::Noise {
-                a: [0.5, 0.5, 0.48],
-                b: [0.56, 0.55, 0.53],
-                scale_m: rng.range(0.02, 0.2),
-                anisotropy: 1.0,
-                seed: rng.next_u64(),
-            },
-        )
-    } else {
-        random_material(&mut rng, "floor", 20)
-    };
+    let floor = far_floor(&mut rng, [0.5, 0.5, 0.48], [0.56, 0.55, 0.53]);
     let floor = scene.add_material(floor);
     table(&mut scene, floor);
     scene.add_room();
@@ -900,20 +906,7 @@ fn thin_scene(seed: u64) -> Scene {
     let mut rng = SplitMix64::new(seed ^ 0x7468_696e);
     let camera_height_m = camera_height(&mut rng, 0.55, 0.93);
     let mut scene = Scene::empty(SceneKind::Thin, seed, camera_height_m);
-    let floor = if rng.below(3) == 0 {
-        Material::matte(
-            "plain_floor",
-            Texture::Noise {
-                a: [0.45, 0.46, 0.44],
-                b: [0.52, 0.52, 0.5],
-                scale_m: rng.range(0.02, 0.2),
-                anisotropy: 1.0,
-                seed: rng.next_u64(),
-            },
-        )
-    } else {
-        random_material(&mut rng, "floor", 20)
-    };
+    let floor = far_floor(&mut rng, [0.45, 0.46, 0.44], [0.52, 0.52, 0.5]);
     let floor = scene.add_material(floor);
     table(&mut scene, floor);
     scene.add_room();

@@ -344,6 +344,41 @@ struct NetworkEstimate {
     first: i64,
 }
 
+impl NetworkEstimate {
+    /// The network's `(disparity, confidence)` over `problem` (volumes from `first`, `origin`
+    /// the shift from the volumes' slices to disparities) clamped back into the `requested`
+    /// range `(min, count)` when it was widened.
+    fn new(
+        problem: &Problem,
+        requested: (i32, usize),
+        (data, confidence): (Vec<f32>, Vec<f32>),
+        origin: f32,
+        costs: CostVolume<u16>,
+        first: i64,
+    ) -> Self {
+        let (low, high) = (requested.0 as f32, requested.0 as f32 + (requested.1 - 1) as f32);
+        Self {
+            disparity: DisparityImage {
+                width: problem.reference.width,
+                height: problem.reference.height,
+                data: data.into_iter().map(|d| (d + origin).clamp(low, high)).collect(),
+                confidence: Some(confidence),
+            },
+            costs,
+            first,
+        }
+    }
+}
+
+/// [`summed`], or the error of a set without volumes of one shape.
+fn summed_or_error(volumes: &[CostVolume<u8>]) -> Result<CostVolume<u16>, FuseError> {
+    summed(volumes).ok_or(FuseError::Config {
+        field: "neighbours",
+        value: volumes.len().to_string(),
+        reason: "the network's inputs need at least one neighbour volume, all of one shape",
+    })
+}
+
 impl MFuseNet {
     /// The networks for a set that more than one network covers (`every_view`, shipped
     /// weights): the groups, each with its loaded network, and the neighbours no group takes.
@@ -463,39 +498,40 @@ impl MFuseNet {
             &volumes,
             self.config.tile_budget_mib << 20,
             Estimate {
-                window: self.config.window,
-                refine: self.config.refine.unwrap_or(loaded.refine),
-                refine_reach: self.config.refine_reach,
-                fit: self.config.subpixel_fit,
-                locking: self
-                    .config
-                    .locking
-                    .or(loaded.locking)
-                    .map(|curve| curve.damped(self.config.locking_strength)),
-                context_below: usize::try_from(i64::from(problem.min_disparity) - first).unwrap_or(0),
                 flips: self.config.flips,
+                ..self.estimate(loaded, problem, first)
             },
             &|f| progress(0.1 + 0.9 * f),
         )?;
         // The post-processing reads the neighbours' costs only summed.
-        let costs = summed(&volumes).ok_or(FuseError::Config {
-            field: "neighbours",
-            value: volumes.len().to_string(),
-            reason: "the network's inputs need at least one neighbour volume, all of one shape",
-        })?;
+        let costs = summed_or_error(&volumes)?;
         drop(volumes);
-        // Back into the requested range when it was widened.
-        let (low, high) = (requested.0 as f32, requested.0 as f32 + (requested.1 - 1) as f32);
-        Ok(NetworkEstimate {
-            disparity: DisparityImage {
-                width: problem.reference.width,
-                height: problem.reference.height,
-                data: data.into_iter().map(|d| (d + origin).clamp(low, high)).collect(),
-                confidence: Some(confidence),
-            },
+        Ok(NetworkEstimate::new(
+            problem,
+            requested,
+            (data, confidence),
+            origin,
             costs,
             first,
-        })
+        ))
+    }
+
+    /// How the estimate is read for `loaded`'s network over `problem`'s range, whose volumes
+    /// start at disparity `first` (test-time flips off).
+    fn estimate(&self, loaded: &Loaded, problem: &Problem, first: i64) -> Estimate {
+        Estimate {
+            window: self.config.window,
+            refine: self.config.refine.unwrap_or(loaded.refine),
+            refine_reach: self.config.refine_reach,
+            fit: self.config.subpixel_fit,
+            locking: self
+                .config
+                .locking
+                .or(loaded.locking)
+                .map(|curve| curve.damped(self.config.locking_strength)),
+            context_below: usize::try_from(i64::from(problem.min_disparity) - first).unwrap_or(0),
+            flips: false,
+        }
     }
 
     /// [`Self::network_estimate`] with several networks (`plan`, [`Self::view_plan`]): every
@@ -538,44 +574,25 @@ impl MFuseNet {
         // The estimate is refined and filtered with the nearest group's costs: the farther
         // views' costs, summed in or taken side by side, raised AvgErr on the toy line of five
         // and on Middlebury's lines (docs/experiments.md).
-        let costs = summed(&volumes[..members.first().map_or(0, |m| m.inputs.len())]).ok_or(FuseError::Config {
-            field: "neighbours",
-            value: volumes.len().to_string(),
-            reason: "the network's inputs need at least one neighbour volume, all of one shape",
-        })?;
+        let costs = summed_or_error(&volumes[..members.first().map_or(0, |m| m.inputs.len())])?;
         progress(0.1);
         let (data, confidence) = infer_fused(
             &members,
             &volumes,
             &costs,
             self.config.tile_budget_mib << 20,
-            Estimate {
-                window: self.config.window,
-                refine: self.config.refine.unwrap_or(primary.refine),
-                refine_reach: self.config.refine_reach,
-                fit: self.config.subpixel_fit,
-                locking: self
-                    .config
-                    .locking
-                    .or(primary.locking)
-                    .map(|curve| curve.damped(self.config.locking_strength)),
-                context_below: usize::try_from(i64::from(problem.min_disparity) - first).unwrap_or(0),
-                flips: false,
-            },
+            self.estimate(primary, problem, first),
             &|f| progress(0.1 + 0.9 * f),
         )?;
         drop(volumes);
-        let (low, high) = (requested.0 as f32, requested.0 as f32 + (requested.1 - 1) as f32);
-        Ok(NetworkEstimate {
-            disparity: DisparityImage {
-                width: problem.reference.width,
-                height: problem.reference.height,
-                data: data.into_iter().map(|d| (d + origin).clamp(low, high)).collect(),
-                confidence: Some(confidence),
-            },
+        Ok(NetworkEstimate::new(
+            problem,
+            requested,
+            (data, confidence),
+            origin,
             costs,
             first,
-        })
+        ))
     }
 
     /// The post-processing: the median, the weighted median with the votes of the input costs,
