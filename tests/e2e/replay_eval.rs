@@ -276,8 +276,13 @@ fn a_line_of_five_runs_through_every_method_against_its_three_view_subset() {
         );
         println!("{m}: AvgErr line of five {l:.3} (occluded {lo:.3}), three-view subset {t:.3} (occluded {to:.3})");
         assert!(l.is_finite() && t.is_finite(), "{m}: no result");
-        let uses_far_views = !m.ends_with("-stereo") && !m.starts_with("mfusenet");
-        if uses_far_views {
+        let uses_far_views = !m.ends_with("-stereo");
+        if m == "mfusenet" {
+            // The outer pair through the three-view network beside the inner one: used, and
+            // never costing more than 2 % of AvgErr.
+            assert_ne!(l, t, "{m}: the views at ±2 baselines were not used");
+            assert!(l <= 1.02 * t, "{m}: AvgErr {l} with five views against {t} with three");
+        } else if uses_far_views {
             // The outer views change the fused costs …
             assert_ne!(l, t, "{m}: the views at ±2 baselines were not used");
             // … and a multiscopic method on five views still beats its family's stereo.
@@ -289,7 +294,7 @@ fn a_line_of_five_runs_through_every_method_against_its_three_view_subset() {
                 );
             }
         } else {
-            // Stereo methods and MFuseNet's fixed inputs use the direct neighbours only.
+            // Stereo methods use one neighbour only.
             assert_eq!(l, t, "{m}: a method without far-view inputs changed with them");
         }
     }
