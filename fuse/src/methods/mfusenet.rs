@@ -482,16 +482,8 @@ impl MFuseNet {
         let loaded = self.network_for(problem)?;
         let net = &loaded.net;
         let neighbours = ordered_neighbours(problem, net.views)?;
-        let room_below = self.config.room_below.unwrap_or(loaded.context_below);
         // Cost volumes: about a tenth of the work; the network the rest.
-        let (volumes, first) = input_volumes_below(
-            problem,
-            &neighbours,
-            self.config.input.unwrap_or(loaded.input),
-            room_below,
-            &|| {},
-        )?;
-        let origin = first as f32 - volumes.first().map_or(0, |v| v.min_disparity) as f32;
+        let (volumes, first, origin) = self.input_volumes(problem, &neighbours, loaded)?;
         progress(0.1);
         let (data, confidence) = infer_with_confidence(
             net,
@@ -514,6 +506,27 @@ impl MFuseNet {
             costs,
             first,
         ))
+    }
+
+    /// The input volumes of `neighbours` as `loaded`'s network asks for them (its input spec,
+    /// its context below the range), the disparity of their first slice, and the shift from
+    /// the volumes' slices to disparities.
+    fn input_volumes(
+        &self,
+        problem: &Problem,
+        neighbours: &[&Neighbour],
+        loaded: &Loaded,
+    ) -> Result<(Vec<CostVolume<u8>>, i64, f32), FuseError> {
+        let room_below = self.config.room_below.unwrap_or(loaded.context_below);
+        let (volumes, first) = input_volumes_below(
+            problem,
+            neighbours,
+            self.config.input.unwrap_or(loaded.input),
+            room_below,
+            &|| {},
+        )?;
+        let origin = first as f32 - volumes.first().map_or(0, |v| v.min_disparity) as f32;
+        Ok((volumes, first, origin))
     }
 
     /// How the estimate is read for `loaded`'s network over `problem`'s range, whose volumes
@@ -552,7 +565,6 @@ impl MFuseNet {
                 reason: "no network takes any of the set's neighbours",
             });
         };
-        let room_below = self.config.room_below.unwrap_or(primary.context_below);
         let mut neighbours: Vec<&Neighbour> = Vec::new();
         let mut members = Vec::new();
         for (group, loaded) in &groups {
@@ -563,14 +575,7 @@ impl MFuseNet {
                 inputs: (start..neighbours.len()).collect(),
             });
         }
-        let (volumes, first) = input_volumes_below(
-            problem,
-            &neighbours,
-            self.config.input.unwrap_or(primary.input),
-            room_below,
-            &|| {},
-        )?;
-        let origin = first as f32 - volumes.first().map_or(0, |v| v.min_disparity) as f32;
+        let (volumes, first, origin) = self.input_volumes(problem, &neighbours, primary)?;
         // The estimate is refined and filtered with the nearest group's costs: the farther
         // views' costs, summed in or taken side by side, raised AvgErr on the toy line of five
         // and on Middlebury's lines (docs/experiments.md).
