@@ -5,6 +5,8 @@
 //! and only the tile's core is kept. The result equals the untiled run up to rounding. The
 //! soft-argmin runs over the real disparities only (padded slices are dropped).
 
+use std::ops::Range;
+
 use super::Error;
 use super::input::{flip_axes, mirrored};
 use super::network::Network;
@@ -38,7 +40,10 @@ pub fn tile_side(views: usize, num_disparities: usize, budget_bytes: usize) -> u
 }
 
 /// The tiles along one axis: each core and its region (the core with its halo).
-pub type AxisTiles = Vec<(std::ops::Range<usize>, std::ops::Range<usize>)>;
+pub type AxisTiles = Vec<Tile>;
+
+/// One axis of a tile: its core and its region (the core with its halo).
+pub type Tile = (Range<usize>, Range<usize>);
 
 /// One axis cut into tile cores of `core` pixels (a multiple of 4; the last may be shorter) over
 /// `length` pixels: the cores and their regions with `halo` pixels either side (clipped to the
@@ -134,13 +139,7 @@ pub fn infer_with_confidence(
             got: volumes.len(),
         });
     }
-    for v in volumes {
-        if (v.width, v.height, v.num_disparities) != (w, h, nd) || v.data.len() != w * h * nd || w * h * nd == 0 {
-            return Err(Error::InputShape {
-                shape: [1, v.num_disparities, v.height, v.width],
-            });
-        }
-    }
+    check_shapes(volumes, (w, h, nd))?;
     let skip = estimate.context_below;
     if skip >= nd {
         return Err(Error::ContextBelow {
@@ -158,18 +157,8 @@ pub fn infer_with_confidence(
     } else {
         None
     };
-    let (dp, hp, wp) = (round4(nd), round4(h), round4(w));
-    let whole = dp * hp * wp * bytes_per_voxel(net.views) <= budget_bytes;
-    let (row_tiles, column_tiles) = if whole {
-        (axis_tiles(hp, hp, 0), axis_tiles(wp, wp, 0))
-    } else {
-        let side = tile_side(net.views, nd, budget_bytes) + 2 * HALO;
-        plan_tiles(hp, wp, side * side, HALO)
-    };
-    let tiles: Vec<_> = row_tiles
-        .iter()
-        .flat_map(|row| column_tiles.iter().map(move |column| (row.clone(), column.clone())))
-        .collect();
+    let dp = round4(nd);
+    let tiles = tiles((w, h, nd), net.views, budget_bytes);
     let mut disparity = vec![0f32; w * h];
     let mut confidence = vec![0f32; w * h];
     for (done, ((rows, region_rows), (columns, region_columns))) in tiles.iter().enumerate() {
@@ -190,7 +179,7 @@ pub fn infer_with_confidence(
             let flipped = mirrored(&inputs, &offsets, vertical, horizontal).ok_or_else(no_mirror)?;
             drop(inputs);
             // The core mirrored: its margin, mirrored back, is the same rows and columns.
-            let mirror_range = |range: &std::ops::Range<usize>, length: usize, flip: bool| {
+            let mirror_range = |range: &Range<usize>, length: usize, flip: bool| {
                 if flip {
                     length - range.end..length - range.start
                 } else {
@@ -234,6 +223,36 @@ pub fn infer_with_confidence(
     Ok((disparity, confidence))
 }
 
+/// Every volume is `w × h × nd` (none empty).
+fn check_shapes(volumes: &[CostVolume<u8>], (w, h, nd): (usize, usize, usize)) -> Result<(), Error> {
+    for v in volumes {
+        if (v.width, v.height, v.num_disparities) != (w, h, nd) || v.data.len() != w * h * nd || w * h * nd == 0 {
+            return Err(Error::InputShape {
+                shape: [1, v.num_disparities, v.height, v.width],
+            });
+        }
+    }
+    Ok(())
+}
+
+/// The tiles `(rows, region rows), (columns, region columns)` of a `w × h × nd` set for a
+/// network of `views` inputs under `budget_bytes`: the whole padded image when it fits, else
+/// [`plan_tiles`]'s cores with their [`HALO`].
+fn tiles((w, h, nd): (usize, usize, usize), views: usize, budget_bytes: usize) -> Vec<(Tile, Tile)> {
+    let (dp, hp, wp) = (round4(nd), round4(h), round4(w));
+    let whole = dp * hp * wp * bytes_per_voxel(views) <= budget_bytes;
+    let (row_tiles, column_tiles) = if whole {
+        (axis_tiles(hp, hp, 0), axis_tiles(wp, wp, 0))
+    } else {
+        let side = tile_side(views, nd, budget_bytes) + 2 * HALO;
+        plan_tiles(hp, wp, side * side, HALO)
+    };
+    row_tiles
+        .iter()
+        .flat_map(|row| column_tiles.iter().map(move |column| (row.clone(), column.clone())))
+        .collect()
+}
+
 /// One network's part in [`infer_fused`]: the network and the indices of its input volumes,
 /// in its input order.
 pub struct Member<'a> {
@@ -264,13 +283,7 @@ pub fn infer_fused(
             shape: [1, costs.num_disparities, costs.height, costs.width],
         });
     }
-    for v in volumes {
-        if (v.width, v.height, v.num_disparities) != (w, h, nd) || v.data.len() != w * h * nd || w * h * nd == 0 {
-            return Err(Error::InputShape {
-                shape: [1, v.num_disparities, v.height, v.width],
-            });
-        }
-    }
+    check_shapes(volumes, (w, h, nd))?;
     for m in members {
         if m.inputs.len() != m.net.views || m.inputs.iter().any(|i| *i >= volumes.len()) {
             return Err(Error::InputCount {
@@ -287,18 +300,8 @@ pub fn infer_fused(
         });
     }
     let widest = members.iter().map(|m| m.net.views).max().unwrap_or(1);
-    let (dp, hp, wp) = (round4(nd), round4(h), round4(w));
-    let whole = dp * hp * wp * bytes_per_voxel(widest) <= budget_bytes;
-    let (row_tiles, column_tiles) = if whole {
-        (axis_tiles(hp, hp, 0), axis_tiles(wp, wp, 0))
-    } else {
-        let side = tile_side(widest, nd, budget_bytes) + 2 * HALO;
-        plan_tiles(hp, wp, side * side, HALO)
-    };
-    let tiles: Vec<_> = row_tiles
-        .iter()
-        .flat_map(|row| column_tiles.iter().map(move |column| (row.clone(), column.clone())))
-        .collect();
+    let dp = round4(nd);
+    let tiles = tiles((w, h, nd), widest, budget_bytes);
     let total_weight: f32 = members.iter().map(|m| m.net.views as f32).sum();
     let mut disparity = vec![0f32; w * h];
     let mut confidence = vec![0f32; w * h];
