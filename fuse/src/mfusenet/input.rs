@@ -209,20 +209,45 @@ pub fn input_volumes(
     spec: InputSpec,
     on_band: &(dyn Fn() + Sync),
 ) -> Result<Vec<CostVolume<u8>>, FuseError> {
+    let mut out = Vec::with_capacity(neighbours.len());
+    for_each_aggregated(problem, neighbours, spec, on_band, |sums, p2| {
+        out.push(normalise(sums, p2))
+    })?;
+    Ok(out)
+}
+
+/// Each of `neighbours`' cost volumes aggregated by SGM on its own, handed to `each` with the
+/// quantised large-jump penalty, one neighbour at a time (its costs freed before the next).
+fn for_each_aggregated(
+    problem: &Problem,
+    neighbours: &[&Neighbour],
+    spec: InputSpec,
+    on_band: &(dyn Fn() + Sync),
+    mut each: impl FnMut(&CostVolume<u16>, u16),
+) -> Result<(), FuseError> {
     let cost = CostSpec {
         pixel: spec.cost,
         block_radius_px: spec.block_radius_px,
     };
     let shift = quantisation_shift(cost.max_cost());
     let (p1, p2) = (quantise_penalty(spec.p1, shift), quantise_penalty(spec.p2, shift));
-    let mut out = Vec::with_capacity(neighbours.len());
     for n in neighbours {
         let volume = neighbour_volumes(problem, &[*n], cost, shift, on_band)?.remove(0);
         let sums = aggregate_volume(&volume, p1, p2);
         drop(volume);
-        out.push(normalise(&sums, p2));
+        each(&sums, p2);
     }
-    Ok(out)
+    Ok(())
+}
+
+/// `problem` with its range started `below` disparities lower.
+fn with_context_below(problem: &Problem, below: usize) -> Problem {
+    let below_i32 = i32::try_from(below).unwrap_or(i32::MAX);
+    Problem {
+        min_disparity: problem.min_disparity.saturating_sub(below_i32),
+        num_disparities: problem.num_disparities + below,
+        ..problem.clone()
+    }
 }
 
 /// [`input_volumes`] over a range that starts `below` disparities under the problem's: the
@@ -238,12 +263,7 @@ pub fn input_volumes_below(
     below: usize,
     on_band: &(dyn Fn() + Sync),
 ) -> Result<(Vec<CostVolume<u8>>, i64), FuseError> {
-    let below_i32 = i32::try_from(below).unwrap_or(i32::MAX);
-    let extended = Problem {
-        min_disparity: problem.min_disparity.saturating_sub(below_i32),
-        num_disparities: problem.num_disparities + below,
-        ..problem.clone()
-    };
+    let extended = with_context_below(problem, below);
     let volumes = input_volumes(&extended, neighbours, spec, on_band)?;
     Ok((volumes, i64::from(extended.min_disparity)))
 }
@@ -310,31 +330,17 @@ pub fn summed_input_volume_below(
     spec: InputSpec,
     below: usize,
 ) -> Result<(CostVolume<u16>, i64), FuseError> {
-    let below_i32 = i32::try_from(below).unwrap_or(i32::MAX);
-    let extended = Problem {
-        min_disparity: problem.min_disparity.saturating_sub(below_i32),
-        num_disparities: problem.num_disparities + below,
-        ..problem.clone()
-    };
-    let cost = CostSpec {
-        pixel: spec.cost,
-        block_radius_px: spec.block_radius_px,
-    };
-    let shift = quantisation_shift(cost.max_cost());
-    let (p1, p2) = (quantise_penalty(spec.p1, shift), quantise_penalty(spec.p2, shift));
+    let extended = with_context_below(problem, below);
     let mut total: Option<CostVolume<u16>> = None;
-    for n in neighbours {
-        let volume = neighbour_volumes(&extended, &[*n], cost, shift, &|| {})?.remove(0);
-        let sums = aggregate_volume(&volume, p1, p2);
-        drop(volume);
+    for_each_aggregated(&extended, neighbours, spec, &|| {}, |sums, p2| {
         let total = total.get_or_insert_with(|| {
             let mut t = sums.with_data(vec![0u16; sums.data.len()], 0);
             t.source = VolumeSource::Fused(Fusion::Mean);
             t
         });
-        normalise_each(&sums, p2, &mut total.data, |o, step| *o += u16::from(step));
+        normalise_each(sums, p2, &mut total.data, |o, step| *o += u16::from(step));
         total.max_cost += 255;
-    }
+    })?;
     let total = total.ok_or(FuseError::Config {
         field: "neighbours",
         value: "0".into(),
