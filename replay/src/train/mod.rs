@@ -244,11 +244,19 @@ pub fn train(
         .map(|_| random_crop(config, &train_samples, &mut calibration_rng))
         .collect();
     // Resume or start.
-    let (mut net, mut adam, mut history, mut train_seconds) = match load_checkpoint(&files.checkpoint(), config.views) {
+    let (mut net, mut adam, mut history, mut train_seconds, continued) = match load_checkpoint(&files.checkpoint(), config.views) {
         Ok((net, adam, info)) if info.get("train_config") == Some(&to_json("train_config", config)?) => {
             let history = read_curves(&files.curves_csv(), adam.step)?;
             let seconds = info.get("train_seconds").and_then(|s| s.parse().ok()).unwrap_or(0.0);
-            (net, adam, history, seconds)
+            // Steps another trainer took (`scripts/train-torch.py`: `torch_batch`, `torch_steps`, …)
+            // stay on record in every later checkpoint and in the weights.
+            let continued: Vec<(String, String)> = info
+                .entries
+                .iter()
+                .filter(|(k, _)| k.starts_with("torch_"))
+                .map(|(k, v)| (k.clone(), v.clone()))
+                .collect();
+            (net, adam, history, seconds, continued)
         }
         _ => {
             let mut net = match &config.init_weights {
@@ -266,7 +274,7 @@ pub fn train(
                 }
             };
             let adam = Adam::new(&mut net, config.learning_rate);
-            (net, adam, Vec::new(), 0.0)
+            (net, adam, Vec::new(), 0.0, Vec::new())
         }
     };
     // The momentum is not part of the weights: set it on every (re)start.
@@ -288,10 +296,16 @@ pub fn train(
     // The last validation with both estimates and its step, reused for the metadata.
     let mut last_estimates: Option<(u64, Validation)> = None;
     let config_json = to_json("train_config", config)?;
+    let data_key = config.data_key();
     let info_for = |seconds: f64| {
         let mut info = WeightsInfo::default();
         info.set("train_config", config_json.clone());
         info.set("train_seconds", format!("{seconds:.1}"));
+        // Where the samples are cached (`<train|val>-NNNN-<key>.safetensors`), for other trainers.
+        info.set("dataset_key", format!("{data_key:016x}"));
+        for (key, value) in &continued {
+            info.set(key, value.clone());
+        }
         info
     };
     let mut interrupted = false;
