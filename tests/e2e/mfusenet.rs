@@ -211,6 +211,8 @@ fn training_resumes_and_its_weights_run() {
     // A longer budget resumes from the checkpoint instead of starting over.
     let second = train(dir.path(), "6");
     assert_eq!(second["steps_done"], 6);
+    assert_eq!(first["resumed_at_step"], 0, "{first}");
+    assert_eq!(second["resumed_at_step"], 4, "{second}");
     let curves = std::fs::read_to_string(dir.path().join("run/curves.csv")).unwrap_or_default();
     let steps: Vec<&str> = curves.lines().skip(1).filter_map(|l| l.split(',').next()).collect();
     assert_eq!(steps, ["1", "2", "3", "4", "5", "6"], "{curves}");
@@ -431,4 +433,74 @@ fn a_wide_range_goes_coarse_to_fine_and_the_summary_says_what_the_network_saw() 
     );
     assert!(avg(&sets[0]) < 1.0, "{summary}");
     assert!(avg(&sets[0]) <= avg(&sets[1]) + 0.05, "{summary}");
+}
+
+/// A Python with `torch` and `safetensors`: `$TORCH_PYTHON`, else the checkout's `.venv-torch`
+/// (`python3 -m venv .venv-torch && .venv-torch/bin/pip install torch safetensors`). `None` when
+/// neither has them: CI installs no torch (5 GB with its CUDA libraries).
+fn python_with_torch() -> Option<std::path::PathBuf> {
+    let candidates = std::env::var_os("TORCH_PYTHON")
+        .map(std::path::PathBuf::from)
+        .into_iter()
+        .chain([workspace_root().join(".venv-torch/bin/python")]);
+    candidates.into_iter().find(|python| {
+        Command::new(python)
+            .args(["-c", "import torch, safetensors"])
+            .output()
+            .is_ok_and(|o| o.status.success())
+    })
+}
+
+#[test]
+fn a_training_run_moves_to_pytorch_and_back() {
+    // `replay train --steps 0` makes the dataset and the step-0 checkpoint; `train-torch.py`
+    // takes three steps of two crops in PyTorch and writes the checkpoint back; `replay train`
+    // resumes it (nothing left: it validates and writes the weights, which keep the PyTorch
+    // steps on record), and then trains two more steps of its own from PyTorch's Adam moments.
+    // Both validate the same network on the same crops: the same AvgErr.
+    let Some(python) = python_with_torch() else {
+        eprintln!(
+            "skipped: no Python with torch and safetensors (set TORCH_PYTHON or make .venv-torch); \
+             this test checks scripts/train-torch.py, which CI does not install"
+        );
+        return;
+    };
+    let dir = temp_dir();
+    let (run_dir, dataset) = (dir.path().join("run"), dir.path().join("dataset"));
+    let options = ["--context-below", "4", "--disparity-shift", "4", "--flips"];
+    assert_success(&tiny_training(&run_dir, &dataset, "0", &options), "replay train --steps 0");
+    let output = run(Command::new(&python)
+        .arg(workspace_root().join("scripts/train-torch.py"))
+        .args(["--dir", &run_dir.display().to_string()])
+        .args(["--dataset-dir", &dataset.display().to_string()])
+        .args(["--steps", "3", "--batch", "2", "--device", "cpu"]));
+    assert_success(&output, "train-torch.py");
+    let text = String::from_utf8_lossy(&output.stdout);
+    println!("{text}");
+    let torch_avg: f64 = text
+        .lines()
+        .find_map(|l| l.strip_prefix("step 3: validation AvgErr "))
+        .and_then(|rest| rest.split_whitespace().next())
+        .and_then(|v| v.parse().ok())
+        .unwrap_or_else(|| panic!("no step-3 validation in {text}"));
+
+    let summary = |output: std::process::Output| -> serde_json::Value {
+        assert_success(&output, "replay train");
+        serde_json::from_slice(&std::fs::read(run_dir.join("training.json")).unwrap_or_default())
+            .unwrap_or_else(|e| panic!("training.json: {e}"))
+    };
+    let finished = summary(tiny_training(&run_dir, &dataset, "3", &options));
+    assert_eq!(finished["resumed_at_step"], 3, "{finished}");
+    assert_eq!(finished["steps_done"], 3, "{finished}");
+    let rust_avg = finished["val_avg_err_px"].as_f64().unwrap_or(f64::NAN);
+    assert!((rust_avg - torch_avg).abs() < 2e-3, "AvgErr: PyTorch {torch_avg}, replay {rust_avg}");
+    let metadata = safetensors_header(&run_dir.join("mfusenet-3view.safetensors"))["__metadata__"].clone();
+    assert_eq!(metadata["torch_steps"], "3", "{metadata}");
+    assert_eq!(metadata["torch_batch"], "2", "{metadata}");
+
+    let longer = summary(tiny_training(&run_dir, &dataset, "5", &options));
+    assert_eq!(longer["resumed_at_step"], 3, "{longer}");
+    assert_eq!(longer["steps_done"], 5, "{longer}");
+    let curves = std::fs::read_to_string(run_dir.join("curves.csv")).unwrap_or_default();
+    assert_eq!(curves.lines().count(), 6, "{curves}");
 }

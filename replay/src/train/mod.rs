@@ -113,6 +113,8 @@ pub struct TrainSummary {
     pub config: TrainConfig,
     /// Steps done (all sessions).
     pub steps_done: u64,
+    /// The checkpoint's step this session started from (0: a new run).
+    pub resumed_at_step: u64,
     /// Whether the run stopped early (interrupted).
     pub interrupted: bool,
     /// Seconds of training, all sessions.
@@ -131,6 +133,13 @@ pub struct TrainSummary {
     pub parameters: usize,
     /// The weights file written.
     pub weights: PathBuf,
+}
+
+/// Whether a checkpoint whose configuration is `stored` (its `train_config`) belongs to the run
+/// `config` describes: the same in everything but the step budget, so that a longer (or shorter)
+/// `--steps` resumes the run instead of starting it over.
+fn same_run(stored: &str, config: &TrainConfig) -> bool {
+    serde_json::from_str::<TrainConfig>(stored).is_ok_and(|stored| TrainConfig { steps: config.steps, ..stored } == *config)
 }
 
 /// A value as JSON for the weights' metadata (a failure is an error, never an empty entry).
@@ -245,7 +254,7 @@ pub fn train(
         .collect();
     // Resume or start.
     let (mut net, mut adam, mut history, mut train_seconds, continued) = match load_checkpoint(&files.checkpoint(), config.views) {
-        Ok((net, adam, info)) if info.get("train_config") == Some(&to_json("train_config", config)?) => {
+        Ok((net, adam, info)) if info.get("train_config").is_some_and(|stored| same_run(stored, config)) => {
             let history = read_curves(&files.curves_csv(), adam.step)?;
             let seconds = info.get("train_seconds").and_then(|s| s.parse().ok()).unwrap_or(0.0);
             // Steps another trainer took (`scripts/train-torch.py`: `torch_batch`, `torch_steps`, …)
@@ -288,6 +297,9 @@ pub fn train(
     };
     let started = Instant::now();
     let session_start_step = adam.step;
+    if session_start_step > 0 {
+        tracing::info!("resuming at step {session_start_step} of {}", config.steps);
+    }
     let mut recent: Vec<f32> = history.iter().rev().take(50).map(|r: &CurveRow| r.loss).collect();
     let mut last_validation = history
         .iter()
@@ -408,16 +420,18 @@ pub fn train(
     info.set("context_below", context.to_string());
     info.set("made_by", command);
     info.set("steps", adam.step.to_string());
-    if let Some((avg, bad1)) = last_validation {
-        info.set("val_avg_err_px", format!("{avg:.4}"));
-        info.set("val_bad1_percent", format!("{bad1:.3}"));
-    }
-    // How inference should read this network: whichever estimate validates better (the last
-    // step's validation when it had one, e.g. not after an interruption or a resumed finished run).
+    // The final network's validation (the last step's when it validated; else made now, e.g.
+    // after an interruption or for a run another trainer finished), and from it how inference
+    // should read this network: whichever estimate validates better.
     let estimates = match last_estimates {
         Some((step, estimates)) if step == adam.step => estimates,
         _ => validate_estimates(&net, &val_examples, locking)?,
     };
+    let last_validation = Some(estimates.soft_argmin);
+    if let Some((avg, bad1)) = last_validation {
+        info.set("val_avg_err_px", format!("{avg:.4}"));
+        info.set("val_bad1_percent", format!("{bad1:.3}"));
+    }
     let (avg, bad1) = estimates.refined;
     info.set("val_refined_avg_err_px", format!("{avg:.4}"));
     info.set("val_refined_bad1_percent", format!("{bad1:.3}"));
@@ -437,6 +451,7 @@ pub fn train(
     let summary = TrainSummary {
         config: config.clone(),
         steps_done: adam.step,
+        resumed_at_step: session_start_step,
         interrupted,
         train_seconds,
         dataset_seconds,
