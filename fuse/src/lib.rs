@@ -35,6 +35,7 @@ pub mod plan;
 pub mod postprocess;
 pub mod rng;
 pub mod sgm;
+pub mod subpixel;
 pub mod volume;
 pub mod wta;
 

@@ -1,7 +1,8 @@
 //! Error measures against ground-truth disparity, as in the paper's evaluation code: over every
 //! pixel whose ground truth is known (finite: signed truths of converged rigs count, NaN is
 //! unknown), RMS, AvgErr (mean absolute error) and the
-//! percentages of pixels with an error above 0.5, 1 and 2 px. A pixel without an estimate counts
+//! percentages of pixels with an error above 0.5, 1 and 2 px, and above 0.07 px (BadPix 0.07, the
+//! light-field benchmarks' sub-pixel measure). A pixel without an estimate counts
 //! as an error of the whole search range (it is never silently left out).
 
 use serde::{Deserialize, Serialize};
@@ -20,6 +21,10 @@ pub struct Metrics {
     pub bad_1: f64,
     /// % of pixels with error > 2 px.
     pub bad_2: f64,
+    /// % of pixels with error > 0.07 px (BadPix 0.07): sub-pixel precision, where smooth surfaces
+    /// tell it apart (slanted planes, light fields).
+    #[serde(default)]
+    pub bad_0_07: f64,
     /// Pixels with known ground truth.
     pub pixels: usize,
     /// Of those, pixels the method left without an estimate.
@@ -41,7 +46,7 @@ pub fn evaluate(
     let mut n = 0usize;
     let mut missing = 0usize;
     let (mut sum_abs, mut sum_sq) = (0.0f64, 0.0f64);
-    let mut bad = [0usize; 3];
+    let mut bad = [0usize; 4];
     let (mut sum_inlier, mut inliers) = (0.0f64, 0usize);
     for (i, (&e, &g)) in estimate.iter().zip(ground_truth).enumerate() {
         if !g.is_finite() || mask.is_some_and(|m| !m[i]) {
@@ -60,7 +65,7 @@ pub fn evaluate(
         n += 1;
         sum_abs += error;
         sum_sq += error * error;
-        for (count, threshold) in bad.iter_mut().zip([0.5, 1.0, 2.0]) {
+        for (count, threshold) in bad.iter_mut().zip([0.5, 1.0, 2.0, 0.07]) {
             if error > threshold {
                 *count += 1;
             }
@@ -74,6 +79,7 @@ pub fn evaluate(
             bad_0_5: percent(bad[0]),
             bad_1: percent(bad[1]),
             bad_2: percent(bad[2]),
+            bad_0_07: percent(bad[3]),
             pixels: n,
             missing,
             bias: if inliers > 0 { sum_inlier / inliers as f64 } else { 0.0 },
@@ -90,6 +96,7 @@ pub fn average(scenes: &[Metrics]) -> Option<Metrics> {
         bad_0_5: scenes.iter().map(|m| m.bad_0_5).sum::<f64>() / n,
         bad_1: scenes.iter().map(|m| m.bad_1).sum::<f64>() / n,
         bad_2: scenes.iter().map(|m| m.bad_2).sum::<f64>() / n,
+        bad_0_07: scenes.iter().map(|m| m.bad_0_07).sum::<f64>() / n,
         pixels: scenes.iter().map(|m| m.pixels).sum(),
         missing: scenes.iter().map(|m| m.missing).sum(),
         bias: scenes.iter().map(|m| m.bias).sum::<f64>() / n,
@@ -108,6 +115,7 @@ mod tests {
         assert_eq!(m.pixels, 4);
         assert!((m.avg_err_px - (0.0 + 0.6 + 1.5 + 3.0) / 4.0).abs() < 1e-6);
         assert!((m.bad_0_5 - 75.0).abs() < 1e-9);
+        assert!((m.bad_0_07 - 75.0).abs() < 1e-9);
         assert!((m.bad_1 - 50.0).abs() < 1e-9);
         assert!((m.bad_2 - 25.0).abs() < 1e-9);
         assert!((m.bias - (0.0 + 0.6 + 1.5) / 3.0).abs() < 1e-6, "{}", m.bias);

@@ -610,6 +610,7 @@ impl SimulationConfig {
             SceneKind::Clutter => "clutter",
             SceneKind::Bin => "bin",
             SceneKind::Thin => "thin",
+            SceneKind::Slanted => "slanted",
         }
     }
 }
@@ -727,7 +728,13 @@ mod tests {
             (SceneKind::Random, 3101),
             (SceneKind::Random, 3104),
         ];
-        for kind in [SceneKind::Random, SceneKind::Clutter, SceneKind::Bin, SceneKind::Thin] {
+        for kind in [
+            SceneKind::Random,
+            SceneKind::Clutter,
+            SceneKind::Bin,
+            SceneKind::Thin,
+            SceneKind::Slanted,
+        ] {
             let highest = (0..200)
                 .max_by(|a, b| {
                     let h = |s| Scene::build(kind, s).camera_height_m;
@@ -756,6 +763,51 @@ mod tests {
                     );
                 }
             }
+        }
+    }
+
+    #[test]
+    fn a_slanted_plane_fills_the_view_within_the_working_range() {
+        // Every pixel of the reference sees the plane (no background), its disparity spreads over
+        // the view (a tilted plane) and stays inside the range the workcell expects from the
+        // scene (`Scene::surface_top_m`: the plane's lowest point on the table, its highest
+        // there), for the steepest and the flattest of the first seeds.
+        for seed in 1..=6 {
+            let config = small(SimulationConfig {
+                scene: SceneKind::Slanted,
+                seed,
+                rig: RigKind::FiveView,
+                ..SimulationConfig::default()
+            });
+            let mut sim = Simulation::new(config).unwrap_or_else(|e| panic!("seed {seed}: {e}"));
+            let set = sim
+                .capture_set(0, &AtomicBool::new(false), |_| {})
+                .unwrap_or_else(|e| panic!("seed {seed}: {e}"))
+                .unwrap_or_else(|| panic!("seed {seed}: no set"));
+            let reference = set
+                .views
+                .iter()
+                .find(|v| v.role == REFERENCE_ROLE)
+                .unwrap_or_else(|| panic!("no reference"));
+            let depth = reference.depth_m.as_ref().unwrap_or_else(|| panic!("no depth"));
+            let fb = sim.camera.fx * sim.config.baseline_mm / 1000.0;
+            let disparities: Vec<f64> = depth.iter().map(|d| fb / f64::from(*d)).collect();
+            assert!(
+                disparities.iter().all(|d| d.is_finite() && *d > 0.0),
+                "seed {seed}: a pixel misses the plane"
+            );
+            let (low, high) = disparities
+                .iter()
+                .fold((f64::MAX, f64::MIN), |(l, h), d| (l.min(*d), h.max(*d)));
+            let [far, near] = sim.expected_disparity_px();
+            assert!(
+                high > 1.05 * low,
+                "seed {seed}: disparity {low:.3}–{high:.3} px is not slanted"
+            );
+            assert!(
+                low >= far - 0.5 && high <= near + 0.5,
+                "seed {seed}: {low:.2}–{high:.2} px outside {far:.2}–{near:.2}"
+            );
         }
     }
 

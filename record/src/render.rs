@@ -993,6 +993,7 @@ mod tests {
             ambient: [0.2; 3],
             background: [0.0; 3],
             camera_height_m: distance_m,
+            surface_top_m: 0.0,
         }
     }
 

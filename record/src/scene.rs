@@ -43,6 +43,10 @@ pub enum SceneKind {
     /// at 640 px, 20+ px of disparity in front of it, and a near board whose occluded strip is
     /// wider than a training crop; never used for training (held out, as `bin`).
     Thin,
+    /// One matte, finely textured plane tilted 5–35° under the camera, nothing else: disparity
+    /// is exactly linear in the image, every pixel at a different sub-pixel offset. The
+    /// sub-pixel precision benchmark (BadPix 0.07 against exact truth); never used for training.
+    Slanted,
 }
 
 /// A texture: a function from surface coordinates (m) to albedo.
@@ -302,6 +306,14 @@ pub struct Scene {
     pub background: Rgb,
     /// Suggested distance from the camera to the table for this scene (m).
     pub camera_height_m: f64,
+    /// Height (m above the table plane) that a tilted infinite plane reaches inside the view,
+    /// which its shape cannot tell ([`Shape::top_m`] is `None` for planes); 0 for scenes without.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub surface_top_m: f64,
+}
+
+fn is_zero(x: &f64) -> bool {
+    *x == 0.0
 }
 
 impl Shape {
@@ -331,7 +343,10 @@ impl Scene {
     /// The highest point of any object (m above the table plane, at least 0): with
     /// [`Scene::camera_height_m`], the working depth range of a capture looking down at it.
     pub fn highest_point_m(&self) -> f64 {
-        self.objects.iter().filter_map(|o| o.shape.top_m()).fold(0.0, f64::max)
+        self.objects
+            .iter()
+            .filter_map(|o| o.shape.top_m())
+            .fold(self.surface_top_m, f64::max)
     }
 
     /// Builds the scene of a family for a seed.
@@ -343,6 +358,7 @@ impl Scene {
             SceneKind::Clutter => clutter_scene(seed),
             SceneKind::Bin => bin_scene(seed),
             SceneKind::Thin => thin_scene(seed),
+            SceneKind::Slanted => slanted_scene(seed),
         }
     }
 
@@ -369,6 +385,7 @@ impl Scene {
             ambient: [0.18; 3],
             background: [0.55, 0.6, 0.65],
             camera_height_m,
+            surface_top_m: 0.0,
         }
     }
 
@@ -891,6 +908,53 @@ fn clutter_scene(seed: u64) -> Scene {
         );
     }
     scene.ambient = [rng.range(0.1, 0.3); 3];
+    scene.add_lights(&mut rng);
+    scene
+}
+
+/// `slanted`: one matte plane of natural texture (fractal noise of 1–3 cm scale) tilted 5–35° about a random horizontal axis, its
+/// lowest point in the 60° 16:9 view on the table plane (z = 0) and its highest at
+/// [`Scene::surface_top_m`]. No room, no other object: every pixel sees the plane, and its
+/// disparity is exactly linear in the image.
+fn slanted_scene(seed: u64) -> Scene {
+    let mut rng = SplitMix64::new(seed ^ 0x736c_616e);
+    let camera_height_m = camera_height(&mut rng, 0.5, 0.93);
+    let mut scene = Scene::empty(SceneKind::Slanted, seed, camera_height_m);
+    // A dark and a light colour: texture everywhere. The noise repeats every 8 scales, at least
+    // 8 cm: wider than the searched range, so the repetition cannot fake a match.
+    let dark = [rng.range(0.05, 0.35), rng.range(0.05, 0.35), rng.range(0.05, 0.35)];
+    let light = [rng.range(0.55, 0.95), rng.range(0.55, 0.95), rng.range(0.55, 0.95)];
+    let surface = scene.add_material(Material::matte(
+        "slanted_surface",
+        Texture::Noise {
+            a: dark,
+            b: light,
+            scale_m: rng.range(0.01, 0.03),
+            anisotropy: 1.0,
+            seed: rng.next_u64(),
+        },
+    ));
+    let (tilt, axis) = (
+        rng.range(5.0f64, 35.0).to_radians(),
+        rng.range(0.0, std::f64::consts::TAU),
+    );
+    // The plane rises along `up` (horizontal unit vector) by tan(tilt) per metre.
+    let up = [axis.cos(), axis.sin()];
+    let normal = [-tilt.sin() * up[0], -tilt.sin() * up[1], tilt.cos()];
+    // Half the view's footprint on the table (m), with room for the rig's other views.
+    let (half_x, half_y) = (0.62 * camera_height_m, 0.36 * camera_height_m);
+    let rise = tilt.tan() * (up[0].abs() * half_x + up[1].abs() * half_y);
+    let c = WORK_AREA_CENTER_M;
+    scene.add(
+        "slanted_plane",
+        Shape::Plane {
+            point: [c[0], c[1], rise],
+            normal,
+        },
+        surface,
+    );
+    scene.surface_top_m = 2.0 * rise;
+    scene.ambient = [rng.range(0.15, 0.3); 3];
     scene.add_lights(&mut rng);
     scene
 }

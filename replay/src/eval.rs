@@ -348,6 +348,7 @@ mod tests {
             bad_0_5: 10.0,
             bad_1: 5.0,
             bad_2: 2.0,
+            bad_0_07: 40.0,
             pixels: 100,
             missing: 0,
             bias: 0.0,

@@ -468,7 +468,10 @@ fn a_training_run_moves_to_pytorch_and_back() {
     let dir = temp_dir();
     let (run_dir, dataset) = (dir.path().join("run"), dir.path().join("dataset"));
     let options = ["--context-below", "4", "--disparity-shift", "4", "--flips"];
-    assert_success(&tiny_training(&run_dir, &dataset, "0", &options), "replay train --steps 0");
+    assert_success(
+        &tiny_training(&run_dir, &dataset, "0", &options),
+        "replay train --steps 0",
+    );
     let output = run(Command::new(&python)
         .arg(workspace_root().join("scripts/train-torch.py"))
         .args(["--dir", &run_dir.display().to_string()])
@@ -493,7 +496,10 @@ fn a_training_run_moves_to_pytorch_and_back() {
     assert_eq!(finished["resumed_at_step"], 3, "{finished}");
     assert_eq!(finished["steps_done"], 3, "{finished}");
     let rust_avg = finished["val_avg_err_px"].as_f64().unwrap_or(f64::NAN);
-    assert!((rust_avg - torch_avg).abs() < 2e-3, "AvgErr: PyTorch {torch_avg}, replay {rust_avg}");
+    assert!(
+        (rust_avg - torch_avg).abs() < 2e-3,
+        "AvgErr: PyTorch {torch_avg}, replay {rust_avg}"
+    );
     let metadata = safetensors_header(&run_dir.join("mfusenet-3view.safetensors"))["__metadata__"].clone();
     assert_eq!(metadata["torch_steps"], "3", "{metadata}");
     assert_eq!(metadata["torch_batch"], "2", "{metadata}");

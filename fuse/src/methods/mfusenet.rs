@@ -30,6 +30,7 @@ use crate::mfusenet::pyramid::{
 };
 use crate::mfusenet::{Network, weights};
 use crate::postprocess::{WeightedMedian, median3x3, scale_by_local_consistency, weighted_median_with_votes};
+use crate::subpixel::{BlockSubpixel, refine_with_block_costs};
 use crate::volume::Neighbour;
 use crate::volume::{CostVolume, Problem};
 use crate::wta::{LockingCurve, SubpixelFit};
@@ -139,6 +140,13 @@ pub struct MFuseNetConfig {
     /// network covers run the same either way; a view without its opposite stays unused (the run
     /// summary lists the networks and the unused views).
     pub every_view: bool,
+    /// Sub-pixel from block-matching costs, last (`subpixel::BlockSubpixel`; `{}` = its
+    /// defaults, the default; `null` = none): the estimate's integer stays, its fraction is
+    /// re-read from a parabola through fused 9×9 Birchfield–Tomasi block costs where that moves
+    /// it by at most 0.2 px; those costs lock to the pixel grid far less than the network's census
+    /// and SGM inputs. Slanted planes (`scripts/eval-subpixel.sh`): AvgErr 0.077 → 0.044 px,
+    /// BadPix 0.07 52.1 → 18.7 %; Middlebury 0.293 → 0.288 px, Bad1 4.87 → 4.87 %.
+    pub block_subpixel: Option<BlockSubpixel>,
 }
 
 impl Default for MFuseNetConfig {
@@ -160,6 +168,7 @@ impl Default for MFuseNetConfig {
             flips: false,
             max_direct_disparities: DEFAULT_MAX_DIRECT_DISPARITIES,
             every_view: true,
+            block_subpixel: Some(BlockSubpixel::default()),
         }
     }
 }
@@ -632,6 +641,9 @@ impl MFuseNet {
                 let kept = 1.0 - (final_d - network_d).abs().min(1.0);
                 *c = 0.5 * (*c + support) * if kept.is_finite() { kept } else { 0.0 };
             }
+        }
+        if let Some(config) = &self.config.block_subpixel {
+            refine_with_block_costs(problem, &mut out, config)?;
         }
         scale_by_local_consistency(&mut out);
         Ok(out)

@@ -11,6 +11,7 @@ use crate::fusion::Fusion;
 use crate::image::DisparityImage;
 use crate::postprocess::{WeightedMedian, median3x3, weighted_median};
 use crate::sgm::{quantisation_shift, quantise_penalty, select_volume};
+use crate::subpixel::{BlockSubpixel, refine_with_block_costs};
 use crate::volume::{CostSpec, PreparedProblem, Problem, band_rows};
 use crate::wta::SubpixelFit;
 
@@ -39,6 +40,11 @@ pub struct SgmConfig {
     /// An image-guided weighted median after the rest (`postprocess::WeightedMedian`; `{}` =
     /// its defaults, `null` = none): depth edges snap to the reference's colour edges.
     pub weighted_median: Option<WeightedMedian>,
+    /// Sub-pixel from block-matching costs, last (`subpixel::BlockSubpixel`; `{}` = its
+    /// defaults, `null` = none, the default: a second cost pass, about the time of
+    /// `bm-heuristic`): SGM's integer stays, its fraction is re-read from fused 9×9
+    /// Birchfield–Tomasi block costs, which lock to the pixel grid far less than SGM's sums.
+    pub block_subpixel: Option<BlockSubpixel>,
 }
 
 impl super::FusedConfig for SgmConfig {
@@ -61,6 +67,7 @@ impl Default for SgmConfig {
             subpixel_fit: SubpixelFit::Equiangular,
             median: true,
             weighted_median: None,
+            block_subpixel: None,
         }
     }
 }
@@ -111,6 +118,9 @@ impl Method for Sgm {
         }
         if let Some(filter) = &self.config.weighted_median {
             disparity = weighted_median(&disparity, &problem.reference, filter)?;
+        }
+        if let Some(config) = &self.config.block_subpixel {
+            refine_with_block_costs(problem, &mut disparity, config)?;
         }
         crate::postprocess::scale_by_local_consistency(&mut disparity);
         progress(1.0);

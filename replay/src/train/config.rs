@@ -194,12 +194,12 @@ impl TrainConfig {
             || self
                 .scenes
                 .iter()
-                .any(|s| matches!(s, SceneKind::Bin | SceneKind::Thin))
+                .any(|s| matches!(s, SceneKind::Bin | SceneKind::Thin | SceneKind::Slanted))
         {
             return bad(
                 "scenes",
                 format!("{:?}", self.scenes),
-                "one or more families, never `bin` or `thin` (the held-out families, for checking generalisation)",
+                "one or more families, never `bin`, `thin` or `slanted` (the held-out families, for checking generalisation)",
             );
         }
         if !(0.0..0.5).contains(&self.exposure_jitter) {

@@ -139,7 +139,12 @@ pub struct TrainSummary {
 /// `config` describes: the same in everything but the step budget, so that a longer (or shorter)
 /// `--steps` resumes the run instead of starting it over.
 fn same_run(stored: &str, config: &TrainConfig) -> bool {
-    serde_json::from_str::<TrainConfig>(stored).is_ok_and(|stored| TrainConfig { steps: config.steps, ..stored } == *config)
+    serde_json::from_str::<TrainConfig>(stored).is_ok_and(|stored| {
+        TrainConfig {
+            steps: config.steps,
+            ..stored
+        } == *config
+    })
 }
 
 /// A value as JSON for the weights' metadata (a failure is an error, never an empty entry).
@@ -253,39 +258,40 @@ pub fn train(
         .map(|_| random_crop(config, &train_samples, &mut calibration_rng))
         .collect();
     // Resume or start.
-    let (mut net, mut adam, mut history, mut train_seconds, continued) = match load_checkpoint(&files.checkpoint(), config.views) {
-        Ok((net, adam, info)) if info.get("train_config").is_some_and(|stored| same_run(stored, config)) => {
-            let history = read_curves(&files.curves_csv(), adam.step)?;
-            let seconds = info.get("train_seconds").and_then(|s| s.parse().ok()).unwrap_or(0.0);
-            // Steps another trainer took (`scripts/train-torch.py`: `torch_batch`, `torch_steps`, …)
-            // stay on record in every later checkpoint and in the weights.
-            let continued: Vec<(String, String)> = info
-                .entries
-                .iter()
-                .filter(|(k, _)| k.starts_with("torch_"))
-                .map(|(k, v)| (k.clone(), v.clone()))
-                .collect();
-            (net, adam, history, seconds, continued)
-        }
-        _ => {
-            let mut net = match &config.init_weights {
-                Some(path) => {
-                    let mut net = weights::load(path, Some(config.views))?.0;
-                    if config.recalibrate_every > 0 {
-                        recalibrate_batch_norm(&mut net, &calibration)?;
+    let (mut net, mut adam, mut history, mut train_seconds, continued) =
+        match load_checkpoint(&files.checkpoint(), config.views) {
+            Ok((net, adam, info)) if info.get("train_config").is_some_and(|stored| same_run(stored, config)) => {
+                let history = read_curves(&files.curves_csv(), adam.step)?;
+                let seconds = info.get("train_seconds").and_then(|s| s.parse().ok()).unwrap_or(0.0);
+                // Steps another trainer took (`scripts/train-torch.py`: `torch_batch`, `torch_steps`, …)
+                // stay on record in every later checkpoint and in the weights.
+                let continued: Vec<(String, String)> = info
+                    .entries
+                    .iter()
+                    .filter(|(k, _)| k.starts_with("torch_"))
+                    .map(|(k, v)| (k.clone(), v.clone()))
+                    .collect();
+                (net, adam, history, seconds, continued)
+            }
+            _ => {
+                let mut net = match &config.init_weights {
+                    Some(path) => {
+                        let mut net = weights::load(path, Some(config.views))?.0;
+                        if config.recalibrate_every > 0 {
+                            recalibrate_batch_norm(&mut net, &calibration)?;
+                        }
+                        net
                     }
-                    net
-                }
-                None => {
-                    let mut net = Network::init(config.views, config.seed);
-                    recalibrate_batch_norm(&mut net, &calibration)?;
-                    net
-                }
-            };
-            let adam = Adam::new(&mut net, config.learning_rate);
-            (net, adam, Vec::new(), 0.0, Vec::new())
-        }
-    };
+                    None => {
+                        let mut net = Network::init(config.views, config.seed);
+                        recalibrate_batch_norm(&mut net, &calibration)?;
+                        net
+                    }
+                };
+                let adam = Adam::new(&mut net, config.learning_rate);
+                (net, adam, Vec::new(), 0.0, Vec::new())
+            }
+        };
     // The momentum is not part of the weights: set it on every (re)start.
     let batch_norm_mode = if config.statistics_momentum > 0.0 {
         for layer in net.layers_mut() {

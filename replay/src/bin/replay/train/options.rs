@@ -111,7 +111,7 @@ pub struct TrainArgs {
     /// metadata (or write --weights-out; the tensors are unchanged). docs/methods.md, "Pixel locking".
     #[arg(long, value_name = "FILE")]
     pub(crate) calibrate: Option<PathBuf>,
-    /// Scene families of the captures, used in turn (comma-separated; `bin` and `thin` are held
+    /// Scene families of the captures, used in turn (comma-separated; `bin`, `thin` and `slanted` are held
     /// out of training: they check how the networks do on families they never saw).
     #[arg(
         long,
