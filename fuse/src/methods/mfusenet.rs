@@ -173,6 +173,14 @@ impl Default for MFuseNetConfig {
     }
 }
 
+/// Which result [`MFuseNet::finish`] makes: the coarse level's, which the full-size band reads
+/// again, or the last.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Stage {
+    Coarse,
+    Last,
+}
+
 /// A network and how its weights file asks for it to be run.
 struct Loaded {
     views: usize,
@@ -269,13 +277,13 @@ impl Method for MFuseNet {
         let factor = pyramid_factor(problem.num_disparities, self.config.max_direct_disparities);
         if factor == 1 {
             let estimate = self.network_estimate(problem, progress)?;
-            return self.finish(problem, estimate);
+            return self.finish(problem, estimate, Stage::Last);
         }
         // Coarse to fine (`mfusenet::pyramid`): the network on the reduced set, whose range fits
         // its training, then the band around its answer at full size.
         let coarse = downsampled(problem, factor);
         let estimate = self.network_estimate(&coarse, &|f| progress(0.5 * f))?;
-        let coarse_out = self.finish(&coarse, estimate)?;
+        let coarse_out = self.finish(&coarse, estimate, Stage::Coarse)?;
         let loaded = self.network_for(problem)?;
         let neighbours = ordered_neighbours(problem, loaded.net.views)?;
         // The full-size costs as one sum, made a neighbour at a time: the post-processing reads
@@ -303,6 +311,7 @@ impl Method for MFuseNet {
                 costs,
                 first,
             },
+            Stage::Last,
         )
     }
 
@@ -611,7 +620,7 @@ impl MFuseNet {
 
     /// The post-processing: the median, the weighted median with the votes of the input costs,
     /// and the confidence from the network's margin, the inputs' peak and what the filters kept.
-    fn finish(&self, problem: &Problem, estimate: NetworkEstimate) -> Result<DisparityImage, FuseError> {
+    fn finish(&self, problem: &Problem, estimate: NetworkEstimate, stage: Stage) -> Result<DisparityImage, FuseError> {
         let NetworkEstimate {
             disparity,
             costs,
@@ -642,8 +651,20 @@ impl MFuseNet {
                 *c = 0.5 * (*c + support) * if kept.is_finite() { kept } else { 0.0 };
             }
         }
-        if let Some(config) = &self.config.block_subpixel {
-            refine_with_block_costs(problem, &mut out, config)?;
+        if let (Some(config), Stage::Last) = (&self.config.block_subpixel, stage) {
+            // The block costs of the views the network answered from (the nearest group), so
+            // that a method never changes with views it does not use.
+            let used = ordered_neighbours(problem, self.network_for(problem)?.views)?;
+            if used.len() == problem.neighbours.len() {
+                refine_with_block_costs(problem, &mut out, config)?;
+            } else {
+                let nearest = Problem {
+                    reference: problem.reference.clone(),
+                    neighbours: used.into_iter().cloned().collect(),
+                    ..*problem
+                };
+                refine_with_block_costs(&nearest, &mut out, config)?;
+            }
         }
         scale_by_local_consistency(&mut out);
         Ok(out)
