@@ -169,9 +169,17 @@ pub fn depth_range(set: &ViewSet) -> (f64, f64) {
     if valid.is_empty() {
         return DEFAULT_DEPTH_RANGE_M;
     }
-    valid.sort_unstable_by(f32::total_cmp);
-    let at = |q: f64| f64::from(valid[((valid.len() - 1) as f64 * q) as usize]);
-    (at(0.02), at(0.98))
+    // The 2 % and 98 % quantiles by selection (linear time) rather than a sort of every pixel.
+    let last = valid.len() - 1;
+    let (high, low) = (((last as f64) * 0.98) as usize, ((last as f64) * 0.02) as usize);
+    let (below, at_high, _) = valid.select_nth_unstable_by(high, f32::total_cmp);
+    let high_m = f64::from(*at_high);
+    let low_m = if low == high {
+        high_m
+    } else {
+        f64::from(*below.select_nth_unstable_by(low, f32::total_cmp).1)
+    };
+    (low_m, high_m)
 }
 
 /// Worst perpendicular-to-search-line error (px) of a neighbour over a 5×5 grid of pixels and the
@@ -378,15 +386,20 @@ fn biweights(points: &[(f64, f64)], a: f64, b: f64) -> Vec<f64> {
 /// through them (Tukey's biweight, robust to wrong matches) and evaluated at both ends of the
 /// set's disparity range; with too little disparity spread, the shift pooled over every sample
 /// ([`pooled_shift`]) is the answer.
-fn image_shift(set: &ViewSet, neighbour: &View, num_disparities: usize, depth_range: (f64, f64)) -> Option<f64> {
+fn image_shift(
+    set: &ViewSet,
+    reference: &[f32],
+    neighbour: &View,
+    num_disparities: usize,
+    depth_range: (f64, f64),
+) -> Option<f64> {
     let (w, h) = (set.width() as i32, set.height() as i32);
-    let reference = fuse::image::luma_levels(&set.reference.rgb);
     let other = fuse::image::luma_levels(&neighbour.rgb);
     let (ox, oy) = (neighbour.offset[0], neighbour.offset[1]);
     let (px, py) = (-oy.signum(), ox.signum());
     let margin = IMAGE_BLOCK_RADIUS + IMAGE_SHIFT_SEARCH_PX + 1;
     let image = Luma::new(&other, w, h);
-    let template = Luma::new(&reference, w, h);
+    let template = Luma::new(reference, w, h);
     // Per unambiguous textured sample: its best block cost at each integer shift (for the pooled
     // constant), and its match refined to sub-pixel (disparity, shift).
     let mut pooled: Vec<Vec<f32>> = Vec::new();
@@ -497,6 +510,8 @@ fn image_shift(set: &ViewSet, neighbour: &View, num_disparities: usize, depth_ra
 /// error and the image shift.
 pub fn check_set(set: &ViewSet, num_disparities: usize, limits: PixelLimits) -> SetCheck {
     let range = depth_range(set);
+    // The reference's grey levels, once for every neighbour's image-shift search.
+    let reference = fuse::image::luma_levels(&set.reference.rgb);
     // One neighbour per task: the image-shift search is most of a check.
     let neighbours: Vec<NeighbourCheck> = set
         .neighbours
@@ -524,7 +539,7 @@ pub fn check_set(set: &ViewSet, num_disparities: usize, limits: PixelLimits) -> 
                     limits.pair(),
                 ),
             ];
-            let image_shift_px = image_shift(set, n, num_disparities, range).map(|s| {
+            let image_shift_px = image_shift(set, &reference, n, num_disparities, range).map(|s| {
                 let (warn, fail) = limits.pair();
                 Measure::new(s, (warn * IMAGE_LIMIT_FRACTION, fail * IMAGE_LIMIT_FRACTION))
             });

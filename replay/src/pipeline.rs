@@ -118,9 +118,22 @@ impl<'a> PreparedSet<'a> {
         // The image-based shift search must reach the disparities searched.
         let end = min_disparity.saturating_add(i32::try_from(num_disparities).unwrap_or(i32::MAX));
         let reach = min_disparity.unsigned_abs().max(end.unsigned_abs()) as usize;
-        let alignment = check_set(set, reach, crate::check::PixelLimits::default());
-        let selected = set.with_neighbours(&options.neighbours)?;
-        let problem = selected.problem(min_disparity, num_disparities, options.rectify)?;
+        // The check, the method's problem and the evaluation's occlusion mask are independent:
+        // computed at once, so that no core idles in the sequential parts of any.
+        let (alignment, (occluded, selected_problem)) = rayon::join(
+            || check_set(set, reach, crate::check::PixelLimits::default()),
+            || {
+                rayon::join(
+                    || set.occlusion_mask(),
+                    || -> Result<_, ReplayError> {
+                        let selected = set.with_neighbours(&options.neighbours)?;
+                        let problem = selected.problem(min_disparity, num_disparities, options.rectify)?;
+                        Ok((selected, problem))
+                    },
+                )
+            },
+        );
+        let (selected, problem) = selected_problem?;
         Ok(Self {
             set,
             selected,
@@ -128,7 +141,7 @@ impl<'a> PreparedSet<'a> {
             min_disparity,
             num_disparities,
             alignment,
-            occluded: set.occlusion_mask(),
+            occluded,
         })
     }
 

@@ -103,45 +103,72 @@ impl RankedErrors {
 
     /// The curve over every pixel held, ranked by confidence (stable: ties keep their order).
     /// `None` without pixels.
-    pub fn curve(mut self) -> Option<Sparsification> {
+    pub fn curve(self) -> Option<Sparsification> {
         if self.pairs.is_empty() {
             return None;
         }
-        use rayon::prelude::*;
-        // The ranking by confidence and the oracle's by error, at once. The ranking sorts one
-        // key per pixel, the confidence's order-preserving bits (descending) then its index:
-        // the order of a stable sort, at the cost of an unstable one.
+        let count = self.pairs.len();
+        let kept = Sparsification::SHARES.map(|share| ((count as f64 * share).round() as usize).clamp(1, count));
+        // The ranking by confidence: one key per pixel, the confidence's order-preserving bits
+        // (descending) then its index, the order of a stable sort. Only the sums of the first
+        // `kept` are needed, so the keys are partitioned at each share (from the largest down)
+        // instead of sorted: linear time, the same pixels in each share.
         let descending = |c: f32| {
             let bits = c.to_bits();
             !(if bits >> 31 == 1 { !bits } else { bits | 0x8000_0000 })
         };
-        let mut keys: Vec<(u32, usize)> = self
-            .pairs
-            .iter()
-            .enumerate()
-            .map(|(i, (c, _))| (descending(*c), i))
-            .collect();
-        let mut errors: Vec<f64> = self.pairs.iter().map(|(_, e)| *e).collect();
-        rayon::join(
-            || keys.par_sort_unstable(),
-            || errors.par_sort_unstable_by(f64::total_cmp),
-        );
-        self.pairs = keys.iter().map(|(_, i)| self.pairs[*i]).collect();
-        let count = self.pairs.len();
-        let mean_of_first = |errors: &mut dyn Iterator<Item = f64>, share: f64| {
-            let kept = ((count as f64 * share).round() as usize).max(1);
-            errors.take(kept).sum::<f64>() / kept as f64
+        let ranked = || {
+            let mut keys: Vec<(u32, usize)> = self
+                .pairs
+                .iter()
+                .enumerate()
+                .map(|(i, (c, _))| (descending(*c), i))
+                .collect();
+            prefix_sums(&mut keys, kept, |(_, i)| self.pairs[*i].1, Ord::cmp)
         };
-        let [top50, top75, top90] =
-            Sparsification::SHARES.map(|share| mean_of_first(&mut self.pairs.iter().map(|(_, e)| *e), share));
+        // The oracle's ranking by the error itself.
+        let oracle = || {
+            let mut errors: Vec<f64> = self.pairs.iter().map(|(_, e)| *e).collect();
+            prefix_sums(&mut errors, kept, |e| *e, f64::total_cmp)
+        };
+        let (ranked, oracle) = rayon::join(ranked, oracle);
+        let all = self.pairs.iter().map(|(_, e)| *e).sum::<f64>();
+        let mean = |sums: [f64; 3], k: usize| sums[k] / kept[k] as f64;
         Some(Sparsification {
-            avg_err_top50_px: top50,
-            avg_err_top75_px: top75,
-            avg_err_top90_px: top90,
-            avg_err_all_px: errors.iter().sum::<f64>() / count as f64,
-            oracle_avg_err_px: Sparsification::SHARES.map(|share| mean_of_first(&mut errors.iter().copied(), share)),
+            avg_err_top50_px: mean(ranked, 0),
+            avg_err_top75_px: mean(ranked, 1),
+            avg_err_top90_px: mean(ranked, 2),
+            avg_err_all_px: all / count as f64,
+            oracle_avg_err_px: [0, 1, 2].map(|k| mean(oracle, k)),
         })
     }
+}
+
+/// The sums of `error(item)` over the first `kept[k]` items of `items` in the order `order`
+/// (`kept` ascending, each in `1..=items.len()`), for each `k`. Partitions `items` (selection,
+/// from the largest share down) instead of sorting them.
+fn prefix_sums<T>(
+    items: &mut [T],
+    kept: [usize; 3],
+    error: impl Fn(&T) -> f64,
+    order: impl Fn(&T, &T) -> std::cmp::Ordering + Copy,
+) -> [f64; 3] {
+    let mut end = items.len();
+    for &k in kept.iter().rev() {
+        if k < end {
+            items[..end].select_nth_unstable_by(k, order);
+        }
+        end = k;
+    }
+    let mut sums = [0.0; 3];
+    let mut total = 0.0;
+    let mut start = 0;
+    for (sum, &k) in sums.iter_mut().zip(&kept) {
+        total += items[start..k].iter().map(&error).sum::<f64>();
+        *sum = total;
+        start = k;
+    }
+    sums
 }
 
 impl Sparsification {
@@ -297,6 +324,46 @@ mod tests {
         assert_eq!(worse.avg_err_top50_px, 2.5);
         assert_eq!(worse.oracle_avg_err_px, curve.oracle_avg_err_px);
         assert_eq!(Sparsification::measure(&[1.0], &[1.0], &[f32::NAN], 3.0), None);
+    }
+
+    #[test]
+    fn the_curve_equals_a_stable_sort_of_the_pixels() {
+        // Many ties (confidence in 16 levels) and errors in 8 levels: the partition must pick the
+        // same pixels as a stable sort by confidence, and the oracle the smallest errors.
+        let n = 10_007;
+        let mut state = 12345u64;
+        let mut next = || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (state >> 33) as u32
+        };
+        let truth = vec![0.0f32; n];
+        let estimate: Vec<f32> = (0..n).map(|_| (next() % 8) as f32 * 0.5).collect();
+        let confidence: Vec<f32> = (0..n).map(|_| (next() % 16) as f32 / 16.0).collect();
+        let curve = Sparsification::measure(&estimate, &confidence, &truth, 9.0).unwrap_or_else(|| panic!("none"));
+        let mut order: Vec<usize> = (0..n).collect();
+        order.sort_by(|a, b| confidence[*b].total_cmp(&confidence[*a]));
+        let mut sorted_errors: Vec<f64> = estimate.iter().map(|e| f64::from(*e)).collect();
+        sorted_errors.sort_by(f64::total_cmp);
+        for (share, got, oracle) in [
+            (0.5, curve.avg_err_top50_px, curve.oracle_avg_err_px[0]),
+            (0.75, curve.avg_err_top75_px, curve.oracle_avg_err_px[1]),
+            (0.9, curve.avg_err_top90_px, curve.oracle_avg_err_px[2]),
+        ] {
+            let k = (n as f64 * share).round() as usize;
+            let want = order[..k].iter().map(|i| f64::from(estimate[*i])).sum::<f64>() / k as f64;
+            let want_oracle = sorted_errors[..k].iter().sum::<f64>() / k as f64;
+            assert!((got - want).abs() < 1e-12, "{share}: {got} vs {want}");
+            assert!(
+                (oracle - want_oracle).abs() < 1e-12,
+                "{share}: {oracle} vs {want_oracle}"
+            );
+        }
+        assert!(
+            curve.avg_err_top50_px != curve.oracle_avg_err_px[0],
+            "a random confidence is not the oracle"
+        );
     }
 
     #[test]

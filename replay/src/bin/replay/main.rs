@@ -33,6 +33,36 @@ mod allocator {
     unsafe extern "C" {
         /// mimalloc's `void mi_option_set(mi_option_t option, long value)`.
         pub(super) fn mi_option_set(option: i32, value: std::ffi::c_long);
+        /// Linux's `int prctl(int option, ...)`.
+        #[cfg(target_os = "linux")]
+        pub(super) fn prctl(option: std::ffi::c_int, ...) -> std::ffi::c_int;
+    }
+}
+
+/// Linux's `PR_SET_THP_DISABLE` (`<linux/prctl.h>`).
+#[cfg(target_os = "linux")]
+const PR_SET_THP_DISABLE: std::ffi::c_int = 41;
+
+/// No transparent huge pages for this process (`prctl(PR_SET_THP_DISABLE)`; mimalloc asks for
+/// them with `madvise(MADV_HUGEPAGE)` on its arenas). On virtual machines that hand freed memory
+/// back to the host (free page reporting) a fresh 2 MB page faults the host and is zeroed at
+/// 0.5 GB/s, and how much of a run's memory is fresh depends on how long ago the last process
+/// freed it: `bm-heuristic` at 1080p took 0.54–0.58 s with huge pages run a few seconds apart
+/// and 0.36 s back to back, 0.40–0.42 s without them either way (docs/experiments.md). Small
+/// pages make the time independent of the host's history, and no slower when it is cold.
+fn no_huge_pages() {
+    #[cfg(target_os = "linux")]
+    // SAFETY: `prctl(PR_SET_THP_DISABLE, 1, 0, 0, 0)` only sets a flag of this process; its
+    // failure (an old kernel) leaves the default, which is correct, only slower.
+    #[allow(unsafe_code)]
+    unsafe {
+        let _ = allocator::prctl(
+            PR_SET_THP_DISABLE,
+            1 as std::ffi::c_ulong,
+            0 as std::ffi::c_ulong,
+            0 as std::ffi::c_ulong,
+            0 as std::ffi::c_ulong,
+        );
     }
 }
 
@@ -102,6 +132,7 @@ enum Command {
 }
 
 fn main() -> ExitCode {
+    no_huge_pages();
     keep_freed_pages();
     cli::main_with(|cli: &Cli| cli.quiet, |cli| dispatch(&cli))
 }
