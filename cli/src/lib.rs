@@ -117,8 +117,9 @@ pub fn report_log_layout(log_path: &Path, written: Result<std::path::PathBuf, im
     }
 }
 
-/// A flag that the first Ctrl-C raises (printing `first`, so that the run can finish what it
-/// has); a second one prints `abort` and exits 130 at once.
+/// A flag that the first Ctrl-C (SIGINT), SIGTERM or SIGHUP raises (printing `first`, so that the
+/// run can finish what it has: a shutdown or a job scheduler's `kill` ends a recording or a
+/// training run as cleanly as Ctrl-C); a second one prints `abort` and exits 130 at once.
 pub fn interrupt_flag(first: &'static str, abort: &'static str) -> Arc<AtomicBool> {
     let stop = Arc::new(AtomicBool::new(false));
     let presses = AtomicU32::new(0);

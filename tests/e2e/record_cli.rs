@@ -76,6 +76,16 @@ fn failure_mid_run_leaves_no_file() {
 
 #[test]
 fn ctrl_c_finishes_a_readable_log_of_the_completed_sets() {
+    interrupted_record_finishes_its_log("INT");
+}
+
+/// What a shutdown, a job scheduler or `kill` sends: the same orderly end as Ctrl-C.
+#[test]
+fn sigterm_finishes_a_readable_log_of_the_completed_sets() {
+    interrupted_record_finishes_its_log("TERM");
+}
+
+fn interrupted_record_finishes_its_log(signal: &str) {
     let dir = temp_dir();
     let path = dir.path().join("interrupted.mcap");
     let mut child = Command::new(binary("record"))
@@ -109,8 +119,8 @@ fn ctrl_c_finishes_a_readable_log_of_the_completed_sets() {
         assert!(started.elapsed() < Duration::from_secs(120), "no progress:\n{seen}");
     }
     let pid = child.id().to_string();
-    let kill = Command::new("kill").args(["-INT", &pid]).status();
-    assert!(kill.is_ok_and(|s| s.success()), "cannot send SIGINT");
+    let kill = Command::new("kill").args([&format!("-{signal}"), &pid]).status();
+    assert!(kill.is_ok_and(|s| s.success()), "cannot send SIG{signal}");
     let rest: Vec<String> = lines.map_while(Result::ok).collect();
     let status = child.wait().unwrap_or_else(|e| panic!("{e}"));
     assert_eq!(
