@@ -1,6 +1,7 @@
 //! What the `record` and `replay` binaries share: exit codes, usage errors, logging set-up,
-//! progress bars, the Ctrl-C flag, the mapping from a run's outcome to the process exit code, and
-//! the report of the viewer layout written beside a log. Libraries never depend on it.
+//! progress bars, the interrupt flag (Ctrl-C, SIGTERM, SIGHUP), the mapping from a run's outcome
+//! to the process exit code, and the report of the viewer layout written beside a log.
+//! Libraries never depend on it.
 
 use std::path::Path;
 use std::process::ExitCode;
@@ -119,22 +120,73 @@ pub fn report_log_layout(log_path: &Path, written: Result<std::path::PathBuf, im
 
 /// A flag that the first Ctrl-C (SIGINT), SIGTERM or SIGHUP raises (printing `first`, so that the
 /// run can finish what it has: a shutdown or a job scheduler's `kill` ends a recording or a
-/// training run as cleanly as Ctrl-C); a second one prints `abort` and exits 130 at once.
+/// training run as cleanly as Ctrl-C); a second one prints `abort` and exits 130 at once. A
+/// process started with SIGHUP ignored (`nohup`) keeps ignoring it.
 pub fn interrupt_flag(first: &'static str, abort: &'static str) -> Arc<AtomicBool> {
     let stop = Arc::new(AtomicBool::new(false));
     let presses = AtomicU32::new(0);
     let flag = Arc::clone(&stop);
+    let nohup = hangup::ignored();
     let installed = ctrlc::set_handler(move || {
+        // Not `eprintln!`: it panics when the terminal is gone (a hang-up), and a panic here
+        // would end the handler's thread.
+        use std::io::Write;
         if presses.fetch_add(1, Ordering::SeqCst) == 0 {
             flag.store(true, Ordering::SeqCst);
-            eprintln!("\n{first}");
+            let _ = writeln!(std::io::stderr(), "\n{first}");
         } else {
-            eprintln!("\n{abort}");
+            let _ = writeln!(std::io::stderr(), "\n{abort}");
             std::process::exit(130);
         }
     });
     if let Err(error) = installed {
-        tracing::warn!("Ctrl-C handler not installed: {error}");
+        tracing::warn!("interrupt handler not installed: {error}");
+    }
+    if nohup {
+        hangup::ignore();
     }
     stop
+}
+
+/// SIGHUP's disposition, which ctrlc's handler replaces: under `nohup` it is ignored, and must
+/// stay so.
+#[cfg(unix)]
+#[allow(unsafe_code)]
+mod hangup {
+    use nix::sys::signal::{SaFlags, SigAction, SigHandler, SigSet, Signal, sigaction};
+
+    fn ignoring() -> SigAction {
+        SigAction::new(SigHandler::SigIgn, SaFlags::empty(), SigSet::empty())
+    }
+
+    /// Whether SIGHUP is ignored now.
+    pub(super) fn ignored() -> bool {
+        // SAFETY: swaps in SIG_IGN and puts the previous action back at once; no handler is
+        // installed that was not there before, and SIG_IGN runs no code.
+        unsafe {
+            match sigaction(Signal::SIGHUP, &ignoring()) {
+                Ok(previous) => {
+                    let _ = sigaction(Signal::SIGHUP, &previous);
+                    matches!(previous.handler(), SigHandler::SigIgn)
+                }
+                Err(_) => false,
+            }
+        }
+    }
+
+    /// Ignore SIGHUP again.
+    pub(super) fn ignore() {
+        // SAFETY: SIG_IGN runs no code.
+        unsafe {
+            let _ = sigaction(Signal::SIGHUP, &ignoring());
+        }
+    }
+}
+
+#[cfg(not(unix))]
+mod hangup {
+    pub(super) fn ignored() -> bool {
+        false
+    }
+    pub(super) fn ignore() {}
 }

@@ -85,6 +85,59 @@ fn sigterm_finishes_a_readable_log_of_the_completed_sets() {
     interrupted_record_finishes_its_log("TERM");
 }
 
+/// `nohup` starts a run with SIGHUP ignored so that it outlives the terminal: the interrupt
+/// handler must leave it so.
+#[test]
+fn a_nohup_recording_ignores_a_hang_up() {
+    let dir = temp_dir();
+    let path = dir.path().join("nohup.mcap");
+    let captures = 200;
+    let mut child = Command::new("nohup")
+        .arg(binary("record"))
+        .args(["-o", path.to_str().unwrap_or_default()])
+        .args([
+            "--captures",
+            &captures.to_string(),
+            "--resolution",
+            "64x48",
+            "--samples-per-pixel",
+            "1",
+        ])
+        .stderr(Stdio::piped())
+        .stdout(Stdio::null())
+        .spawn()
+        .unwrap_or_else(|e| panic!("cannot start nohup record: {e}"));
+    let stderr = child.stderr.take().unwrap_or_else(|| panic!("no stderr pipe"));
+    let mut lines = BufReader::new(stderr).lines();
+    let mut seen = String::new();
+    loop {
+        let Some(Ok(line)) = lines.next() else {
+            panic!("record ended before two sets were done:\n{seen}");
+        };
+        seen.push_str(&line);
+        seen.push('\n');
+        if line.contains(&format!("set 2/{captures} done")) {
+            break;
+        }
+    }
+    // `nohup` replaced itself with `record`: the child's pid is the recorder's.
+    let kill = Command::new("kill").args(["-HUP", &child.id().to_string()]).status();
+    assert!(
+        kill.is_ok_and(|s| s.success()),
+        "cannot send SIGHUP (record already done?)"
+    );
+    let rest: Vec<String> = lines.map_while(Result::ok).collect();
+    let status = child.wait().unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(
+        status.code(),
+        Some(0),
+        "a hang-up ended a nohup run\n{seen}{}",
+        rest.join("\n")
+    );
+    let sets: std::collections::BTreeSet<u32> = Log::read(&path).events().iter().map(|e| e.set_index).collect();
+    assert_eq!(sets.len(), captures, "every set recorded");
+}
+
 fn interrupted_record_finishes_its_log(signal: &str) {
     let dir = temp_dir();
     let path = dir.path().join("interrupted.mcap");

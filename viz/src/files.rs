@@ -225,7 +225,7 @@ pub fn colorize(values: &[f32], low: f32, high: f32) -> Vec<u8> {
     let mut rgb = vec![0u8; values.len() * 3];
     for (pixel, v) in rgb.chunks_exact_mut(3).zip(values) {
         if v.is_finite() {
-            // Clamped in f32 (NaN cannot reach here), then rounded to the nearest sample.
+            // Clamped, then rounded to the nearest sample (a NaN from a NaN `low` casts to 0).
             let at = ((v - low) * scale).clamp(0.0, (TURBO_STEPS - 1) as f32).round() as usize;
             pixel.copy_from_slice(&table[at]);
         }

@@ -1,7 +1,8 @@
 //! `record`: simulate a UR10 multiscopic capture, or import an image set, into an MCAP log.
 //!
-//! Exit codes: 0 ok, 1 error, 2 usage, 3 finished but incomplete (interrupted with Ctrl-C: the
-//! log holds the sets completed so far, or the viewer layout beside the log could not be written).
+//! Exit codes: 0 ok, 1 error, 2 usage, 3 finished but incomplete (interrupted with Ctrl-C,
+//! SIGTERM or SIGHUP: the log holds the sets completed so far, or the viewer layout beside the
+//! log could not be written).
 
 //!
 //! One module per subcommand (`simulate`: `record` itself; `import`), the value parsers in

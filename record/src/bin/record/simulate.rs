@@ -24,7 +24,7 @@ pub fn run(args: &SimulateArgs, quiet: bool) -> Result<Outcome> {
         other => anyhow::Error::new(other),
     })?;
     let stop = interrupt_flag(
-        "interrupt: finishing the log with the sets completed so far (Ctrl-C again to abort)",
+        "interrupt: finishing the log with the sets completed so far (interrupt again to abort)",
         "aborted: no log written",
     );
     let views_per_set = u64::from(config.views_per_set());

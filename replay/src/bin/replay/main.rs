@@ -45,11 +45,13 @@ const PR_SET_THP_DISABLE: std::ffi::c_int = 41;
 
 /// No transparent huge pages for this process (`prctl(PR_SET_THP_DISABLE)`; mimalloc asks for
 /// them with `madvise(MADV_HUGEPAGE)` on its arenas). On virtual machines that hand freed memory
-/// back to the host (free page reporting) a fresh 2 MB page faults the host and is zeroed at
-/// 0.5 GB/s, and how much of a run's memory is fresh depends on how long ago the last process
-/// freed it: `bm-heuristic` at 1080p took 0.54–0.58 s with huge pages run a few seconds apart
-/// and 0.36 s back to back, 0.40–0.42 s without them either way (docs/experiments.md). Small
-/// pages make the time independent of the host's history, and no slower when it is cold.
+/// back to the host (free page reporting) a fresh 2 MB page faults the host as well and is
+/// written at 0.5–1.1 GB/s, against 10 GB/s for one freed a moment ago: how much of a run's
+/// memory is fresh depends on how long ago the last process freed it. `bm-heuristic` at 1080p:
+/// 0.559 s after 5 s idle and 0.366 s back to back with huge pages, 0.439 and 0.410 s without
+/// (docs/benchmarks.md, "Fresh memory"). Small pages make the time independent of what ran
+/// before, at the cost of the back-to-back best case. Child processes (a spawned viewer)
+/// inherit the setting.
 fn no_huge_pages() {
     #[cfg(target_os = "linux")]
     // SAFETY: `prctl(PR_SET_THP_DISABLE, 1, 0, 0, 0)` only sets a flag of this process; its

@@ -26,7 +26,7 @@ pub fn run(args: &TrainArgs, quiet: bool) -> Result<Outcome> {
         .clone()
         .unwrap_or_else(|| dir.join(format!("{variant}.safetensors")));
     let stop = interrupt_flag(
-        "interrupt: saving a checkpoint and the weights so far (Ctrl-C again to abort; rerun to resume)",
+        "interrupt: saving a checkpoint and the weights so far (interrupt again to abort; rerun to resume)",
         "aborted",
     );
     let command = std::env::args().collect::<Vec<_>>().join(" ");
