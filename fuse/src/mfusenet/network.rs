@@ -4,6 +4,7 @@
 //! ```text
 //! per view i:  [1, D, H, W] ─ feature (shared): convbn 1→4 k7, 4→4 k5, 4→4 k5, 4→4 k3, ReLU each
 //! concat:      [4N, D, H, W] ─ convbn 4N→4 k7, ReLU                                   = c
+//!   (pooled, N = 0: [8, D, H, W] = the views' mean and maximum, `nn::pool`, for any number)
 //! down1:       c      ─ convbn k3 stride 2, ReLU                                      = d1   (½)
 //! dconv1:      cdown1 = ReLU(convbn k3 (d1)) + d1
 //! down2:       cdown1 ─ convbn k3 stride 2, ReLU                                      = d2   (¼)
@@ -250,7 +251,9 @@ pub struct Classify {
 /// The whole network for `views` cost volumes.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Network {
-    /// Number of cost volumes N (1, 2 or 4).
+    /// Number of cost volumes N (1, 2 or 4), or 0: any number, their features pooled by mean and
+    /// maximum ([`crate::nn::pool`]) instead of concatenated, so that `concat` reads 8 channels
+    /// whatever the count and the order of the views (see [`Network::pooled`]).
     pub views: usize,
     /// `feature.0`, `feature.2`, `feature.4`, `feature.6` (shared by the views).
     pub feature: Vec<ConvBn>,
@@ -264,6 +267,11 @@ pub struct Network {
 /// The receptive radius (px, in H and W) of the last full-resolution layers together:
 /// `uconv2` (k7: 3), `distill1` (k5: 2) and `classify` (k3: 1).
 pub const LAST_LAYERS_RADIUS: usize = 6;
+
+/// Input channels of `concat`: four per view, or the pooled mean and maximum (views = 0).
+fn concat_channels(views: usize) -> usize {
+    if views == 0 { 8 } else { 4 * views }
+}
 
 /// Indices into [`Network::fuse`].
 const CONCAT: usize = 0;
@@ -281,6 +289,8 @@ const DISTILL1: usize = 10;
 /// What the backward pass needs from a train-mode forward pass.
 pub struct Tape {
     feature: Vec<Vec<ConvBnCache>>,
+    /// A pooled network's maximum: which view gave each value ([`crate::nn::pool`]).
+    argmax: Option<Vec<u16>>,
     fuse: Vec<ConvBnCache>,
     /// Input of `classify`.
     head_input: Tensor,
@@ -307,7 +317,7 @@ impl Network {
             ConvBn::new("feature.6", 4, 4, 3, Same),
         ];
         let fuse = vec![
-            ConvBn::new("concat", 4 * views, 4, 7, Same),
+            ConvBn::new("concat", concat_channels(views), 4, 7, Same),
             ConvBn::new("down1", 4, 4, 3, Down),
             ConvBn::new("dconv1", 4, 4, 3, Same),
             ConvBn::new("down2", 4, 4, 3, Down),
@@ -328,6 +338,12 @@ impl Network {
                 bias: vec![0.0],
             },
         }
+    }
+
+    /// The view-count-agnostic architecture (`views` = 0) with zero weights: any number of cost
+    /// volumes, their features pooled by mean and maximum before `concat`.
+    pub fn pooled() -> Self {
+        Self::zeros(0)
     }
 
     /// PyTorch's default initialisation (`kaiming_uniform_(a=√5)`: U(±1/√fan_in) for weights and
@@ -376,7 +392,7 @@ impl Network {
     }
 
     /// Number of trainable values (convolution weights, BatchNorm γ and β, classifier bias):
-    /// 33,441 / 38,929 / 49,905 for N = 1 / 2 / 4, as the reference.
+    /// 33,441 / 38,929 / 49,905 for N = 1 / 2 / 4, as the reference; 38,929 pooled (N = 0).
     pub fn parameter_count(&self) -> usize {
         self.layers()
             .map(|l| l.weight.len() + 2 * l.bn.channels())
@@ -386,7 +402,12 @@ impl Network {
     }
 
     fn check_inputs(&self, inputs: &[Tensor]) -> Result<[usize; 3], Error> {
-        if inputs.len() != self.views {
+        let count_ok = if self.views == 0 {
+            (1..=crate::nn::pool::MAX_VIEWS).contains(&inputs.len())
+        } else {
+            inputs.len() == self.views
+        };
+        if !count_ok {
             return Err(Error::InputCount {
                 expected: self.views,
                 got: inputs.len(),
@@ -421,17 +442,25 @@ impl Network {
         keep: &(std::ops::Range<usize>, std::ops::Range<usize>),
     ) -> Result<(Tensor, (usize, usize)), Error> {
         let [d, h, w] = self.check_inputs(inputs)?;
-        // Each view's features straight into its channels of the concatenation (one copy of
-        // the 4·N feature channels alive, not two).
-        let mut features = Tensor::zeros([4 * self.views, d, h, w]);
-        let per_view = 4 * d * h * w;
-        for (i, x) in inputs.iter().enumerate() {
+        let tower = |x: &Tensor| {
             let mut y = self.feature[0].forward_eval(x);
             for layer in &self.feature[1..] {
                 y = layer.forward_eval(&y);
             }
-            features.data[i * per_view..(i + 1) * per_view].copy_from_slice(&y.data);
-        }
+            y
+        };
+        let features = if self.views == 0 {
+            crate::nn::pool::mean_max(&inputs.iter().map(tower).collect::<Vec<_>>())
+        } else {
+            // Each view's features straight into its channels of the concatenation (one copy
+            // of the 4·N feature channels alive, not two).
+            let mut features = Tensor::zeros([4 * self.views, d, h, w]);
+            let per_view = 4 * d * h * w;
+            for (i, x) in inputs.iter().enumerate() {
+                features.data[i * per_view..(i + 1) * per_view].copy_from_slice(&tower(x).data);
+            }
+            features
+        };
         let c = self.fuse[CONCAT].forward_eval(&features);
         drop(features);
         let d1 = self.fuse[DOWN1].forward_eval(&c);
@@ -501,7 +530,15 @@ impl Network {
             caches.push(cache);
             y
         };
-        let c = step(self, CONCAT, &Tensor::concat(&features.iter().collect::<Vec<_>>()));
+        let (fused, argmax) = if self.views == 0 {
+            let (pooled, argmax) = crate::nn::pool::mean_max_train(&features);
+            (pooled, Some(argmax))
+        } else {
+            (Tensor::concat(&features.iter().collect::<Vec<_>>()), None)
+        };
+        drop(features);
+        let c = step(self, CONCAT, &fused);
+        drop(fused);
         let d1 = step(self, DOWN1, &c);
         let cdown1 = residual(step(self, DCONV1, &d1), &d1);
         let d2 = step(self, DOWN2, &cdown1);
@@ -516,6 +553,7 @@ impl Network {
         let (disparity, probabilities) = soft_argmin(&logits);
         Ok(Tape {
             feature: feature_caches,
+            argmax,
             fuse: caches,
             head_input: f,
             probabilities,
@@ -555,7 +593,11 @@ impl Network {
         let mut g_d1 = back(DCONV1, &g_cdown1);
         g_d1.add_assign(&g_cdown1);
         g_c.add_assign(&back(DOWN1, &g_d1));
-        let g_features = back(CONCAT, &g_c).split(&vec![4; self.views]);
+        let g_fused = back(CONCAT, &g_c);
+        let g_features = match &tape.argmax {
+            Some(argmax) => crate::nn::pool::mean_max_backward(&g_fused, argmax, tape.feature.len()),
+            None => g_fused.split(&vec![4; self.views]),
+        };
 
         let mut feature_grads: Vec<Option<ConvBnGrad>> = vec![None; self.feature.len()];
         for (g_view, caches) in g_features.iter().zip(&tape.feature) {
@@ -746,5 +788,105 @@ mod mode_tests {
                 "{name}: worst {worst} of {scale}"
             );
         }
+    }
+}
+
+#[cfg(test)]
+mod pooled_tests {
+    use super::*;
+    use crate::nn::conv::tests::random;
+
+    /// Within `tolerance` of the largest expected magnitude (at least 1e-4: the classifier bias's
+    /// gradient is zero in exact arithmetic and about 1e-8 in rounding).
+    fn close(got: &[f32], expected: &[f32], tolerance: f32, what: &str) {
+        assert_eq!(got.len(), expected.len(), "{what}");
+        let scale = expected.iter().fold(0f32, |m, v| m.max(v.abs())).max(1e-4);
+        for (i, (a, b)) in got.iter().zip(expected).enumerate() {
+            assert!(
+                (a - b).abs() <= tolerance * scale,
+                "{what}[{i}]: {a} vs {b} (scale {scale})"
+            );
+        }
+    }
+
+    /// With one view the mean and the maximum are both its features: the pooled network is the
+    /// stereo network whose `concat` weights are the sum of the pooled ones over mean and max,
+    /// in its output and in every gradient (the backward pass through the pooling).
+    #[test]
+    fn a_pooled_network_with_one_view_is_the_stereo_network_with_concat_summed() {
+        let pooled = Network::init(0, 21);
+        assert_eq!(pooled.parameter_count(), Network::init(2, 21).parameter_count());
+        let k3 = 7 * 7 * 7;
+        let concat = &pooled.fuse[CONCAT];
+        let mut stereo = pooled.clone();
+        stereo.views = 1;
+        let mut summed = ConvBn::new("concat", 4, 4, 7, ConvKind::Same);
+        summed.bn = concat.bn.clone();
+        for o in 0..4 {
+            for i in 0..4 {
+                for t in 0..k3 {
+                    summed.weight[(o * 4 + i) * k3 + t] =
+                        concat.weight[(o * 8 + i) * k3 + t] + concat.weight[(o * 8 + 4 + i) * k3 + t];
+                }
+            }
+        }
+        stereo.fuse[CONCAT] = summed;
+        let x = random([1, 8, 8, 8], 9);
+        let got = pooled
+            .logits(std::slice::from_ref(&x))
+            .unwrap_or_else(|e| panic!("{e}"));
+        let want = stereo
+            .logits(std::slice::from_ref(&x))
+            .unwrap_or_else(|e| panic!("{e}"));
+        close(&got.data, &want.data, 1e-4, "logits");
+        let target: Vec<f32> = (0..64).map(|i| (i % 7) as f32).collect();
+        let mask = vec![true; 64];
+        let run = |net: &Network| {
+            net.clone()
+                .loss_and_gradients_with(std::slice::from_ref(&x), &target, &mask, BatchNormMode::Frozen)
+                .unwrap_or_else(|e| panic!("{e}"))
+        };
+        let ((loss_p, _, grads_p), (loss_s, _, grads_s)) = (run(&pooled), run(&stereo));
+        assert!(
+            (loss_p - loss_s).abs() <= 1e-4 * loss_s.abs().max(1.0),
+            "{loss_p} vs {loss_s}"
+        );
+        for ((name, g_p), (name_s, g_s)) in grads_p.tensors.iter().zip(&grads_s.tensors) {
+            assert_eq!(name, name_s);
+            if name == "concat.0.weight" {
+                // ∂L/∂W_mean = ∂L/∂W_max = the stereo network's ∂L/∂W.
+                for o in 0..4 {
+                    for half in 0..2 {
+                        for i in 0..4 {
+                            let p = &g_p[(o * 8 + half * 4 + i) * k3..][..k3];
+                            close(p, &g_s[(o * 4 + i) * k3..][..k3], 1e-3, "concat weight gradient");
+                        }
+                    }
+                }
+            } else {
+                close(g_p, g_s, 1e-3, name);
+            }
+        }
+    }
+
+    #[test]
+    fn a_pooled_network_takes_any_number_of_views_in_any_order() {
+        let net = Network::init(0, 5);
+        for count in [1, 2, 3, 5] {
+            let inputs: Vec<Tensor> = (0..count).map(|v| random([1, 8, 8, 8], 30 + v)).collect();
+            let logits = net.logits(&inputs).unwrap_or_else(|e| panic!("{count} views: {e}"));
+            let mut reversed = inputs.clone();
+            reversed.reverse();
+            let again = net.logits(&reversed).unwrap_or_else(|e| panic!("{e}"));
+            close(&again.data, &logits.data, 1e-4, "the views reversed");
+            let tape = net.clone().forward_train(&inputs).unwrap_or_else(|e| panic!("{e}"));
+            assert_eq!(tape.disparity.len(), 64);
+        }
+        assert!(matches!(net.logits(&[]), Err(Error::InputCount { .. })));
+        // A fixed-count network still wants its count.
+        assert!(matches!(
+            Network::init(2, 5).logits(&[random([1, 8, 8, 8], 1)]),
+            Err(Error::InputCount { expected: 2, got: 1 })
+        ));
     }
 }

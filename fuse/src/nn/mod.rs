@@ -8,12 +8,15 @@
 //! - [`batch_norm`]: BatchNorm3d in train mode (batch statistics, running-statistics update,
 //!   backward) and eval mode (folded into the preceding convolution).
 //! - [`regression`]: softmax over disparity, soft-argmin and the smooth-L1 loss.
+//! - [`pool`]: the mean and the maximum across any number of views' features (order-invariant
+//!   fusion), with its backward.
 //! - [`reference`]: plain loop implementations the fast kernels are tested against.
 //!
 //! Every layer has its forward and backward here; the network (`crate::mfusenet`) wires them.
 
 pub mod batch_norm;
 pub mod conv;
+pub mod pool;
 pub mod reference;
 pub mod regression;
 

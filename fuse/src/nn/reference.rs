@@ -124,3 +124,20 @@ pub fn conv3d_weight_grad(x: &Tensor, grad: &Tensor, k: usize) -> Vec<f32> {
     }
     dw
 }
+
+/// The mean (channels `0..C`) and the maximum (channels `C..2C`) across `views`, each `[C, D, H,
+/// W]`, value by value in `f64`.
+pub fn mean_max(views: &[Tensor]) -> Tensor {
+    let Some(first) = views.first() else {
+        return Tensor::zeros([0; 4]);
+    };
+    let [c, d, h, w] = first.shape;
+    let mut out = Tensor::zeros([2 * c, d, h, w]);
+    let n = first.data.len();
+    for i in 0..n {
+        let values: Vec<f64> = views.iter().map(|v| f64::from(v.data[i])).collect();
+        out.data[i] = (values.iter().sum::<f64>() / values.len() as f64) as f32;
+        out.data[n + i] = values.iter().copied().fold(f64::NEG_INFINITY, f64::max) as f32;
+    }
+    out
+}
