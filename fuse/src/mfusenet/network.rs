@@ -346,6 +346,35 @@ impl Network {
         Self::zeros(0)
     }
 
+    /// A view-count-agnostic network started from a fixed one: every layer copied, `concat`'s
+    /// weights for the features' mean the sum of the fixed network's per-view weights and those
+    /// for their maximum zero, so that where every view's features are the same it computes what
+    /// the fixed network computes (a start for fine-tuning on varied view counts).
+    pub fn pooled_from(fixed: &Network) -> Self {
+        let mut net = fixed.clone();
+        net.views = 0;
+        if fixed.views == 0 {
+            return net;
+        }
+        let source = &fixed.fuse[CONCAT];
+        let k3 = source.k * source.k * source.k;
+        let mut concat = ConvBn::new("concat", concat_channels(0), source.cout, source.k, ConvKind::Same);
+        concat.bn = source.bn.clone();
+        for o in 0..source.cout {
+            for v in 0..fixed.views {
+                for i in 0..4 {
+                    let from = &source.weight[(o * source.cin + v * 4 + i) * k3..][..k3];
+                    let to = &mut concat.weight[(o * 8 + i) * k3..][..k3];
+                    for (t, f) in to.iter_mut().zip(from) {
+                        *t += f;
+                    }
+                }
+            }
+        }
+        net.fuse[CONCAT] = concat;
+        net
+    }
+
     /// PyTorch's default initialisation (`kaiming_uniform_(a=√5)`: U(±1/√fan_in) for weights and
     /// the classifier's bias; γ = 1, β = 0), from a seed.
     pub fn init(views: usize, seed: u64) -> Self {
@@ -887,6 +916,44 @@ mod pooled_tests {
         assert!(matches!(
             Network::init(2, 5).logits(&[random([1, 8, 8, 8], 1)]),
             Err(Error::InputCount { expected: 2, got: 1 })
+        ));
+    }
+
+    #[test]
+    fn a_pooled_network_from_a_fixed_one_agrees_where_the_views_agree() {
+        let five = Network::init(4, 13);
+        let pooled = Network::pooled_from(&five);
+        assert_eq!(pooled.views, 0);
+        let x = random([1, 8, 8, 8], 17);
+        let same = vec![x.clone(); 4];
+        let want = five.logits(&same).unwrap_or_else(|e| panic!("{e}"));
+        close(
+            &pooled.logits(&same).unwrap_or_else(|e| panic!("{e}")).data,
+            &want.data,
+            1e-4,
+            "four",
+        );
+        close(
+            &pooled.logits(&[x]).unwrap_or_else(|e| panic!("{e}")).data,
+            &want.data,
+            1e-4,
+            "one",
+        );
+        // The weights file says which it is, and reads back as it was written.
+        let info = crate::mfusenet::weights::WeightsInfo::default();
+        let bytes = crate::mfusenet::weights::to_bytes(&pooled, &info).unwrap_or_else(|e| panic!("{e}"));
+        let (read, read_info) =
+            crate::mfusenet::weights::from_bytes(&bytes, "pooled", "", Some(0)).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(read_info.get("view_fusion"), Some("mean-max"));
+        assert_eq!(read.views, 0);
+        assert_eq!(read.fuse[CONCAT].weight, pooled.fuse[CONCAT].weight);
+        assert!(matches!(
+            crate::mfusenet::weights::from_bytes(&bytes, "pooled", "", Some(2)),
+            Err(Error::Variant {
+                expected: 2,
+                got: 0,
+                ..
+            })
         ));
     }
 }

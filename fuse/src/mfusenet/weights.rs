@@ -103,6 +103,13 @@ pub fn input_spec_recommended(info: &WeightsInfo, file: &str) -> Result<super::i
     })
 }
 
+/// Metadata key and value that mark a view-count-agnostic network (`Network::views` = 0): its
+/// `concat.0.weight` reads the pooled mean and maximum, 8 channels, the shape of the three-view
+/// network's, so the shape alone cannot tell them apart.
+pub const VIEW_FUSION_KEY: &str = "view_fusion";
+/// See [`VIEW_FUSION_KEY`].
+pub const MEAN_MAX: &str = "mean-max";
+
 /// Most context slices below the range a weights file may ask for.
 pub const MAX_CONTEXT_BELOW: usize = 16;
 
@@ -124,8 +131,8 @@ pub fn state_dict_shapes(views: usize) -> Vec<(String, Vec<usize>)> {
     out
 }
 
-/// Reads a weights file. `views`, when given, is the variant the caller needs: a file for
-/// another number of views is an error naming both.
+/// Reads a weights file. `views`, when given, is the variant the caller needs (0: the
+/// view-count-agnostic one): a file for another number of views is an error naming both.
 pub fn load(path: &Path, views: Option<usize>) -> Result<(Network, WeightsInfo), Error> {
     let file = path.display().to_string();
     let bytes = std::fs::read(path).map_err(|e| Error::Read {
@@ -172,8 +179,29 @@ pub fn from_bytes(
         file: file.to_owned(),
         tensor: "concat.0.weight".to_owned(),
     })?;
-    let found_views = concat.shape().get(1).copied().unwrap_or(0) / 4;
-    if !matches!(found_views, 1 | 2 | 4) {
+    let pooled = match info.get(VIEW_FUSION_KEY) {
+        None => false,
+        Some(MEAN_MAX) => true,
+        Some(other) => {
+            return Err(Error::Metadata {
+                file: file.to_owned(),
+                key: VIEW_FUSION_KEY,
+                value: other.to_owned(),
+                expected: "\"mean-max\" (or no entry: the views side by side)",
+            });
+        }
+    };
+    let channels = concat.shape().get(1).copied().unwrap_or(0);
+    if pooled && channels != 8 {
+        return Err(Error::TensorShape {
+            file: file.to_owned(),
+            tensor: "concat.0.weight".to_owned(),
+            expected: "[4, 8, 7, 7, 7] (the pooled mean and maximum)".to_owned(),
+            got: concat.shape().to_vec(),
+        });
+    }
+    let found_views = if pooled { 0 } else { channels / 4 };
+    if !pooled && !matches!(found_views, 1 | 2 | 4) {
         return Err(Error::TensorShape {
             file: file.to_owned(),
             tensor: "concat.0.weight".to_owned(),
@@ -355,7 +383,12 @@ pub fn to_bytes(net: &Network, info: &WeightsInfo) -> Result<Vec<u8>, Error> {
         })?;
         views.push((name.clone(), view));
     }
-    let metadata: HashMap<String, String> = info.entries.clone().into_iter().collect();
+    let mut metadata: HashMap<String, String> = info.entries.clone().into_iter().collect();
+    if net.views == 0 {
+        metadata.insert(VIEW_FUSION_KEY.to_owned(), MEAN_MAX.to_owned());
+    } else {
+        metadata.remove(VIEW_FUSION_KEY);
+    }
     safetensors::serialize(views, Some(metadata)).map_err(|e| Error::Format {
         file: "(serialising)".to_owned(),
         reason: e.to_string(),
