@@ -23,7 +23,11 @@ def up_bn(cin, cout):
 
 
 class Reference(nn.Module):
-    """MFuseNet for `views` cost volumes of shape [B, D, H, W] (D, H, W multiples of 4)."""
+    """MFuseNet for `views` cost volumes of shape [B, D, H, W] (D, H, W multiples of 4).
+
+    `views = 0` is the view-count-agnostic variant (`fuse::nn::pool`, weights files marked
+    `view_fusion = mean-max`): any number of volumes, their features' mean and maximum (8 channels,
+    the mean's first) instead of the features side by side."""
 
     def __init__(self, views):
         super().__init__()
@@ -32,7 +36,7 @@ class Reference(nn.Module):
         self.feature = nn.Sequential(
             conv_bn(1, 4, 7), relu(), conv_bn(4, 4, 5), relu(), conv_bn(4, 4, 5), relu(), conv_bn(4, 4, 3), relu()
         )
-        self.concat = conv_bn(4 * views, 4, 7)
+        self.concat = conv_bn(8 if views == 0 else 4 * views, 4, 7)
         self.down1 = conv_bn(4, 4, 3, stride=2)
         self.dconv1 = conv_bn(4, 4, 3)
         self.down2 = conv_bn(4, 4, 3, stride=2)
@@ -47,7 +51,12 @@ class Reference(nn.Module):
 
     def logits(self, volumes):
         # volumes: `views` tensors [B, D, H, W] -> logits [B, D, H, W]
-        c = torch.cat([self.feature(v.unsqueeze(1)) for v in volumes], 1)  # [B, 4N, D, H, W]
+        features = [self.feature(v.unsqueeze(1)) for v in volumes]  # N x [B, 4, D, H, W]
+        if self.views == 0:
+            stacked = torch.stack(features)  # [N, B, 4, D, H, W]
+            c = torch.cat((stacked.mean(0), stacked.amax(0)), 1)  # [B, 8, D, H, W]
+        else:
+            c = torch.cat(features, 1)  # [B, 4N, D, H, W]
         c = F.relu(self.concat(c))  # [B, 4, D, H, W]
         d1 = F.relu(self.down1(c))  # [B, 4, D/2, H/2, W/2]
         d1 = F.relu(self.dconv1(d1)) + d1
