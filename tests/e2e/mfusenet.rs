@@ -203,6 +203,62 @@ fn training_can_track_its_batch_norm_statistics() {
     assert!(moved > a.len() / 2, "{moved} of {} running means moved", a.len());
 }
 
+/// `--views any`: the view-count-agnostic network trains on random subsets of the neighbours,
+/// from a fixed network's file, resumes, and its weights say what they are; `mfusenet` refuses
+/// them by name until it can run them.
+#[test]
+fn the_view_count_agnostic_network_trains_resumes_and_is_named() {
+    let dir = temp_dir();
+    let run = dir.path().join("any");
+    let shipped = weights("mfusenet-5view.safetensors");
+    let extra = ["--init-weights", shipped.as_str(), "--flips", "--checkpoint-every", "2"];
+    let train = |steps: &str| {
+        let (run_dir, dataset) = (run.to_str().unwrap_or_default(), dir.path().join("dataset"));
+        let mut args: Vec<&str> =
+            "train --views any --resolution 96x72 --num-disparities 12 --crop-px 32 --train-sets 2 --val-sets 1 -q"
+                .split_whitespace()
+                .collect();
+        args.extend(["--dir", run_dir, "--dataset-dir", dataset.to_str().unwrap_or_default()]);
+        args.extend(["--steps", steps]);
+        args.extend_from_slice(&extra);
+        let output = replay(&args);
+        assert_success(&output, "replay train --views any");
+        serde_json::from_slice::<serde_json::Value>(&std::fs::read(run.join("training.json")).unwrap_or_default())
+            .unwrap_or_default()
+    };
+    let first = train("2");
+    assert_eq!(first["steps_done"], 2, "{first}");
+    let second = train("4");
+    assert_eq!(second["resumed_at_step"], 2, "{second}");
+    assert!(
+        second["val_avg_err_px"].as_f64().is_some_and(f64::is_finite),
+        "{second}"
+    );
+    let weights = run.join("mfusenet-any.safetensors");
+    let header = safetensors_header(&weights);
+    assert_eq!(header["__metadata__"]["view_fusion"], "mean-max", "{header}");
+    assert_eq!(header["__metadata__"]["views"], "any");
+    assert_eq!(header["concat.0.weight"]["shape"], serde_json::json!([4, 8, 7, 7, 7]));
+    let (logs, log) = recorded("any.mcap", "--resolution 96x72 --samples-per-pixel 1");
+    let config = format!("{{\"weights\": \"{}\"}}", weights.display());
+    let output = replay(&[
+        log.to_str().unwrap_or_default(),
+        "--method",
+        "mfusenet",
+        "--config",
+        &config,
+        "--out",
+        logs.path().join("out").to_str().unwrap_or_default(),
+    ]);
+    assert_eq!(
+        output.status.code(),
+        Some(2),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    assert!(String::from_utf8_lossy(&output.stderr).contains("view-count-agnostic"));
+}
+
 #[test]
 fn training_resumes_and_its_weights_run() {
     let dir = temp_dir();

@@ -230,6 +230,13 @@ impl MFuseNet {
         let networks = match &config.weights {
             Some(path) => {
                 let (net, info) = weights::load(Path::new(path), stereo.then_some(1))?;
+                if net.views == 0 {
+                    return Err(FuseError::Config {
+                        field: "weights",
+                        value: path.clone(),
+                        reason: "a view-count-agnostic network (view_fusion = mean-max), which mfusenet does not run yet",
+                    });
+                }
                 vec![Loaded::new(net, &info, path)?]
             }
             None => SHIPPED

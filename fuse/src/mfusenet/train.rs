@@ -62,6 +62,20 @@ pub fn crop(
 /// (a single right neighbour mirrored left to right).
 pub fn flipped(example: &Example, offsets: &[[i32; 2]], vertical: bool, horizontal: bool) -> Option<Example> {
     let inputs = super::input::mirrored(&example.inputs, offsets, vertical, horizontal)?;
+    with_flipped_targets(example, inputs, vertical, horizontal)
+}
+
+/// `example` seen in a mirror by a network indifferent to which neighbour gave which volume (the
+/// pooled one, `Network::pooled`): every input flipped where it is, targets and mask moved with
+/// their pixels. A mirrored right neighbour's volume is a left neighbour's, which such a network
+/// takes as well, so every mirror exists.
+pub fn flipped_unordered(example: &Example, vertical: bool, horizontal: bool) -> Example {
+    let inputs: Vec<Tensor> = example.inputs.iter().map(|t| t.flipped(vertical, horizontal)).collect();
+    with_flipped_targets(example, inputs, vertical, horizontal).unwrap_or_else(|| example.clone())
+}
+
+/// `example`'s targets and mask flipped, with `inputs` (already flipped). `None` without inputs.
+fn with_flipped_targets(example: &Example, inputs: Vec<Tensor>, vertical: bool, horizontal: bool) -> Option<Example> {
     let [_, _, h, w] = inputs.first()?.shape;
     let plane = |values: Vec<f32>| {
         Tensor {
@@ -218,6 +232,9 @@ pub fn save_checkpoint(net: &mut Network, adam: &Adam, info: &WeightsInfo, path:
         .collect::<Result<Vec<_>, _>>()
         .map_err(format)?;
     let mut metadata: HashMap<String, String> = info.entries.clone().into_iter().collect();
+    if net.views == 0 {
+        metadata.insert(weights::VIEW_FUSION_KEY.to_owned(), weights::MEAN_MAX.to_owned());
+    }
     metadata.insert("adam_step".to_owned(), adam.step.to_string());
     metadata.insert("adam_learning_rate".to_owned(), adam.learning_rate.to_string());
     let bytes = safetensors::serialize(views, Some(metadata)).map_err(format)?;

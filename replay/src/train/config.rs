@@ -170,8 +170,8 @@ impl TrainConfig {
     /// Checks the values.
     pub fn validate(&self) -> Result<(), TrainError> {
         let bad = |field, value: String, reason| Err(TrainError::Config { field, value, reason });
-        if !matches!(self.views, 1 | 2 | 4) {
-            return bad("views", self.views.to_string(), "1, 2 or 4");
+        if !matches!(self.views, 0 | 1 | 2 | 4) {
+            return bad("views", self.views.to_string(), "1, 2, 4 or 0 (any)");
         }
         if self.crop_px < 16
             || !self.crop_px.is_multiple_of(4)

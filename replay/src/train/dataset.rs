@@ -12,6 +12,7 @@ use record::capture::Simulation;
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 
 use crate::viewset::ViewSet;
+use record::rng::SplitMix64;
 
 use super::{TrainConfig, TrainError, file_error};
 
@@ -25,7 +26,8 @@ pub struct Sample {
 }
 
 impl Sample {
-    /// The volumes a network of `views` inputs takes (see `fuse::mfusenet::input`).
+    /// The volumes a network of `views` inputs takes (see `fuse::mfusenet::input`); all four for
+    /// the view-count-agnostic network (`views` = 0).
     pub fn for_views(&self, views: usize) -> Vec<&CostVolume<u8>> {
         let indices: &[usize] = match views {
             1 => &[1],
@@ -33,6 +35,22 @@ impl Sample {
             _ => &[0, 1, 2, 3],
         };
         indices.iter().map(|i| &self.volumes[*i]).collect()
+    }
+
+    /// [`Sample::for_views`] for a training crop: the view-count-agnostic network (`views` = 0)
+    /// gets a random non-empty subset of the four neighbours in a random order (the count uniform
+    /// in 1..=4), so that it learns from one to four views alike; the fixed networks their own.
+    /// Draws from `rng` only for `views` = 0.
+    pub fn for_views_drawn(&self, views: usize, rng: &mut SplitMix64) -> Vec<&CostVolume<u8>> {
+        if views != 0 {
+            return self.for_views(views);
+        }
+        let mut order: Vec<usize> = (0..self.volumes.len()).collect();
+        for i in (1..order.len()).rev() {
+            order.swap(i, rng.range_usize(0, i + 1));
+        }
+        let count = rng.range_usize(1, order.len() + 1);
+        order[..count].iter().map(|i| &self.volumes[*i]).collect()
     }
 }
 

@@ -276,7 +276,12 @@ pub fn train(
             _ => {
                 let mut net = match &config.init_weights {
                     Some(path) => {
-                        let mut net = weights::load(path, Some(config.views))?.0;
+                        // The view-count-agnostic network starts from any fixed one.
+                        let mut net = if config.views == 0 {
+                            Network::pooled_from(&weights::load(path, None)?.0)
+                        } else {
+                            weights::load(path, Some(config.views))?.0
+                        };
                         if config.recalibrate_every > 0 {
                             recalibrate_batch_norm(&mut net, &calibration)?;
                         }
@@ -395,10 +400,18 @@ pub fn train(
     let mut info = info_for(train_seconds);
     info.set("format", "mfusenet-weights/1");
     info.set("variant", variant_name(config.views));
-    info.set("views", config.views.to_string());
+    info.set(
+        "views",
+        if config.views == 0 {
+            "any".to_owned()
+        } else {
+            config.views.to_string()
+        },
+    );
     info.set(
         "input_order",
         match config.views {
+            0 => "any subset of left,right,top,bottom, in any order",
             1 => "right",
             2 => "left,right",
             _ => "left,right,top,bottom",
@@ -475,6 +488,7 @@ pub fn train(
 /// The registry name of a variant.
 pub fn variant_name(views: usize) -> &'static str {
     match views {
+        0 => "mfusenet-any",
         1 => "mfusenet-stereo",
         2 => "mfusenet-3view",
         _ => "mfusenet-5view",

@@ -3,7 +3,7 @@
 //! BatchNorm calibration crops and gradient clipping.
 
 use fuse::mfusenet::input::{mirror_order, neighbour_offsets};
-use fuse::mfusenet::train::{Example, crop, flipped};
+use fuse::mfusenet::train::{Example, crop, flipped, flipped_unordered};
 use fuse::nn::Tensor;
 
 use record::rng::SplitMix64;
@@ -27,8 +27,9 @@ pub(super) fn random_crop(config: &TrainConfig, samples: &[Sample], rng: &mut Sp
             rng.range_usize(0, h - config.crop_px + 1),
             rng.range_usize(0, w - config.crop_px + 1),
         );
+        let volumes = s.for_views_drawn(config.views, rng);
         let mut e = crop(
-            &s.for_views(config.views),
+            &volumes,
             &s.truth,
             (y0, x0),
             (config.crop_px, config.crop_px),
@@ -43,12 +44,19 @@ pub(super) fn random_crop(config: &TrainConfig, samples: &[Sample], rng: &mut Sp
         }
         if config.flips {
             let (vertical, horizontal) = (rng.range_usize(0, 2) == 1, rng.range_usize(0, 2) == 1);
-            let offsets = neighbour_offsets(s.for_views(config.views)).unwrap_or_default();
-            // A flip the rig has no mirror for (a single right neighbour, left to right) is not made.
-            let possible = |v: bool, h: bool| mirror_order(&offsets, v, h).is_some();
-            let (vertical, horizontal) = (vertical && possible(true, false), horizontal && possible(false, true));
-            if let Some(mirror) = flipped(&e, &offsets, vertical, horizontal) {
-                e = mirror;
+            if config.views == 0 {
+                // The pooled network does not know which neighbour gave which volume: every
+                // mirror exists.
+                e = flipped_unordered(&e, vertical, horizontal);
+            } else {
+                let offsets = neighbour_offsets(volumes.iter().copied()).unwrap_or_default();
+                // A flip the rig has no mirror for (a single right neighbour, left to right) is
+                // not made.
+                let possible = |v: bool, h: bool| mirror_order(&offsets, v, h).is_some();
+                let (vertical, horizontal) = (vertical && possible(true, false), horizontal && possible(false, true));
+                if let Some(mirror) = flipped(&e, &offsets, vertical, horizontal) {
+                    e = mirror;
+                }
             }
         }
         let enough = acceptable(config, &e);

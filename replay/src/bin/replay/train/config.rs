@@ -28,7 +28,11 @@ impl TrainArgs {
                 ))
             })?;
         let config = TrainConfig {
-            views: self.views.parse().unwrap_or(2),
+            views: if self.views == "any" {
+                0
+            } else {
+                self.views.parse().unwrap_or(2)
+            },
             steps: self.steps,
             crop_px: self.crop_px,
             num_disparities: self.num_disparities,

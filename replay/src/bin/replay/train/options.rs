@@ -9,8 +9,11 @@ use replay::train::{BaselineDraw, TrainConfig};
 /// Arguments of `replay train`.
 #[derive(Debug, Args)]
 pub struct TrainArgs {
-    /// Network variant: cost volumes per set (1 = mfusenet-stereo, 2 = three-view, 4 = five-view).
-    #[arg(long, default_value = "2", value_parser = ["1", "2", "4"])]
+    /// Network variant: cost volumes per set (1 = mfusenet-stereo, 2 = three-view, 4 = five-view),
+    /// or `any`: the view-count-agnostic network (the views' features pooled by mean and maximum),
+    /// each crop a random subset of one to four of the five-view captures' neighbours; with
+    /// `--init-weights` it starts from any fixed network.
+    #[arg(long, default_value = "2", value_parser = ["1", "2", "4", "any"])]
     pub(crate) views: String,
     /// Run folder: dataset cache, checkpoint, curves.csv, curves.rrd, training.json
     /// (default: train/<variant>; a run in it resumes).
