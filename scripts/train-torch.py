@@ -57,8 +57,10 @@ HOPELESS_FRACTION = 0.4
 # `replay::train::schedule::{MAX_GRADIENT_NORM, CALIBRATION_CROPS}`.
 MAX_GRADIENT_NORM = 1.0
 CALIBRATION_CROPS = 32
-# Which of a sample's four volumes (left, right, top, bottom) each variant takes.
-VIEW_INDICES = {1: [1], 2: [0, 1], 4: [0, 1, 2, 3]}
+# Which of a sample's four volumes (left, right, top, bottom) each variant takes (0: the
+# view-count-agnostic network, `--views any`: every crop a random subset of them in training, all
+# four in validation).
+VIEW_INDICES = {0: [0, 1, 2, 3], 1: [1], 2: [0, 1], 4: [0, 1, 2, 3]}
 OFFSETS = {1: [(1, 0)], 2: [(-1, 0), (1, 0)], 4: [(-1, 0), (1, 0), (0, -1), (0, 1)]}
 
 
@@ -98,9 +100,10 @@ class Dataset:
         return len(self.volumes)
 
 
-def crop(dataset, index, views, y0, x0, side):
+def crop(dataset, index, views, y0, x0, side, indices=None):
     """`fuse::mfusenet::train::crop`: inputs `[V, D, side, side]` (cost units), target and mask `[side, side]`."""
-    v = dataset.volumes[index][VIEW_INDICES[views], :, y0 : y0 + side, x0 : x0 + side].float() / STEPS_PER_UNIT
+    indices = VIEW_INDICES[views] if indices is None else indices
+    v = dataset.volumes[index][indices, :, y0 : y0 + side, x0 : x0 + side].float() / STEPS_PER_UNIT
     t = dataset.truth[index][y0 : y0 + side, x0 : x0 + side]
     depth = v.shape[1]
     mask = (t > 0) & (t <= depth - 1)
@@ -137,8 +140,11 @@ def hopeless(inputs, target, mask):
     return (errors > HOPELESS_ERROR_PX).sum().item() > HOPELESS_FRACTION * errors.numel()
 
 
-def random_crop(config, dataset, generator, slices):
-    """`replay::train::schedule::random_crop` for one crop of a step whose shift is `slices`."""
+def random_crop(config, dataset, generator, slices, count=None):
+    """`replay::train::schedule::random_crop` for one crop of a step whose shift is `slices`. For
+    the view-count-agnostic network (views 0) the crop takes `count` of the four neighbours (drawn
+    1..4 when None), chosen and ordered at random (`Sample::for_views_drawn`): the crops of one
+    batch share the count so that they stack."""
     side, views = config["crop_px"], config["views"]
     example = None
     for _ in range(8):
@@ -146,9 +152,19 @@ def random_crop(config, dataset, generator, slices):
         _, _, h, w = dataset.volumes[index].shape
         y0 = int(torch.randint(h - side + 1, (1,), generator=generator))
         x0 = int(torch.randint(w - side + 1, (1,), generator=generator))
-        inputs, target, mask = crop(dataset, index, views, y0, x0, side)
+        indices = None
+        if views == 0:
+            n = count if count is not None else int(torch.randint(1, 5, (1,), generator=generator))
+            indices = torch.randperm(4, generator=generator)[:n].tolist()
+        inputs, target, mask = crop(dataset, index, views, y0, x0, side, indices)
         inputs, target, mask = shifted(inputs, target, mask, slices, config.get("context_below", 0))
-        if config.get("flips", False):
+        if config.get("flips", False) and views == 0:
+            # The pooled network does not know which neighbour gave a volume: any mirror.
+            flips = [bool(torch.randint(2, (1,), generator=generator)) for _ in range(2)]
+            dims = [d for d, flip in zip((-2, -1), flips) if flip]
+            if dims:
+                inputs, target, mask = inputs.flip(dims), target.flip(dims), mask.flip(dims)
+        elif config.get("flips", False):
             vertical, horizontal = (bool(torch.randint(2, (1,), generator=generator)) for _ in range(2))
             offsets = OFFSETS[views]
             vertical = vertical and mirror_order(offsets, True, False) is not None
@@ -299,7 +315,7 @@ def main():
     train_set = Dataset(args.dataset_dir, key, config["train_sets"], "train", depth, device)
     val_set = Dataset(args.dataset_dir, key, config["val_sets"], "val", depth, device)
     log(
-        f"{config['views']} views, {len(train_set)} + {len(val_set)} captures on {device} "
+        f"{config['views'] or 'any'} views, {len(train_set)} + {len(val_set)} captures on {device} "
         f"({torch.cuda.get_device_name(device) if device.type == 'cuda' else 'CPU'}), loaded in {time.time() - started:.1f} s; "
         f"resuming at step {step}"
     )
@@ -336,7 +352,9 @@ def main():
             group["lr"] = lr
         shift = config.get("disparity_shift", 0)
         slices = 4 * int(torch.randint(shift // 4 + 1, (1,), generator=generator)) if shift else 0
-        batch = [random_crop(config, train_set, generator, slices) for _ in range(args.batch)]
+        # The view-count-agnostic network: one count of views per batch (1..4), each crop its own.
+        count = int(torch.randint(1, 5, (1,), generator=generator)) if config["views"] == 0 else None
+        batch = [random_crop(config, train_set, generator, slices, count) for _ in range(args.batch)]
         inputs = torch.stack([b[0] for b in batch])  # [B, V, D, H, W]
         target = torch.stack([b[1] for b in batch])  # [B, H, W]
         mask = torch.stack([b[2] for b in batch])
