@@ -230,13 +230,6 @@ impl MFuseNet {
         let networks = match &config.weights {
             Some(path) => {
                 let (net, info) = weights::load(Path::new(path), stereo.then_some(1))?;
-                if net.views == 0 {
-                    return Err(FuseError::Config {
-                        field: "weights",
-                        value: path.clone(),
-                        reason: "a view-count-agnostic network (view_fusion = mean-max), which mfusenet does not run yet",
-                    });
-                }
                 vec![Loaded::new(net, &info, path)?]
             }
             None => SHIPPED
@@ -349,7 +342,7 @@ impl Method for MFuseNet {
             return out;
         }
         serde_json::json!({
-            "network": match loaded.views { 1 => "stereo", 2 => "three-view", _ => "five-view" },
+            "network": match loaded.views { 0 => "view-count-agnostic", 1 => "stereo", 2 => "three-view", _ => "five-view" },
             "scale": format!("1/{factor}"),
             "network_width": width,
             "network_height": height,

@@ -133,7 +133,8 @@ pub fn infer_with_confidence(
         });
     };
     let (w, h, nd) = (first.width, first.height, first.num_disparities);
-    if volumes.len() != net.views {
+    // The view-count-agnostic network (views = 0) takes any number.
+    if net.views != 0 && volumes.len() != net.views {
         return Err(Error::InputCount {
             expected: net.views,
             got: volumes.len(),
@@ -152,13 +153,16 @@ pub fn infer_with_confidence(
     let no_mirror = || Error::NoMirror {
         offsets: offsets.clone(),
     };
-    let mirror = if estimate.flips {
-        Some(flip_axes(&offsets).ok_or_else(no_mirror)?)
-    } else {
-        None
+    // A pooled network does not know which neighbour gave a volume: every mirror exists, and the
+    // volumes are flipped where they are.
+    let pooled = net.views == 0;
+    let mirror = match (estimate.flips, pooled) {
+        (false, _) => None,
+        (true, true) => Some((false, true)),
+        (true, false) => Some(flip_axes(&offsets).ok_or_else(no_mirror)?),
     };
     let dp = round4(nd);
-    let tiles = tiles((w, h, nd), net.views, budget_bytes);
+    let tiles = tiles((w, h, nd), volumes.len(), budget_bytes);
     let mut disparity = vec![0f32; w * h];
     let mut confidence = vec![0f32; w * h];
     for (done, ((rows, region_rows), (columns, region_columns))) in tiles.iter().enumerate() {
@@ -176,7 +180,11 @@ pub fn infer_with_confidence(
             // The set's mirror image answered and mirrored back; the mean of the two passes'
             // logits is the network made symmetric, at its own temperature (where the logits
             // are peaked, the surer pass decides).
-            let flipped = mirrored(&inputs, &offsets, vertical, horizontal).ok_or_else(no_mirror)?;
+            let flipped = if pooled {
+                inputs.iter().map(|t| t.flipped(vertical, horizontal)).collect()
+            } else {
+                mirrored(&inputs, &offsets, vertical, horizontal).ok_or_else(no_mirror)?
+            };
             drop(inputs);
             // The core mirrored: its margin, mirrored back, is the same rows and columns.
             let mirror_range = |range: &Range<usize>, length: usize, flip: bool| {

@@ -60,10 +60,12 @@ impl Default for InputSpec {
     }
 }
 
-/// The neighbours the network takes, in its fixed order, for a network of `views` inputs.
+/// The neighbours the network takes, in its fixed order, for a network of `views` inputs; every
+/// neighbour, in the set's order, for the view-count-agnostic one (`views` = 0).
 pub fn ordered_neighbours(problem: &Problem, views: usize) -> Result<Vec<&Neighbour>, FuseError> {
     let at = |offset: [i32; 2]| problem.neighbours.iter().find(|n| n.offset == offset);
     let found: Option<Vec<&Neighbour>> = match views {
+        0 => Some(problem.neighbours.iter().collect::<Vec<_>>()).filter(|all| !all.is_empty()),
         1 => problem.neighbours_for(Fusion::Stereo).first().map(|n| vec![*n]),
         2 => [[-1, 0], [1, 0]]
             .iter()
@@ -84,7 +86,8 @@ pub fn ordered_neighbours(problem: &Problem, views: usize) -> Result<Vec<&Neighb
         reason: match views {
             2 => "the three-view network needs left and right (or top and bottom) at one baseline",
             4 => "the five-view network needs left, right, top and bottom at one baseline",
-            _ => "MFuseNet has variants for 1, 2 and 4 neighbours",
+            0 => "the view-count-agnostic network needs at least one neighbour",
+            _ => "MFuseNet has variants for 1, 2 and 4 neighbours, and one for any number",
         },
     })
 }
