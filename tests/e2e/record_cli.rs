@@ -91,66 +91,28 @@ fn sigterm_finishes_a_readable_log_of_the_completed_sets() {
 fn a_nohup_recording_ignores_a_hang_up() {
     let dir = temp_dir();
     let path = dir.path().join("nohup.mcap");
-    let captures = 200;
-    let mut child = Command::new("nohup")
-        .arg(binary("record"))
-        .args(["-o", path.to_str().unwrap_or_default()])
-        .args([
-            "--captures",
-            &captures.to_string(),
-            "--resolution",
-            "64x48",
-            "--samples-per-pixel",
-            "1",
-        ])
-        .stderr(Stdio::piped())
-        .stdout(Stdio::null())
-        .spawn()
-        .unwrap_or_else(|e| panic!("cannot start nohup record: {e}"));
-    let stderr = child.stderr.take().unwrap_or_else(|| panic!("no stderr pipe"));
-    let mut lines = BufReader::new(stderr).lines();
-    let mut seen = String::new();
-    loop {
-        let Some(Ok(line)) = lines.next() else {
-            panic!("record ended before two sets were done:\n{seen}");
-        };
-        seen.push_str(&line);
-        seen.push('\n');
-        if line.contains(&format!("set 2/{captures} done")) {
-            break;
-        }
-    }
+    let mut command = Command::new("nohup");
+    command.arg(binary("record"));
     // `nohup` replaced itself with `record`: the child's pid is the recorder's.
-    let kill = Command::new("kill").args(["-HUP", &child.id().to_string()]).status();
-    assert!(
-        kill.is_ok_and(|s| s.success()),
-        "cannot send SIGHUP (record already done?)"
-    );
-    let rest: Vec<String> = lines.map_while(Result::ok).collect();
-    let status = child.wait().unwrap_or_else(|e| panic!("{e}"));
-    assert_eq!(
-        status.code(),
-        Some(0),
-        "a hang-up ended a nohup run\n{seen}{}",
-        rest.join("\n")
-    );
+    signal_and_expect_exit(record_two_of_200_sets(command, &path), "HUP", 0);
     let sets: std::collections::BTreeSet<u32> = Log::read(&path).events().iter().map(|e| e.set_index).collect();
-    assert_eq!(sets.len(), captures, "every set recorded");
+    assert_eq!(sets.len(), 200, "every set recorded");
 }
 
-fn interrupted_record_finishes_its_log(signal: &str) {
-    let dir = temp_dir();
-    let path = dir.path().join("interrupted.mcap");
-    let mut child = Command::new(binary("record"))
-        .args([
-            "-o",
-            path.to_str().unwrap_or_default(),
-            "--captures",
-            "200",
-            "--resolution",
-            "64x48",
-        ])
-        .args(["--samples-per-pixel", "1"])
+/// A recording under way: the child, the rest of its stderr, what it printed so far.
+type Recording = (
+    std::process::Child,
+    std::io::Lines<BufReader<std::process::ChildStderr>>,
+    String,
+);
+
+/// Starts `command` (the `record` binary, or a wrapper whose arguments end with it) recording
+/// 200 small sets into `path`, and waits until two are done: the child, the rest of its stderr
+/// and what it printed so far.
+fn record_two_of_200_sets(mut command: Command, path: &std::path::Path) -> Recording {
+    let mut child = command
+        .args(["-o", path.to_str().unwrap_or_default()])
+        .args(["--captures", "200", "--resolution", "64x48", "--samples-per-pixel", "1"])
         .stderr(Stdio::piped())
         .stdout(Stdio::null())
         .spawn()
@@ -159,7 +121,6 @@ fn interrupted_record_finishes_its_log(signal: &str) {
     let mut lines = BufReader::new(stderr).lines();
     let started = Instant::now();
     let mut seen = String::new();
-    // Wait until two sets are complete, then interrupt.
     loop {
         let Some(Ok(line)) = lines.next() else {
             panic!("record ended before two sets were done:\n{seen}");
@@ -171,17 +132,33 @@ fn interrupted_record_finishes_its_log(signal: &str) {
         }
         assert!(started.elapsed() < Duration::from_secs(120), "no progress:\n{seen}");
     }
-    let pid = child.id().to_string();
-    let kill = Command::new("kill").args([&format!("-{signal}"), &pid]).status();
-    assert!(kill.is_ok_and(|s| s.success()), "cannot send SIG{signal}");
+    (child, lines, seen)
+}
+
+/// Sends SIG`signal` to a recording started by [`record_two_of_200_sets`] and asserts its exit
+/// code.
+fn signal_and_expect_exit((mut child, lines, seen): Recording, signal: &str, code: i32) {
+    let kill = Command::new("kill")
+        .args([&format!("-{signal}"), &child.id().to_string()])
+        .status();
+    assert!(
+        kill.is_ok_and(|s| s.success()),
+        "cannot send SIG{signal} (record already done?)"
+    );
     let rest: Vec<String> = lines.map_while(Result::ok).collect();
     let status = child.wait().unwrap_or_else(|e| panic!("{e}"));
     assert_eq!(
         status.code(),
-        Some(3),
-        "interrupted run must exit 3\n{seen}{}",
+        Some(code),
+        "SIG{signal}: exit {code} expected\n{seen}{}",
         rest.join("\n")
     );
+}
+
+fn interrupted_record_finishes_its_log(signal: &str) {
+    let dir = temp_dir();
+    let path = dir.path().join("interrupted.mcap");
+    signal_and_expect_exit(record_two_of_200_sets(Command::new(binary("record")), &path), signal, 3);
     let log = Log::read(&path);
     let events = log.events();
     let sets: std::collections::BTreeSet<u32> = events.iter().map(|e| e.set_index).collect();
