@@ -16,13 +16,8 @@ methods="${3:-mfusenet,sgm-heuristic,bm-heuristic,gc-heuristic}"
 resolution="${4:-640x360}"
 mkdir -p "$out"
 cargo build --release -q -p record -p replay
-logs=()
-for seed in $(seq 1 "$scenes"); do
-    log="$out/slanted-$resolution-$seed.mcap"
-    [ -f "$log" ] || target/release/record --scene slanted --seed "$seed" --rig five-view --resolution "$resolution" \
-        --log-working-range -o "$log" -q --no-blueprint
-    logs+=("$log")
-done
+source scripts/family-logs.sh
+family_logs slanted "$out/slanted-$resolution" "$scenes" "$resolution"
 IFS=, read -ra list <<<"$methods"
 for m in "${list[@]}"; do
     target/release/replay eval "${logs[@]}" --methods "$m" --format json 2>/dev/null >"$out/$m.json"

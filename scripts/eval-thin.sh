@@ -15,13 +15,8 @@ scenes="${2:-4}"
 methods="${3:-mfusenet,sgm-heuristic,bm-heuristic,gc-heuristic}"
 mkdir -p "$out/maps"
 cargo build --release -q -p record -p replay
-logs=()
-for seed in $(seq 1 "$scenes"); do
-    log="$out/thin-$seed.mcap"
-    [ -f "$log" ] || target/release/record --scene thin --seed "$seed" --rig five-view --resolution 640x360 \
-        --log-working-range -o "$log" -q --no-blueprint
-    logs+=("$log")
-done
+source scripts/family-logs.sh
+family_logs thin "$out/thin" "$scenes" 640x360
 IFS=, read -ra list <<<"$methods"
 for m in "${list[@]}"; do
     config=()
