@@ -205,7 +205,7 @@ fn training_can_track_its_batch_norm_statistics() {
 
 /// `--views any`: the view-count-agnostic network trains on random subsets of the neighbours,
 /// from a fixed network's file, resumes, its weights say what they are, and `mfusenet` runs them
-/// over every neighbour of a set.
+/// over the neighbours of a set (the five-view cross here).
 #[test]
 fn the_view_count_agnostic_network_trains_resumes_and_is_named() {
     let dir = temp_dir();
@@ -239,7 +239,7 @@ fn the_view_count_agnostic_network_trains_resumes_and_is_named() {
     assert_eq!(header["__metadata__"]["view_fusion"], "mean-max", "{header}");
     assert_eq!(header["__metadata__"]["views"], "any");
     assert_eq!(header["concat.0.weight"]["shape"], serde_json::json!([4, 8, 7, 7, 7]));
-    // `mfusenet` runs it over every neighbour of a five-view set, and says so.
+    // `mfusenet` runs it over the four neighbours of a five-view set, and says so.
     let (logs, log) = recorded("any.mcap", "--resolution 96x72 --samples-per-pixel 1");
     // (No blank in the JSON: the helper splits its arguments at blanks.)
     let config = format!("{{\"weights\":\"{}\"}}", weights.display());

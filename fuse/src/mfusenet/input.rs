@@ -60,12 +60,24 @@ impl Default for InputSpec {
     }
 }
 
-/// The neighbours the network takes, in its fixed order, for a network of `views` inputs; every
-/// neighbour, in the set's order, for the view-count-agnostic one (`views` = 0).
+/// The neighbours the network takes, in its fixed order, for a network of `views` inputs. For
+/// the view-count-agnostic one (`views` = 0): the neighbours on the axes at the nearest baseline,
+/// in the set's order, as it was trained (`replay train --views any` draws from the five-view
+/// cross); farther and diagonal views wait until its training has them.
 pub fn ordered_neighbours(problem: &Problem, views: usize) -> Result<Vec<&Neighbour>, FuseError> {
     let at = |offset: [i32; 2]| problem.neighbours.iter().find(|n| n.offset == offset);
+    let on_axis = |n: &&Neighbour| (n.offset[0] == 0) != (n.offset[1] == 0);
+    let reach = |n: &Neighbour| n.offset[0].abs().max(n.offset[1].abs());
+    let nearest = problem.neighbours.iter().filter(on_axis).map(reach).min();
     let found: Option<Vec<&Neighbour>> = match views {
-        0 => Some(problem.neighbours.iter().collect::<Vec<_>>()).filter(|all| !all.is_empty()),
+        0 => nearest.map(|k| {
+            problem
+                .neighbours
+                .iter()
+                .filter(on_axis)
+                .filter(|n| reach(n) == k)
+                .collect()
+        }),
         1 => problem.neighbours_for(Fusion::Stereo).first().map(|n| vec![*n]),
         2 => [[-1, 0], [1, 0]]
             .iter()
@@ -86,7 +98,7 @@ pub fn ordered_neighbours(problem: &Problem, views: usize) -> Result<Vec<&Neighb
         reason: match views {
             2 => "the three-view network needs left and right (or top and bottom) at one baseline",
             4 => "the five-view network needs left, right, top and bottom at one baseline",
-            0 => "the view-count-agnostic network needs at least one neighbour",
+            0 => "the view-count-agnostic network needs a neighbour along x or y",
             _ => "MFuseNet has variants for 1, 2 and 4 neighbours, and one for any number",
         },
     })
@@ -417,6 +429,17 @@ mod tests {
                 rest.iter().map(|n| n.offset).collect::<Vec<_>>(),
             )
         };
+        // The view-count-agnostic network: the nearest baseline's neighbours on the axes.
+        let pooled = |offsets: &[[i32; 2]]| {
+            let p = problem(offsets);
+            ordered_neighbours(&p, 0)
+                .map(|n| n.iter().map(|n| n.offset).collect::<Vec<_>>())
+                .ok()
+        };
+        assert_eq!(pooled(&[[2, 0], [-1, 0], [1, 0], [-2, 0]]), Some(vec![[-1, 0], [1, 0]]));
+        assert_eq!(pooled(&[[2, 0], [0, 2]]), Some(vec![[2, 0], [0, 2]]));
+        assert_eq!(pooled(&[[1, 1], [0, -1]]), Some(vec![[0, -1]]));
+        assert_eq!(pooled(&[[1, 1]]), None);
         // A line of five: the near pair, then the far one.
         let line = [[2, 0], [-1, 0], [1, 0], [-2, 0]];
         assert_eq!(

@@ -234,6 +234,8 @@ pub fn save_checkpoint(net: &mut Network, adam: &Adam, info: &WeightsInfo, path:
     let mut metadata: HashMap<String, String> = info.entries.clone().into_iter().collect();
     if net.views == 0 {
         metadata.insert(weights::VIEW_FUSION_KEY.to_owned(), weights::MEAN_MAX.to_owned());
+    } else {
+        metadata.remove(weights::VIEW_FUSION_KEY);
     }
     metadata.insert("adam_step".to_owned(), adam.step.to_string());
     metadata.insert("adam_learning_rate".to_owned(), adam.learning_rate.to_string());
