@@ -367,4 +367,27 @@ mod tests {
         assert_eq!(info_again.get("step"), Some("30"));
         std::fs::remove_dir_all(&dir).ok();
     }
+
+    #[test]
+    fn an_unordered_flip_moves_every_volume_and_the_target_in_place_and_undoes_itself() {
+        let input = |seed: u64| crate::nn::conv::tests::random([1, 4, 3, 5], seed);
+        let example = Example {
+            inputs: vec![input(1), input(2), input(3)],
+            target: (0..15).map(|i| i as f32).collect(),
+            mask: (0..15).map(|i| i % 4 != 0).collect(),
+        };
+        let mirror = flipped_unordered(&example, false, true);
+        // Column x of row y comes from column 4 − x; the views keep their slots.
+        for (got, original) in mirror.inputs.iter().zip(&example.inputs) {
+            assert_eq!(got, &original.flipped(false, true));
+        }
+        assert_eq!(&mirror.target[..5], &[4.0, 3.0, 2.0, 1.0, 0.0]);
+        // Row 1's mask (pixels 5..10: 8 is unlabelled) reversed.
+        assert_eq!(&mirror.mask[5..10], &[true, false, true, true, true]);
+        assert_ne!(mirror, example);
+        for (vertical, horizontal) in [(true, false), (false, true), (true, true)] {
+            let twice = flipped_unordered(&flipped_unordered(&example, vertical, horizontal), vertical, horizontal);
+            assert_eq!(twice, example, "{vertical} {horizontal}");
+        }
+    }
 }

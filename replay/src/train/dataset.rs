@@ -9,10 +9,10 @@ use fuse::mfusenet::input::{input_volumes_below, ordered_neighbours};
 use fuse::mfusenet::train::{Example, crop};
 use fuse::volume::{CostVolume, VolumeSource};
 use record::capture::Simulation;
+use record::rng::SplitMix64;
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 
 use crate::viewset::ViewSet;
-use record::rng::SplitMix64;
 
 use super::{TrainConfig, TrainError, file_error};
 
@@ -235,4 +235,58 @@ pub(super) fn hopeless(example: &Example) -> bool {
     let errors = winner_take_all_errors(example);
     let wrong = errors.iter().filter(|e| **e > HOPELESS_ERROR_PX).count();
     wrong as f32 > HOPELESS_FRACTION * errors.len() as f32
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use fuse::fusion::Fusion;
+    use fuse::volume::VolumeSource;
+
+    #[test]
+    fn drawn_views_are_distinct_subsets_of_every_size_for_the_pooled_network_only() {
+        let volume = CostVolume {
+            width: 1,
+            height: 1,
+            min_disparity: 0,
+            num_disparities: 1,
+            data: vec![0u8],
+            max_cost: 1,
+            source: VolumeSource::Fused(Fusion::Mean),
+        };
+        let sample = Sample {
+            volumes: vec![volume; 4],
+            truth: vec![0.0],
+        };
+        let index = |v: &CostVolume<u8>| sample.volumes.iter().position(|s| std::ptr::eq(s, v));
+        let mut rng = SplitMix64::new(1);
+        let mut counts = [0usize; 5];
+        let mut firsts = [0usize; 4];
+        for _ in 0..400 {
+            let drawn: Vec<usize> = sample
+                .for_views_drawn(0, &mut rng)
+                .into_iter()
+                .filter_map(index)
+                .collect();
+            let distinct: std::collections::BTreeSet<usize> = drawn.iter().copied().collect();
+            assert_eq!(distinct.len(), drawn.len(), "{drawn:?} repeats a view");
+            counts[drawn.len()] += 1;
+            firsts[drawn[0]] += 1;
+        }
+        assert_eq!(counts[0], 0);
+        assert!(counts[1..].iter().all(|c| *c > 60), "sizes {counts:?}");
+        assert!(firsts.iter().all(|c| *c > 60), "first views {firsts:?}");
+        // The fixed networks get their own views and draw nothing.
+        let mut untouched = SplitMix64::new(7);
+        let right: Vec<usize> = sample
+            .for_views_drawn(1, &mut untouched)
+            .into_iter()
+            .filter_map(index)
+            .collect();
+        assert_eq!(right, [1]);
+        assert_eq!(
+            untouched.range_usize(0, 1_000_000),
+            SplitMix64::new(7).range_usize(0, 1_000_000)
+        );
+    }
 }
