@@ -744,7 +744,7 @@ mod tests {
             cases.push((kind, highest));
         }
         for (scene, seed) in cases {
-            for rig in [RigKind::FiveView, RigKind::Grid3x3, RigKind::Line5] {
+            for rig in [RigKind::FiveView, RigKind::Grid3x3, RigKind::Line5, RigKind::GridCross] {
                 let config = SimulationConfig {
                     scene,
                     seed,

@@ -118,7 +118,7 @@ pub struct CaptureEvent {
     pub set_index: u32,
     /// Set name.
     pub set_name: String,
-    /// Rig layout name (`five-view`, `three-view`, `stereo`, `grid3x3`, `line5`, or `custom` for
+    /// Rig layout name (`five-view`, `three-view`, `stereo`, `grid3x3`, `line5`, `grid-cross`, or `custom` for
     /// an imported set of other offsets).
     pub rig: String,
     /// Number of views in the set.
@@ -174,7 +174,7 @@ pub fn capture_event_json_schema() -> serde_json::Value {
         "properties": {
             "set_index": {"type": "integer", "minimum": 0},
             "set_name": {"type": "string"},
-            "rig": {"type": "string", "description": "five-view, three-view, stereo, grid3x3, line5, or custom (imported sets; the offsets are in grid_offset)"},
+            "rig": {"type": "string", "description": "five-view, three-view, stereo, grid3x3, line5, grid-cross, or custom (imported sets; the offsets are in grid_offset)"},
             "views_in_set": {"type": "integer", "minimum": 1},
             "role": {"type": "string"},
             "grid_offset": {"type": "array", "items": {"type": "integer"}, "minItems": 2, "maxItems": 2},

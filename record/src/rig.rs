@@ -25,6 +25,12 @@ pub enum RigKind {
     #[value(name = "line5")]
     #[serde(rename = "line5")]
     Line5,
+    /// The 3 × 3 grid and, at twice the baseline, the cross `left2`, `right2`, `top2`, `bottom2`:
+    /// 13 views, every offset a line, a cross or a grid of up to two baselines has (the training
+    /// captures of the view-count-agnostic MFuseNet).
+    #[value(name = "grid-cross")]
+    #[serde(rename = "grid-cross")]
+    GridCross,
     /// The centre, then each next view where a plan from the depth so far says it resolves most
     /// (next-best-view capture with `--views N`; not a layout to import)
     // Only the centre is fixed: `capture_order` lists it alone (`crate::adaptive` plans the rest).
@@ -49,12 +55,13 @@ const fn slot(role: &'static str, dx: i32, dy: i32) -> ViewSlot {
 
 impl RigKind {
     /// Every fixed layout (not [`RigKind::Adaptive`], whose views are planned).
-    pub const ALL: [Self; 5] = [
+    pub const ALL: [Self; 6] = [
         Self::FiveView,
         Self::ThreeView,
         Self::Stereo,
         Self::Grid3x3,
         Self::Line5,
+        Self::GridCross,
     ];
 
     /// Views in capture order; the reference (`center`) comes first so that the neighbours are
@@ -88,13 +95,23 @@ impl RigKind {
                 slot("right", 1, 0),
                 slot("right2", 2, 0),
             ],
+            Self::GridCross => {
+                let mut slots = Self::Grid3x3.capture_order();
+                slots.extend([
+                    slot("right2", 2, 0),
+                    slot("bottom2", 0, 2),
+                    slot("left2", -2, 0),
+                    slot("top2", 0, -2),
+                ]);
+                slots
+            }
             Self::Adaptive => vec![slot("center", 0, 0)],
         }
     }
 
     /// Views in the layout's documented file order (what `record import --views` lists):
     /// five-view: center, left, right, top, bottom; three-view: left, center, right; stereo:
-    /// center, right; grid3x3: row-major from top-left; line5: left to right.
+    /// center, right; grid3x3 and grid-cross: row-major from the top; line5: left to right.
     pub fn file_order(self) -> Vec<ViewSlot> {
         match self {
             Self::ThreeView => vec![slot("left", -1, 0), slot("center", 0, 0), slot("right", 1, 0)],
@@ -103,7 +120,7 @@ impl RigKind {
                 slots.sort_by_key(|s| s.grid_offset[0]);
                 slots
             }
-            Self::Grid3x3 => {
+            Self::Grid3x3 | Self::GridCross => {
                 let mut slots = self.capture_order();
                 slots.sort_by_key(|s| (s.grid_offset[1], s.grid_offset[0]));
                 slots
@@ -120,6 +137,7 @@ impl RigKind {
             Self::Stereo => "stereo",
             Self::Grid3x3 => "grid3x3",
             Self::Line5 => "line5",
+            Self::GridCross => "grid-cross",
             Self::Adaptive => "adaptive",
         }
     }
@@ -179,6 +197,8 @@ mod tests {
         }
         assert_eq!(RigKind::Grid3x3.file_order()[0].role, "top-left");
         assert_eq!(RigKind::ThreeView.file_order()[1].role, "center");
+        assert_eq!(RigKind::GridCross.file_order()[0].role, "top2");
+        assert_eq!(RigKind::GridCross.capture_order().len(), 13);
     }
 
     #[test]

@@ -203,9 +203,10 @@ fn training_can_track_its_batch_norm_statistics() {
     assert!(moved > a.len() / 2, "{moved} of {} running means moved", a.len());
 }
 
-/// `--views any`: the view-count-agnostic network trains on random subsets of the neighbours,
-/// from a fixed network's file, resumes, its weights say what they are, and `mfusenet` runs them
-/// over the neighbours of a set (the five-view cross here).
+/// `--views any`: the view-count-agnostic network trains on random subsets of the neighbours of
+/// grid-cross captures (twelve kept per sample), from a fixed network's file, resumes, its
+/// weights say what they are, and `mfusenet` runs them over every view of a set (a line of five
+/// here), nearest first.
 #[test]
 fn the_view_count_agnostic_network_trains_resumes_and_is_named() {
     let dir = temp_dir();
@@ -215,7 +216,7 @@ fn the_view_count_agnostic_network_trains_resumes_and_is_named() {
     let train = |steps: &str| {
         let (run_dir, dataset) = (run.to_str().unwrap_or_default(), dir.path().join("dataset"));
         let mut args: Vec<&str> =
-            "train --views any --resolution 96x72 --num-disparities 12 --crop-px 32 --train-sets 2 --val-sets 1 -q"
+            "train --views any --rig grid-cross --resolution 96x72 --num-disparities 12 --crop-px 32 --train-sets 2 --val-sets 1 -q"
                 .split_whitespace()
                 .collect();
         args.extend(["--dir", run_dir, "--dataset-dir", dataset.to_str().unwrap_or_default()]);
@@ -228,6 +229,20 @@ fn the_view_count_agnostic_network_trains_resumes_and_is_named() {
     };
     let first = train("2");
     assert_eq!(first["steps_done"], 2, "{first}");
+    assert_eq!(first["config"]["rig"], "grid-cross", "{first}");
+    // Each cached sample keeps the twelve neighbours within two baselines.
+    let sample = std::fs::read_dir(dir.path().join("dataset"))
+        .into_iter()
+        .flatten()
+        .flatten()
+        .map(|e| e.path())
+        .find(|p| p.extension().is_some_and(|x| x == "safetensors"))
+        .unwrap_or_default();
+    let tensors = safetensors_header(&sample);
+    assert!(
+        tensors.get("volume.11").is_some() && tensors.get("volume.12").is_none(),
+        "{tensors}"
+    );
     let second = train("4");
     assert_eq!(second["resumed_at_step"], 2, "{second}");
     assert!(
@@ -239,8 +254,9 @@ fn the_view_count_agnostic_network_trains_resumes_and_is_named() {
     assert_eq!(header["__metadata__"]["view_fusion"], "mean-max", "{header}");
     assert_eq!(header["__metadata__"]["views"], "any");
     assert_eq!(header["concat.0.weight"]["shape"], serde_json::json!([4, 8, 7, 7, 7]));
-    // `mfusenet` runs it over the four neighbours of a five-view set, and says so.
-    let (logs, log) = recorded("any.mcap", "--resolution 96x72 --samples-per-pixel 1");
+    // `mfusenet` runs it over the four neighbours of a line of five, the near pair first, and
+    // says so.
+    let (logs, log) = recorded("any.mcap", "--rig line5 --resolution 96x72 --samples-per-pixel 1");
     // (No blank in the JSON: the helper splits its arguments at blanks.)
     let config = format!("{{\"weights\":\"{}\"}}", weights.display());
     let summary = replay_summary(
@@ -250,6 +266,11 @@ fn the_view_count_agnostic_network_trains_resumes_and_is_named() {
     );
     let set = &summary["sets"][0];
     assert_eq!(set["details"]["network"], "view-count-agnostic", "{set}");
+    assert_eq!(
+        set["details"]["views"],
+        serde_json::json!(["left", "right", "left2", "right2"]),
+        "{set}"
+    );
     assert!(
         set["outputs"]["metrics"]["all"]["avg_err_px"]
             .as_f64()

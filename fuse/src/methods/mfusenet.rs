@@ -22,8 +22,8 @@ use crate::mfusenet::infer::{
     infer_with_confidence,
 };
 use crate::mfusenet::input::{
-    InputSpec, ViewGroup, input_volumes_below, ordered_neighbours, summed, summed_input_volume_below, view_groups,
-    views_for,
+    InputSpec, ViewGroup, input_volumes_below, ordered_neighbours, pooled_neighbours, summed,
+    summed_input_volume_below, view_groups, views_for,
 };
 use crate::mfusenet::pyramid::{
     Band, DEFAULT_MAX_DIRECT_DISPARITIES, band_minimum, downsampled, pyramid_factor, reduced_range,
@@ -138,7 +138,10 @@ pub struct MFuseNetConfig {
     /// before the estimate is read; it is refined and filtered with the nearest group's costs.
     /// `false`: one network on the nearest cross, pair or view, as the paper. Sets that one
     /// network covers run the same either way; a view without its opposite stays unused (the run
-    /// summary lists the networks and the unused views).
+    /// summary lists the networks and the unused views). With a view-count-agnostic weights file
+    /// (`replay train --views any`): one network pools every view of the set, the nearest
+    /// baseline's on the axes first, and the post-processing reads those first ones' costs;
+    /// `false`: the nearest ones only (the summary's `views` lists what it took).
     pub every_view: bool,
     /// Sub-pixel from block-matching costs, last (`subpixel::BlockSubpixel`; `{}` = its
     /// defaults, the default; `null` = none): the estimate's integer stays, its fraction is
@@ -349,6 +352,11 @@ impl Method for MFuseNet {
             "network_min_disparity": i64::from(min_disparity) - room_below as i64,
             "network_num_disparities": num_disparities + room_below,
             "full_size_band_px": (factor > 1).then_some(factor),
+            "views": (loaded.views == 0).then(|| {
+                self.network_neighbours(problem, 0)
+                    .map(|used| used.iter().map(|n| n.role.clone()).collect::<Vec<_>>())
+                    .unwrap_or_default()
+            }),
         })
     }
 }
@@ -441,6 +449,17 @@ impl MFuseNet {
         }))
     }
 
+    /// The neighbours a network of `views` inputs takes, in its order: the fixed networks'
+    /// [`ordered_neighbours`]; the view-count-agnostic network's nearest group, then with
+    /// `every_view` the set's other views ([`pooled_neighbours`]).
+    fn network_neighbours<'p>(&self, problem: &'p Problem, views: usize) -> Result<Vec<&'p Neighbour>, FuseError> {
+        if views == 0 {
+            pooled_neighbours(problem, self.config.every_view)
+        } else {
+            ordered_neighbours(problem, views)
+        }
+    }
+
     /// The configuration's checks, before minutes of work.
     fn validate_config(&self) -> Result<(), FuseError> {
         if !(self.config.refine_reach >= 0.0 && self.config.refine_reach.is_finite()) {
@@ -499,7 +518,9 @@ impl MFuseNet {
         }
         let loaded = self.network_for(problem)?;
         let net = &loaded.net;
-        let neighbours = ordered_neighbours(problem, net.views)?;
+        let neighbours = self.network_neighbours(problem, net.views)?;
+        // The nearest group's volumes come first; the post-processing reads only theirs.
+        let nearest = ordered_neighbours(problem, net.views)?.len();
         // Cost volumes: about a tenth of the work; the network the rest.
         let (volumes, first, origin) = self.input_volumes(problem, &neighbours, loaded)?;
         progress(0.1);
@@ -513,8 +534,9 @@ impl MFuseNet {
             },
             &|f| progress(0.1 + 0.9 * f),
         )?;
-        // The post-processing reads the neighbours' costs only summed.
-        let costs = summed_or_error(&volumes)?;
+        // The post-processing reads the nearest group's costs only summed (farther views' costs
+        // summed in raised AvgErr on lines of five: docs/experiments.md).
+        let costs = summed_or_error(&volumes[..nearest.min(volumes.len())])?;
         drop(volumes);
         Ok(NetworkEstimate::new(
             problem,

@@ -104,6 +104,25 @@ pub fn ordered_neighbours(problem: &Problem, views: usize) -> Result<Vec<&Neighb
     })
 }
 
+/// The view-count-agnostic network's neighbours: those of [`ordered_neighbours`] (the axes at the
+/// nearest baseline) first, then, with `every`, the set's other views by reach (a line's ±2
+/// after its ±1, a grid's diagonals after its cross), each in the set's order. The first
+/// `ordered_neighbours(problem, 0)?.len()` are the nearest group.
+pub fn pooled_neighbours(problem: &Problem, every: bool) -> Result<Vec<&Neighbour>, FuseError> {
+    let mut out = ordered_neighbours(problem, 0)?;
+    if every {
+        let reach = |n: &Neighbour| n.offset[0].abs().max(n.offset[1].abs());
+        let mut rest: Vec<&Neighbour> = problem
+            .neighbours
+            .iter()
+            .filter(|n| !out.iter().any(|o| std::ptr::eq(*o, *n)))
+            .collect();
+        rest.sort_by_key(|n| reach(n));
+        out.extend(rest);
+    }
+    Ok(out)
+}
+
 /// One network's part of a set: which variant (by its number of inputs) and the neighbours it
 /// takes, in its input order.
 #[derive(Debug, Clone, PartialEq)]
@@ -440,6 +459,18 @@ mod tests {
         assert_eq!(pooled(&[[2, 0], [0, 2]]), Some(vec![[2, 0], [0, 2]]));
         assert_eq!(pooled(&[[1, 1], [0, -1]]), Some(vec![[0, -1]]));
         assert_eq!(pooled(&[[1, 1]]), None);
+        // With every view: the nearest group first, then the rest by reach.
+        let every = |offsets: &[[i32; 2]]| {
+            let p = problem(offsets);
+            pooled_neighbours(&p, true)
+                .map(|n| n.iter().map(|n| n.offset).collect::<Vec<_>>())
+                .ok()
+        };
+        assert_eq!(
+            every(&[[2, 0], [-1, 0], [1, 1], [1, 0], [-2, 0]]),
+            Some(vec![[-1, 0], [1, 0], [1, 1], [2, 0], [-2, 0]])
+        );
+        assert_eq!(every(&[[1, 1]]), None);
         // A line of five: the near pair, then the far one.
         let line = [[2, 0], [-1, 0], [1, 0], [-2, 0]];
         assert_eq!(

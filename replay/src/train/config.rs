@@ -100,6 +100,20 @@ pub struct TrainConfig {
     /// gives; 0 = every view alike (the shipped files).
     #[serde(default, skip_serializing_if = "is_zero_f64")]
     pub exposure_jitter: f64,
+    /// The rig of the captures: `five-view` (every shipped file) or `grid-cross` (13 views: the
+    /// 3 × 3 grid and the cross at two baselines), whose far and diagonal neighbours the
+    /// view-count-agnostic network draws from as well ([`super::dataset::Sample`]); the fixed
+    /// networks take the cross at one baseline from either.
+    #[serde(default = "five_view", skip_serializing_if = "is_five_view")]
+    pub rig: RigKind,
+}
+
+fn five_view() -> RigKind {
+    RigKind::FiveView
+}
+
+fn is_five_view(rig: &RigKind) -> bool {
+    *rig == RigKind::FiveView
 }
 
 fn is_zero_f64(x: &f64) -> bool {
@@ -139,6 +153,7 @@ impl Default for TrainConfig {
             flips: false,
             keep_hopeless: false,
             exposure_jitter: 0.0,
+            rig: RigKind::FiveView,
             scenes: vec![
                 SceneKind::Random,
                 SceneKind::Random,
@@ -200,6 +215,13 @@ impl TrainConfig {
                 "scenes",
                 format!("{:?}", self.scenes),
                 "one or more families, never `bin`, `thin` or `slanted` (the held-out families, for checking generalisation)",
+            );
+        }
+        if !matches!(self.rig, RigKind::FiveView | RigKind::GridCross) {
+            return bad(
+                "rig",
+                self.rig.name().to_owned(),
+                "five-view or grid-cross (the rigs whose views the dataset keeps)",
             );
         }
         if !(0.0..0.5).contains(&self.exposure_jitter) {
@@ -268,6 +290,9 @@ impl TrainConfig {
         if self.exposure_jitter > 0.0 {
             key["exposure_jitter"] = self.exposure_jitter.into();
         }
+        if self.rig != RigKind::FiveView {
+            key["rig"] = self.rig.name().into();
+        }
         let key = key.to_string();
         // FNV-1a.
         key.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| {
@@ -282,7 +307,7 @@ impl TrainConfig {
         let mut rng = SplitMix64::new(seed.wrapping_mul(0x2545_F491_4F6C_DD1D));
         let unit = rng.unit();
         SimulationConfig {
-            rig: RigKind::FiveView,
+            rig: self.rig,
             baseline_mm: match self.baseline_draw {
                 BaselineDraw::Uniform => self.baseline_mm[0] + (self.baseline_mm[1] - self.baseline_mm[0]) * unit,
                 BaselineDraw::LogUniform => {

@@ -1,14 +1,15 @@
-//! The training dataset: simulated five-view captures reduced once to their input volumes and
+//! The training dataset: simulated five-view (or grid-cross) captures reduced once to their input volumes and
 //! ground truth (cached as safetensors), validation crops, and how hard a crop is for the
 //! inputs alone (winner-take-all, hopeless crops).
 
 use std::path::Path;
 use std::sync::atomic::AtomicBool;
 
-use fuse::mfusenet::input::{input_volumes_below, ordered_neighbours};
+use fuse::mfusenet::input::input_volumes_below;
 use fuse::mfusenet::train::{Example, crop};
 use fuse::volume::{CostVolume, VolumeSource};
 use record::capture::Simulation;
+use record::rig::RigKind;
 use record::rng::SplitMix64;
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 
@@ -16,18 +17,48 @@ use crate::viewset::ViewSet;
 
 use super::{TrainConfig, TrainError, file_error};
 
-/// One sample of the cache: the four per-neighbour volumes (left, right, top, bottom) and the
-/// ground-truth disparity.
+/// The neighbours a sample keeps, in its order: the cross at one baseline (what the fixed
+/// networks take), then a `grid-cross` capture's diagonals and the cross at two baselines.
+pub const NEIGHBOURS: [(&str, [i32; 2]); 12] = [
+    ("left", [-1, 0]),
+    ("right", [1, 0]),
+    ("top", [0, -1]),
+    ("bottom", [0, 1]),
+    ("top-left", [-1, -1]),
+    ("top-right", [1, -1]),
+    ("bottom-right", [1, 1]),
+    ("bottom-left", [-1, 1]),
+    ("left2", [-2, 0]),
+    ("right2", [2, 0]),
+    ("top2", [0, -2]),
+    ("bottom2", [0, 2]),
+];
+
+/// How many of [`NEIGHBOURS`] a capture of `rig` has (the rigs training accepts).
+pub fn neighbours_kept(rig: RigKind) -> usize {
+    match rig {
+        RigKind::GridCross => NEIGHBOURS.len(),
+        _ => 4,
+    }
+}
+
+/// The most views a training crop of the view-count-agnostic network draws: a 3 × 3 grid's
+/// eight neighbours are pooled at inference, but crops of up to twelve would hold twice the
+/// activations of the four-view network's for the rarest sets.
+pub const MAX_DRAWN_VIEWS: usize = 6;
+
+/// One sample of the cache: the per-neighbour volumes (the first [`neighbours_kept`] of
+/// [`NEIGHBOURS`]) and the ground-truth disparity.
 pub struct Sample {
-    /// Left, right, top, bottom.
+    /// In the order of [`NEIGHBOURS`]: left, right, top, bottom, then (grid-cross) the rest.
     pub volumes: Vec<CostVolume<u8>>,
     /// `[y][x]` px, 0 = unknown.
     pub truth: Vec<f32>,
 }
 
 impl Sample {
-    /// The volumes a network of `views` inputs takes (see `fuse::mfusenet::input`); all four for
-    /// the view-count-agnostic network (`views` = 0).
+    /// The volumes a network of `views` inputs takes (see `fuse::mfusenet::input`); the cross at
+    /// one baseline for the view-count-agnostic network (`views` = 0), as its validation reads it.
     pub fn for_views(&self, views: usize) -> Vec<&CostVolume<u8>> {
         let indices: &[usize] = match views {
             1 => &[1],
@@ -38,8 +69,9 @@ impl Sample {
     }
 
     /// [`Sample::for_views`] for a training crop: the view-count-agnostic network (`views` = 0)
-    /// gets a random non-empty subset of the four neighbours in a random order (the count uniform
-    /// in 1..=4), so that it learns from one to four views alike; the fixed networks their own.
+    /// gets a random non-empty subset of the sample's neighbours (four, or twelve from a
+    /// grid-cross capture) in a random order, the count uniform in 1..=[`MAX_DRAWN_VIEWS`], so
+    /// that it learns from any number of views at any offset alike; the fixed networks their own.
     /// Draws from `rng` only for `views` = 0.
     pub fn for_views_drawn(&self, views: usize, rng: &mut SplitMix64) -> Vec<&CostVolume<u8>> {
         if views != 0 {
@@ -49,7 +81,7 @@ impl Sample {
         for i in (1..order.len()).rev() {
             order.swap(i, rng.range_usize(0, i + 1));
         }
-        let count = rng.range_usize(1, order.len() + 1);
+        let count = rng.range_usize(1, order.len().min(MAX_DRAWN_VIEWS) + 1);
         order[..count].iter().map(|i| &self.volumes[*i]).collect()
     }
 }
@@ -62,8 +94,9 @@ pub fn sample(config: &TrainConfig, index: usize, validation: bool, cache_dir: &
         config.data_key()
     );
     let path = cache_dir.join(name);
+    let kept = neighbours_kept(config.rig);
     if let Ok(bytes) = std::fs::read(&path)
-        && let Some(sample) = read_sample(&bytes, config.depth())
+        && let Some(sample) = read_sample(&bytes, config.depth(), kept)
     {
         return Ok(sample);
     }
@@ -85,7 +118,11 @@ pub fn sample(config: &TrainConfig, index: usize, validation: bool, cache_dir: &
     let problem = view_set
         .problem(0, config.num_disparities, false)
         .map_err(|source| TrainError::Replay { index, source })?;
-    let neighbours = ordered_neighbours(&problem, 4).map_err(|source| TrainError::Fuse { index, source })?;
+    let neighbours = NEIGHBOURS[..kept]
+        .iter()
+        .map(|(_, offset)| problem.neighbours.iter().find(|n| n.offset == *offset))
+        .collect::<Option<Vec<_>>>()
+        .ok_or_else(|| file_error(&path, format!("the {} capture lacks a neighbour", config.rig.name())))?;
     // Samples are in slice coordinates, as `read_sample` gives them back: the first slice (the
     // context's, under 0) is 0 and the truth is shifted up by the context.
     let volumes = input_volumes_below(&problem, &neighbours, config.input, config.context_below, &|| {})
@@ -128,7 +165,7 @@ fn write_sample(sample: &Sample, path: &Path) -> Result<(), TrainError> {
     std::fs::rename(&temporary, path).map_err(|e| file_error(path, e.to_string()))
 }
 
-fn read_sample(bytes: &[u8], num_disparities: usize) -> Option<Sample> {
+fn read_sample(bytes: &[u8], num_disparities: usize, kept: usize) -> Option<Sample> {
     let tensors = SafeTensors::deserialize(bytes).ok()?;
     let truth_view = tensors.tensor("truth").ok()?;
     let (height, width) = (*truth_view.shape().first()?, *truth_view.shape().get(1)?);
@@ -137,14 +174,8 @@ fn read_sample(bytes: &[u8], num_disparities: usize) -> Option<Sample> {
         .chunks_exact(4)
         .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
         .collect();
-    let roles = [
-        ("left", [-1, 0]),
-        ("right", [1, 0]),
-        ("top", [0, -1]),
-        ("bottom", [0, 1]),
-    ];
     let mut volumes = Vec::new();
-    for (i, (role, offset)) in roles.iter().enumerate() {
+    for (i, (role, offset)) in NEIGHBOURS[..kept].iter().enumerate() {
         let view = tensors.tensor(&format!("volume.{i}")).ok()?;
         if view.shape() != [height, width, num_disparities] {
             return None;
@@ -276,6 +307,25 @@ mod tests {
         assert_eq!(counts[0], 0);
         assert!(counts[1..].iter().all(|c| *c > 60), "sizes {counts:?}");
         assert!(firsts.iter().all(|c| *c > 60), "first views {firsts:?}");
+        // A grid-cross sample's twelve: every one drawn, never more than MAX_DRAWN_VIEWS at once.
+        let wide = Sample {
+            volumes: vec![sample.volumes[0].clone(); NEIGHBOURS.len()],
+            truth: vec![0.0],
+        };
+        let mut seen = [0usize; NEIGHBOURS.len()];
+        let mut sizes = [0usize; MAX_DRAWN_VIEWS + 1];
+        for _ in 0..600 {
+            let drawn = wide.for_views_drawn(0, &mut rng);
+            sizes[drawn.len()] += 1;
+            for v in drawn {
+                if let Some(i) = wide.volumes.iter().position(|s| std::ptr::eq(s, v)) {
+                    seen[i] += 1;
+                }
+            }
+        }
+        assert_eq!(sizes[0], 0);
+        assert!(sizes[1..].iter().all(|c| *c > 50), "sizes {sizes:?}");
+        assert!(seen.iter().all(|c| *c > 100), "views {seen:?}");
         // The fixed networks get their own views and draw nothing.
         let mut untouched = SplitMix64::new(7);
         let right: Vec<usize> = sample

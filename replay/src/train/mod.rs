@@ -411,6 +411,9 @@ pub fn train(
     info.set(
         "input_order",
         match config.views {
+            0 if config.rig == record::rig::RigKind::GridCross => {
+                "any subset of the neighbours within two baselines (axes and diagonals), in any order"
+            }
             0 => "any subset of left,right,top,bottom, in any order",
             1 => "right",
             2 => "left,right",

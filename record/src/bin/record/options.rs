@@ -21,7 +21,8 @@ pub struct SimulateArgs {
     #[arg(long, num_args = 1..=2, value_names = ["MODE", "ARG"])]
     pub(crate) rerun: Vec<String>,
     /// View layout: five-view (centre, left, right, top, bottom), three-view, stereo, grid3x3,
-    /// line5 (five in a row at −2 … 2 baselines), or adaptive (the centre, then each next view
+    /// line5 (five in a row at −2 … 2 baselines), grid-cross (the 3×3 grid plus the cross at two
+    /// baselines: 13 views), or adaptive (the centre, then each next view
     /// where a plan from the depth so far says it resolves most; see --views).
     #[arg(long, value_enum, default_value = "five-view")]
     pub(crate) rig: RigKind,

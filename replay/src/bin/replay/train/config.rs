@@ -54,6 +54,7 @@ impl TrainArgs {
             keep_hopeless: self.keep_hopeless,
             scenes: self.scenes.clone(),
             exposure_jitter: self.exposure_jitter,
+            rig: self.rig,
             input: InputSpec {
                 block_radius_px: self.input_block_radius_px,
                 ..InputSpec::default()
