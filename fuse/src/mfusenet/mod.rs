@@ -20,7 +20,7 @@ pub use weights::WeightsInfo;
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum Error {
     /// The network got another number of cost volumes than it was built for.
-    #[error("the network takes {expected} cost volume(s), got {got}")]
+    #[error("the network takes {}, got {got}", views_text(*expected))]
     InputCount {
         /// Views of the network.
         expected: usize,
@@ -137,7 +137,11 @@ pub enum Error {
         index: usize,
     },
     /// The file is for another number of views.
-    #[error("weights file {file} is for {got} cost volume(s) (concat.0.weight), the method needs {expected}")]
+    #[error(
+        "weights file {file} is for {} (concat.0.weight), the method needs {}",
+        views_text(*got),
+        views_text(*expected)
+    )]
     Variant {
         /// File.
         file: String,
@@ -168,5 +172,38 @@ pub enum Error {
     },
 }
 
+/// A network's inputs in words: `0` is the view-count-agnostic network's "any number".
+fn views_text(views: usize) -> String {
+    match views {
+        0 => format!(
+            "1 to {} cost volumes (view-count-agnostic, views pooled by mean and maximum)",
+            crate::nn::pool::MAX_VIEWS
+        ),
+        1 => "1 cost volume".to_owned(),
+        n => format!("{n} cost volumes"),
+    }
+}
+
 #[cfg(test)]
 mod fixtures;
+
+#[cfg(test)]
+mod tests {
+    use super::Error;
+
+    #[test]
+    fn a_pooled_file_is_named_in_words_not_as_zero_views() {
+        let message = Error::Variant {
+            file: "any.safetensors".into(),
+            expected: 4,
+            got: 0,
+        }
+        .to_string();
+        assert!(
+            message.contains("view-count-agnostic") && message.contains("needs 4 cost volumes"),
+            "{message}"
+        );
+        let message = Error::InputCount { expected: 0, got: 0 }.to_string();
+        assert!(message.starts_with("the network takes 1 to "), "{message}");
+    }
+}

@@ -74,6 +74,11 @@ fn no_huge_pages() {
 /// the method on hosts where fresh memory is dear. The cost is memory: what a run freed stays
 /// counted in its RSS (the demo's peak 1.35 → 1.68 GB).
 fn keep_freed_pages() {
+    // mimalloc's own variable, when set, decides (e.g. `MIMALLOC_PURGE_DELAY=0` for the least
+    // memory).
+    if std::env::var_os("MIMALLOC_PURGE_DELAY").is_some() {
+        return;
+    }
     // SAFETY: `mi_option_set` only stores the value in mimalloc's option table (an atomic); the
     // option number is within the table and the value is one the header documents (-1 = never).
     #[allow(unsafe_code)]
