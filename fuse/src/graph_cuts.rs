@@ -34,7 +34,7 @@ use crate::cost::{INVALID_COST, PixelCost, PreparedView};
 use crate::fusion::{Fusion, fuse_values};
 use crate::image::{DisparityImage, Image};
 use crate::maxflow::BinaryEnergy;
-use crate::volume::{DisparityPlanes, Problem};
+use crate::volume::Problem;
 
 /// Energy units per data-cost unit (so that K, λ1, λ2 may be quarters).
 pub const UNITS_PER_COST: f32 = 4.0;
@@ -67,7 +67,16 @@ pub struct EnergyParams {
     pub norm: DataNorm,
     /// Where uniqueness is enforced.
     pub uniqueness: Uniqueness,
+    /// The data term is stored for every (label, pixel) when that takes at most this many MiB
+    /// (3 bytes each), else computed where it is read ([`KzEnergy::new`]); the result is the
+    /// same either way.
+    pub stored_data_mib: usize,
 }
+
+/// Default [`EnergyParams::stored_data_mib`]: Middlebury's third size (32 labels, 15 MB) and
+/// 640×480 with 128 labels (118 MB) stored, 1920×1080 with 64 or more labels (0.4–0.8 GB)
+/// computed.
+pub const DEFAULT_STORED_DATA_MIB: usize = 256;
 
 impl Default for EnergyParams {
     /// The paper's K = 10, λ1 = 9, λ2 = 3, θ = 8 with the IPOL program's squared cost; uniqueness
@@ -80,6 +89,7 @@ impl Default for EnergyParams {
             edge_threshold: 8,
             norm: DataNorm::L2,
             uniqueness: Uniqueness::UsedViews,
+            stored_data_mib: DEFAULT_STORED_DATA_MIB,
         }
     }
 }
@@ -236,17 +246,87 @@ const MAX_DATA_COST: u16 = BT_TRUNCATION * BT_TRUNCATION;
 /// Half-size of the window whose data costs [`KzEnergy::confidence`] compares.
 pub const CONFIDENCE_RADIUS: usize = 2;
 
+/// One assignment's part of the data term.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Entry {
+    /// The fused data cost, [`INVALID_COST`] where the assignment is not allowed.
+    cost: u16,
+    /// The views the assignment matches (bit k = view k): those whose costs the fused data term
+    /// uses, where uniqueness is enforced.
+    used: u8,
+}
+
+impl Entry {
+    const NONE: Self = Self {
+        cost: INVALID_COST,
+        used: 0,
+    };
+}
+
+/// The fused data term of every (label, pixel), label-major (as an expansion reads one label's
+/// plane).
+struct StoredTerm {
+    costs: Vec<u16>,
+    used: Vec<u8>,
+}
+
+/// The fused data term, computed where it is asked for when storing it for every (label,
+/// pixel) would take more than [`EnergyParams::stored_data_mib`] (at 1920×1080 with 128 labels
+/// the costs and masks are 0.8 GB). An expansion then computes its label's plane once
+/// ([`KzEnergy::expand`]) and every pixel keeps its active assignment's entry; the rest (the
+/// labels at depth edges, the readout) is computed when read, at about 1.3–1.5 × the time.
+struct DataTerm {
+    reference: PreparedView,
+    neighbours: Vec<PreparedView>,
+    fusion: Fusion,
+    norm: DataNorm,
+    /// [`Uniqueness::AllViews`]: an assignment uses every view it falls inside.
+    strict: bool,
+}
+
+impl DataTerm {
+    /// The entry of `(p, label)` over `views` (the energy's, one per neighbour) in an image
+    /// `width` pixels wide.
+    #[inline]
+    fn entry(&self, views: &[View], width: usize, p: usize, label: usize) -> Entry {
+        let (x, y) = (p % width, p / width);
+        let mut buffer = [INVALID_COST; MAX_VIEWS];
+        for ((value, view), neighbour) in buffer.iter_mut().zip(views).zip(&self.neighbours) {
+            *value = view
+                .target(x, y, label)
+                .map_or(INVALID_COST, |q| bt_cost(&self.reference, neighbour, p, q, self.norm));
+        }
+        let values = &buffer[..views.len().min(MAX_VIEWS)];
+        let used = if self.strict {
+            values
+                .iter()
+                .enumerate()
+                .filter(|(_, v)| **v != INVALID_COST)
+                .fold(0u8, |m, (k, _)| m | 1 << k)
+        } else {
+            used_views(self.fusion, values)
+        };
+        Entry {
+            cost: fuse_values(self.fusion, values),
+            used,
+        }
+    }
+}
+
 /// Kolmogorov–Zabih's energy over a multiscopic problem and its current configuration.
 pub struct KzEnergy {
     width: usize,
     height: usize,
     min_disparity: i32,
     labels: usize,
-    /// Fused data cost per (label, pixel), [`INVALID_COST`] where the assignment is not allowed.
-    data: DisparityPlanes<u16>,
-    /// The views each (label, pixel) assignment matches (bit k = view k): those whose costs the
-    /// fused data term uses, where uniqueness is enforced.
-    used: Vec<u8>,
+    term: DataTerm,
+    /// Every entry, when it fits [`EnergyParams::stored_data_mib`].
+    stored: Option<StoredTerm>,
+    /// The entry of each pixel's active assignment (meaningless where it is occluded).
+    current: Vec<Entry>,
+    /// The label whose every entry is in `plane` (`usize::MAX`: none yet).
+    plane_label: usize,
+    plane: Vec<Entry>,
     ref_edges: [Vec<u8>; 2],
     views: Vec<View>,
     /// Label of each reference pixel's active assignment, or [`OCCLUDED`].
@@ -313,43 +393,29 @@ impl KzEnergy {
                 owner: vec![NO_OWNER; w * h],
             })
             .collect();
-        // Per label and pixel (label-major, as an expansion reads one label's slice): the fused
-        // cost and the views it uses.
+        let term = DataTerm {
+            reference,
+            neighbours: prepared,
+            fusion,
+            norm: params.norm,
+            strict: params.uniqueness == Uniqueness::AllViews,
+        };
         let n = w * h;
-        let strict = params.uniqueness == Uniqueness::AllViews;
-        let mut data = DisparityPlanes::filled(
-            (w, h),
-            (problem.min_disparity, labels),
-            INVALID_COST,
-            u32::from(MAX_DATA_COST),
-        );
-        let mut used = vec![0u8; n * labels];
-        data.data
-            .par_chunks_mut(n)
-            .zip(used.par_chunks_mut(n))
-            .enumerate()
-            .for_each(|(l, (costs, masks))| {
-                let mut values = Vec::with_capacity(views.len());
-                for p in 0..n {
-                    let (x, y) = (p % w, p / w);
-                    values.clear();
-                    for (view, neighbour) in views.iter().zip(&prepared) {
-                        values.push(
-                            view.target(x, y, l)
-                                .map_or(INVALID_COST, |q| bt_cost(&reference, neighbour, p, q, params.norm)),
-                        );
-                    }
-                    costs[p] = fuse_values(fusion, &values);
-                    masks[p] = if strict {
-                        values
-                            .iter()
-                            .enumerate()
-                            .filter(|(_, v)| **v != INVALID_COST)
-                            .fold(0u8, |m, (k, _)| m | 1 << k)
-                    } else {
-                        used_views(fusion, &values)
-                    };
-                }
+        let stored = (n.saturating_mul(labels).saturating_mul(3) <= params.stored_data_mib.saturating_mul(1 << 20))
+            .then(|| {
+                let mut costs = vec![INVALID_COST; n * labels];
+                let mut used = vec![0u8; n * labels];
+                costs
+                    .par_chunks_mut(n)
+                    .zip(used.par_chunks_mut(n))
+                    .enumerate()
+                    .for_each(|(l, (costs, used))| {
+                        for (p, (c, u)) in costs.iter_mut().zip(used.iter_mut()).enumerate() {
+                            let e = term.entry(&views, w, p, l);
+                            (*c, *u) = (e.cost, e.used);
+                        }
+                    });
+                StoredTerm { costs, used }
             });
         let units = |v: f32| (v * UNITS_PER_COST).round() as i64;
         let mut energy = Self {
@@ -357,8 +423,11 @@ impl KzEnergy {
             height: h,
             min_disparity: problem.min_disparity,
             labels,
-            data,
-            used,
+            term,
+            stored,
+            current: vec![Entry::NONE; w * h],
+            plane_label: usize::MAX,
+            plane: Vec::new(),
             ref_edges: edge_maps(&problem.reference),
             views,
             disparity: vec![OCCLUDED; w * h],
@@ -409,8 +478,14 @@ impl KzEnergy {
         let mut own = vec![f32::NAN; plane];
         let mut other = vec![f32::INFINITY; plane];
         let mut rows = vec![0f32; plane];
+        let mut costs = vec![INVALID_COST; plane];
         for label in 0..self.labels {
-            let costs = self.data.plane(label);
+            costs.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+                for (x, c) in row.iter_mut().enumerate() {
+                    *c = self.cost(y * w + x, label);
+                }
+            });
+            let costs = &costs;
             // An invalid cell counts as the largest valid cost in the window sums.
             let value = |c: u16| {
                 if c == INVALID_COST {
@@ -487,6 +562,26 @@ impl KzEnergy {
     pub fn subpixel_disparity(&self, radius: usize) -> DisparityImage {
         let (w, h) = (self.width, self.height);
         let mut out = self.disparity();
+        // A window pixel q counts only where its own label is within one of d, so it is read at
+        // most two labels from its own: its costs there, computed once (`INVALID_COST` outside
+        // the range).
+        let mut near = vec![[INVALID_COST; 5]; w * h];
+        near.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+            for (x, costs) in row.iter_mut().enumerate() {
+                let q = y * w + x;
+                let lq = self.disparity[q];
+                if lq == OCCLUDED {
+                    continue;
+                }
+                for (i, c) in costs.iter_mut().enumerate() {
+                    let l = usize::from(lq) + i;
+                    if (2..self.labels + 2).contains(&l) {
+                        *c = self.cost(q, l - 2);
+                    }
+                }
+            }
+        });
+        let near = &near;
         out.data.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
             for (x, value) in row.iter_mut().enumerate() {
                 let l = self.disparity[y * w + x];
@@ -502,7 +597,9 @@ impl KzEnergy {
                         if lq == OCCLUDED || usize::from(lq).abs_diff(l) > 1 {
                             continue;
                         }
-                        let c = [self.cost(q, l - 1), self.cost(q, l), self.cost(q, l + 1)];
+                        // Labels l − 1, l, l + 1 sit at l − 1 − lq + 2 … of q's five.
+                        let first = l + 1 - usize::from(lq);
+                        let c = [near[q][first], near[q][first + 1], near[q][first + 2]];
                         if c.contains(&INVALID_COST) {
                             continue;
                         }
@@ -520,14 +617,51 @@ impl KzEnergy {
         out
     }
 
+    /// The data term's entry of `(p, label)`: from the expanded label's plane, the pixel's
+    /// active assignment, or computed.
+    #[inline]
+    fn entry(&self, p: usize, label: usize) -> Entry {
+        if let Some(stored) = &self.stored {
+            let i = label * self.width * self.height + p;
+            return Entry {
+                cost: stored.costs[i],
+                used: stored.used[i],
+            };
+        }
+        if label == self.plane_label {
+            self.plane[p]
+        } else if usize::from(self.disparity[p]) == label {
+            self.current[p]
+        } else {
+            self.term.entry(&self.views, self.width, p, label)
+        }
+    }
+
+    /// Makes `label`'s entries the plane (once per label in a row).
+    fn load_plane(&mut self, label: usize) {
+        if self.stored.is_some() || self.plane_label == label {
+            return;
+        }
+        let mut plane = std::mem::take(&mut self.plane);
+        plane.resize(self.width * self.height, Entry::NONE);
+        let (term, views, w) = (&self.term, &self.views, self.width);
+        plane.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+            for (x, e) in row.iter_mut().enumerate() {
+                *e = term.entry(views, w, y * w + x, label);
+            }
+        });
+        self.plane = plane;
+        self.plane_label = label;
+    }
+
     #[inline]
     fn cost(&self, p: usize, label: usize) -> u16 {
-        self.data.at(p, label)
+        self.entry(p, label).cost
     }
 
     #[inline]
     fn uses(&self, p: usize, label: usize, view: usize) -> bool {
-        self.used[label * self.width * self.height + p] & (1 << view) != 0
+        self.entry(p, label).used & (1 << view) != 0
     }
 
     #[inline]
@@ -545,13 +679,22 @@ impl KzEnergy {
     /// 1 = down.
     #[inline]
     fn smoothness(&self, p: usize, direction: usize, label: usize) -> i64 {
+        let other = if direction == 0 { p + 1 } else { p + self.width };
+        self.smoothness_seen(
+            p,
+            direction,
+            label,
+            self.entry(p, label).used & self.entry(other, label).used,
+        )
+    }
+
+    /// [`Self::smoothness`] given the views `seen` in which both assignments are matched: one
+    /// that sees an occluder at either pixel says nothing about whether the two lie on one
+    /// surface.
+    #[inline]
+    fn smoothness_seen(&self, p: usize, direction: usize, label: usize, seen: u8) -> i64 {
         let mut largest = self.ref_edges[direction][p];
         let (x, y) = (p % self.width, p / self.width);
-        // Only the views in which both assignments are matched: one that sees an occluder at
-        // either pixel says nothing about whether the two lie on one surface.
-        let n = self.width * self.height;
-        let other = if direction == 0 { p + 1 } else { p + self.width };
-        let seen = self.used[label * n + p] & self.used[label * n + other];
         for (k, view) in self.views.iter().enumerate() {
             if seen & (1 << k) == 0 {
                 continue;
@@ -606,6 +749,7 @@ impl KzEnergy {
 
     /// The best α-expansion move for `label`, taken when it lowers the energy.
     pub fn expand(&mut self, label: usize) -> Expansion {
+        self.load_plane(label);
         let alpha = label as u16;
         let n = self.width * self.height;
         let mut graph = std::mem::take(&mut self.graph);
@@ -710,12 +854,22 @@ impl KzEnergy {
             let v = self.smoothness(p1, direction, usize::from(l1));
             graph.add_potts(o1, o2, v);
         }
-        // Different num_disparities: an active (p1, d1) next to the inactive (p2, d1), and vice versa.
-        if l1 != l2 && is_var(o1) && self.allowed(p2, usize::from(l1)) {
-            graph.add_unary(o1, self.smoothness(p1, direction, usize::from(l1)), 0);
+        // Different num_disparities: an active (p1, d1) next to the inactive (p2, d1), and vice
+        // versa (the inactive one's entry computed once, for whether it is allowed and where
+        // it is matched).
+        if l1 != l2 && is_var(o1) {
+            let (active, inactive) = (self.entry(p1, usize::from(l1)), self.entry(p2, usize::from(l1)));
+            if inactive.cost != INVALID_COST {
+                let v = self.smoothness_seen(p1, direction, usize::from(l1), active.used & inactive.used);
+                graph.add_unary(o1, v, 0);
+            }
         }
-        if l1 != l2 && is_var(o2) && self.allowed(p1, usize::from(l2)) {
-            graph.add_unary(o2, self.smoothness(p1, direction, usize::from(l2)), 0);
+        if l1 != l2 && is_var(o2) {
+            let (inactive, active) = (self.entry(p1, usize::from(l2)), self.entry(p2, usize::from(l2)));
+            if inactive.cost != INVALID_COST {
+                let v = self.smoothness_seen(p1, direction, usize::from(l2), inactive.used & active.used);
+                graph.add_unary(o2, v, 0);
+            }
         }
     }
 
@@ -734,6 +888,7 @@ impl KzEnergy {
             if is_var(a) && graph.value(a) == 1 {
                 self.set_owner(p, label, true);
                 self.disparity[p] = label as u16;
+                self.current[p] = self.entry(p, label);
             }
         }
     }
@@ -741,7 +896,7 @@ impl KzEnergy {
     /// Marks (or clears) `p` as the match of its assignment's pixels in the views it uses.
     fn set_owner(&mut self, p: usize, label: usize, active: bool) {
         let (x, y) = (p % self.width, p / self.width);
-        let mask = self.used[label * self.width * self.height + p];
+        let mask = self.entry(p, label).used;
         for (k, view) in self.views.iter_mut().enumerate() {
             if mask & (1 << k) != 0
                 && let Some(q) = view.target(x, y, label)
@@ -767,25 +922,29 @@ impl KzEnergy {
         })
     }
 
-    /// The fused data term, plane by plane ([`INVALID_COST`] where an assignment is not allowed).
-    pub fn data_term(&self) -> &DisparityPlanes<u16> {
-        &self.data
-    }
-
     /// The IPOL program's automatic K: the mean over pixels (with every label allowed) of the
     /// k-th smallest data cost, k = max(3, (labels + 2) / 4), in data-cost units.
     pub fn automatic_occlusion(&self) -> f32 {
         let k = ((self.labels + 2) / 4).max(3).min(self.labels);
+        // Each pixel's k-th cost in parallel, summed in pixel order (the same sum every time).
+        let kth: Vec<Option<u16>> = (0..self.width * self.height)
+            .into_par_iter()
+            .map_init(
+                || Vec::with_capacity(self.labels),
+                |costs, p| {
+                    costs.clear();
+                    costs.extend((0..self.labels).map(|l| self.cost(p, l)));
+                    if costs.contains(&INVALID_COST) {
+                        return None;
+                    }
+                    costs.select_nth_unstable(k - 1);
+                    Some(costs[k - 1])
+                },
+            )
+            .collect();
         let (mut sum, mut count) = (0f64, 0usize);
-        let mut costs = Vec::with_capacity(self.labels);
-        for p in 0..self.width * self.height {
-            costs.clear();
-            costs.extend((0..self.labels).map(|l| self.cost(p, l)));
-            if costs.contains(&INVALID_COST) {
-                continue;
-            }
-            costs.select_nth_unstable(k - 1);
-            sum += f64::from(costs[k - 1]);
+        for c in kth.into_iter().flatten() {
+            sum += f64::from(c);
             count += 1;
         }
         if count == 0 { 0.0 } else { (sum / count as f64) as f32 }
@@ -932,6 +1091,42 @@ pub(crate) mod tests {
                 }
             }
         }
+    }
+
+    /// The data term computed where it is read (no memory for it) gives what the stored one
+    /// gives, move by move: on two planes side by side (depth edges, labels that differ between
+    /// neighbours), with the sub-pixel readout, the confidence and the automatic K.
+    #[test]
+    fn the_data_term_computed_where_it_is_read_equals_the_stored_one() {
+        let mut problem = plane_problem(2);
+        let far = plane_problem(5);
+        for (n, f) in problem.neighbours.iter_mut().zip(&far.neighbours) {
+            let (w, c) = (n.image.width, n.image.channels);
+            for y in 0..n.image.height {
+                let row = (y * w + w / 2) * c..(y + 1) * w * c;
+                n.image.data[row.clone()].copy_from_slice(&f.image.data[row]);
+            }
+        }
+        let run = |stored_data_mib| {
+            let params = EnergyParams {
+                stored_data_mib,
+                ..EnergyParams::default()
+            };
+            let mut energy = KzEnergy::new(&problem, Fusion::Heuristic, params).unwrap_or_else(|e| panic!("{e}"));
+            assert_eq!(energy.stored.is_some(), stored_data_mib > 0);
+            let k = energy.automatic_occlusion();
+            let energies = expand_until_converged(&mut energy, &label_order(8, 5), 10, &mut |_| {});
+            assert_eq!(energy.energy(), energy.recompute_energy());
+            let d = energy.subpixel_disparity(2);
+            (k, energies, d.data, d.confidence)
+        };
+        let (stored, computed) = (run(DEFAULT_STORED_DATA_MIB), run(0));
+        assert!(
+            stored.2.iter().any(|d| *d < 3.0) && stored.2.iter().any(|d| *d > 4.0),
+            "{:?}",
+            stored.2
+        );
+        assert_eq!(stored, computed);
     }
 
     #[test]

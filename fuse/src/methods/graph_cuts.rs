@@ -56,6 +56,10 @@ pub struct GraphCutsConfig {
     /// An image-guided weighted median after the rest (`postprocess::WeightedMedian`; `{}` =
     /// its defaults, `null` = none): depth edges snap to the reference's colour edges.
     pub weighted_median: Option<WeightedMedian>,
+    /// The fused data term is kept for every (label, pixel) when that takes at most this many
+    /// MiB (3 bytes each), else computed where it is read: the same result, about 1.3–1.5 × the
+    /// time, 0.8 GB less at 1920×1080 with 128 labels (`fuse::graph_cuts::EnergyParams::stored_data_mib`).
+    pub stored_data_mib: usize,
 }
 
 impl super::FusedConfig for GraphCutsConfig {
@@ -82,6 +86,7 @@ impl Default for GraphCutsConfig {
             weighted_median: None,
             fill_occlusions: false,
             subpixel_radius_px: DEFAULT_SUBPIXEL_RADIUS,
+            stored_data_mib: energy.stored_data_mib,
         }
     }
 }
@@ -124,6 +129,7 @@ impl Method for GraphCuts {
                 edge_threshold: c.edge_threshold,
                 norm: c.data_norm,
                 uniqueness: c.uniqueness,
+                stored_data_mib: c.stored_data_mib,
             },
         )?;
         if c.automatic_k {
