@@ -129,6 +129,11 @@ impl Graph {
     pub fn reserve(&mut self, nodes: usize, edges: usize) {
         self.nodes.reserve(nodes);
         self.edges.reserve(edges);
+        // The laid-out arcs and node offsets too, once at their largest: grown by doubling over
+        // the moves, each outgrown buffer stayed in the process (replay's allocator keeps freed
+        // pages), and pages reserved but never written cost no memory.
+        self.first.reserve(nodes + 1);
+        self.arcs.reserve(2 * edges);
     }
 
     /// Adds a node without terminal capacities; returns its index.
