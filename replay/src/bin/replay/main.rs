@@ -28,8 +28,9 @@ static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 /// mimalloc's `mi_option_purge_delay` (the same number in its v2 and v3 headers).
 const MI_OPTION_PURGE_DELAY: i32 = 15;
 
+/// The two C functions `replay` calls at start: mimalloc's option setter and Linux's `prctl`.
 #[allow(unsafe_code)]
-mod allocator {
+mod ffi {
     unsafe extern "C" {
         /// mimalloc's `void mi_option_set(mi_option_t option, long value)`.
         pub(super) fn mi_option_set(option: i32, value: std::ffi::c_long);
@@ -58,7 +59,7 @@ fn no_huge_pages() {
     // failure (an old kernel) leaves the default, which is correct, only slower.
     #[allow(unsafe_code)]
     unsafe {
-        let _ = allocator::prctl(
+        let _ = ffi::prctl(
             PR_SET_THP_DISABLE,
             1 as std::ffi::c_ulong,
             0 as std::ffi::c_ulong,
@@ -83,7 +84,7 @@ fn keep_freed_pages() {
     // option number is within the table and the value is one the header documents (-1 = never).
     #[allow(unsafe_code)]
     unsafe {
-        allocator::mi_option_set(MI_OPTION_PURGE_DELAY, -1);
+        ffi::mi_option_set(MI_OPTION_PURGE_DELAY, -1);
     }
 }
 
