@@ -4,7 +4,8 @@
 # nearest cross: the `bin` family's 3 x 3 grid replayed with 2, 3, 5 and 9 views and its line of
 # five with 3 and 5 (the captures of scripts/eval-views.sh, never used for training), and the toy
 # and workpiece lines of five of scripts/eval-line5.sh. The pooled file runs twice: on the
-# nearest baseline's neighbours on the axes only ({"every_view": false}) and on every view.
+# nearest baseline's neighbours on the axes only ({"every_view": false}) and on every view
+# ({"every_view": true}; a file's default follows its training rig).
 # Prints a markdown table of AvgErr (px) / Bad1 (%), two sets per capture, --rectify.
 #
 #   scripts/eval-pooled.sh WEIGHTS [OUT_DIR]     (default out/pooled; the captures are kept there)
@@ -32,7 +33,7 @@ cell() { # LOG NEIGHBOURS(or all) CONFIG → "AvgErr / Bad1"
         python3 -c "import json,sys;m=json.load(sys.stdin)[0]['mean'];print(f\"{m['avg_err_px']:.4f} / {m['bad_1']:.2f}\")"
 }
 nearest="{\"weights\": \"$weights\", \"every_view\": false}"
-every="{\"weights\": \"$weights\"}"
+every="{\"weights\": \"$weights\", \"every_view\": true}"
 echo "| set | pooled, nearest group | pooled, every view | default (fixed networks) |"
 echo "|---|---|---|---|"
 while read -r name log subset; do

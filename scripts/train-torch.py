@@ -57,10 +57,15 @@ HOPELESS_FRACTION = 0.4
 # `replay::train::schedule::{MAX_GRADIENT_NORM, CALIBRATION_CROPS}`.
 MAX_GRADIENT_NORM = 1.0
 CALIBRATION_CROPS = 32
-# Which of a sample's four volumes (left, right, top, bottom) each variant takes (0: the
-# view-count-agnostic network, `--views any`: every crop a random subset of them in training, all
-# four in validation).
+# Which of a sample's volumes (left, right, top, bottom first) each variant takes in validation
+# and the fixed networks in training (0: the view-count-agnostic network, `--views any`, whose
+# training crops take a random subset of all the sample keeps).
 VIEW_INDICES = {0: [0, 1, 2, 3], 1: [1], 2: [0, 1], 4: [0, 1, 2, 3]}
+# `replay::train::dataset::{neighbours_kept, MAX_DRAWN_VIEWS}`: a grid-cross capture's sample
+# keeps twelve volumes (the cross, the diagonals, the cross at two baselines), a five-view one
+# four; a crop of the view-count-agnostic network draws at most six.
+KEPT = {"five-view": 4, "grid-cross": 12}
+MAX_DRAWN_VIEWS = 6
 OFFSETS = {1: [(1, 0)], 2: [(-1, 0), (1, 0)], 4: [(-1, 0), (1, 0), (0, -1), (0, 1)]}
 
 
@@ -80,20 +85,20 @@ def mirror_order(offsets, vertical, horizontal):
 
 
 class Dataset:
-    """The cached samples on `device`: volumes `[4, D, H, W]` u8 and truth `[H, W]` (slices, 0 = unknown)."""
+    """The cached samples on `device`: volumes `[K, D, H, W]` u8 (K = `kept`) and truth `[H, W]` (slices, 0 = unknown)."""
 
-    def __init__(self, directory, key, count, prefix, depth, device):
+    def __init__(self, directory, key, count, prefix, depth, device, kept=4):
         self.volumes, self.truth = [], []
         for index in range(count):
             path = os.path.join(directory, f"{prefix}-{index:04d}-{key}.safetensors")
             if not os.path.exists(path):
                 sys.exit(f"error: {path} is missing: make the dataset with `replay train ... --steps 0` first")
             with safe_open(path, "pt") as f:
-                volumes = torch.stack([f.get_tensor(f"volume.{i}") for i in range(4)])  # [4, H, W, D]
+                volumes = torch.stack([f.get_tensor(f"volume.{i}") for i in range(kept)])  # [K, H, W, D]
                 truth = f.get_tensor("truth")  # [H, W]
             if volumes.shape[-1] != depth:
                 sys.exit(f"error: {path} has {volumes.shape[-1]} slices, the run's configuration {depth}")
-            self.volumes.append(volumes.permute(0, 3, 1, 2).contiguous().to(device))  # [4, D, H, W]
+            self.volumes.append(volumes.permute(0, 3, 1, 2).contiguous().to(device))  # [K, D, H, W]
             self.truth.append(truth.to(device))
 
     def __len__(self):
@@ -142,8 +147,8 @@ def hopeless(inputs, target, mask):
 
 def random_crop(config, dataset, generator, slices, count=None):
     """`replay::train::schedule::random_crop` for one crop of a step whose shift is `slices`. For
-    the view-count-agnostic network (views 0) the crop takes `count` of the four neighbours (drawn
-    1..4 when None), chosen and ordered at random (`Sample::for_views_drawn`): the crops of one
+    the view-count-agnostic network (views 0) the crop takes `count` of the sample's neighbours
+    (drawn 1..min(K, 6) when None), chosen and ordered at random (`Sample::for_views_drawn`): the crops of one
     batch share the count so that they stack."""
     side, views = config["crop_px"], config["views"]
     example = None
@@ -154,8 +159,9 @@ def random_crop(config, dataset, generator, slices, count=None):
         x0 = int(torch.randint(w - side + 1, (1,), generator=generator))
         indices = None
         if views == 0:
-            n = count if count is not None else int(torch.randint(1, 5, (1,), generator=generator))
-            indices = torch.randperm(4, generator=generator)[:n].tolist()
+            kept = dataset.volumes[index].shape[0]
+            n = count if count is not None else int(torch.randint(1, min(kept, MAX_DRAWN_VIEWS) + 1, (1,), generator=generator))
+            indices = torch.randperm(kept, generator=generator)[:n].tolist()
         inputs, target, mask = crop(dataset, index, views, y0, x0, side, indices)
         inputs, target, mask = shifted(inputs, target, mask, slices, config.get("context_below", 0))
         if config.get("flips", False) and views == 0:
@@ -312,8 +318,9 @@ def main():
     if key is None:
         sys.exit(f"error: {checkpoint} has no `dataset_key`: remake it with this version of `replay train`")
     depth = config["num_disparities"] + config.get("context_below", 0)
-    train_set = Dataset(args.dataset_dir, key, config["train_sets"], "train", depth, device)
-    val_set = Dataset(args.dataset_dir, key, config["val_sets"], "val", depth, device)
+    kept = KEPT[config.get("rig", "five-view")]
+    train_set = Dataset(args.dataset_dir, key, config["train_sets"], "train", depth, device, kept)
+    val_set = Dataset(args.dataset_dir, key, config["val_sets"], "val", depth, device, kept)
     log(
         f"{config['views'] or 'any'} views, {len(train_set)} + {len(val_set)} captures on {device} "
         f"({torch.cuda.get_device_name(device) if device.type == 'cuda' else 'CPU'}), loaded in {time.time() - started:.1f} s; "
@@ -352,8 +359,9 @@ def main():
             group["lr"] = lr
         shift = config.get("disparity_shift", 0)
         slices = 4 * int(torch.randint(shift // 4 + 1, (1,), generator=generator)) if shift else 0
-        # The view-count-agnostic network: one count of views per batch (1..4), each crop its own.
-        count = int(torch.randint(1, 5, (1,), generator=generator)) if config["views"] == 0 else None
+        # The view-count-agnostic network: one count of views per batch (1..min(K, 6)), each crop its own.
+        drawable = min(KEPT[config.get("rig", "five-view")], MAX_DRAWN_VIEWS)
+        count = int(torch.randint(1, drawable + 1, (1,), generator=generator)) if config["views"] == 0 else None
         batch = [random_crop(config, train_set, generator, slices, count) for _ in range(args.batch)]
         inputs = torch.stack([b[0] for b in batch])  # [B, V, D, H, W]
         target = torch.stack([b[1] for b in batch])  # [B, H, W]

@@ -754,7 +754,9 @@ impl KzEnergy {
         let n = self.width * self.height;
         let mut graph = std::mem::take(&mut self.graph);
         graph.reset();
-        graph.reserve(2 * n, (4 + self.views.len()) * n);
+        // At most per pixel: two α and two current smoothness edges, the reference's uniqueness
+        // and one uniqueness edge per view.
+        graph.reserve(2 * n, (5 + self.views.len()) * n);
         // Activating (p, α) saves at most the smoothness penalties with its four neighbours; a
         // larger `D − K` makes it a constant 0 (setting it to 0 keeps every constraint and
         // lowers the energy), which keeps the graph small.
@@ -1117,6 +1119,7 @@ pub(crate) mod tests {
             let k = energy.automatic_occlusion();
             let energies = expand_until_converged(&mut energy, &label_order(8, 5), 10, &mut |_| {});
             assert_eq!(energy.energy(), energy.recompute_energy());
+            assert!(energy.is_unique());
             let d = energy.subpixel_disparity(2);
             (k, energies, d.data, d.confidence)
         };

@@ -197,7 +197,8 @@ impl CostVolume<u8> {
 }
 
 /// Costs stored one disparity plane after another, `[d][y][x]` (pixel fastest): the layout of
-/// moves that visit one label at a time, as graph cuts' α-expansion does. The same metadata as a
+/// moves that visit one label at a time, as graph cuts' α-expansion does (which keeps its own
+/// data term in this order, or computes it where it is read). The same metadata as a
 /// [`CostVolume`]; [`CostVolume::to_planes`] and [`DisparityPlanes::to_volume`] are the only
 /// transposes between the two.
 #[derive(Debug, Clone, PartialEq)]

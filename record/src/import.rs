@@ -245,7 +245,8 @@ pub struct ImportOverrides {
     #[arg(long, value_delimiter = ',', value_name = "FILE@DX[:DY]")]
     pub views: Vec<String>,
     /// Named layout for --views given without offsets (three-view: left,center,right; five-view:
-    /// center,left,right,top,bottom; line5: the five from left to right; grid3x3: row-major).
+    /// center,left,right,top,bottom; line5: the five from left to right; grid3x3 and grid-cross:
+    /// row-major).
     #[arg(long, value_enum)]
     pub layout: Option<RigKind>,
     /// Ground-truth disparity of the reference: PNG/TIFF/BMP (8 or 16 bit) or PGM (0 = unknown),

@@ -141,8 +141,11 @@ pub struct MFuseNetConfig {
     /// summary lists the networks and the unused views). With a view-count-agnostic weights file
     /// (`replay train --views any`): one network pools every view of the set, the nearest
     /// baseline's on the axes first, and the post-processing reads those first ones' costs;
-    /// `false`: the nearest ones only (the summary's `views` lists what it took).
-    pub every_view: bool,
+    /// `false`: the nearest ones only (the summary's `views` lists what it took). `null` (the
+    /// default): `true`, except for a view-count-agnostic file trained on five-view captures
+    /// only (its metadata's `train_config` names no `grid-cross` rig), which read far and
+    /// diagonal views worse than nothing (docs/experiments.md).
+    pub every_view: Option<bool>,
     /// Sub-pixel from block-matching costs, last (`subpixel::BlockSubpixel`; `{}` = its
     /// defaults, the default; `null` = none): the estimate's integer stays, its fraction is
     /// re-read from a parabola through fused 9×9 Birchfield–Tomasi block costs where that moves
@@ -170,7 +173,7 @@ impl Default for MFuseNetConfig {
             room_below: None,
             flips: false,
             max_direct_disparities: DEFAULT_MAX_DIRECT_DISPARITIES,
-            every_view: true,
+            every_view: None,
             block_subpixel: Some(BlockSubpixel::default()),
         }
     }
@@ -196,6 +199,9 @@ struct Loaded {
     input: InputSpec,
     /// Metadata `locking_curve`.
     locking: Option<LockingCurve>,
+    /// Metadata `train_config` names the `grid-cross` rig: trained on far and diagonal
+    /// neighbours too.
+    far_views: bool,
 }
 
 impl Loaded {
@@ -206,6 +212,10 @@ impl Loaded {
             context_below: weights::context_below_recommended(info, file)?,
             input: weights::input_spec_recommended(info, file)?,
             locking: weights::locking_recommended(info, file)?,
+            far_views: info
+                .get("train_config")
+                .and_then(|c| serde_json::from_str::<serde_json::Value>(c).ok())
+                .is_some_and(|c| c["rig"] == "grid-cross"),
             net,
         })
     }
@@ -353,7 +363,7 @@ impl Method for MFuseNet {
             "network_num_disparities": num_disparities + room_below,
             "full_size_band_px": (factor > 1).then_some(factor),
             "views": (loaded.views == 0).then(|| {
-                self.network_neighbours(problem, 0)
+                self.network_neighbours(problem, loaded)
                     .map(|used| used.iter().map(|n| n.role.clone()).collect::<Vec<_>>())
                     .unwrap_or_default()
             }),
@@ -410,7 +420,7 @@ impl MFuseNet {
     /// weights): the groups, each with its loaded network, and the neighbours no group takes.
     /// `None`: one network, [`Self::network_for`]'s.
     fn view_plan<'p>(&self, problem: &'p Problem) -> Option<ViewPlan<'p, '_>> {
-        if self.stereo || !self.config.every_view || self.config.weights.is_some() {
+        if self.stereo || !self.config.every_view.unwrap_or(true) || self.config.weights.is_some() {
             return None;
         }
         let available: Vec<usize> = self.networks.iter().map(|n| n.views).collect();
@@ -451,12 +461,13 @@ impl MFuseNet {
 
     /// The neighbours a network of `views` inputs takes, in its order: the fixed networks'
     /// [`ordered_neighbours`]; the view-count-agnostic network's nearest group, then with
-    /// `every_view` the set's other views ([`pooled_neighbours`]).
-    fn network_neighbours<'p>(&self, problem: &'p Problem, views: usize) -> Result<Vec<&'p Neighbour>, FuseError> {
-        if views == 0 {
-            pooled_neighbours(problem, self.config.every_view)
+    /// `every_view` the set's other views ([`pooled_neighbours`]; by default when the file was
+    /// trained on them).
+    fn network_neighbours<'p>(&self, problem: &'p Problem, loaded: &Loaded) -> Result<Vec<&'p Neighbour>, FuseError> {
+        if loaded.views == 0 {
+            pooled_neighbours(problem, self.config.every_view.unwrap_or(loaded.far_views))
         } else {
-            ordered_neighbours(problem, views)
+            ordered_neighbours(problem, loaded.views)
         }
     }
 
@@ -518,7 +529,7 @@ impl MFuseNet {
         }
         let loaded = self.network_for(problem)?;
         let net = &loaded.net;
-        let neighbours = self.network_neighbours(problem, net.views)?;
+        let neighbours = self.network_neighbours(problem, loaded)?;
         // The nearest group's volumes come first; the post-processing reads only theirs.
         let nearest = ordered_neighbours(problem, net.views)?.len();
         // Cost volumes: about a tenth of the work; the network the rest.

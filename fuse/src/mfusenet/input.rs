@@ -62,8 +62,7 @@ impl Default for InputSpec {
 
 /// The neighbours the network takes, in its fixed order, for a network of `views` inputs. For
 /// the view-count-agnostic one (`views` = 0): the neighbours on the axes at the nearest baseline,
-/// in the set's order, as it was trained (`replay train --views any` draws from the five-view
-/// cross); farther and diagonal views wait until its training has them.
+/// in the set's order (its nearest group; [`pooled_neighbours`] adds the rest).
 pub fn ordered_neighbours(problem: &Problem, views: usize) -> Result<Vec<&Neighbour>, FuseError> {
     let at = |offset: [i32; 2]| problem.neighbours.iter().find(|n| n.offset == offset);
     let on_axis = |n: &&Neighbour| (n.offset[0] == 0) != (n.offset[1] == 0);

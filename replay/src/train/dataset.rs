@@ -70,7 +70,8 @@ impl Sample {
 
     /// [`Sample::for_views`] for a training crop: the view-count-agnostic network (`views` = 0)
     /// gets a random non-empty subset of the sample's neighbours (four, or twelve from a
-    /// grid-cross capture) in a random order, the count uniform in 1..=[`MAX_DRAWN_VIEWS`], so
+    /// grid-cross capture) in a random order, the count uniform from 1 to the fewer of those and
+    /// [`MAX_DRAWN_VIEWS`], so
     /// that it learns from any number of views at any offset alike; the fixed networks their own.
     /// Draws from `rng` only for `views` = 0.
     pub fn for_views_drawn(&self, views: usize, rng: &mut SplitMix64) -> Vec<&CostVolume<u8>> {
@@ -122,7 +123,19 @@ pub fn sample(config: &TrainConfig, index: usize, validation: bool, cache_dir: &
         .iter()
         .map(|(_, offset)| problem.neighbours.iter().find(|n| n.offset == *offset))
         .collect::<Option<Vec<_>>>()
-        .ok_or_else(|| file_error(&path, format!("the {} capture lacks a neighbour", config.rig.name())))?;
+        .ok_or_else(|| TrainError::Fuse {
+            index,
+            source: fuse::FuseError::Config {
+                field: "neighbours",
+                value: problem
+                    .neighbours
+                    .iter()
+                    .map(|n| format!("{} {:?}", n.role, n.offset))
+                    .collect::<Vec<_>>()
+                    .join(", "),
+                reason: "a training capture needs every neighbour its rig keeps (the cross at one baseline; grid-cross: also the diagonals and the cross at two)",
+            },
+        })?;
     // Samples are in slice coordinates, as `read_sample` gives them back: the first slice (the
     // context's, under 0) is 0 and the truth is shifted up by the context.
     let volumes = input_volumes_below(&problem, &neighbours, config.input, config.context_below, &|| {})

@@ -505,6 +505,34 @@ mod tests {
     use fuse::volume::{CostVolume, VolumeSource};
     use record::scene::SceneKind;
 
+    /// The rig is part of the dataset's key only when it is not the five-view one, so the caches
+    /// and checkpoints of five-view runs made before the option stay theirs; only the two rigs
+    /// whose neighbours the dataset keeps are accepted.
+    #[test]
+    fn the_rig_keys_the_dataset_only_when_it_is_not_five_view() {
+        let five = TrainConfig::default();
+        let json = serde_json::to_value(&five).unwrap_or_default();
+        assert!(json.get("rig").is_none(), "{json}");
+        let read: TrainConfig = serde_json::from_value(json).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(read.rig, record::rig::RigKind::FiveView);
+        assert_eq!(read.data_key(), five.data_key());
+        let grid = TrainConfig {
+            rig: record::rig::RigKind::GridCross,
+            ..TrainConfig::default()
+        };
+        assert_ne!(grid.data_key(), five.data_key());
+        assert!(grid.validate().is_ok());
+        let line = TrainConfig {
+            rig: record::rig::RigKind::Line5,
+            ..TrainConfig::default()
+        };
+        assert!(
+            matches!(line.validate(), Err(TrainError::Config { field: "rig", .. })),
+            "{:?}",
+            line.validate()
+        );
+    }
+
     /// Two views whose costs are |d − m| around a minimum `m` per pixel.
     fn example(minimum: impl Fn(usize) -> f32, target: f32) -> Example {
         let (d, h, w) = (16, 4, 5);

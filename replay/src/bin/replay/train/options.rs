@@ -12,8 +12,8 @@ pub struct TrainArgs {
     /// Network variant: cost volumes per set (1 = mfusenet-stereo, 2 = three-view, 4 = five-view),
     /// or `any`: the view-count-agnostic network (the views' features pooled by mean and maximum),
     /// each crop a random subset of the captures' neighbours (one to four of a five-view
-    /// capture's, one to twelve with `--rig grid-cross`); with `--init-weights` it starts from
-    /// any fixed network.
+    /// capture's; one to six of the twelve with `--rig grid-cross`); with `--init-weights` it
+    /// starts from any fixed network or a pooled file.
     #[arg(long, default_value = "2", value_parser = ["1", "2", "4", "any"])]
     pub(crate) views: String,
     /// Run folder: dataset cache, checkpoint, curves.csv, curves.rrd, training.json
@@ -129,7 +129,8 @@ pub struct TrainArgs {
     #[arg(long, value_name = "SPREAD", default_value_t = 0.0)]
     pub(crate) exposure_jitter: f64,
     /// Rig of the training captures: five-view, or grid-cross (the 3×3 grid and the cross at two
-    /// baselines, 13 views) from which `--views any` also draws far and diagonal neighbours.
+    /// baselines, 13 views) from which `--views any` also draws far and diagonal neighbours
+    /// (other rigs are refused).
     #[arg(long, value_enum, default_value = "five-view")]
     pub(crate) rig: record::rig::RigKind,
     /// Steps between validations.
