@@ -15,6 +15,10 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
+# A clean build of the workspace's tests takes about 7 GB here; say what there is, so that a
+# failure for lack of room reads as one.
+echo "== disk: $(df -h . | awk 'NR == 2 { print $4 " free of " $2 }')"
+
 echo "== software Vulkan for the headless Rerun viewer (Debian's mesa-vulkan-drivers)"
 if command -v dpkg >/dev/null 2>&1 && ! dpkg -s mesa-vulkan-drivers >/dev/null 2>&1; then
     if [ "$(id -u)" = 0 ]; then
