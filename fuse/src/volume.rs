@@ -49,6 +49,15 @@ pub struct Problem {
 }
 
 impl Problem {
+    /// The neighbours as errors name them: `role [dx, dy]`, comma-separated.
+    pub fn neighbour_list(&self) -> String {
+        self.neighbours
+            .iter()
+            .map(|n| format!("{} {:?}", n.role, n.offset))
+            .collect::<Vec<_>>()
+            .join(", ")
+    }
+
     /// One past the largest disparity searched.
     pub fn end_disparity(&self) -> i32 {
         self.min_disparity

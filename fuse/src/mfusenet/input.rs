@@ -88,12 +88,7 @@ pub fn ordered_neighbours(problem: &Problem, views: usize) -> Result<Vec<&Neighb
     };
     found.ok_or_else(|| FuseError::Config {
         field: "neighbours",
-        value: problem
-            .neighbours
-            .iter()
-            .map(|n| format!("{} {:?}", n.role, n.offset))
-            .collect::<Vec<_>>()
-            .join(", "),
+        value: problem.neighbour_list(),
         reason: match views {
             2 => "the three-view network needs left and right (or top and bottom) at one baseline",
             4 => "the five-view network needs left, right, top and bottom at one baseline",

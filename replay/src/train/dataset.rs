@@ -127,12 +127,7 @@ pub fn sample(config: &TrainConfig, index: usize, validation: bool, cache_dir: &
             index,
             source: fuse::FuseError::Config {
                 field: "neighbours",
-                value: problem
-                    .neighbours
-                    .iter()
-                    .map(|n| format!("{} {:?}", n.role, n.offset))
-                    .collect::<Vec<_>>()
-                    .join(", "),
+                value: problem.neighbour_list(),
                 reason: "a training capture needs every neighbour its rig keeps (the cross at one baseline; grid-cross: also the diagonals and the cross at two)",
             },
         })?;
