@@ -459,7 +459,7 @@ impl MFuseNet {
         }))
     }
 
-    /// The neighbours a network of `views` inputs takes, in its order: the fixed networks'
+    /// The neighbours `loaded`'s network takes, in its order: a fixed network's
     /// [`ordered_neighbours`]; the view-count-agnostic network's nearest group, then with
     /// `every_view` the set's other views ([`pooled_neighbours`]; by default when the file was
     /// trained on them).
