@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# One leg of a training run on a lent GPU machine: the dataset and the run's step-0 checkpoint
-# made by `replay train` (where the run folder has no checkpoint yet), then `scripts/train-torch.py`
+# One leg of a training run on a lent GPU machine: the dataset and (where the run folder has no
+# checkpoint yet) the run's step-0 checkpoint made by `replay train`, then `scripts/train-torch.py`
 # for BUDGET_S seconds in all, which leaves a checkpoint `replay train` resumes (same options,
 # `--steps` the total it printed). Several legs may run at once on one GPU: the dataset is made
 # by one at a time (a lock on the dataset folder), the others read it from the cache.
@@ -21,11 +21,11 @@ for ((i = 1; i <= $#; i++)); do
     [ "${!i}" = "--dataset-dir" ] && { j=$((i + 1)); dataset="${!j}"; }
 done
 mkdir -p "$run" "$dataset"
-if [ ! -f "$run/checkpoint.safetensors" ]; then
-    # `--steps 0` in a folder of its own: the dataset, and the checkpoint of the initial weights.
-    flock "$dataset/.lock" "$replay" train "$@" --steps 0 --dir "$run.start" -q
-    cp "$run.start/checkpoint.safetensors" "$run/"
-fi
+# `--steps 0` in a folder of its own: the dataset (made here unless cached), and the checkpoint of
+# the initial weights, which starts the run where the run folder has no checkpoint yet.
+rm -rf "$run.start"
+flock "$dataset/.lock" "$replay" train "$@" --steps 0 --dir "$run.start" -q
+[ -f "$run/checkpoint.safetensors" ] || cp "$run.start/checkpoint.safetensors" "$run/"
 left=$((budget - ($(date +%s) - started)))
 echo "$(basename "$run"): dataset and checkpoint ready after $(($(date +%s) - started)) s; training for $left s"
 "${PYTHON:-python3}" scripts/train-torch.py --dir "$run" --dataset-dir "$dataset" --budget-s "$left" --batch "$batch"

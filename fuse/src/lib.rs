@@ -36,6 +36,7 @@ pub mod postprocess;
 pub mod rng;
 pub mod sgm;
 pub mod subpixel;
+pub mod thin_parts;
 pub mod volume;
 pub mod wta;
 

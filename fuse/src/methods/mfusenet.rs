@@ -31,6 +31,7 @@ use crate::mfusenet::pyramid::{
 use crate::mfusenet::{Network, weights};
 use crate::postprocess::{WeightedMedian, median3x3, scale_by_local_consistency, weighted_median_with_votes};
 use crate::subpixel::{BlockSubpixel, refine_with_block_costs};
+use crate::thin_parts::{ThinParts, recover_thin_parts};
 use crate::volume::Neighbour;
 use crate::volume::{CostVolume, Problem};
 use crate::wta::{LockingCurve, SubpixelFit};
@@ -153,6 +154,12 @@ pub struct MFuseNetConfig {
     /// and SGM inputs. Slanted planes (`scripts/eval-subpixel.sh`): AvgErr 0.077 → 0.044 px,
     /// BadPix 0.07 52.1 → 18.7 %; Middlebury 0.293 → 0.288 px, Bad1 4.87 → 4.87 %.
     pub block_subpixel: Option<BlockSubpixel>,
+    /// Thin nearer parts (rods, wires, slats) that the block-summed inputs lose, recovered
+    /// from per-pixel costs last (`thin_parts::ThinParts`; `{}` = its defaults, the default;
+    /// `null` = none). The `thin` family (`scripts/eval-thin.sh`, never trained on): AvgErr
+    /// 1.047 → 0.727 px, Bad1 8.88 → 6.57 %; Middlebury and the simulated lines and grids
+    /// within ±1.5 % (docs/experiments.md, "Thin parts from per-pixel costs").
+    pub thin_parts: Option<ThinParts>,
 }
 
 impl Default for MFuseNetConfig {
@@ -175,6 +182,7 @@ impl Default for MFuseNetConfig {
             max_direct_disparities: DEFAULT_MAX_DIRECT_DISPARITIES,
             every_view: None,
             block_subpixel: Some(BlockSubpixel::default()),
+            thin_parts: Some(ThinParts::default()),
         }
     }
 }
@@ -684,19 +692,26 @@ impl MFuseNet {
                 *c = 0.5 * (*c + support) * if kept.is_finite() { kept } else { 0.0 };
             }
         }
-        if let (Some(config), Stage::Last) = (&self.config.block_subpixel, stage) {
-            // The block costs of the views the network answered from (the nearest group), so
-            // that a method never changes with views it does not use.
+        if stage == Stage::Last && (self.config.block_subpixel.is_some() || self.config.thin_parts.is_some()) {
+            // The costs of the views the network answered from (the nearest group), so that a
+            // method never changes with views it does not use.
             let used = ordered_neighbours(problem, self.network_for(problem)?.views)?;
-            if used.len() == problem.neighbours.len() {
-                refine_with_block_costs(problem, &mut out, config)?;
+            let nearest;
+            let costs_of = if used.len() == problem.neighbours.len() {
+                problem
             } else {
-                let nearest = Problem {
+                nearest = Problem {
                     reference: problem.reference.clone(),
                     neighbours: used.into_iter().cloned().collect(),
                     ..*problem
                 };
-                refine_with_block_costs(&nearest, &mut out, config)?;
+                &nearest
+            };
+            if let Some(config) = &self.config.block_subpixel {
+                refine_with_block_costs(costs_of, &mut out, config)?;
+            }
+            if let Some(config) = &self.config.thin_parts {
+                recover_thin_parts(costs_of, &mut out, config)?;
             }
         }
         scale_by_local_consistency(&mut out);
