@@ -39,6 +39,9 @@ pub struct ThinParts {
     pub min_margin: f32,
     /// How many of the 8 neighbours must move to within 1 px of the pixel's new disparity.
     pub min_support: usize,
+    /// Also move pixels farther: the background seen through a gap between parts (slats, a
+    /// grid) that the estimate filled with the parts' disparity.
+    pub farther: bool,
 }
 
 impl Default for ThinParts {
@@ -49,6 +52,7 @@ impl Default for ThinParts {
             uniqueness: 0.9,
             min_margin: 8.0,
             min_support: 1,
+            farther: false,
         }
     }
 }
@@ -145,29 +149,46 @@ pub fn recover_thin_parts(
     Ok(moved)
 }
 
-/// The nearer part's disparity (slices from the range's start, with its parabola's fraction) and
-/// confidence from one pixel's per-pixel costs (`costs` with occluded views dropped,
-/// `seen_by_all` every view's mean), where [`ThinParts`]'s tests pass.
+/// The disparity (slices from the range's start, with its parabola's fraction) and confidence
+/// one pixel moves to, from its per-pixel costs (`costs` with occluded views dropped,
+/// `seen_by_all` every view's mean), where [`ThinParts`]'s tests pass: a nearer part on the mean
+/// of every view, or (with `config.farther`) the background through a gap on the costs with
+/// occluded views dropped (a gap's background is hidden from some views by the part itself).
 fn candidate_of(estimate: f32, costs: &[u16], seen_by_all: &[u16], config: &ThinParts) -> Option<(f32, f32)> {
     if !estimate.is_finite() {
         return None;
     }
     let nd = costs.len();
-    let (best, &c_best) = seen_by_all
-        .iter()
-        .enumerate()
-        .filter(|(_, c)| **c != INVALID_COST)
-        .min_by_key(|(_, c)| **c)?;
-    if (best as f32) < estimate + config.min_jump_px {
-        return None;
-    }
     let near = estimate.round().clamp(0.0, (nd - 1) as f32) as usize;
     let at_estimate = costs[near.saturating_sub(1)..(near + 2).min(nd)]
         .iter()
         .filter(|c| **c != INVALID_COST)
         .min()
         .copied()?;
-    let second = seen_by_all
+    let nearer = |best: usize| best as f32 >= estimate + config.min_jump_px;
+    let farther = |best: usize| config.farther && best as f32 <= estimate - config.min_jump_px;
+    clear_minimum(seen_by_all, at_estimate, config, nearer)
+        .or_else(|| clear_minimum(costs, at_estimate, config, farther))
+}
+
+/// The minimum of `curve` where `wanted` takes its place and it is clearly better than
+/// `at_estimate` and unique ([`ThinParts`]), with its parabola's fraction, and its confidence.
+fn clear_minimum(
+    curve: &[u16],
+    at_estimate: u16,
+    config: &ThinParts,
+    wanted: impl Fn(usize) -> bool,
+) -> Option<(f32, f32)> {
+    let nd = curve.len();
+    let (best, &c_best) = curve
+        .iter()
+        .enumerate()
+        .filter(|(_, c)| **c != INVALID_COST)
+        .min_by_key(|(_, c)| **c)?;
+    if !wanted(best) {
+        return None;
+    }
+    let second = curve
         .iter()
         .enumerate()
         .filter(|(d, c)| d.abs_diff(best) > 1 && **c != INVALID_COST)
@@ -182,7 +203,7 @@ fn candidate_of(estimate: f32, costs: &[u16], seen_by_all: &[u16], config: &Thin
         return None;
     }
     let fraction = if best >= 1 && best + 1 < nd {
-        let [l, c, r] = [seen_by_all[best - 1], seen_by_all[best], seen_by_all[best + 1]];
+        let [l, c, r] = [curve[best - 1], curve[best], curve[best + 1]];
         if l == INVALID_COST || r == INVALID_COST {
             0.0
         } else {
@@ -298,6 +319,45 @@ mod tests {
         println!("{moved} moved; rod {rod_found} of {rod_total}; plane pixels moved {plane_moved}");
         assert!(rod_found * 2 >= rod_total, "rod {rod_found} of {rod_total}");
         assert!(plane_moved * 100 <= (w - 24) * h, "{plane_moved} plane pixels moved");
+    }
+
+    #[test]
+    fn farther_takes_back_a_plane_the_estimate_gave_the_rod_s_disparity() {
+        // The rod's disparity everywhere (a fattened foreground): with `farther` the textured
+        // plane returns to 2 where its texture is clear (most of it) and the rod keeps 10;
+        // without it nothing moves back.
+        let (w, h) = (80, 44);
+        let (problem, on_rod) = rod_before_a_plane(w, h, false);
+        let fattened = DisparityImage {
+            data: vec![10.0; w * h],
+            ..far_everywhere(w, h)
+        };
+        let config = ThinParts {
+            farther: true,
+            ..ThinParts::default()
+        };
+        let mut disparity = fattened.clone();
+        recover_thin_parts(&problem, &mut disparity, &config).unwrap_or_else(|e| panic!("{e}"));
+        let (mut plane_back, mut plane_total) = (0, 0);
+        for y in 12..h - 12 {
+            for x in 12..w - 12 {
+                let d = disparity.data[y * w + x];
+                if on_rod[y * w + x] {
+                    assert_eq!(d, 10.0, "rod pixel ({x}, {y})");
+                } else {
+                    plane_total += 1;
+                    plane_back += usize::from((d - 2.0).abs() <= 1.0);
+                }
+            }
+        }
+        println!("plane {plane_back} of {plane_total} back at 2");
+        assert!(
+            plane_back * 10 >= plane_total * 6,
+            "plane {plane_back} of {plane_total}"
+        );
+        let mut unchanged = fattened.clone();
+        recover_thin_parts(&problem, &mut unchanged, &ThinParts::default()).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(unchanged.data, fattened.data);
     }
 
     #[test]
