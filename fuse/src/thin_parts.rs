@@ -9,9 +9,11 @@
 //! [`recover_thin_parts`] moves a pixel to the per-pixel costs' minimum only where that minimum
 //! is nearer than the method's estimate by a clear jump, much lower than the costs at the
 //! estimate, and unique along the range; and only where an 8-neighbour was moved to within a
-//! pixel of it as well (a part is a line of pixels, noise is isolated). Nearer only: block
-//! sums erase thin *foreground*, while a background pixel the method took for foreground (a
-//! fattened edge) has costs near its estimate that often look as good.
+//! pixel of it as well (a part is a line of pixels, noise is isolated). Nearer only by default:
+//! block sums erase thin *foreground*. Moving pixels farther too (`farther`: the background
+//! seen through gaps between slats, which the estimate fills with the slats' disparity) helps
+//! there and on Middlebury, but mirror-like metal shows reflections at farther disparities:
+//! the reflective workpiece line lost 17 % (docs/experiments.md).
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
