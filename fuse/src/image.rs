@@ -103,6 +103,20 @@ pub struct DisparityImage {
 }
 
 impl DisparityImage {
+    /// `Ok` when the map is `width × height` with one value per pixel; else
+    /// [`FuseError::ImageSize`] naming `what` the map is for.
+    pub fn check_size(&self, width: usize, height: usize, what: &'static str) -> Result<(), FuseError> {
+        if self.width != width || self.height != height || self.data.len() != width * height {
+            return Err(FuseError::ImageSize {
+                what,
+                width,
+                height,
+                len: self.data.len(),
+            });
+        }
+        Ok(())
+    }
+
     /// Fills every invalid pixel with the smaller of the nearest valid disparities to its left
     /// and right on the same row (the background side of an occlusion), as Middlebury's
     /// evaluations of OpenCV and KZ2 do. Rows without any valid pixel stay invalid. A filled

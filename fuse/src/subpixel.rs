@@ -54,14 +54,11 @@ pub fn refine_with_block_costs(
     };
     let prepared = PreparedProblem::new(problem, spec, Fusion::Heuristic)?;
     let (w, h, nd) = (prepared.width(), prepared.height(), prepared.num_disparities());
-    if disparity.width != w || disparity.height != h || disparity.data.len() != w * h {
-        return Err(FuseError::ImageSize {
-            what: "disparity map for the sub-pixel re-reading (the reference's size)",
-            width: w,
-            height: h,
-            len: disparity.data.len(),
-        });
-    }
+    disparity.check_size(
+        w,
+        h,
+        "disparity map for the sub-pixel re-reading (the reference's size)",
+    )?;
     let min = problem.min_disparity as f32;
     let band = band_rows(h);
     let changed: usize = disparity

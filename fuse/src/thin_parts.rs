@@ -88,14 +88,7 @@ pub fn recover_thin_parts(
     );
     let (heuristic, mean) = (heuristic?, mean?);
     let (w, h, nd) = (heuristic.width(), heuristic.height(), heuristic.num_disparities());
-    if disparity.width != w || disparity.height != h || disparity.data.len() != w * h {
-        return Err(FuseError::ImageSize {
-            what: "disparity map for the thin-part recovery (the reference's size)",
-            width: w,
-            height: h,
-            len: disparity.data.len(),
-        });
-    }
+    disparity.check_size(w, h, "disparity map for the thin-part recovery (the reference's size)")?;
     let min = problem.min_disparity as f32;
     let band = band_rows(h);
     // Each pixel's candidate (the new disparity, its confidence), NaN where none.
