@@ -7,8 +7,10 @@
 #
 #   scripts/train-gpu.sh BUDGET_S RUN_DIR BATCH -- <replay train options without --dir/--steps>
 #
-# PYTHON names a Python with torch and safetensors (default python3). REPLAY names the binary (default target/release/replay; on the device machine a carried,
-# stripped copy). The run folder's checkpoint.safetensors, curves.csv and the logs are what to
+# PYTHON names a Python with torch and safetensors (default python3). REPLAY names the binary
+# (default target/release/replay; on the device machine a carried, stripped copy). PLAN_STEPS is
+# the run's planned total, whose last quarter trains at a quarter of the learning rate (default:
+# the checkpoint's `train_config` steps). The run folder's checkpoint.safetensors, curves.csv and the logs are what to
 # bring back.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -28,4 +30,6 @@ flock "$dataset/.lock" "$replay" train "$@" --steps 0 --dir "$run.start" -q
 [ -f "$run/checkpoint.safetensors" ] || cp "$run.start/checkpoint.safetensors" "$run/"
 left=$((budget - ($(date +%s) - started)))
 echo "$(basename "$run"): dataset and checkpoint ready after $(($(date +%s) - started)) s; training for $left s"
-"${PYTHON:-python3}" scripts/train-torch.py --dir "$run" --dataset-dir "$dataset" --budget-s "$left" --batch "$batch"
+plan=()
+[ -n "${PLAN_STEPS:-}" ] && plan=(--plan-steps "$PLAN_STEPS")
+"${PYTHON:-python3}" scripts/train-torch.py --dir "$run" --dataset-dir "$dataset" --budget-s "$left" --batch "$batch" "${plan[@]}"

@@ -303,6 +303,12 @@ def main():
         type=float,
         help="instead of --steps: time the first steps, then train to as many steps (a multiple of 10) as fit in this many seconds",
     )
+    parser.add_argument(
+        "--plan-steps",
+        type=int,
+        help="with --budget-s: the run's planned total, whose last quarter runs at a quarter of the learning rate "
+        "(default: the configuration's `steps`; a leg's own end never quarters it)",
+    )
     parser.add_argument("--batch", type=int, default=4, help="crops per step")
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--seed", type=int, default=1, help="seed of the crops drawn here")
@@ -337,6 +343,9 @@ def main():
         calibration = [random_crop(config, train_set, calibration_generator, 0) for _ in range(CALIBRATION_CROPS)]
 
     total = args.steps if args.steps is not None else (None if args.budget_s else config["steps"])
+    # The learning-rate schedule's total: the run's plan, not a budgeted leg's end (legs of a few
+    # hundred steps would otherwise all run at a quarter of the rate).
+    plan = (args.plan_steps or config["steps"]) if total is None else total
     session_start, timing_started = step, None
     previous_seconds = float(metadata.get("train_seconds", "0"))
     loop_started = time.time()
@@ -354,7 +363,7 @@ def main():
             log(f"{timed:.3f} s per step of {args.batch} crops: training to step {total}")
             if step >= total:
                 break
-        schedule_total = total if total is not None else step + 10**9
+        schedule_total = max(plan, total or 0)
         lr = config["learning_rate"] / 4 if step >= schedule_total * 3 // 4 else config["learning_rate"]
         for group in optimiser.param_groups:
             group["lr"] = lr
@@ -388,8 +397,8 @@ def main():
             rate = (time.time() - loop_started) / (step - session_start)
             log(f"step {step}/{total or '?'}: loss {sum(recent) / len(recent):.4f} (mean of the last 50), {rate:.3f} s per step")
         if step % config["checkpoint_every"] == 0 or step == total:
-            write_out(args, checkpoint, curves, net, optimiser, step, total, metadata, previous_seconds, loop_started, session_start, rows)
-    write_out(args, checkpoint, curves, net, optimiser, step, total or step, metadata, previous_seconds, loop_started, session_start, rows)
+            write_out(args, checkpoint, curves, net, optimiser, step, max(plan, total or step), metadata, previous_seconds, loop_started, session_start, rows)
+    write_out(args, checkpoint, curves, net, optimiser, step, max(plan, total or step), metadata, previous_seconds, loop_started, session_start, rows)
     log(f"done: step {step} in {time.time() - started:.0f} s; finish with `replay train <the run's options> --steps {step} --dir {args.dir}`")
 
 
