@@ -158,7 +158,7 @@ pub struct MFuseNetConfig {
     /// from per-pixel costs last (`thin_parts::ThinParts`; `{}` = its defaults, the default;
     /// `null` = none). The `thin` family (`scripts/eval-thin.sh`, never trained on): AvgErr
     /// 1.047 → 0.727 px, Bad1 8.88 → 6.57 %; Middlebury and the simulated lines and grids
-    /// within ±1.5 % (docs/experiments.md, "Thin parts from per-pixel costs").
+    /// within ±1.5 % (docs/methods.md, "Thin parts from per-pixel costs").
     pub thin_parts: Option<ThinParts>,
 }
 
