@@ -10,8 +10,8 @@
 # PYTHON names a Python with torch and safetensors (default python3). REPLAY names the binary
 # (default target/release/replay; on the device machine a carried, stripped copy). PLAN_STEPS is
 # the run's planned total, whose last quarter trains at a quarter of the learning rate (default:
-# the checkpoint's `train_config` steps). The run folder's checkpoint.safetensors, curves.csv and the logs are what to
-# bring back.
+# the checkpoint's `train_config` steps). The run folder's checkpoint.safetensors, curves.csv and
+# the logs are what to bring back.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 started=$(date +%s)

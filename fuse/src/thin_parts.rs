@@ -1,14 +1,15 @@
 //! Thin foreground parts recovered from per-pixel costs. Methods that read block sums (MFuseNet's
 //! census volumes summed over 7×7 blocks, then SGM) lose rods, wires and slats 1–6 px wide in
 //! front of a far background: a block centred on a wire is mostly background, so the block costs
-//! pick the background's disparity and the wire vanishes. Per-pixel costs fused over every view
-//! (Birchfield–Tomasi on colour, the paper's heuristic fusion, which drops the views a part
-//! occludes) still see it: at the background's disparity a wire pixel matches background pixels
+//! pick the background's disparity and the wire vanishes. Per-pixel costs (Birchfield–Tomasi on
+//! colour) still see it: at the background's disparity a wire pixel matches background pixels
 //! of another colour, at its own it matches itself in every view.
 //!
-//! [`recover_thin_parts`] moves a pixel to the per-pixel costs' minimum only where that minimum
-//! is nearer than the method's estimate by a clear jump, much lower than the costs at the
-//! estimate, and unique along the range; and only where an 8-neighbour was moved to within a
+//! [`recover_thin_parts`] moves a pixel to the minimum of the mean over every view (a nearer
+//! part is seen by all) only where that minimum is nearer than the method's estimate by a clear
+//! jump, much lower than the costs at the estimate (the paper's heuristic fusion, which drops the
+//! views that the part hides from the background), and unique along the range; and only where an
+//! 8-neighbour was moved to within a
 //! pixel of it as well (a part is a line of pixels, noise is isolated). Nearer only by default:
 //! block sums erase thin *foreground*. Moving pixels farther too (`farther`: the background
 //! seen through gaps between slats, which the estimate fills with the slats' disparity) helps
