@@ -514,6 +514,16 @@ impl PreparedProblem {
         self.num_disparities
     }
 
+    /// Disparity of the first slice.
+    pub fn min_disparity(&self) -> i32 {
+        self.min_disparity
+    }
+
+    /// How the neighbours' costs are fused.
+    pub fn fusion(&self) -> Fusion {
+        self.fusion
+    }
+
     /// Pixel costs of one neighbour for reference row `y` (clamped into the image), columns `xs`.
     fn pixel_costs(&self, neighbour: &PreparedNeighbour, y: isize, xs: Range<isize>, out: &mut [u8]) {
         let y = y.clamp(0, self.height as isize - 1) as usize;
@@ -554,10 +564,23 @@ impl PreparedProblem {
         buffers: &mut BandScratch,
         sink: &mut dyn FnMut(usize, usize, &[u16]),
     ) {
-        if rows.is_empty() {
+        self.fused_tile_with(rows, 0..self.width, buffers, sink);
+    }
+
+    /// [`Self::fused_band_with`] over the image's `columns` only (the same numbers there: a
+    /// tile reads ρ columns beyond its edges, as inside the image).
+    pub fn fused_tile_with(
+        &self,
+        rows: Range<usize>,
+        columns: Range<usize>,
+        buffers: &mut BandScratch,
+        sink: &mut dyn FnMut(usize, usize, &[u16]),
+    ) {
+        let columns = columns.start.min(self.width)..columns.end.min(self.width);
+        if rows.is_empty() || columns.is_empty() {
             return;
         }
-        let (w, nd, r) = (self.width, self.num_disparities, self.spec.block_radius_px);
+        let (nd, r) = (self.num_disparities, self.spec.block_radius_px);
         let window = 2 * r + 1;
         let tile = tile_columns(nd);
         let BandScratch {
@@ -572,8 +595,8 @@ impl PreparedProblem {
         // Virtual row `v` (may lie outside the image) lives in ring slot `(v − first) mod window`.
         let first = rows.start as isize - r as isize;
         let slot = |v: isize| (v - first) as usize % window;
-        for x_start in (0..w).step_by(tile) {
-            let columns = tile.min(w - x_start);
+        for x_start in columns.clone().step_by(tile) {
+            let columns = tile.min(columns.end - x_start);
             let xs = x_start as isize - r as isize..(x_start + columns + r) as isize;
             let ext_cells = xs.len() * nd;
             let cells = columns * nd;
@@ -662,6 +685,30 @@ impl PreparedProblem {
         });
     }
 
+    /// The fused costs of `rows` × `columns` quantised to bytes by `shift`
+    /// ([`crate::sgm::quantise`]) into `out` (`[y][x][d]` over the tile): the numbers of
+    /// [`Self::fused_volume`] there, for consumers that make their costs band by band.
+    pub fn fused_quantised_into(
+        &self,
+        rows: Range<usize>,
+        columns: Range<usize>,
+        shift: u32,
+        out: &mut [u8],
+        buffers: &mut BandScratch,
+    ) {
+        let (first_row, first_column, nd) = (rows.start, columns.start, self.num_disparities);
+        let row_len = columns.len() * nd;
+        self.fused_tile_with(rows, columns, buffers, &mut |y, x_start, costs| {
+            let at = (y - first_row) * row_len + (x_start - first_column) * nd;
+            quantise_into(costs, &mut out[at..at + costs.len()], shift);
+        });
+    }
+
+    /// The largest valid cost of [`Self::fused_volume`] quantised by `shift`.
+    pub fn quantised_max_cost(&self, shift: u32) -> u32 {
+        (self.spec.max_cost() >> shift).min(u32::from(crate::sgm::INVALID_QUANTISED) - 1)
+    }
+
     /// The whole fused volume `[y][x][d]` for global optimisers, quantised to bytes by `shift`
     /// ([`crate::sgm::quantise`]) and computed band-parallel; `on_band` is called after each band.
     pub fn fused_volume(&self, shift: u32, on_band: &(dyn Fn() + Sync)) -> CostVolume<u8> {
@@ -687,7 +734,7 @@ impl PreparedProblem {
             min_disparity: self.min_disparity,
             num_disparities: nd,
             data: volume,
-            max_cost: (self.spec.max_cost() >> shift).min(u32::from(crate::sgm::INVALID_QUANTISED) - 1),
+            max_cost: self.quantised_max_cost(shift),
             source: VolumeSource::Fused(self.fusion),
         }
     }

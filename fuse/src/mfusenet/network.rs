@@ -22,8 +22,8 @@ use super::Error;
 use crate::nn::Tensor;
 use crate::nn::batch_norm::{BatchNorm, BatchNormCache};
 use crate::nn::conv::{
-    Epilogue, conv3d_same, conv3d_same_input_grad, conv3d_same_weight_grad, conv3d_with, transposed_as_conv,
-    transposed_weight_grad,
+    Epilogue, conv3d_same, conv3d_same_input_grad, conv3d_same_weight_grad, conv3d_with, conv3d_with_owned,
+    transposed_as_conv, transposed_weight_grad,
 };
 use crate::nn::regression::{smooth_l1, soft_argmin, soft_argmin_backward};
 
@@ -176,6 +176,17 @@ impl ConvBn {
             // No copy of the input: the convolution pads its own.
             ConvKind::Same => conv3d_with(x, &weight, self.cout, self.k, Some(&bias), epilogue(1)),
         }
+    }
+
+    /// [`ConvBn::forward_eval`] of an input it is handed: a "same" layer frees it as soon as its
+    /// padded copy is made, so that input and output are never alive together with that copy.
+    pub fn forward_eval_owned(&self, x: Tensor) -> Tensor {
+        if self.kind != ConvKind::Same {
+            return self.forward_eval(&x);
+        }
+        let (weight, bias) = self.bn.fold_into(&self.conv_weight());
+        let epilogue = Epilogue { stride: 1, relu: true };
+        conv3d_with_owned(x, &weight, self.cout, self.k, Some(&bias), epilogue)
     }
 
     /// Train mode: `ReLU(BN(conv(x)))` with batch statistics (running statistics updated) or
@@ -474,7 +485,7 @@ impl Network {
         let tower = |x: &Tensor| {
             let mut y = self.feature[0].forward_eval(x);
             for layer in &self.feature[1..] {
-                y = layer.forward_eval(&y);
+                y = layer.forward_eval_owned(y);
             }
             y
         };
@@ -490,8 +501,8 @@ impl Network {
             }
             features
         };
-        let c = self.fuse[CONCAT].forward_eval(&features);
-        drop(features);
+        // The widest layer: its input is freed once padded (16 channels with four views).
+        let c = self.fuse[CONCAT].forward_eval_owned(features);
         let d1 = self.fuse[DOWN1].forward_eval(&c);
         let cdown1 = residual(self.fuse[DCONV1].forward_eval(&d1), &d1);
         drop(d1);
@@ -504,8 +515,7 @@ impl Network {
         drop(cdown2);
         let skip1 = Tensor::concat(&[&u1, &cdown1]);
         drop((u1, cdown1));
-        let cup1 = self.fuse[UCONV1].forward_eval(&skip1);
-        drop(skip1);
+        let cup1 = self.fuse[UCONV1].forward_eval_owned(skip1);
         let u2 = self.fuse[UP2].forward_eval(&cup1);
         drop(cup1);
         // The widest point at full resolution: the 8 skip channels and their padded copy, over
@@ -520,8 +530,7 @@ impl Network {
             Tensor::concat(&[&u2.crop_hw(rows.clone(), columns.clone()), &c.crop_hw(rows, columns)])
         };
         drop((u2, c));
-        let cup2 = self.fuse[UCONV2].forward_eval(&skip2);
-        drop(skip2);
+        let cup2 = self.fuse[UCONV2].forward_eval_owned(skip2);
         let f = residual(self.fuse[DISTILL1].forward_eval(&cup2), &cup2);
         drop(cup2);
         Ok((

@@ -146,6 +146,46 @@ pub fn conv3d_with(
     bias: Option<&[f32]>,
     epilogue: Epilogue,
 ) -> Tensor {
+    conv_source(Source::Borrowed(x), weight, cout, k, bias, epilogue)
+}
+
+/// [`conv3d_with`] of an input it is handed: the input is freed once its padded copy is made,
+/// before the output is allocated (inference's widest layer, `concat`, holds its 16 feature
+/// channels once instead of twice).
+pub fn conv3d_with_owned(
+    x: Tensor,
+    weight: &[f32],
+    cout: usize,
+    k: usize,
+    bias: Option<&[f32]>,
+    epilogue: Epilogue,
+) -> Tensor {
+    conv_source(Source::Owned(x), weight, cout, k, bias, epilogue)
+}
+
+/// A convolution's input, lent or handed over.
+enum Source<'a> {
+    Borrowed(&'a Tensor),
+    Owned(Tensor),
+}
+
+impl Source<'_> {
+    fn tensor(&self) -> &Tensor {
+        match self {
+            Source::Borrowed(x) => x,
+            Source::Owned(x) => x,
+        }
+    }
+}
+
+fn conv_source(
+    x: Source<'_>,
+    weight: &[f32],
+    cout: usize,
+    k: usize,
+    bias: Option<&[f32]>,
+    epilogue: Epilogue,
+) -> Tensor {
     match k {
         1 => conv_k::<1>(x, weight, cout, bias, epilogue),
         3 => conv_k::<3>(x, weight, cout, bias, epilogue),
@@ -154,8 +194,14 @@ pub fn conv3d_with(
     }
 }
 
-fn conv_k<const K: usize>(x: &Tensor, weight: &[f32], cout: usize, bias: Option<&[f32]>, epilogue: Epilogue) -> Tensor {
-    let [cin, d, h, w] = x.shape;
+fn conv_k<const K: usize>(
+    source: Source<'_>,
+    weight: &[f32],
+    cout: usize,
+    bias: Option<&[f32]>,
+    epilogue: Epilogue,
+) -> Tensor {
+    let [cin, d, h, w] = source.tensor().shape;
     // 1 or 2 (blocks start at multiples of 24 columns, so even columns stay even).
     let stride = epilogue.stride.clamp(1, 2);
     let (od, oh, ow) = (d.div_ceil(stride), h.div_ceil(stride), w.div_ceil(stride));
@@ -163,7 +209,9 @@ fn conv_k<const K: usize>(x: &Tensor, weight: &[f32], cout: usize, bias: Option<
     let p = K / 2;
     let blocks = w.div_ceil(BLOCK);
     let step = TILE_BLOCKS * BLOCK;
-    let padded = Padded::tiled(x, p, step, step + K - 1);
+    let padded = Padded::tiled(source.tensor(), p, step, step + K - 1);
+    // Only the padded copy is read from here on.
+    drop(source);
     let groups = cout.div_ceil(GROUP);
     // Weights per group as [i][td][th][tw][4] (missing channels zero).
     let taps = K * K * K;
