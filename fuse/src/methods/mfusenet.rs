@@ -68,7 +68,8 @@ pub struct MFuseNetConfig {
     /// How each neighbour's input volume is made (must match the training); `null` = as the
     /// weights file's metadata `input_spec` says (our default inputs when it says nothing).
     pub input: Option<InputSpec>,
-    /// Memory budget of one tile's activations (MiB); larger images are cut into tiles.
+    /// Memory budget of one tile's activations (MiB; 768); larger images are cut into tiles. The
+    /// process holds up to about 1.5 times it: raise it for speed where memory allows.
     pub tile_budget_mib: usize,
     /// Soft-argmin only over this many disparities either side of the most probable one
     /// (`null` = over the whole range, as in the paper); see `mfusenet::infer::infer`.

@@ -17,14 +17,19 @@ use crate::wta::{LockingCurve, SubpixelFit};
 /// Pixels of context around each tile (≥ the receptive radius, a multiple of 4).
 pub const HALO: usize = 48;
 
-/// Default memory budget of one tile's activations (a Middlebury third-size set runs whole).
-pub const DEFAULT_TILE_BUDGET_BYTES: usize = 1 << 30;
+/// Default memory budget of one tile's activations (a Middlebury third-size set runs whole, and
+/// a five-view 640×360 set of 36 slices). With the allocator keeping freed pages the process
+/// holds about 1.5 times this: the demo's 960×540 capture 1.18 GB peak RSS and 20.0 s at
+/// 768 MiB, 1.53 GB and 18.5 s at 1 GiB (docs/benchmarks.md).
+pub const DEFAULT_TILE_BUDGET_BYTES: usize = 768 << 20;
 
-/// Peak bytes per voxel of a forward pass with `views` inputs: the concatenated features and
-/// their padded copy (`8·N` channels) plus about 16 channels of other tensors alive at the
-/// widest point, 4 bytes each.
+/// Peak bytes per voxel of a forward pass with `views` inputs: the N input volumes plus about 20
+/// channels alive at the widest point (`uconv2`'s 8 input channels and their padded copy beside
+/// the 4 of `concat`; the concatenated features are never whole), 4 bytes each. Measured: 84 B
+/// per voxel live at N = 4 (a 640×360 five-view set of 36 slices whole, 775 MB peak RSS with
+/// `MIMALLOC_PURGE_DELAY=0`).
 pub fn bytes_per_voxel(views: usize) -> usize {
-    4 * (8 * views + 16)
+    4 * (views + 20)
 }
 
 fn round4(n: usize) -> usize {
@@ -61,7 +66,7 @@ fn axis_tiles(length: usize, core: usize, halo: usize) -> AxisTiles {
 /// The tiles of a `height × width` image (multiples of 4) whose regions (cores with their
 /// halo) each hold at most `max_region_pixels`, with the fewest region pixels in all: every
 /// split of each axis into equal cores (multiples of 4) is tried, so that the halos, which are
-/// computed twice, cost as little as the budget allows (a 960 × 540 image under a 1 GiB budget:
+/// computed twice, cost as little as the budget allows (a 960 × 540 image of 36 slices at 192 bytes a voxel under a 1 GiB budget:
 /// 3 × 2 tiles of 320 × 272 instead of 4 × 2 squares of 296, 11 % fewer voxels). The square
 /// tiles of [`tile_side`] are among the splits tried, so the plan is never worse than them.
 /// `(row cores and regions, column cores and regions)`.
@@ -616,11 +621,11 @@ mod tests {
                 "{h}×{w}: the plan computes more than squares of {side}"
             );
         }
-        // The demo's 960 × 540 under the default budget: 3 × 2 tiles, 11 % fewer region pixels
-        // than 4 × 2 squares of 296.
+        // The demo's 960 × 540 under the default budget: three tiles of whole columns (3 × 2
+        // at 192 bytes a voxel and 1 GiB, when the concatenated features were whole).
         let side = tile_side(4, 36, DEFAULT_TILE_BUDGET_BYTES) + 2 * HALO;
         let (rows, columns) = plan_tiles(540, 960, side * side, HALO);
-        assert_eq!((rows.len(), columns.len()), (2, 3));
+        assert_eq!((rows.len(), columns.len()), (1, 3));
     }
 
     #[test]

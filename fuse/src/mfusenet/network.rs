@@ -22,8 +22,8 @@ use super::Error;
 use crate::nn::Tensor;
 use crate::nn::batch_norm::{BatchNorm, BatchNormCache};
 use crate::nn::conv::{
-    Epilogue, conv3d_same, conv3d_same_input_grad, conv3d_same_weight_grad, conv3d_with, conv3d_with_owned,
-    transposed_as_conv, transposed_weight_grad,
+    Epilogue, conv3d_accumulate_owned, conv3d_same, conv3d_same_input_grad, conv3d_same_weight_grad, conv3d_with,
+    conv3d_with_owned, transposed_as_conv, transposed_weight_grad,
 };
 use crate::nn::regression::{smooth_l1, soft_argmin, soft_argmin_backward};
 
@@ -489,20 +489,38 @@ impl Network {
             }
             y
         };
-        let features = if self.views == 0 {
-            crate::nn::pool::mean_max(&inputs.iter().map(tower).collect::<Vec<_>>())
+        let c = if self.views == 0 {
+            let features = crate::nn::pool::mean_max(&inputs.iter().map(tower).collect::<Vec<_>>());
+            self.fuse[CONCAT].forward_eval_owned(features)
         } else {
-            // Each view's features straight into its channels of the concatenation (one copy
-            // of the 4·N feature channels alive, not two).
-            let mut features = Tensor::zeros([4 * self.views, d, h, w]);
-            let per_view = 4 * d * h * w;
+            // The widest layer, `concat` over the views' 4·N feature channels, a view at a time:
+            // each view's features convolved with its channels of the kernel and added in, then
+            // freed, so that the concatenation never exists (16 channels with four views, and
+            // their padded copy: the network's peak memory before). The BatchNorm's bias goes in
+            // with the first view, the ReLU after the last.
+            let layer = &self.fuse[CONCAT];
+            let (weight, bias) = layer.bn.fold_into(&layer.conv_weight());
+            let [cout, cin, k] = [layer.cout, 4 * self.views, layer.k];
+            let taps = k * k * k;
+            let mut c: Option<Tensor> = None;
+            let last = inputs.len() - 1;
             for (i, x) in inputs.iter().enumerate() {
-                features.data[i * per_view..(i + 1) * per_view].copy_from_slice(&tower(x).data);
+                let own: Vec<f32> = (0..cout)
+                    .flat_map(|o| {
+                        let at = (o * cin + 4 * i) * taps;
+                        weight[at..at + 4 * taps].iter().copied()
+                    })
+                    .collect();
+                let features = tower(x);
+                let relu = i == last;
+                c = Some(match c {
+                    None => conv3d_with_owned(features, &own, cout, k, Some(&bias), Epilogue { stride: 1, relu }),
+                    Some(sum) => conv3d_accumulate_owned(features, &own, k, sum, relu),
+                });
             }
-            features
+            // (`check_inputs` holds at least one input.)
+            c.unwrap_or_else(|| Tensor::zeros([cout, d, h, w]))
         };
-        // The widest layer: its input is freed once padded (16 channels with four views).
-        let c = self.fuse[CONCAT].forward_eval_owned(features);
         let d1 = self.fuse[DOWN1].forward_eval(&c);
         let cdown1 = residual(self.fuse[DCONV1].forward_eval(&d1), &d1);
         drop(d1);
