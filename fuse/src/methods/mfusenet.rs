@@ -22,7 +22,7 @@ use crate::mfusenet::infer::{
     infer_with_confidence,
 };
 use crate::mfusenet::input::{
-    InputSpec, ViewGroup, input_volumes_below, ordered_neighbours, pooled_neighbours, summed,
+    InputSpec, ViewGroup, input_volumes_of_sides_below, ordered_neighbours, pooled_neighbours, sides_of, summed,
     summed_input_volume_below, view_groups, views_for,
 };
 use crate::mfusenet::pyramid::{
@@ -148,6 +148,13 @@ pub struct MFuseNetConfig {
     /// only (its metadata's `train_config` names no `grid-cross` rig), which read far and
     /// diagonal views worse than nothing (docs/experiments.md).
     pub every_view: Option<bool>,
+    /// Each input of the nearest group made from its whole side: the minimum of the costs of
+    /// the views along its ray (a line of five's left input from ±1 and ±2's left views), as
+    /// the classical heuristic counts sides; off by default. On reflective parts it helps
+    /// (a line of five of the workpiece: 1.337 → 1.107 px), on periodic texture a far view's
+    /// aliased match can win (a `random` line of five: 0.673 → 2.149 px); docs/experiments.md.
+    #[serde(default)]
+    pub side_inputs: bool,
     /// Sub-pixel from block-matching costs, last (`subpixel::BlockSubpixel`; `{}` = its
     /// defaults, the default; `null` = none): the estimate's integer stays, its fraction is
     /// re-read from a parabola through fused 9×9 Birchfield–Tomasi block costs where that moves
@@ -182,6 +189,7 @@ impl Default for MFuseNetConfig {
             flips: false,
             max_direct_disparities: DEFAULT_MAX_DIRECT_DISPARITIES,
             every_view: None,
+            side_inputs: false,
             block_subpixel: Some(BlockSubpixel::default()),
             thin_parts: Some(ThinParts::default()),
         }
@@ -350,6 +358,14 @@ impl Method for MFuseNet {
         };
         let (min_disparity, num_disparities) = widened_range(range).unwrap_or(range);
         let room_below = self.config.room_below.unwrap_or(loaded.context_below);
+        // Each input of the nearest group and the views it was made from.
+        let side_inputs = self.config.side_inputs.then(|| {
+            let nearest = ordered_neighbours(problem, loaded.views).unwrap_or_default();
+            sides_of(problem, &nearest)
+                .iter()
+                .map(|side| side.iter().map(|n| n.role.as_str()).collect::<Vec<_>>().join(" + "))
+                .collect::<Vec<_>>()
+        });
         if let Some(serde_json::Value::Object(plan)) = self.plan_details(problem) {
             let mut out = serde_json::json!({
                 "network": "fused",
@@ -357,6 +373,7 @@ impl Method for MFuseNet {
                 "network_width": width,
                 "network_height": height,
                 "full_size_band_px": (factor > 1).then_some(factor),
+                "side_inputs": side_inputs,
             });
             if let serde_json::Value::Object(map) = &mut out {
                 map.extend(plan);
@@ -376,6 +393,7 @@ impl Method for MFuseNet {
                     .map(|used| used.iter().map(|n| n.role.clone()).collect::<Vec<_>>())
                     .unwrap_or_default()
             }),
+            "side_inputs": side_inputs,
         })
     }
 }
@@ -578,9 +596,14 @@ impl MFuseNet {
         loaded: &Loaded,
     ) -> Result<(Vec<CostVolume<u8>>, i64, f32), FuseError> {
         let room_below = self.config.room_below.unwrap_or(loaded.context_below);
-        let (volumes, first) = input_volumes_below(
+        let sides = if self.config.side_inputs {
+            sides_of(problem, neighbours)
+        } else {
+            neighbours.iter().map(|n| vec![*n]).collect()
+        };
+        let (volumes, first) = input_volumes_of_sides_below(
             problem,
-            neighbours,
+            &sides,
             self.config.input.unwrap_or(loaded.input),
             room_below,
             &|| {},
@@ -847,6 +870,8 @@ mod tests {
                     role: match offset {
                         [-1, 0] => "left",
                         [1, 0] => "right",
+                        [-2, 0] => "left2",
+                        [2, 0] => "right2",
                         [0, -1] => "top",
                         _ => "bottom",
                     }
@@ -896,6 +921,34 @@ mod tests {
         // Within the direct limit, the network runs at full size and says so.
         let narrow = plane(&offsets, 10, 0);
         assert_eq!(method.details(&narrow)["scale"], "1/1");
+    }
+
+    #[test]
+    fn side_inputs_take_a_line_of_five_s_far_views_and_find_its_plane() {
+        let problem = plane_sized(&[[-2, 0], [-1, 0], [1, 0], [2, 0]], 6, (0, 32), (128, 64));
+        let config = serde_json::json!({ "side_inputs": true });
+        let method = crate::methods::build("mfusenet", Some(&config)).unwrap_or_else(|e| panic!("{e}"));
+        let details = method.details(&problem);
+        assert_eq!(
+            details["side_inputs"],
+            serde_json::json!(["left + left2", "right + right2"]),
+            "{details}"
+        );
+        let out = method.run(&problem, &|_| {}).unwrap_or_else(|e| panic!("{e}"));
+        // The pixels every view sees (12 px from either border).
+        let w = problem.reference.width;
+        let errors: Vec<f32> = out
+            .data
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| (12..w - 12).contains(&(i % w)))
+            .map(|(_, e)| (e - 6.0).abs())
+            .collect();
+        let mean = errors.iter().sum::<f32>() / errors.len() as f32;
+        assert!(mean < 0.25, "AvgErr {mean:.3} px");
+        // Off by default.
+        let default = crate::methods::build("mfusenet", None).unwrap_or_else(|e| panic!("{e}"));
+        assert!(default.details(&problem)["side_inputs"].is_null());
     }
 
     #[test]

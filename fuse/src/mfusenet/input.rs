@@ -237,11 +237,48 @@ pub fn input_volumes(
     spec: InputSpec,
     on_band: &(dyn Fn() + Sync),
 ) -> Result<Vec<CostVolume<u8>>, FuseError> {
-    let mut out = Vec::with_capacity(neighbours.len());
-    for_each_aggregated(problem, neighbours, spec, on_band, |sums, p2| {
-        out.push(normalise(sums, p2))
-    })?;
+    let sides: Vec<Vec<&Neighbour>> = neighbours.iter().map(|n| vec![*n]).collect();
+    input_volumes_of_sides(problem, &sides, spec, on_band)
+}
+
+/// [`input_volumes`] with each input made of several views: the minimum of their costs (one
+/// side of the reference: views along one ray share their occlusions), then SGM.
+pub fn input_volumes_of_sides(
+    problem: &Problem,
+    sides: &[Vec<&Neighbour>],
+    spec: InputSpec,
+    on_band: &(dyn Fn() + Sync),
+) -> Result<Vec<CostVolume<u8>>, FuseError> {
+    let mut out = Vec::with_capacity(sides.len());
+    for_each_aggregated(problem, sides, spec, on_band, |sums, p2| out.push(normalise(sums, p2)))?;
     Ok(out)
+}
+
+/// Each of `neighbours` with the set's views farther along its ray (offsets `k ·` its offset,
+/// `k` ≥ 2), nearest first: the views [`input_volumes_of_sides`] takes the minimum of.
+pub fn sides_of<'a>(problem: &'a Problem, neighbours: &[&'a Neighbour]) -> Vec<Vec<&'a Neighbour>> {
+    neighbours
+        .iter()
+        .map(|n| {
+            let [dx, dy] = n.offset;
+            let mut side: Vec<(i32, &Neighbour)> = problem
+                .neighbours
+                .iter()
+                .filter_map(|m| {
+                    let k = if dx != 0 {
+                        m.offset[0] / dx
+                    } else if dy != 0 {
+                        m.offset[1] / dy
+                    } else {
+                        0
+                    };
+                    (k >= 1 && m.offset == [k * dx, k * dy]).then_some((k, m))
+                })
+                .collect();
+            side.sort_by_key(|(k, _)| *k);
+            side.into_iter().map(|(_, m)| m).collect()
+        })
+        .collect()
 }
 
 /// Each of `neighbours`' cost volumes aggregated by SGM on its own, handed to `each` with the
@@ -250,7 +287,7 @@ pub fn input_volumes(
 /// every neighbour's sums share one buffer.
 fn for_each_aggregated(
     problem: &Problem,
-    neighbours: &[&Neighbour],
+    sides: &[Vec<&Neighbour>],
     spec: InputSpec,
     on_band: &(dyn Fn() + Sync),
     mut each: impl FnMut(&CostVolume<u16>, u16),
@@ -262,11 +299,12 @@ fn for_each_aggregated(
     let shift = quantisation_shift(cost.max_cost());
     let (p1, p2) = (quantise_penalty(spec.p1, shift), quantise_penalty(spec.p2, shift));
     let mut buffer = Vec::new();
-    for n in neighbours {
+    for side in sides {
+        let Some(n) = side.first() else { continue };
         // With one neighbour every fusion rule returns its costs.
         let single = Problem {
             reference: problem.reference.clone(),
-            neighbours: vec![(*n).clone()],
+            neighbours: side.iter().map(|m| (*m).clone()).collect(),
             min_disparity: problem.min_disparity,
             num_disparities: problem.num_disparities,
         };
@@ -305,8 +343,20 @@ pub fn input_volumes_below(
     below: usize,
     on_band: &(dyn Fn() + Sync),
 ) -> Result<(Vec<CostVolume<u8>>, i64), FuseError> {
+    let sides: Vec<Vec<&Neighbour>> = neighbours.iter().map(|n| vec![*n]).collect();
+    input_volumes_of_sides_below(problem, &sides, spec, below, on_band)
+}
+
+/// [`input_volumes_below`] of [`input_volumes_of_sides`].
+pub fn input_volumes_of_sides_below(
+    problem: &Problem,
+    sides: &[Vec<&Neighbour>],
+    spec: InputSpec,
+    below: usize,
+    on_band: &(dyn Fn() + Sync),
+) -> Result<(Vec<CostVolume<u8>>, i64), FuseError> {
     let extended = with_context_below(problem, below);
-    let volumes = input_volumes(&extended, neighbours, spec, on_band)?;
+    let volumes = input_volumes_of_sides(&extended, sides, spec, on_band)?;
     Ok((volumes, i64::from(extended.min_disparity)))
 }
 
@@ -374,7 +424,8 @@ pub fn summed_input_volume_below(
 ) -> Result<(CostVolume<u16>, i64), FuseError> {
     let extended = with_context_below(problem, below);
     let mut total: Option<CostVolume<u16>> = None;
-    for_each_aggregated(&extended, neighbours, spec, &|| {}, |sums, p2| {
+    let sides: Vec<Vec<&Neighbour>> = neighbours.iter().map(|n| vec![*n]).collect();
+    for_each_aggregated(&extended, &sides, spec, &|| {}, |sums, p2| {
         let total = total.get_or_insert_with(|| {
             let mut t = sums.with_data(vec![0u16; sums.data.len()], 0);
             t.source = VolumeSource::Fused(Fusion::Mean);
@@ -422,6 +473,43 @@ pub fn to_tensor(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_side_holds_the_views_along_its_ray_nearest_first() {
+        let image = Image {
+            width: 4,
+            height: 4,
+            channels: 1,
+            data: vec![0; 16],
+        };
+        let neighbour = |offset: [i32; 2]| Neighbour {
+            role: format!("{offset:?}"),
+            image: image.clone(),
+            offset,
+            baseline_ratio: 1.0,
+        };
+        let problem = Problem {
+            reference: image.clone(),
+            neighbours: [[2, 0], [-1, 0], [1, 0], [-2, 0], [1, 1], [3, 0], [0, -1], [2, 1]]
+                .into_iter()
+                .map(neighbour)
+                .collect(),
+            min_disparity: 0,
+            num_disparities: 8,
+        };
+        let nearest: Vec<&Neighbour> = problem.neighbours[1..3]
+            .iter()
+            .chain(&problem.neighbours[6..7])
+            .collect();
+        let offsets: Vec<Vec<[i32; 2]>> = sides_of(&problem, &nearest)
+            .iter()
+            .map(|side| side.iter().map(|n| n.offset).collect())
+            .collect();
+        assert_eq!(
+            offsets,
+            vec![vec![[-1, 0], [-2, 0]], vec![[1, 0], [2, 0], [3, 0]], vec![[0, -1]]]
+        );
+    }
 
     #[test]
     fn every_cross_and_opposite_pair_goes_to_its_network_nearest_first() {
