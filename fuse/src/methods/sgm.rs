@@ -10,7 +10,7 @@ use crate::cost::PixelCost;
 use crate::fusion::Fusion;
 use crate::image::DisparityImage;
 use crate::postprocess::{WeightedMedian, median3x3, weighted_median};
-use crate::sgm::{quantisation_shift, quantise_penalty, select_volume};
+use crate::sgm::{quantisation_shift, quantise_penalty, select_prepared, select_volume};
 use crate::subpixel::{BlockSubpixel, refine_with_block_costs};
 use crate::volume::{CostSpec, PreparedProblem, Problem, band_rows};
 use crate::wta::SubpixelFit;
@@ -45,6 +45,12 @@ pub struct SgmConfig {
     /// `bm-heuristic`): SGM's integer stays, its fraction is re-read from fused 9×9
     /// Birchfield–Tomasi block costs, which lock to the pixel grid far less than SGM's sums.
     pub block_subpixel: Option<BlockSubpixel>,
+    /// Make the fused costs where each of SGM's passes reads them instead of holding them as
+    /// one byte volume (`sgm::select_prepared`): the same result in less memory, for images
+    /// whose volume would not fit (1080p with 128 disparities: 1.12 → 0.88 GB peak RSS, 0.88 →
+    /// 1.40 s with `sgm-heuristic`).
+    #[serde(default)]
+    pub costs_in_passes: bool,
 }
 
 impl super::FusedConfig for SgmConfig {
@@ -68,6 +74,7 @@ impl Default for SgmConfig {
             median: true,
             weighted_median: None,
             block_subpixel: None,
+            costs_in_passes: false,
         }
     }
 }
@@ -92,19 +99,19 @@ impl Method for Sgm {
         let done = AtomicUsize::new(0);
         // Cost volume: the first half of the work; aggregation the rest.
         let shift = quantisation_shift(spec.max_cost());
-        let volume = prepared.fused_volume(shift, &|| {
-            progress(0.5 * (done.fetch_add(1, Ordering::Relaxed) + 1) as f32 / bands as f32);
-        });
         let (p1, p2) = (
             quantise_penalty(self.config.p1, shift),
             quantise_penalty(self.config.p2, shift),
         );
-        let (data, confidence) = select_volume(
-            &volume,
-            (p1, p2),
-            self.config.subpixel.then_some(self.config.subpixel_fit),
-        );
-        drop(volume);
+        let subpixel = self.config.subpixel.then_some(self.config.subpixel_fit);
+        let (data, confidence) = if self.config.costs_in_passes {
+            select_prepared(&prepared, shift, (p1, p2), subpixel)
+        } else {
+            let volume = prepared.fused_volume(shift, &|| {
+                progress(0.5 * (done.fetch_add(1, Ordering::Relaxed) + 1) as f32 / bands as f32);
+            });
+            select_volume(&volume, (p1, p2), subpixel)
+        };
         progress(0.95);
         let mut disparity = DisparityImage {
             width: w,
@@ -164,3 +171,64 @@ pub const ENTRIES: &[MethodEntry] = &[
         build: |o| build("sgm-heuristic", Fusion::Heuristic, o),
     },
 ];
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::Image;
+    use crate::rng::SplitMix64;
+    use crate::volume::Neighbour;
+
+    #[test]
+    fn costs_made_in_the_passes_give_the_same_result() {
+        // A textured plane at 4 px seen by a cross of four views, 300 × 140 (bands of made
+        // costs end inside the image).
+        let (w, h, d) = (300, 140, 4i32);
+        let mut rng = SplitMix64::new(11);
+        let (tw, th) = (w + 20, h + 20);
+        let texture: Vec<u8> = (0..tw * th).map(|_| (rng.next_u64() >> 56) as u8).collect();
+        let view = |[ox, oy]: [i32; 2]| {
+            let data = (0..w * h)
+                .map(|i| {
+                    let x = (i % w) as i32 + 10 + ox * d;
+                    let y = (i / w) as i32 + 10 + oy * d;
+                    texture[y as usize * tw + x as usize]
+                })
+                .collect();
+            Image::gray(w, h, data).unwrap_or_else(|e| panic!("{e}"))
+        };
+        let problem = Problem {
+            reference: view([0, 0]),
+            neighbours: [
+                ("left", [-1, 0]),
+                ("right", [1, 0]),
+                ("top", [0, -1]),
+                ("bottom", [0, 1]),
+            ]
+            .into_iter()
+            .map(|(role, offset)| Neighbour {
+                role: role.into(),
+                image: view(offset),
+                offset,
+                baseline_ratio: 1.0,
+            })
+            .collect(),
+            min_disparity: 0,
+            num_disparities: 16,
+        };
+        let run = |costs_in_passes: bool| {
+            let method = Sgm {
+                name: "sgm-heuristic",
+                config: SgmConfig {
+                    costs_in_passes,
+                    ..SgmConfig::default()
+                },
+            };
+            method.run(&problem, &|_| {}).unwrap_or_else(|e| panic!("{e}"))
+        };
+        let (stored, made) = (run(false), run(true));
+        assert!(stored.data == made.data && stored.confidence == made.confidence);
+        let inside = stored.data[70 * w + 150];
+        assert!((inside - 4.0).abs() < 0.5, "{inside}");
+    }
+}
