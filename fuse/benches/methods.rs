@@ -56,6 +56,12 @@ fn methods(c: &mut Criterion) {
         let method = fuse::methods::build(name, None).unwrap_or_else(|e| panic!("{e}"));
         group.bench_function(name, |b| b.iter(|| black_box(method.run(&problem, &|_| {}))));
     }
+    // SGM with its costs made in the passes (no byte volume) against the stored volume.
+    let in_passes = serde_json::json!({"costs_in_passes": true});
+    let method = fuse::methods::build("sgm-heuristic", Some(&in_passes)).unwrap_or_else(|e| panic!("{e}"));
+    group.bench_function("sgm-heuristic_costs_in_passes", |b| {
+        b.iter(|| black_box(method.run(&problem, &|_| {})))
+    });
     // The opt-in image-guided weighted median (MFuseNet's default) on top of SGM.
     let weighted = serde_json::json!({"weighted_median": {}});
     let method = fuse::methods::build("sgm-heuristic", Some(&weighted)).unwrap_or_else(|e| panic!("{e}"));
@@ -69,7 +75,10 @@ fn methods(c: &mut Criterion) {
 /// gradients, and the whole three-view forward pass with cost volumes (`mfusenet` on a 128×96 set).
 fn mfusenet(c: &mut Criterion) {
     use fuse::nn::Tensor;
-    use fuse::nn::conv::{conv3d_same, conv3d_same_input_grad, conv3d_same_weight_grad};
+    use fuse::nn::conv::{
+        Epilogue, conv3d_accumulate_owned, conv3d_same, conv3d_same_input_grad, conv3d_same_weight_grad,
+        conv3d_with_owned,
+    };
     let shape = [8, 32, 96, 128];
     let x = Tensor {
         shape,
@@ -91,6 +100,27 @@ fn mfusenet(c: &mut Criterion) {
     });
     group.bench_function("conv_k7_8to4_weight_grad", |b| {
         b.iter(|| black_box(conv3d_same_weight_grad(&x, &grad, 7)))
+    });
+    // The same 8 → 4 layer as two groups of 4 input channels, each added in (inference's
+    // `concat` a view at a time; the copies of the halves are part of what it costs here).
+    let half = |g: usize| -> (Tensor, Vec<f32>) {
+        let plane = shape[1] * shape[2] * shape[3];
+        let part = Tensor {
+            shape: [4, shape[1], shape[2], shape[3]],
+            data: x.data[4 * g * plane..4 * (g + 1) * plane].to_vec(),
+        };
+        let own = (0..4)
+            .flat_map(|o| weight[(o * 8 + 4 * g) * 343..(o * 8 + 4 * g + 4) * 343].iter().copied())
+            .collect();
+        (part, own)
+    };
+    group.bench_function("conv_k7_8to4_forward_two_groups", |b| {
+        b.iter(|| {
+            let (first, own) = half(0);
+            let sum = conv3d_with_owned(first, &own, 4, 7, None, Epilogue::default());
+            let (second, own) = half(1);
+            black_box(conv3d_accumulate_owned(second, &own, 7, sum, true))
+        })
     });
     let three_view = Problem {
         neighbours: problem(128, 96, 32).neighbours.into_iter().take(2).collect(),
