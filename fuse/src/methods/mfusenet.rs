@@ -886,6 +886,17 @@ mod tests {
         }
     }
 
+    /// `|d − truth|` of `out`'s pixels at least `margin` columns from either border.
+    fn interior_errors(out: &DisparityImage, margin: usize, truth: f32) -> Vec<f32> {
+        let w = out.width;
+        out.data
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| (margin..w.saturating_sub(margin)).contains(&(i % w)))
+            .map(|(_, d)| (d - truth).abs())
+            .collect()
+    }
+
     #[test]
     fn a_wide_range_goes_coarse_to_fine_and_finds_a_plane_far_up_it() {
         // 0..96 → the network at 1/3 size over 0..33, then ± 3 px at full size.
@@ -902,14 +913,7 @@ mod tests {
         );
         let out = method.run(&problem, &|_| {}).unwrap_or_else(|e| panic!("{e}"));
         // The pixels both neighbours see (61 px from either border).
-        let w = problem.reference.width;
-        let errors: Vec<f32> = out
-            .data
-            .iter()
-            .enumerate()
-            .filter(|(i, _)| (61..w - 61).contains(&(i % w)))
-            .map(|(_, e)| (e - 61.0).abs())
-            .collect();
+        let errors = interior_errors(&out, 61, 61.0);
         assert!(errors.len() > 10_000, "{} pixels", errors.len());
         let mean = errors.iter().sum::<f32>() / errors.len() as f32;
         let bad = errors.iter().filter(|e| **e > 1.0).count();
@@ -936,14 +940,7 @@ mod tests {
         );
         let out = method.run(&problem, &|_| {}).unwrap_or_else(|e| panic!("{e}"));
         // The pixels every view sees (12 px from either border).
-        let w = problem.reference.width;
-        let errors: Vec<f32> = out
-            .data
-            .iter()
-            .enumerate()
-            .filter(|(i, _)| (12..w - 12).contains(&(i % w)))
-            .map(|(_, e)| (e - 6.0).abs())
-            .collect();
+        let errors = interior_errors(&out, 12, 6.0);
         let mean = errors.iter().sum::<f32>() / errors.len() as f32;
         assert!(mean < 0.25, "AvgErr {mean:.3} px");
         // Off by default.

@@ -476,12 +476,7 @@ mod tests {
 
     #[test]
     fn a_side_holds_the_views_along_its_ray_nearest_first() {
-        let image = Image {
-            width: 4,
-            height: 4,
-            channels: 1,
-            data: vec![0; 16],
-        };
+        let image = Image::gray(4, 4, vec![0; 16]).unwrap_or_else(|e| panic!("{e}"));
         let neighbour = |offset: [i32; 2]| Neighbour {
             role: format!("{offset:?}"),
             image: image.clone(),
