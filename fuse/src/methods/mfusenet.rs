@@ -318,8 +318,8 @@ impl Method for MFuseNet {
         let neighbours = ordered_neighbours(problem, loaded.net.views)?;
         // The full-size costs as one sum, made a neighbour at a time: the post-processing reads
         // only the sum, and four full-size byte volumes would hold twice its memory.
-        let (costs, first) =
-            summed_input_volume_below(problem, &neighbours, self.config.input.unwrap_or(loaded.input), 0)?;
+        let sides = self.sides(problem, &neighbours);
+        let (costs, first) = summed_input_volume_below(problem, &sides, self.config.input.unwrap_or(loaded.input), 0)?;
         progress(0.9);
         let band = Band {
             factor,
@@ -596,11 +596,7 @@ impl MFuseNet {
         loaded: &Loaded,
     ) -> Result<(Vec<CostVolume<u8>>, i64, f32), FuseError> {
         let room_below = self.config.room_below.unwrap_or(loaded.context_below);
-        let sides = if self.config.side_inputs {
-            sides_of(problem, neighbours)
-        } else {
-            neighbours.iter().map(|n| vec![*n]).collect()
-        };
+        let sides = self.sides(problem, neighbours);
         let (volumes, first) = input_volumes_of_sides_below(
             problem,
             &sides,
@@ -610,6 +606,16 @@ impl MFuseNet {
         )?;
         let origin = first as f32 - volumes.first().map_or(0, |v| v.min_disparity) as f32;
         Ok((volumes, first, origin))
+    }
+
+    /// The views each input is made from: with `side_inputs`, each of `neighbours` with the
+    /// set's views farther along its ray ([`sides_of`]); else each alone.
+    fn sides<'p>(&self, problem: &'p Problem, neighbours: &[&'p Neighbour]) -> Vec<Vec<&'p Neighbour>> {
+        if self.config.side_inputs {
+            sides_of(problem, neighbours)
+        } else {
+            neighbours.iter().map(|n| vec![*n]).collect()
+        }
     }
 
     /// How the estimate is read for `loaded`'s network over `problem`'s range, whose volumes

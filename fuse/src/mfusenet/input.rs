@@ -281,10 +281,10 @@ pub fn sides_of<'a>(problem: &'a Problem, neighbours: &[&'a Neighbour]) -> Vec<V
         .collect()
 }
 
-/// Each of `neighbours`' cost volumes aggregated by SGM on its own, handed to `each` with the
-/// quantised large-jump penalty, one neighbour at a time. The costs are made where SGM's passes
-/// read them ([`aggregate_prepared`]: no byte volume, 265 MB at 1080p and 132 disparities), and
-/// every neighbour's sums share one buffer.
+/// Each side's cost volume (the minimum of its views' costs; a side of one view: its costs)
+/// aggregated by SGM on its own, handed to `each` with the quantised large-jump penalty, one
+/// side at a time. The costs are made where SGM's passes read them ([`aggregate_prepared`]: no
+/// byte volume, 265 MB at 1080p and 132 disparities), and every side's sums share one buffer.
 fn for_each_aggregated(
     problem: &Problem,
     sides: &[Vec<&Neighbour>],
@@ -301,7 +301,6 @@ fn for_each_aggregated(
     let mut buffer = Vec::new();
     for side in sides {
         let Some(n) = side.first() else { continue };
-        // With one neighbour every fusion rule returns its costs.
         let single = Problem {
             reference: problem.reference.clone(),
             neighbours: side.iter().map(|m| (*m).clone()).collect(),
@@ -412,20 +411,19 @@ pub fn summed(volumes: &[CostVolume<u8>]) -> Option<CostVolume<u16>> {
     Some(sum)
 }
 
-/// The sum over `neighbours` of their normalised volumes ([`input_volumes_below`], `below`
-/// disparities of context), made one neighbour at a time, so that only one neighbour's SGM sums
-/// and the total are held at once instead of every neighbour's bytes: the full-size costs of
-/// coarse to fine. The same numbers as [`summed`] of [`input_volumes_below`]'s volumes.
+/// The sum over `sides` of their normalised volumes ([`input_volumes_of_sides_below`], `below`
+/// disparities of context), made one side at a time, so that only one side's SGM sums and the
+/// total are held at once instead of every side's bytes: the full-size costs of coarse to fine.
+/// The same numbers as [`summed`] of [`input_volumes_of_sides_below`]'s volumes.
 pub fn summed_input_volume_below(
     problem: &Problem,
-    neighbours: &[&Neighbour],
+    sides: &[Vec<&Neighbour>],
     spec: InputSpec,
     below: usize,
 ) -> Result<(CostVolume<u16>, i64), FuseError> {
     let extended = with_context_below(problem, below);
     let mut total: Option<CostVolume<u16>> = None;
-    let sides: Vec<Vec<&Neighbour>> = neighbours.iter().map(|n| vec![*n]).collect();
-    for_each_aggregated(&extended, &sides, spec, &|| {}, |sums, p2| {
+    for_each_aggregated(&extended, sides, spec, &|| {}, |sums, p2| {
         let total = total.get_or_insert_with(|| {
             let mut t = sums.with_data(vec![0u16; sums.data.len()], 0);
             t.source = VolumeSource::Fused(Fusion::Mean);
@@ -730,6 +728,31 @@ mod tests {
     fn volumes_below(problem: &Problem, below: usize) -> (Vec<CostVolume<u8>>, i64) {
         let neighbours: Vec<&Neighbour> = problem.neighbours.iter().collect();
         input_volumes_below(problem, &neighbours, InputSpec::default(), below, &|| {}).unwrap_or_else(|e| panic!("{e}"))
+    }
+
+    #[test]
+    fn the_summed_volume_of_sides_is_the_sum_of_their_volumes() {
+        // A line of three views at 1, 2 and −1 baselines: the right side holds two.
+        let mut problem = plane(3, 0, 16);
+        problem.neighbours.push(Neighbour {
+            role: "right2".into(),
+            image: crate::image::textured_view(64, 32, 6),
+            offset: [2, 0],
+            baseline_ratio: 1.0,
+        });
+        let nearest: Vec<&Neighbour> = problem.neighbours[..2].iter().collect();
+        let sides = sides_of(&problem, &nearest);
+        assert_eq!(sides.iter().map(Vec::len).collect::<Vec<_>>(), [1, 2]);
+        let (total, first) =
+            summed_input_volume_below(&problem, &sides, InputSpec::default(), 4).unwrap_or_else(|e| panic!("{e}"));
+        let (volumes, expected_first) = input_volumes_of_sides_below(&problem, &sides, InputSpec::default(), 4, &|| {})
+            .unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(first, expected_first);
+        let expected = summed(&volumes).unwrap_or_else(|| panic!("two volumes of one shape"));
+        assert!(total.data == expected.data && total.max_cost == expected.max_cost);
+        // The side of two is not the near view alone.
+        let alone = volumes_below(&problem, 4).0;
+        assert!(volumes[1] != alone[1]);
     }
 
     #[test]
