@@ -77,7 +77,7 @@ fn mfusenet(c: &mut Criterion) {
     use fuse::nn::Tensor;
     use fuse::nn::conv::{
         Epilogue, conv3d_accumulate_owned, conv3d_same, conv3d_same_input_grad, conv3d_same_weight_grad,
-        conv3d_with_owned,
+        conv3d_with_owned, input_channels,
     };
     let shape = [8, 32, 96, 128];
     let x = Tensor {
@@ -109,9 +109,7 @@ fn mfusenet(c: &mut Criterion) {
             shape: [4, shape[1], shape[2], shape[3]],
             data: x.data[4 * g * plane..4 * (g + 1) * plane].to_vec(),
         };
-        let own = (0..4)
-            .flat_map(|o| weight[(o * 8 + 4 * g) * 343..(o * 8 + 4 * g + 4) * 343].iter().copied())
-            .collect();
+        let own = input_channels(&weight, 4, 8, 7, 4 * g..4 * (g + 1));
         (part, own)
     };
     group.bench_function("conv_k7_8to4_forward_two_groups", |b| {

@@ -66,8 +66,9 @@ fn axis_tiles(length: usize, core: usize, halo: usize) -> AxisTiles {
 /// The tiles of a `height × width` image (multiples of 4) whose regions (cores with their
 /// halo) each hold at most `max_region_pixels`, with the fewest region pixels in all: every
 /// split of each axis into equal cores (multiples of 4) is tried, so that the halos, which are
-/// computed twice, cost as little as the budget allows (a 960 × 540 image of 36 slices at 192 bytes a voxel under a 1 GiB budget:
-/// 3 × 2 tiles of 320 × 272 instead of 4 × 2 squares of 296, 11 % fewer voxels). The square
+/// computed twice, cost as little as the budget allows (a 960 × 540 image of 36 slices at 192
+/// bytes a voxel under a 1 GiB budget: 3 × 2 tiles of 320 × 272 instead of 4 × 2 squares of
+/// 296, 11 % fewer voxels). The square
 /// tiles of [`tile_side`] are among the splits tried, so the plan is never worse than them.
 /// `(row cores and regions, column cores and regions)`.
 pub fn plan_tiles(height: usize, width: usize, max_region_pixels: usize, halo: usize) -> (AxisTiles, AxisTiles) {

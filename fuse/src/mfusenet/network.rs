@@ -23,7 +23,7 @@ use crate::nn::Tensor;
 use crate::nn::batch_norm::{BatchNorm, BatchNormCache};
 use crate::nn::conv::{
     Epilogue, conv3d_accumulate_owned, conv3d_same, conv3d_same_input_grad, conv3d_same_weight_grad, conv3d_with,
-    conv3d_with_owned, transposed_as_conv, transposed_weight_grad,
+    conv3d_with_owned, input_channels, transposed_as_conv, transposed_weight_grad,
 };
 use crate::nn::regression::{smooth_l1, soft_argmin, soft_argmin_backward};
 
@@ -501,16 +501,10 @@ impl Network {
             let layer = &self.fuse[CONCAT];
             let (weight, bias) = layer.bn.fold_into(&layer.conv_weight());
             let [cout, cin, k] = [layer.cout, 4 * self.views, layer.k];
-            let taps = k * k * k;
             let mut c: Option<Tensor> = None;
             let last = inputs.len() - 1;
             for (i, x) in inputs.iter().enumerate() {
-                let own: Vec<f32> = (0..cout)
-                    .flat_map(|o| {
-                        let at = (o * cin + 4 * i) * taps;
-                        weight[at..at + 4 * taps].iter().copied()
-                    })
-                    .collect();
+                let own = input_channels(&weight, cout, cin, k, 4 * i..4 * (i + 1));
                 let features = tower(x);
                 let relu = i == last;
                 c = Some(match c {

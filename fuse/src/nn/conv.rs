@@ -163,6 +163,19 @@ pub fn conv3d_with_owned(
     conv_source(Source::Owned(x), weight, cout, k, bias, epilogue, None)
 }
 
+/// The kernel `weight` (`[cout][cin][k³]`) restricted to the input channels `channels`:
+/// `[cout][channels.len()][k³]`, for [`conv3d_accumulate_owned`] over a group of channels.
+pub fn input_channels(weight: &[f32], cout: usize, cin: usize, k: usize, channels: std::ops::Range<usize>) -> Vec<f32> {
+    let taps = k * k * k;
+    (0..cout)
+        .flat_map(|o| {
+            weight[(o * cin + channels.start) * taps..(o * cin + channels.end) * taps]
+                .iter()
+                .copied()
+        })
+        .collect()
+}
+
 /// `into += conv3d_same(x, weight, cout, k, None)`, then `max(0, ·)` with `relu`; `x` freed once
 /// padded: a convolution over many input channels computed a group of channels at a time (each
 /// group's input made, added in and freed), so that the whole input never exists. `into` must
@@ -469,19 +482,12 @@ pub(crate) mod tests {
                 *v = (*v + bias[c]).max(0.0);
             }
         }
-        let taps = k * k * k;
         let group = |g: usize| {
             let part = Tensor {
                 shape: [4, shape[1], shape[2], shape[3]],
                 data: x.data[4 * g * plane..4 * (g + 1) * plane].to_vec(),
             };
-            let own: Vec<f32> = (0..cout)
-                .flat_map(|o| {
-                    weight[(o * 8 + 4 * g) * taps..(o * 8 + 4 * g + 4) * taps]
-                        .iter()
-                        .copied()
-                })
-                .collect();
+            let own = input_channels(&weight, cout, 8, k, 4 * g..4 * (g + 1));
             (part, own)
         };
         let (first, own) = group(0);
