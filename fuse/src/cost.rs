@@ -379,6 +379,18 @@ impl ValidDisparities {
         }
     }
 
+    /// The disparities `[first, end)` (indices into the axis) whose correspondence from pixel
+    /// `(x, y)` stays inside the neighbour image.
+    pub fn at(&self, x: usize, y: usize) -> (usize, usize) {
+        let nd = self.num_disparities;
+        let ((row_first, row_end), (column_first, column_end)) = (
+            self.by_row.get(y).copied().unwrap_or((nd, nd)),
+            self.by_column.get(x).copied().unwrap_or((nd, nd)),
+        );
+        let first = row_first.max(column_first).min(nd);
+        (first, row_end.min(column_end).max(first))
+    }
+
     /// Sets to [`INVALID_COST`] the costs (`[x][d]`, columns `x_start ..` of row `y`) whose
     /// correspondence leaves the neighbour image.
     pub fn mark(&self, costs: &mut [u16], (x_start, y): (usize, usize)) {

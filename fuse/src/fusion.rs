@@ -172,7 +172,8 @@ pub fn fuse_rows(fusion: Fusion, rows: &[&[u16]], out: &mut [u16], max_cost: u32
 /// Neighbours grouped by the direction of their offset from the reference (`[2, 0]` joins
 /// `[1, 0]`, `[-2, 0]` does not): views on one side of the reference along one ray are hidden
 /// from the same occluders, so the occlusion-aware rules (min, heuristic) should count *sides*,
-/// not views. Groups keep the neighbours' order (by their first member).
+/// not views. Groups keep the neighbours' order (by their first member); each group's members
+/// run nearest first.
 pub fn direction_groups(offsets: &[[i32; 2]]) -> Vec<Vec<usize>> {
     fn gcd(a: i32, b: i32) -> i32 {
         if b == 0 { a.abs() } else { gcd(b, a % b) }
@@ -189,7 +190,61 @@ pub fn direction_groups(offsets: &[[i32; 2]]) -> Vec<Vec<usize>> {
             None => groups.push((dir, vec![i])),
         }
     }
-    groups.into_iter().map(|(_, members)| members).collect()
+    groups
+        .into_iter()
+        .map(|(_, mut members)| {
+            members.sort_by_key(|k| offsets[*k][0].abs() + offsets[*k][1].abs());
+            members
+        })
+        .collect()
+}
+
+/// How the views on one side of the reference, along one ray (`[1, 0]`, `[2, 0]` …), become
+/// that side's cost. Both are the nearest view's cost where the views agree.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum SideRule {
+    /// Their minimum, the classical heuristic's: a farther view's match counts wherever the
+    /// nearest one misses (reflective parts gain most), and so does its aliased match on a
+    /// periodic texture (sampled at `k·d`, it repeats `k` times as often).
+    #[default]
+    Min,
+    /// The mean over the side's views of the smaller of the nearest view's cost and theirs: a
+    /// farther view lowers the nearest one's cost (by its share) only where it is lower, never
+    /// raises it (occluded farther views do not hurt), and a match that only a farther view
+    /// sees counts at most halfway (two views), so its aliases cannot outvote the nearest view.
+    NearCapped,
+}
+
+/// Fuses the rows of one side's views, nearest first (`rows[k]`, all the same length) into
+/// `out` by `rule`. Where the nearest view's cost is invalid, the minimum of the others.
+pub fn fuse_side_rows(rule: SideRule, rows: &[&[u16]], out: &mut [u16]) {
+    let Some((near, farther)) = rows.split_first() else {
+        out.fill(INVALID_COST);
+        return;
+    };
+    out.copy_from_slice(&near[..out.len()]);
+    match rule {
+        SideRule::Min => {
+            for row in farther {
+                for (o, v) in out.iter_mut().zip(row.iter()) {
+                    *o = (*o).min(*v);
+                }
+            }
+        }
+        SideRule::NearCapped => {
+            let count = rows.len() as u32;
+            for (i, o) in out.iter_mut().enumerate() {
+                let n = near[i];
+                if n == INVALID_COST {
+                    *o = farther.iter().map(|r| r[i]).min().unwrap_or(INVALID_COST);
+                } else {
+                    let sum: u32 = u32::from(n) + farther.iter().map(|r| u32::from(r[i].min(n))).sum::<u32>();
+                    *o = ((sum + count / 2) / count) as u16;
+                }
+            }
+        }
+    }
 }
 
 /// The heuristic over sides: the minimum of each side's views ([`direction_groups`]), then the
@@ -258,9 +313,10 @@ mod tests {
     #[test]
     fn mean_and_min_skip_invalid_costs() {
         assert_eq!(fuse_values(Fusion::Mean, &[10, X, 20]), 15);
-        // Sides: [1, 0] and [2, 0] share one, [-2, 0], [0, 1] and the diagonal have their own.
+        // Sides: [1, 0] and [2, 0] share one, [-2, 0], [0, 1] and the diagonal ([1, 1] first, the
+        // nearer) have their own.
         let sides = direction_groups(&[[1, 0], [-2, 0], [2, 0], [0, 1], [2, 2], [1, 1]]);
-        assert_eq!(sides, vec![vec![0, 2], vec![1], vec![3], vec![4, 5]]);
+        assert_eq!(sides, vec![vec![0, 2], vec![1], vec![3], vec![5, 4]]);
         let mut scratch = Vec::new();
         // Right side min(50, 8) = 8, left 9, bottom 100, diagonal min(30, 40) = 30: heuristic of
         // 8, 9, 30: 30 > 3·9, so the mean of the two smallest, 8.5 → 9 (over the six views
@@ -302,5 +358,36 @@ mod tests {
         let mut fused = [0u16; 2];
         fuse_rows(Fusion::Heuristic, &rows, &mut fused, 60_000);
         assert_eq!(fused, [50_000, 11]);
+    }
+
+    #[test]
+    fn a_side_s_views_become_one_cost_nearest_first() {
+        // Groups run nearest first whatever the neighbours' order.
+        assert_eq!(
+            direction_groups(&[[2, 0], [-1, 0], [1, 0], [3, 0]]),
+            vec![vec![2, 0, 3], vec![1]]
+        );
+        let near = [10u16, 40, 40, X, 20];
+        let far = [30u16, 10, 40, 7, X];
+        let mut out = [0u16; 5];
+        fuse_side_rows(SideRule::Min, &[&near, &far], &mut out);
+        assert_eq!(out, [10, 10, 40, 7, 20]);
+        // Near-capped: a farther view lowers the nearest cost halfway where it is lower (40 and
+        // 10 → 25), never raises it (10 and 30 → 10; an invalid far cost counts as the near one);
+        // without the nearest cost, the farther ones' minimum.
+        fuse_side_rows(SideRule::NearCapped, &[&near, &far], &mut out);
+        assert_eq!(out, [10, 25, 40, 7, 20]);
+        // Three views: the mean of 40, min(40, 10), min(40, 100) = 30.
+        let farthest = [100u16; 5];
+        fuse_side_rows(SideRule::NearCapped, &[&near, &far, &farthest], &mut out);
+        assert_eq!(out[1], 30);
+        // An aliased far match (the near view rejects it) ties no longer with the near view's
+        // match: 45 against 10.
+        let (near, far) = ([10u16, 80], [12u16, 10]);
+        let mut side = [0u16; 2];
+        fuse_side_rows(SideRule::NearCapped, &[&near, &far], &mut side);
+        assert_eq!(side, [10, 45]);
+        fuse_side_rows(SideRule::Min, &[&near, &far], &mut side);
+        assert_eq!(side, [10, 10]);
     }
 }

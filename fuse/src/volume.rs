@@ -12,7 +12,7 @@ use crate::FuseError;
 use crate::cost::{
     DisparityResampler, MAX_BLOCK_RADIUS, MAX_CENSUS_RADIUS, PixelCost, PreparedView, ValidDisparities, pixel_cost_tile,
 };
-use crate::fusion::{Fusion, fuse_rows};
+use crate::fusion::{Fusion, SideRule, fuse_rows};
 use crate::image::Image;
 use crate::lines::{SearchLines, pixel_cost_tile_lines};
 use crate::sgm::quantise_into;
@@ -435,12 +435,23 @@ pub struct PreparedProblem {
     num_disparities: usize,
     spec: CostSpec,
     fusion: Fusion,
-    /// The neighbours by side for the heuristic (whose sides count once, by their minimum); one
+    /// The neighbours by side for the heuristic (whose sides count once, by `side_rule`); one
     /// group per neighbour otherwise or when no two share a side.
     sides: Vec<Vec<usize>>,
+    /// How a side's views become its cost ([`SideRule::Min`] unless [`Self::with_side_rule`]).
+    side_rule: SideRule,
 }
 
 impl PreparedProblem {
+    /// `self` with the views of each side made one cost by `rule`.
+    #[must_use]
+    pub fn with_side_rule(self, rule: SideRule) -> Self {
+        Self {
+            side_rule: rule,
+            ..self
+        }
+    }
+
     /// Prepares the views a fusion needs (census codes, BT interpolants).
     pub fn new(problem: &Problem, spec: CostSpec, fusion: Fusion) -> Result<Self, FuseError> {
         problem.validate()?;
@@ -457,6 +468,7 @@ impl PreparedProblem {
         };
         Ok(Self {
             sides,
+            side_rule: SideRule::Min,
             reference,
             neighbours,
             width: problem.reference.width,
@@ -648,16 +660,13 @@ impl PreparedProblem {
                 }
                 fused.resize(cells, 0);
                 if self.sides.len() < self.neighbours.len() {
-                    // Several views on one side: the side's minimum, then the rule across sides.
+                    // Several views on one side: the side's rule, then the rule across sides.
                     sides.resize_with(self.sides.len(), Vec::new);
                     for (side, members) in sides.iter_mut().zip(&self.sides) {
                         side.clear();
-                        side.extend_from_slice(&neighbours[members[0]].aggregated[..cells]);
-                        for k in &members[1..] {
-                            for (o, v) in side.iter_mut().zip(&neighbours[*k].aggregated[..cells]) {
-                                *o = (*o).min(*v);
-                            }
-                        }
+                        side.resize(cells, 0);
+                        let rows: Vec<&[u16]> = members.iter().map(|k| &neighbours[*k].aggregated[..cells]).collect();
+                        crate::fusion::fuse_side_rows(self.side_rule, &rows, side);
                     }
                     let sources: Vec<&[u16]> = sides.iter().map(Vec::as_slice).collect();
                     fuse_rows(self.fusion, &sources, fused, self.spec.max_cost());

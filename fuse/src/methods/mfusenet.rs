@@ -16,6 +16,8 @@ use serde::{Deserialize, Serialize};
 
 use super::{Family, Method, MethodEntry, Progress, apply_overrides};
 use crate::FuseError;
+use crate::cost::ValidDisparities;
+use crate::fusion::SideRule;
 use crate::image::DisparityImage;
 use crate::mfusenet::infer::{
     DEFAULT_REFINE_REACH, DEFAULT_SUBPIXEL_FIT, DEFAULT_TILE_BUDGET_BYTES, Estimate, Member, infer_fused,
@@ -148,13 +150,20 @@ pub struct MFuseNetConfig {
     /// only (its metadata's `train_config` names no `grid-cross` rig), which read far and
     /// diagonal views worse than nothing (docs/experiments.md).
     pub every_view: Option<bool>,
-    /// Each input of the nearest group made from its whole side: the minimum of the costs of
-    /// the views along its ray (a line of five's left input from ±1 and ±2's left views), as
-    /// the classical heuristic counts sides; off by default. On reflective parts it helps
-    /// (a line of five of the workpiece: 1.337 → 1.107 px), on periodic texture a far view's
-    /// aliased match can win (a `random` line of five: 0.673 → 2.149 px); docs/experiments.md.
-    #[serde(default)]
+    /// Each input of a fixed network's nearest group made from its whole side: the costs of
+    /// the views along its ray (a line of five's left input from −1 and −2), made one by
+    /// `side_rule`, as the classical heuristic counts sides (on by default; a set with one view
+    /// per direction does not change). Middlebury's line with four views on one side: 0.289 →
+    /// 0.272 px; docs/experiments.md.
+    #[serde(default = "yes")]
     pub side_inputs: bool,
+    /// With `side_inputs`, how a side's views become one cost: `"near-capped"` (the default;
+    /// a farther view lowers the nearest one's cost halfway where it is lower) or `"min"`
+    /// (the classical heuristic's: on reflective parts it gains most, a line of five of the
+    /// workpiece 1.36 → 1.12 px, but on periodic texture a far view's aliased match wins, a
+    /// `random` line 0.61 → 2.04 px).
+    #[serde(default = "near_capped")]
+    pub side_rule: SideRule,
     /// Sub-pixel from block-matching costs, last (`subpixel::BlockSubpixel`; `{}` = its
     /// defaults, the default; `null` = none): the estimate's integer stays, its fraction is
     /// re-read from a parabola through fused 9×9 Birchfield–Tomasi block costs where that moves
@@ -189,7 +198,8 @@ impl Default for MFuseNetConfig {
             flips: false,
             max_direct_disparities: DEFAULT_MAX_DIRECT_DISPARITIES,
             every_view: None,
-            side_inputs: false,
+            side_inputs: true,
+            side_rule: SideRule::NearCapped,
             block_subpixel: Some(BlockSubpixel::default()),
             thin_parts: Some(ThinParts::default()),
         }
@@ -318,8 +328,14 @@ impl Method for MFuseNet {
         let neighbours = ordered_neighbours(problem, loaded.net.views)?;
         // The full-size costs as one sum, made a neighbour at a time: the post-processing reads
         // only the sum, and four full-size byte volumes would hold twice its memory.
-        let sides = self.sides(problem, &neighbours);
-        let (costs, first) = summed_input_volume_below(problem, &sides, self.config.input.unwrap_or(loaded.input), 0)?;
+        let sides = self.sides(problem, &neighbours, loaded);
+        let (costs, first) = summed_input_volume_below(
+            problem,
+            &sides,
+            self.config.side_rule,
+            self.config.input.unwrap_or(loaded.input),
+            0,
+        )?;
         progress(0.9);
         let band = Band {
             factor,
@@ -358,14 +374,19 @@ impl Method for MFuseNet {
         };
         let (min_disparity, num_disparities) = widened_range(range).unwrap_or(range);
         let room_below = self.config.room_below.unwrap_or(loaded.context_below);
-        // Each input of the nearest group and the views it was made from.
-        let side_inputs = self.config.side_inputs.then(|| {
-            let nearest = ordered_neighbours(problem, loaded.views).unwrap_or_default();
-            sides_of(problem, &nearest)
-                .iter()
-                .map(|side| side.iter().map(|n| n.role.as_str()).collect::<Vec<_>>().join(" + "))
-                .collect::<Vec<_>>()
-        });
+        // Each input of the nearest group and the views it was made from, where one has several.
+        let side_inputs = (self.config.side_inputs && loaded.views > 0)
+            .then(|| {
+                let nearest = ordered_neighbours(problem, loaded.views).unwrap_or_default();
+                sides_of(problem, &nearest)
+            })
+            .filter(|sides| sides.iter().any(|side| side.len() > 1))
+            .map(|sides| {
+                sides
+                    .iter()
+                    .map(|side| side.iter().map(|n| n.role.as_str()).collect::<Vec<_>>().join(" + "))
+                    .collect::<Vec<_>>()
+            });
         if let Some(serde_json::Value::Object(plan)) = self.plan_details(problem) {
             let mut out = serde_json::json!({
                 "network": "fused",
@@ -374,6 +395,7 @@ impl Method for MFuseNet {
                 "network_height": height,
                 "full_size_band_px": (factor > 1).then_some(factor),
                 "side_inputs": side_inputs,
+            "side_rule": side_inputs.is_some().then_some(self.config.side_rule),
             });
             if let serde_json::Value::Object(map) = &mut out {
                 map.extend(plan);
@@ -394,6 +416,7 @@ impl Method for MFuseNet {
                     .unwrap_or_default()
             }),
             "side_inputs": side_inputs,
+            "side_rule": side_inputs.is_some().then_some(self.config.side_rule),
         })
     }
 }
@@ -440,6 +463,16 @@ fn summed_or_error(volumes: &[CostVolume<u8>]) -> Result<CostVolume<u16>, FuseEr
         value: volumes.len().to_string(),
         reason: "the network's inputs need at least one neighbour volume, all of one shape",
     })
+}
+
+/// [`MFuseNetConfig::side_inputs`]' default.
+fn yes() -> bool {
+    true
+}
+
+/// [`MFuseNetConfig::side_rule`]'s default.
+fn near_capped() -> SideRule {
+    SideRule::NearCapped
 }
 
 impl MFuseNet {
@@ -596,10 +629,11 @@ impl MFuseNet {
         loaded: &Loaded,
     ) -> Result<(Vec<CostVolume<u8>>, i64, f32), FuseError> {
         let room_below = self.config.room_below.unwrap_or(loaded.context_below);
-        let sides = self.sides(problem, neighbours);
+        let sides = self.sides(problem, neighbours, loaded);
         let (volumes, first) = input_volumes_of_sides_below(
             problem,
             &sides,
+            self.config.side_rule,
             self.config.input.unwrap_or(loaded.input),
             room_below,
             &|| {},
@@ -608,10 +642,17 @@ impl MFuseNet {
         Ok((volumes, first, origin))
     }
 
-    /// The views each input is made from: with `side_inputs`, each of `neighbours` with the
-    /// set's views farther along its ray ([`sides_of`]); else each alone.
-    fn sides<'p>(&self, problem: &'p Problem, neighbours: &[&'p Neighbour]) -> Vec<Vec<&'p Neighbour>> {
-        if self.config.side_inputs {
+    /// The views each input of `loaded`'s network is made from: with `side_inputs` and a fixed
+    /// network, each of `neighbours` with the set's views farther along its ray
+    /// ([`sides_of`]); else each alone (a view-count-agnostic network takes the far views as
+    /// inputs of their own).
+    fn sides<'p>(
+        &self,
+        problem: &'p Problem,
+        neighbours: &[&'p Neighbour],
+        loaded: &Loaded,
+    ) -> Vec<Vec<&'p Neighbour>> {
+        if self.config.side_inputs && loaded.views > 0 {
             sides_of(problem, neighbours)
         } else {
             neighbours.iter().map(|n| vec![*n]).collect()
@@ -656,15 +697,30 @@ impl MFuseNet {
         };
         let mut neighbours: Vec<&Neighbour> = Vec::new();
         let mut members = Vec::new();
-        for (group, loaded) in &groups {
-            let start = neighbours.len();
+        let mut starts = Vec::new();
+        for (group, _) in &groups {
+            starts.push(neighbours.len());
             neighbours.extend(group.neighbours.iter().copied());
-            members.push(Member {
-                net: &loaded.net,
-                inputs: (start..neighbours.len()).collect(),
-            });
         }
         let (volumes, first, origin) = self.input_volumes(problem, &neighbours, primary)?;
+        let size = (problem.reference.width, problem.reference.height);
+        let axis = volumes.first().map_or((0, 0), |v| (v.min_disparity, v.num_disparities));
+        for (g, ((group, loaded), start)) in groups.iter().zip(&starts).enumerate() {
+            // The nearest group votes everywhere; a farther one where its views see the
+            // disparity (its network answers from mirrored costs elsewhere).
+            let reach = (g > 0).then(|| {
+                group
+                    .neighbours
+                    .iter()
+                    .map(|n| ValidDisparities::new(n.offset, size, axis, n.baseline_ratio))
+                    .collect()
+            });
+            members.push(Member {
+                net: &loaded.net,
+                inputs: (*start..start + group.neighbours.len()).collect(),
+                reach,
+            });
+        }
         // The estimate is refined and filtered with the nearest group's costs: the farther
         // views' costs, summed in or taken side by side, raised AvgErr on the toy line of five
         // and on Middlebury's lines (docs/experiments.md).
@@ -944,14 +1000,18 @@ mod tests {
             serde_json::json!(["left + left2", "right + right2"]),
             "{details}"
         );
+        assert_eq!(details["side_rule"], "near-capped", "{details}");
         let out = method.run(&problem, &|_| {}).unwrap_or_else(|e| panic!("{e}"));
         // The pixels every view sees (12 px from either border).
         let errors = interior_errors(&out, 12, 6.0);
         let mean = errors.iter().sum::<f32>() / errors.len() as f32;
         assert!(mean < 0.25, "AvgErr {mean:.3} px");
-        // Off by default.
+        // On by default; `false` turns them off.
         let default = crate::methods::build("mfusenet", None).unwrap_or_else(|e| panic!("{e}"));
-        assert!(default.details(&problem)["side_inputs"].is_null());
+        assert_eq!(default.details(&problem)["side_inputs"], details["side_inputs"]);
+        let off = serde_json::json!({ "side_inputs": false });
+        let off = crate::methods::build("mfusenet", Some(&off)).unwrap_or_else(|e| panic!("{e}"));
+        assert!(off.details(&problem)["side_inputs"].is_null());
     }
 
     #[test]

@@ -10,6 +10,7 @@ use std::ops::Range;
 use super::Error;
 use super::input::{flip_axes, mirrored};
 use super::network::Network;
+use crate::cost::ValidDisparities;
 use crate::nn::Tensor;
 use crate::volume::CostVolume;
 use crate::wta::{LockingCurve, SubpixelFit};
@@ -274,6 +275,12 @@ pub struct Member<'a> {
     pub net: &'a Network,
     /// Indices into the volumes, in the network's input order.
     pub inputs: Vec<usize>,
+    /// Where the member votes: `None`, at every disparity of every pixel; else its views'
+    /// disparities inside their images ([`ValidDisparities`] over the volumes' axis), and the
+    /// member's logits count only there. A farther group's correspondences leave the image in
+    /// border bands as wide as its baseline times the range, where its network answers from
+    /// mirrored costs.
+    pub reach: Option<Vec<ValidDisparities>>,
 }
 
 /// [`infer_with_confidence`] for several networks over one set, each on its own neighbours'
@@ -317,6 +324,10 @@ pub fn infer_fused(
     let dp = round4(nd);
     let tiles = tiles((w, h, nd), widest, budget_bytes);
     let total_weight: f32 = members.iter().map(|m| m.net.views as f32).sum();
+    // With a member that votes only where its views see, each member's logits become
+    // log-probabilities (their softmax is unchanged; their offsets then agree) and every
+    // (pixel, disparity) averages those of the members that vote there.
+    let partial = members.iter().any(|m| m.reach.is_some());
     let mut disparity = vec![0f32; w * h];
     let mut confidence = vec![0f32; w * h];
     let steps = (tiles.len() * members.len()).max(1);
@@ -328,6 +339,7 @@ pub fn infer_fused(
         let (ch, cw) = (core_rows.len(), core_columns.len());
         // The members' logits over the core, `[d][row][column]`, weighted and summed.
         let mut fused = vec![0f32; dp * ch * cw];
+        let mut votes = if partial { vec![0f32; nd * ch * cw] } else { Vec::new() };
         for (done, m) in members.iter().enumerate() {
             let inputs: Vec<Tensor> = m
                 .inputs
@@ -343,11 +355,20 @@ pub fn infer_fused(
                 core_columns.start - ox..core_columns.end - ox,
             );
             drop(logits);
-            let weight = m.net.views as f32 / total_weight;
-            fused.iter_mut().zip(&core.data).for_each(|(f, l)| *f += weight * l);
+            if partial {
+                add_log_probabilities(m, &core.data, (&mut fused, &mut votes), nd, (y0, x0), (ch, cw));
+            } else {
+                let weight = m.net.views as f32 / total_weight;
+                fused.iter_mut().zip(&core.data).for_each(|(f, l)| *f += weight * l);
+            }
             progress((t * members.len() + done + 1) as f32 / steps as f32);
         }
         let plane = ch * cw;
+        if partial {
+            for (f, v) in fused.iter_mut().zip(&votes) {
+                *f = if *v > 0.0 { *f / v } else { f32::NEG_INFINITY };
+            }
+        }
         for y in y0..y1.min(h) {
             for x in x0..x1.min(w) {
                 let at = (y - y0) * cw + (x - x0);
@@ -364,6 +385,42 @@ pub fn infer_fused(
         }
     }
     Ok((disparity, confidence))
+}
+
+/// Adds `member`'s log-probabilities (from its core logits `[d][row][column]`, `ch × cw` from
+/// pixel `(y0, x0)`) weighted by its views into `sums` where it votes, and its weight into
+/// `votes` (both `[d][row][column]` over the first `nd` slices).
+fn add_log_probabilities(
+    member: &Member<'_>,
+    logits: &[f32],
+    (sums, votes): (&mut [f32], &mut [f32]),
+    nd: usize,
+    (y0, x0): (usize, usize),
+    (ch, cw): (usize, usize),
+) {
+    let plane = ch * cw;
+    let weight = member.net.views as f32;
+    for at in 0..plane {
+        let (y, x) = (y0 + at / cw, x0 + at % cw);
+        let (first, end) = member.reach.as_ref().map_or((0, nd), |views| {
+            views.iter().fold((0, nd), |(first, end), v| {
+                let (f, e) = v.at(x, y);
+                (first.max(f), end.min(e))
+            })
+        });
+        if first >= end {
+            continue;
+        }
+        let max = (0..nd)
+            .map(|d| logits[d * plane + at])
+            .fold(f32::NEG_INFINITY, f32::max);
+        let sum: f32 = (0..nd).map(|d| (logits[d * plane + at] - max).exp()).sum();
+        let norm = max + sum.ln();
+        for d in first..end {
+            sums[d * plane + at] += weight * (logits[d * plane + at] - norm);
+            votes[d * plane + at] += weight;
+        }
+    }
 }
 
 /// How a pixel's disparity is read from the network's distribution. The default is the
@@ -658,7 +715,11 @@ mod tests {
         // One member: the single network's answer, refined with the same costs.
         let alone =
             infer_with_confidence(&a, &volumes[..2], usize::MAX, refine, &|_| {}).unwrap_or_else(|e| panic!("{e}"));
-        let member = |net, inputs| Member { net, inputs };
+        let member = |net, inputs| Member {
+            net,
+            inputs,
+            reach: None,
+        };
         let one = infer_fused(&[member(&a, vec![0, 1])], &volumes, &near, usize::MAX, refine, &|_| {})
             .unwrap_or_else(|e| panic!("{e}"));
         assert_eq!(one, alone);
@@ -693,6 +754,44 @@ mod tests {
         assert!(fused.0.iter().zip(&tiled.0).all(|(a, b)| (a - b).abs() < 1e-3));
         // A member whose inputs are not the network's count is refused.
         assert!(infer_fused(&[member(&a, vec![0])], &volumes, &near, usize::MAX, refine, &|_| {}).is_err());
+        // The second member voting where its views see: at disparity 3 + d the view at +2
+        // baselines reaches x − 2·(3 + d), so from column x it sees d ≤ x/2 − 3. Columns under
+        // 6 see nothing (the first member alone); from column 2·(3 + nd) on, everything (the
+        // mean of the logits, as without reach); between, its log-probabilities join the first
+        // member's where it sees.
+        let reach = vec![ValidDisparities::new([2, 0], (w, h), (3, nd), 1.0)];
+        let partial = [
+            member(&a, vec![0, 1]),
+            Member {
+                reach: Some(reach),
+                ..member(&b, vec![2, 3])
+            },
+        ];
+        let seen = infer_fused(&partial, &volumes, &near, usize::MAX, Estimate::default(), &|_| {})
+            .unwrap_or_else(|e| panic!("{e}"));
+        let log_probabilities = |l: &Tensor, y: usize, x: usize| {
+            let column: Vec<f32> = (0..nd).map(|d| l.data[d * plane + y * w + x]).collect();
+            let max = column.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+            let norm = max + column.iter().map(|v| (v - max).exp()).sum::<f32>().ln();
+            column.into_iter().map(move |v| v - norm)
+        };
+        for (y, x) in [(0, 0), (20, 5), (7, 11), (30, 14), (43, 26), (10, 59)] {
+            let (pa, pb): (Vec<f32>, Vec<f32>) = (
+                log_probabilities(&la, y, x).collect(),
+                log_probabilities(&lb, y, x).collect(),
+            );
+            let column = |d: usize| {
+                if 2 * (3 + d) <= x { 0.5 * (pa[d] + pb[d]) } else { pa[d] }
+            };
+            let expected = 3.0 + expected_disparity_from(column, nd, 0, None);
+            assert!((f64::from(seen.0[y * w + x]) - expected).abs() < 1e-4, "({y}, {x})");
+            if x < 6 {
+                assert!((seen.0[y * w + x] - first_alone[y * w + x]).abs() < 1e-4, "({y}, {x})");
+            }
+            if x >= 2 * (3 + nd) {
+                assert!((seen.0[y * w + x] - fused.0[y * w + x]).abs() < 1e-4, "({y}, {x})");
+            }
+        }
     }
 
     #[test]

@@ -25,7 +25,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::FuseError;
 use crate::cost::PixelCost;
-use crate::fusion::Fusion;
+use crate::fusion::{Fusion, SideRule};
 use crate::nn::Tensor;
 use crate::sgm::{aggregate_prepared, quantisation_shift, quantise_penalty};
 use crate::volume::{CostSpec, CostVolume, Neighbour, PreparedProblem, Problem, VolumeSource};
@@ -238,19 +238,22 @@ pub fn input_volumes(
     on_band: &(dyn Fn() + Sync),
 ) -> Result<Vec<CostVolume<u8>>, FuseError> {
     let sides: Vec<Vec<&Neighbour>> = neighbours.iter().map(|n| vec![*n]).collect();
-    input_volumes_of_sides(problem, &sides, spec, on_band)
+    input_volumes_of_sides(problem, &sides, SideRule::Min, spec, on_band)
 }
 
-/// [`input_volumes`] with each input made of several views: the minimum of their costs (one
+/// [`input_volumes`] with each input made of several views: their costs made one by `rule` (one
 /// side of the reference: views along one ray share their occlusions), then SGM.
 pub fn input_volumes_of_sides(
     problem: &Problem,
     sides: &[Vec<&Neighbour>],
+    rule: SideRule,
     spec: InputSpec,
     on_band: &(dyn Fn() + Sync),
 ) -> Result<Vec<CostVolume<u8>>, FuseError> {
     let mut out = Vec::with_capacity(sides.len());
-    for_each_aggregated(problem, sides, spec, on_band, |sums, p2| out.push(normalise(sums, p2)))?;
+    for_each_aggregated(problem, sides, rule, spec, on_band, |sums, p2| {
+        out.push(normalise(sums, p2))
+    })?;
     Ok(out)
 }
 
@@ -281,13 +284,14 @@ pub fn sides_of<'a>(problem: &'a Problem, neighbours: &[&'a Neighbour]) -> Vec<V
         .collect()
 }
 
-/// Each side's cost volume (the minimum of its views' costs; a side of one view: its costs)
+/// Each side's cost volume (its views' costs made one by `rule`; a side of one view: its costs)
 /// aggregated by SGM on its own, handed to `each` with the quantised large-jump penalty, one
 /// side at a time. The costs are made where SGM's passes read them ([`aggregate_prepared`]: no
 /// byte volume, 265 MB at 1080p and 132 disparities), and every side's sums share one buffer.
 fn for_each_aggregated(
     problem: &Problem,
     sides: &[Vec<&Neighbour>],
+    rule: SideRule,
     spec: InputSpec,
     on_band: &(dyn Fn() + Sync),
     mut each: impl FnMut(&CostVolume<u16>, u16),
@@ -307,7 +311,8 @@ fn for_each_aggregated(
             min_disparity: problem.min_disparity,
             num_disparities: problem.num_disparities,
         };
-        let prepared = PreparedProblem::new(&single, cost, Fusion::Min)?;
+        // The heuristic over one side is its side rule.
+        let prepared = PreparedProblem::new(&single, cost, Fusion::Heuristic)?.with_side_rule(rule);
         let mut sums = aggregate_prepared(&prepared, shift, (p1, p2), buffer, on_band);
         sums.source = VolumeSource::Neighbour {
             role: n.role.clone(),
@@ -343,19 +348,20 @@ pub fn input_volumes_below(
     on_band: &(dyn Fn() + Sync),
 ) -> Result<(Vec<CostVolume<u8>>, i64), FuseError> {
     let sides: Vec<Vec<&Neighbour>> = neighbours.iter().map(|n| vec![*n]).collect();
-    input_volumes_of_sides_below(problem, &sides, spec, below, on_band)
+    input_volumes_of_sides_below(problem, &sides, SideRule::Min, spec, below, on_band)
 }
 
 /// [`input_volumes_below`] of [`input_volumes_of_sides`].
 pub fn input_volumes_of_sides_below(
     problem: &Problem,
     sides: &[Vec<&Neighbour>],
+    rule: SideRule,
     spec: InputSpec,
     below: usize,
     on_band: &(dyn Fn() + Sync),
 ) -> Result<(Vec<CostVolume<u8>>, i64), FuseError> {
     let extended = with_context_below(problem, below);
-    let volumes = input_volumes_of_sides(&extended, sides, spec, on_band)?;
+    let volumes = input_volumes_of_sides(&extended, sides, rule, spec, on_band)?;
     Ok((volumes, i64::from(extended.min_disparity)))
 }
 
@@ -418,12 +424,13 @@ pub fn summed(volumes: &[CostVolume<u8>]) -> Option<CostVolume<u16>> {
 pub fn summed_input_volume_below(
     problem: &Problem,
     sides: &[Vec<&Neighbour>],
+    rule: SideRule,
     spec: InputSpec,
     below: usize,
 ) -> Result<(CostVolume<u16>, i64), FuseError> {
     let extended = with_context_below(problem, below);
     let mut total: Option<CostVolume<u16>> = None;
-    for_each_aggregated(&extended, sides, spec, &|| {}, |sums, p2| {
+    for_each_aggregated(&extended, sides, rule, spec, &|| {}, |sums, p2| {
         let total = total.get_or_insert_with(|| {
             let mut t = sums.with_data(vec![0u16; sums.data.len()], 0);
             t.source = VolumeSource::Fused(Fusion::Mean);
@@ -743,10 +750,11 @@ mod tests {
         let nearest: Vec<&Neighbour> = problem.neighbours[..2].iter().collect();
         let sides = sides_of(&problem, &nearest);
         assert_eq!(sides.iter().map(Vec::len).collect::<Vec<_>>(), [1, 2]);
-        let (total, first) =
-            summed_input_volume_below(&problem, &sides, InputSpec::default(), 4).unwrap_or_else(|e| panic!("{e}"));
-        let (volumes, expected_first) = input_volumes_of_sides_below(&problem, &sides, InputSpec::default(), 4, &|| {})
+        let (total, first) = summed_input_volume_below(&problem, &sides, SideRule::Min, InputSpec::default(), 4)
             .unwrap_or_else(|e| panic!("{e}"));
+        let (volumes, expected_first) =
+            input_volumes_of_sides_below(&problem, &sides, SideRule::Min, InputSpec::default(), 4, &|| {})
+                .unwrap_or_else(|e| panic!("{e}"));
         assert_eq!(first, expected_first);
         let expected = summed(&volumes).unwrap_or_else(|| panic!("two volumes of one shape"));
         assert!(total.data == expected.data && total.max_cost == expected.max_cost);
