@@ -375,7 +375,8 @@ impl Method for MFuseNet {
         let (min_disparity, num_disparities) = widened_range(range).unwrap_or(range);
         let room_below = self.config.room_below.unwrap_or(loaded.context_below);
         // Each input of the nearest group and the views it was made from, where one has several.
-        let side_inputs = (self.config.side_inputs && loaded.views > 0)
+        let side_inputs = self
+            .side_inputs(loaded)
             .then(|| {
                 let nearest = ordered_neighbours(problem, loaded.views).unwrap_or_default();
                 sides_of(problem, &nearest)
@@ -642,8 +643,14 @@ impl MFuseNet {
         Ok((volumes, first, origin))
     }
 
-    /// The views each input of `loaded`'s network is made from: with `side_inputs` and a fixed
-    /// network, each of `neighbours` with the set's views farther along its ray
+    /// Whether `loaded`'s inputs are made from whole sides: `side_inputs`, a fixed network, not
+    /// the stereo method (one neighbour by definition).
+    fn side_inputs(&self, loaded: &Loaded) -> bool {
+        self.config.side_inputs && loaded.views > 0 && !self.stereo
+    }
+
+    /// The views each input of `loaded`'s network is made from: with [`Self::side_inputs`],
+    /// each of `neighbours` with the set's views farther along its ray
     /// ([`sides_of`]); else each alone (a view-count-agnostic network takes the far views as
     /// inputs of their own).
     fn sides<'p>(
@@ -652,7 +659,7 @@ impl MFuseNet {
         neighbours: &[&'p Neighbour],
         loaded: &Loaded,
     ) -> Vec<Vec<&'p Neighbour>> {
-        if self.config.side_inputs && loaded.views > 0 {
+        if self.side_inputs(loaded) {
             sides_of(problem, neighbours)
         } else {
             neighbours.iter().map(|n| vec![*n]).collect()
@@ -1012,6 +1019,9 @@ mod tests {
         let off = serde_json::json!({ "side_inputs": false });
         let off = crate::methods::build("mfusenet", Some(&off)).unwrap_or_else(|e| panic!("{e}"));
         assert!(off.details(&problem)["side_inputs"].is_null());
+        // The stereo method keeps its one neighbour.
+        let stereo = crate::methods::build("mfusenet-stereo", None).unwrap_or_else(|e| panic!("{e}"));
+        assert!(stereo.details(&problem)["side_inputs"].is_null());
     }
 
     #[test]
