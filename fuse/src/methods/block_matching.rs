@@ -9,7 +9,7 @@ use serde::{Deserialize, Serialize};
 use super::{Family, Method, MethodEntry, Progress, configure};
 use crate::FuseError;
 use crate::cost::PixelCost;
-use crate::fusion::Fusion;
+use crate::fusion::{Fusion, SideRule};
 use crate::image::DisparityImage;
 use crate::postprocess::{WeightedMedian, weighted_median};
 use crate::volume::{BandScratch, CostSpec, PreparedProblem, Problem, band_rows};
@@ -38,6 +38,10 @@ pub struct BlockMatchingConfig {
     /// An image-guided weighted median after the rest (`postprocess::WeightedMedian`; `{}` =
     /// its defaults, `null` = none): depth edges snap to the reference's colour edges.
     pub weighted_median: Option<WeightedMedian>,
+    /// With the heuristic, how the views on one side of the reference along one ray become
+    /// that side's cost: `min` (the default) or `near-capped` (see `SgmConfig::side_rule`).
+    #[serde(default)]
+    pub side_rule: SideRule,
 }
 
 impl super::FusedConfig for BlockMatchingConfig {
@@ -59,6 +63,7 @@ impl Default for BlockMatchingConfig {
             fill_invalid: true,
             median: true,
             weighted_median: None,
+            side_rule: SideRule::Min,
         }
     }
 }
@@ -84,7 +89,7 @@ impl Method for BlockMatching {
             pixel: self.config.cost,
             block_radius_px: self.config.block_radius_px,
         };
-        let prepared = PreparedProblem::new(problem, spec, self.config.fusion)?;
+        let prepared = PreparedProblem::new(problem, spec, self.config.fusion)?.with_side_rule(self.config.side_rule);
         let (w, h, nd) = (prepared.width(), prepared.height(), prepared.num_disparities());
         let mut data = vec![f32::INFINITY; w * h];
         let mut confidence = vec![0.0f32; w * h];
