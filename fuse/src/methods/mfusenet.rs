@@ -5,7 +5,9 @@
 //! when all four are there, else three-view (left and right, or top and bottom), else the
 //! stereo network; `mfusenet-stereo` always takes the stereo network and the `right` view. A set
 //! with more views (a line of five, a 3 × 3 grid, crosses at several baselines) runs every
-//! cross and opposite pair through its network and averages their logits (`every_view`).
+//! cross and opposite pair through its network and averages their log-probabilities, a farther
+//! group's only at the disparities its views see (`every_view`); the farther views along each
+//! side also join the nearest group's inputs (`side_inputs`).
 //! The trained weights of the three variants are compiled into the binary (`fuse/weights/`,
 //! made by `replay train`, see `fuse/weights/README.md`); `{"weights": "FILE"}` (or replay's
 //! `--weights FILE`) takes a safetensors file instead, whose variant must fit the set.
@@ -138,8 +140,9 @@ pub struct MFuseNetConfig {
     pub max_direct_disparities: usize,
     /// Every cross and opposite pair of the set, not only the nearest: each baseline's cross or
     /// its horizontal and vertical pairs go to the network that takes them
-    /// (`mfusenet::input::view_groups`), and their logits are averaged with a vote per view
-    /// before the estimate is read; it is refined and filtered with the nearest group's costs.
+    /// (`mfusenet::input::view_groups`), and their log-probabilities are averaged with a vote
+    /// per view (a farther group's only at the disparities its views see) before the estimate
+    /// is read; it is refined and filtered with the nearest group's costs.
     /// `false`: one network on the nearest cross, pair or view, as the paper. Sets that one
     /// network covers run the same either way; a view without its opposite stays unused (the run
     /// summary lists the networks and the unused views). With a view-count-agnostic weights file

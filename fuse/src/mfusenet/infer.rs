@@ -285,7 +285,8 @@ pub struct Member<'a> {
 
 /// [`infer_with_confidence`] for several networks over one set, each on its own neighbours'
 /// volumes (`members`), their logits averaged (each weighted by its number of inputs, so that
-/// every view has one vote) before the estimate is read; the refinement reads `costs` (the
+/// every view has one vote; with a member's [`Member::reach`], their log-probabilities, each
+/// where its member votes) before the estimate is read; the refinement reads `costs` (the
 /// set's fused costs, of the volumes' shape). Test-time flips are not applied here.
 pub fn infer_fused(
     members: &[Member<'_>],
