@@ -383,10 +383,19 @@ impl ValidDisparities {
     /// `(x, y)` stays inside the neighbour image.
     pub fn at(&self, x: usize, y: usize) -> (usize, usize) {
         let nd = self.num_disparities;
-        let ((row_first, row_end), (column_first, column_end)) = (
+        Self::both(
             self.by_row.get(y).copied().unwrap_or((nd, nd)),
             self.by_column.get(x).copied().unwrap_or((nd, nd)),
-        );
+            nd,
+        )
+    }
+
+    /// The disparities allowed by both a row's and a column's interval.
+    fn both(
+        (row_first, row_end): (usize, usize),
+        (column_first, column_end): (usize, usize),
+        nd: usize,
+    ) -> (usize, usize) {
         let first = row_first.max(column_first).min(nd);
         (first, row_end.min(column_end).max(first))
     }
@@ -395,11 +404,10 @@ impl ValidDisparities {
     /// correspondence leaves the neighbour image.
     pub fn mark(&self, costs: &mut [u16], (x_start, y): (usize, usize)) {
         let nd = self.num_disparities;
-        let (row_first, row_end) = self.by_row[y];
+        let row = self.by_row[y];
         let columns = &self.by_column[x_start..];
-        for (costs, &(column_first, column_end)) in costs.chunks_exact_mut(nd).zip(columns) {
-            let first = row_first.max(column_first).min(nd);
-            let end = row_end.min(column_end).max(first);
+        for (costs, &column) in costs.chunks_exact_mut(nd).zip(columns) {
+            let (first, end) = Self::both(row, column, nd);
             if first == 0 && end == nd {
                 continue;
             }

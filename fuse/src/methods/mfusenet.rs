@@ -399,7 +399,7 @@ impl Method for MFuseNet {
                 "network_height": height,
                 "full_size_band_px": (factor > 1).then_some(factor),
                 "side_inputs": side_inputs,
-            "side_rule": side_inputs.is_some().then_some(self.config.side_rule),
+                "side_rule": side_inputs.is_some().then_some(self.config.side_rule),
             });
             if let serde_json::Value::Object(map) = &mut out {
                 map.extend(plan);

@@ -258,7 +258,7 @@ pub fn input_volumes_of_sides(
 }
 
 /// Each of `neighbours` with the set's views farther along its ray (offsets `k ·` its offset,
-/// `k` ≥ 2), nearest first: the views [`input_volumes_of_sides`] takes the minimum of.
+/// `k` ≥ 2), nearest first: the views [`input_volumes_of_sides`] makes one input of.
 pub fn sides_of<'a>(problem: &'a Problem, neighbours: &[&'a Neighbour]) -> Vec<Vec<&'a Neighbour>> {
     neighbours
         .iter()
