@@ -9,12 +9,19 @@
 //! part is seen by all) only where that minimum is nearer than the method's estimate by a clear
 //! jump, much lower than the costs at the estimate (the paper's heuristic fusion, which drops the
 //! views that the part hides from the background), and unique along the range; and only where an
-//! 8-neighbour was moved to within a
-//! pixel of it as well (a part is a line of pixels, noise is isolated). Nearer only by default:
+//! 8-neighbour was moved to within a pixel of it as well (a part is a line of pixels, noise is
+//! isolated). The costs it reads are each pixel's averaged over an adaptive cross-shaped support
+//! of like-coloured pixels ([`CrossSupport`], the default): a rod's pixels vote together along
+//! the rod, never with the background beside it, so its minimum is clear where one pixel's
+//! Birchfield–Tomasi curve has several (the thin family's Bad1 6.57 → 6.29 %, and a periodic
+//! texture that the network read at its alias, `random` seed 8's line, 0.581 → 0.237 px;
+//! docs/experiments.md). Nearer only by default:
 //! block sums erase thin *foreground*. Moving pixels farther too (`farther`: the background
 //! seen through gaps between slats, which the estimate fills with the slats' disparity) helps
 //! there and on Middlebury, but mirror-like metal shows reflections at farther disparities:
 //! the reflective workpiece line lost 17 % (docs/experiments.md).
+
+use std::ops::Range;
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -22,7 +29,7 @@ use serde::{Deserialize, Serialize};
 use crate::FuseError;
 use crate::cost::{INVALID_COST, PixelCost};
 use crate::fusion::Fusion;
-use crate::image::DisparityImage;
+use crate::image::{DisparityImage, Image};
 use crate::volume::{BandScratch, CostSpec, PreparedProblem, Problem, band_rows};
 use crate::wta::SubpixelFit;
 
@@ -48,6 +55,37 @@ pub struct ThinParts {
     /// The fewest neighbours it runs with: one view's per-pixel costs cannot tell a part from a
     /// chance match (the stereo network on Middlebury: RMS 1.089 → 1.185 px with one).
     pub min_views: usize,
+    /// Read each pixel's costs averaged over a cross-shaped support of like-coloured pixels
+    /// ([`CrossSupport`]; `null` = the pixel's own costs): a rod's or a gap's pixels vote
+    /// together along it, so its minimum is clear where one pixel's is noise.
+    pub cross_support: Option<CrossSupport>,
+    /// With `farther`, a pixel moves farther only to a disparity no farther than the farthest
+    /// estimate within this radius (px) by more than a pixel: the background seen through a
+    /// gap is seen beside the parts too, a mirror's reflection lies behind every real surface.
+    /// 0 = no such guard.
+    pub farther_guard_px: usize,
+}
+
+/// Adaptive cross-shaped support (Zhang, Lu and Lafruit 2009, as in AD-Census): each pixel's
+/// arms reach left, right, up and down while the reference's colour stays within
+/// `colour_threshold` of the pixel's (largest channel difference) and for at most `arm_px`
+/// pixels; its support is the union of the horizontal arms of the pixels on its vertical arm.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct CrossSupport {
+    /// Longest arm (px).
+    pub arm_px: usize,
+    /// Largest colour difference (grey levels) along an arm.
+    pub colour_threshold: u8,
+}
+
+impl Default for CrossSupport {
+    fn default() -> Self {
+        Self {
+            arm_px: 17,
+            colour_threshold: 20,
+        }
+    }
 }
 
 impl Default for ThinParts {
@@ -60,6 +98,8 @@ impl Default for ThinParts {
             min_support: 1,
             farther: false,
             min_views: 2,
+            cross_support: Some(CrossSupport::default()),
+            farther_guard_px: 0,
         }
     }
 }
@@ -91,7 +131,17 @@ pub fn recover_thin_parts(
     let (w, h, nd) = (heuristic.width(), heuristic.height(), heuristic.num_disparities());
     disparity.check_size(w, h, "disparity map for the thin-part recovery (the reference's size)")?;
     let min = problem.min_disparity as f32;
-    let band = band_rows(h);
+    let arms = config
+        .cross_support
+        .map(|support| Arms::new(&problem.reference, support));
+    // Supports reach `arm_px` rows beyond a band, whose costs each band makes again: short
+    // bands keep those rows' sums small (1080p with 128 disparities: about 200 MB a worker).
+    let band = if arms.is_some() { CROSS_BAND_ROWS } else { band_rows(h) };
+    // The farthest estimate near each pixel (slices from the range's start), for the guard.
+    let farthest_near = (config.farther && config.farther_guard_px > 0).then(|| {
+        let slices: Vec<f32> = disparity.data.iter().map(|d| d - min).collect();
+        window_min(&slices, w, h, config.farther_guard_px)
+    });
     // Each pixel's candidate (the new disparity, its confidence), NaN where none.
     let mut candidates = vec![(f32::NAN, 0.0f32); w * h];
     candidates
@@ -99,25 +149,21 @@ pub fn recover_thin_parts(
         .zip(disparity.data.par_chunks(band * w))
         .enumerate()
         .for_each_init(
-            || (BandScratch::default(), Vec::new()),
-            |(buffers, all_views), (index, (out, estimates))| {
+            || (BandScratch::default(), BandCurves::default()),
+            |(buffers, curves), (index, (out, estimates))| {
                 let start = index * band;
                 let rows = start..start + out.len() / w;
-                all_views.clear();
-                all_views.resize(rows.len() * w * nd, 0u16);
-                mean.fused_band_into(rows.clone(), all_views, buffers);
-                heuristic.fused_band_with(rows, buffers, &mut |y, x_start, costs| {
-                    let at = (y - start) * w + x_start;
-                    for (i, (candidate, estimate)) in out[at..].iter_mut().zip(&estimates[at..]).enumerate() {
-                        let Some(costs) = costs.get(i * nd..(i + 1) * nd) else {
-                            break;
-                        };
-                        let seen_by_all = &all_views[(at + i) * nd..(at + i + 1) * nd];
-                        if let Some(found) = candidate_of(*estimate - min, costs, seen_by_all, config) {
-                            *candidate = (found.0 + min, found.1);
-                        }
+                curves.fill(&heuristic, &mean, rows.clone(), arms.as_ref(), buffers);
+                for (i, (candidate, estimate)) in out.iter_mut().zip(estimates).enumerate() {
+                    let (costs, seen_by_all) = (
+                        &curves.heuristic[i * nd..(i + 1) * nd],
+                        &curves.mean[i * nd..(i + 1) * nd],
+                    );
+                    let farthest = farthest_near.as_ref().map_or(f32::NEG_INFINITY, |f| f[start * w + i]);
+                    if let Some(found) = candidate_of(*estimate - min, costs, seen_by_all, farthest, config) {
+                        *candidate = (found.0 + min, found.1);
                     }
-                });
+                }
             },
         );
     let supported: Vec<bool> = (0..w * h)
@@ -153,12 +199,248 @@ pub fn recover_thin_parts(
     Ok(moved)
 }
 
+/// The per-pixel cost curves of one band of rows (`[pixel][d]`, `f32::INFINITY` where a view's
+/// correspondence leaves the image): the heuristic fusion's and the mean over every view, each
+/// pixel's own or averaged over its cross-shaped support.
+#[derive(Debug, Default)]
+struct BandCurves {
+    heuristic: Vec<f32>,
+    mean: Vec<f32>,
+    /// The fused costs of the band and its halo (the rows the supports reach).
+    costs: Vec<u16>,
+    /// Support sums and counts, cumulative down the halo's rows.
+    sums: Vec<u32>,
+    counts: Vec<u16>,
+    /// One row's prefix sums and counts along `x`.
+    prefix_sums: Vec<u32>,
+    prefix_counts: Vec<u16>,
+}
+
+impl BandCurves {
+    fn fill(
+        &mut self,
+        heuristic: &PreparedProblem,
+        mean: &PreparedProblem,
+        rows: Range<usize>,
+        arms: Option<&Arms>,
+        buffers: &mut BandScratch,
+    ) {
+        let (w, h, nd) = (heuristic.width(), heuristic.height(), heuristic.num_disparities());
+        let cells = rows.len() * w * nd;
+        for (problem, curves) in [(heuristic, &mut self.heuristic), (mean, &mut self.mean)] {
+            curves.clear();
+            curves.resize(cells, f32::INFINITY);
+            let Some(arms) = arms else {
+                self.costs.clear();
+                self.costs.resize(cells, 0);
+                problem.fused_band_into(rows.clone(), &mut self.costs, buffers);
+                for (curve, &c) in curves.iter_mut().zip(&self.costs) {
+                    if c != INVALID_COST {
+                        *curve = f32::from(c);
+                    }
+                }
+                continue;
+            };
+            let reach = arms.longest;
+            let halo = rows.start.saturating_sub(reach)..(rows.end + reach).min(h);
+            let halo_cells = halo.len() * w * nd;
+            self.costs.clear();
+            self.costs.resize(halo_cells, 0);
+            problem.fused_band_into(halo.clone(), &mut self.costs, buffers);
+            // Each halo row's sums over every pixel's horizontal arm, then cumulative down the rows.
+            self.sums.clear();
+            self.sums.resize(halo_cells, 0);
+            self.counts.clear();
+            self.counts.resize(halo_cells, 0);
+            self.prefix_sums.resize((w + 1) * nd, 0);
+            self.prefix_counts.resize((w + 1) * nd, 0);
+            for (r, y) in halo.clone().enumerate() {
+                let row = &self.costs[r * w * nd..(r + 1) * w * nd];
+                self.prefix_sums[..nd].fill(0);
+                self.prefix_counts[..nd].fill(0);
+                for x in 0..w {
+                    let (done, next) = self.prefix_sums.split_at_mut((x + 1) * nd);
+                    let (done_counts, next_counts) = self.prefix_counts.split_at_mut((x + 1) * nd);
+                    let previous = &done[x * nd..];
+                    let previous_counts = &done_counts[x * nd..];
+                    for d in 0..nd {
+                        let c = row[x * nd + d];
+                        let valid = c != INVALID_COST;
+                        next[d] = previous[d] + if valid { u32::from(c) } else { 0 };
+                        next_counts[d] = previous_counts[d] + u16::from(valid);
+                    }
+                }
+                let out_sums = &mut self.sums[r * w * nd..(r + 1) * w * nd];
+                let out_counts = &mut self.counts[r * w * nd..(r + 1) * w * nd];
+                for x in 0..w {
+                    let (left, right) = (x - arms.left_of(x, y), x + arms.right_of(x, y) + 1);
+                    for d in 0..nd {
+                        out_sums[x * nd + d] = self.prefix_sums[right * nd + d] - self.prefix_sums[left * nd + d];
+                        out_counts[x * nd + d] = self.prefix_counts[right * nd + d] - self.prefix_counts[left * nd + d];
+                    }
+                }
+                if r > 0 {
+                    let (above, this) = self.sums.split_at_mut(r * w * nd);
+                    let (above_counts, this_counts) = self.counts.split_at_mut(r * w * nd);
+                    let above = &above[(r - 1) * w * nd..];
+                    let above_counts = &above_counts[(r - 1) * w * nd..];
+                    for i in 0..w * nd {
+                        this[i] += above[i];
+                        this_counts[i] += above_counts[i];
+                    }
+                }
+            }
+            // Each pixel's support: the rows of its vertical arm.
+            for (r, y) in rows.clone().enumerate() {
+                for x in 0..w {
+                    let top = y - arms.up_of(x, y) - halo.start;
+                    let bottom = y + arms.down_of(x, y) - halo.start;
+                    let at = |row: usize, d: usize| (row * w + x) * nd + d;
+                    let curve = &mut curves[(r * w + x) * nd..(r * w + x + 1) * nd];
+                    for (d, value) in curve.iter_mut().enumerate() {
+                        let (mut sum, mut count) = (self.sums[at(bottom, d)], self.counts[at(bottom, d)]);
+                        if top > 0 {
+                            sum -= self.sums[at(top - 1, d)];
+                            count -= self.counts[at(top - 1, d)];
+                        }
+                        if count > 0 {
+                            *value = sum as f32 / f32::from(count);
+                        }
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// Rows per band of work with cross-shaped supports.
+const CROSS_BAND_ROWS: usize = 32;
+
+/// Each pixel's arms ([`CrossSupport`]) in the reference image: `[left, right, up, down]` (px).
+struct Arms {
+    width: usize,
+    arms: Vec<[u8; 4]>,
+    /// The longest arm allowed: how far a support reaches.
+    longest: usize,
+}
+
+impl Arms {
+    fn new(reference: &Image, support: CrossSupport) -> Self {
+        let (w, h, channels) = (reference.width, reference.height, reference.channels);
+        let longest = support.arm_px.min(u8::MAX as usize);
+        let pixel = |x: usize, y: usize| &reference.data[(y * w + x) * channels..(y * w + x + 1) * channels];
+        let alike = |a: &[u8], b: &[u8]| a.iter().zip(b).all(|(p, q)| p.abs_diff(*q) <= support.colour_threshold);
+        let arms = (0..w * h)
+            .into_par_iter()
+            .map(|i| {
+                let (x, y) = (i % w, i / w);
+                let anchor = pixel(x, y);
+                let reach = |steps: usize, at: &dyn Fn(usize) -> (usize, usize)| {
+                    (1..=steps.min(longest))
+                        .take_while(|&k| {
+                            let (qx, qy) = at(k);
+                            alike(pixel(qx, qy), anchor)
+                        })
+                        .count() as u8
+                };
+                [
+                    reach(x, &|k| (x - k, y)),
+                    reach(w - 1 - x, &|k| (x + k, y)),
+                    reach(y, &|k| (x, y - k)),
+                    reach(h - 1 - y, &|k| (x, y + k)),
+                ]
+            })
+            .collect();
+        Self {
+            width: w,
+            arms,
+            longest,
+        }
+    }
+
+    fn left_of(&self, x: usize, y: usize) -> usize {
+        usize::from(self.arms[y * self.width + x][0])
+    }
+
+    fn right_of(&self, x: usize, y: usize) -> usize {
+        usize::from(self.arms[y * self.width + x][1])
+    }
+
+    fn up_of(&self, x: usize, y: usize) -> usize {
+        usize::from(self.arms[y * self.width + x][2])
+    }
+
+    fn down_of(&self, x: usize, y: usize) -> usize {
+        usize::from(self.arms[y * self.width + x][3])
+    }
+}
+
+/// The smallest finite value of `values` (`w × h`) within `radius` of each pixel (a square
+/// window; `f32::INFINITY` where there is none): two passes of a running minimum.
+fn window_min(values: &[f32], w: usize, h: usize, radius: usize) -> Vec<f32> {
+    let finite = |v: f32| if v.is_finite() { v } else { f32::INFINITY };
+    let line_min = |line: &[f32], out: &mut [f32]| {
+        // Van Herk / Gil–Werman: block prefix and suffix minima of width 2r+1.
+        let (n, k) = (line.len(), 2 * radius + 1);
+        let mut prefix = vec![f32::INFINITY; n];
+        let mut suffix = vec![f32::INFINITY; n];
+        for i in 0..n {
+            let v = finite(line[i]);
+            prefix[i] = if i % k == 0 { v } else { prefix[i - 1].min(v) };
+        }
+        for i in (0..n).rev() {
+            let v = finite(line[i]);
+            suffix[i] = if i % k == k - 1 || i == n - 1 {
+                v
+            } else {
+                suffix[i + 1].min(v)
+            };
+        }
+        for (i, o) in out.iter_mut().enumerate() {
+            let (lo, hi) = (i.saturating_sub(radius), (i + radius).min(n - 1));
+            // A window cut by the line's ends may lie within one block: its own minimum.
+            *o = if lo / k == hi / k {
+                line[lo..=hi].iter().map(|v| finite(*v)).fold(f32::INFINITY, f32::min)
+            } else {
+                suffix[lo].min(prefix[hi])
+            };
+        }
+    };
+    let mut rows = vec![f32::INFINITY; w * h];
+    rows.par_chunks_mut(w)
+        .zip(values.par_chunks(w))
+        .for_each(|(out, line)| line_min(line, out));
+    let mut out = vec![f32::INFINITY; w * h];
+    let columns: Vec<Vec<f32>> = (0..w)
+        .into_par_iter()
+        .map(|x| {
+            let line: Vec<f32> = (0..h).map(|y| rows[y * w + x]).collect();
+            let mut column = vec![f32::INFINITY; h];
+            line_min(&line, &mut column);
+            column
+        })
+        .collect();
+    for (x, column) in columns.iter().enumerate() {
+        for (y, v) in column.iter().enumerate() {
+            out[y * w + x] = *v;
+        }
+    }
+    out
+}
+
 /// The disparity (slices from the range's start, with its parabola's fraction) and confidence
-/// one pixel moves to, from its per-pixel costs (`costs` with occluded views dropped,
-/// `seen_by_all` every view's mean), where [`ThinParts`]'s tests pass: a nearer part on the mean
-/// of every view, or (with `config.farther`) the background through a gap on the costs with
-/// occluded views dropped (a gap's background is hidden from some views by the part itself).
-fn candidate_of(estimate: f32, costs: &[u16], seen_by_all: &[u16], config: &ThinParts) -> Option<(f32, f32)> {
+/// one pixel moves to, from its cost curves (`costs` with occluded views dropped, `seen_by_all`
+/// every view's mean; `f32::INFINITY` where invalid), where [`ThinParts`]'s tests pass: a
+/// nearer part on the mean of every view, or (with `config.farther`) the background through a
+/// gap on the costs with occluded views dropped (a gap's background is hidden from some views
+/// by the part itself), no farther than `farthest` (slices) by more than a pixel.
+fn candidate_of(
+    estimate: f32,
+    costs: &[f32],
+    seen_by_all: &[f32],
+    farthest: f32,
+    config: &ThinParts,
+) -> Option<(f32, f32)> {
     if !estimate.is_finite() {
         return None;
     }
@@ -166,11 +448,12 @@ fn candidate_of(estimate: f32, costs: &[u16], seen_by_all: &[u16], config: &Thin
     let near = estimate.round().clamp(0.0, (nd - 1) as f32) as usize;
     let at_estimate = costs[near.saturating_sub(1)..(near + 2).min(nd)]
         .iter()
-        .filter(|c| **c != INVALID_COST)
-        .min()
-        .copied()?;
+        .copied()
+        .filter(|c| c.is_finite())
+        .reduce(f32::min)?;
     let nearer = |best: usize| best as f32 >= estimate + config.min_jump_px;
-    let farther = |best: usize| config.farther && best as f32 <= estimate - config.min_jump_px;
+    let farther =
+        |best: usize| config.farther && best as f32 <= estimate - config.min_jump_px && best as f32 >= farthest - 1.0;
     clear_minimum(seen_by_all, at_estimate, config, nearer)
         .or_else(|| clear_minimum(costs, at_estimate, config, farther))
 }
@@ -178,8 +461,8 @@ fn candidate_of(estimate: f32, costs: &[u16], seen_by_all: &[u16], config: &Thin
 /// The minimum of `curve` where `wanted` takes its place and it is clearly better than
 /// `at_estimate` and unique ([`ThinParts`]), with its parabola's fraction, and its confidence.
 fn clear_minimum(
-    curve: &[u16],
-    at_estimate: u16,
+    curve: &[f32],
+    at_estimate: f32,
     config: &ThinParts,
     wanted: impl Fn(usize) -> bool,
 ) -> Option<(f32, f32)> {
@@ -187,19 +470,18 @@ fn clear_minimum(
     let (best, &c_best) = curve
         .iter()
         .enumerate()
-        .filter(|(_, c)| **c != INVALID_COST)
-        .min_by_key(|(_, c)| **c)?;
+        .filter(|(_, c)| c.is_finite())
+        .min_by(|a, b| a.1.total_cmp(b.1))?;
     if !wanted(best) {
         return None;
     }
     let second = curve
         .iter()
         .enumerate()
-        .filter(|(d, c)| d.abs_diff(best) > 1 && **c != INVALID_COST)
+        .filter(|(d, c)| d.abs_diff(best) > 1 && c.is_finite())
         .map(|(_, c)| *c)
-        .min()
-        .unwrap_or(INVALID_COST);
-    let (c_best, at_estimate, second) = (f32::from(c_best), f32::from(at_estimate), f32::from(second));
+        .reduce(f32::min)
+        .unwrap_or(f32::from(INVALID_COST));
     let passes = c_best <= config.ratio * at_estimate
         && c_best <= config.uniqueness * second
         && at_estimate - c_best >= config.min_margin;
@@ -208,7 +490,7 @@ fn clear_minimum(
     }
     let fraction = if best >= 1 && best + 1 < nd {
         let [l, c, r] = [curve[best - 1], curve[best], curve[best + 1]];
-        if l == INVALID_COST || r == INVALID_COST {
+        if !(l.is_finite() && r.is_finite()) {
             0.0
         } else {
             // A flat bottom (two equal costs: Birchfield–Tomasi forgives half a pixel) says
@@ -228,7 +510,6 @@ fn clear_minimum(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::image::Image;
     use crate::volume::Neighbour;
 
     /// A textured far plane at disparity 2 with a rod two pixels thick across it at disparity
@@ -381,6 +662,116 @@ mod tests {
         for y in (0..8).chain(34..h) {
             for x in 0..w {
                 assert_eq!(disparity.data[y * w + x], before.data[y * w + x], "({x}, {y})");
+            }
+        }
+    }
+
+    #[test]
+    fn a_rod_comes_back_with_each_pixel_s_own_costs_too() {
+        let (w, h) = (80, 44);
+        let (problem, on_rod) = rod_before_a_plane(w, h, false);
+        let mut disparity = far_everywhere(w, h);
+        let own = ThinParts {
+            cross_support: None,
+            ..ThinParts::default()
+        };
+        recover_thin_parts(&problem, &mut disparity, &own).unwrap_or_else(|e| panic!("{e}"));
+        let found = (0..w * h)
+            .filter(|&i| on_rod[i] && (12..w - 12).contains(&(i % w)) && (disparity.data[i] - 10.0).abs() <= 1.0)
+            .count();
+        assert!(found * 2 >= (w - 24) * 2, "rod {found} of {}", (w - 24) * 2);
+    }
+
+    #[test]
+    fn cross_support_averages_each_pixel_s_costs_over_the_horizontal_arms_along_its_vertical_arm() {
+        // The band's curves against a plain sum over the support, read from the whole volume.
+        let (w, h) = (48, 40);
+        let (problem, _) = rod_before_a_plane(w, h, false);
+        let spec = CostSpec {
+            pixel: PixelCost::BirchfieldTomasi,
+            block_radius_px: 0,
+        };
+        let heuristic = PreparedProblem::new(&problem, spec, Fusion::Heuristic).unwrap_or_else(|e| panic!("{e}"));
+        let mean = PreparedProblem::new(&problem, spec, Fusion::Mean).unwrap_or_else(|e| panic!("{e}"));
+        let nd = heuristic.num_disparities();
+        let support = CrossSupport {
+            arm_px: 5,
+            colour_threshold: 30,
+        };
+        let arms = Arms::new(&problem.reference, support);
+        let mut whole = vec![0u16; w * h * nd];
+        heuristic.fused_band(0..h, &mut whole);
+        let rows = 13..29;
+        let mut curves = BandCurves::default();
+        curves.fill(
+            &heuristic,
+            &mean,
+            rows.clone(),
+            Some(&arms),
+            &mut BandScratch::default(),
+        );
+        let mut longest_seen = 0;
+        for (r, y) in rows.enumerate() {
+            for x in 0..w {
+                let [left, right, up, down] = arms.arms[y * w + x].map(usize::from);
+                longest_seen = longest_seen.max(left.max(right).max(up).max(down));
+                for d in 0..nd {
+                    let (mut sum, mut count) = (0u64, 0u64);
+                    for qy in y - up..=y + down {
+                        let [ql, qr, _, _] = arms.arms[qy * w + x].map(usize::from);
+                        for qx in x - ql..=x + qr {
+                            let c = whole[(qy * w + qx) * nd + d];
+                            if c != INVALID_COST {
+                                sum += u64::from(c);
+                                count += 1;
+                            }
+                        }
+                    }
+                    let expected = if count == 0 {
+                        f32::INFINITY
+                    } else {
+                        sum as f32 / count as f32
+                    };
+                    let got = curves.heuristic[(r * w + x) * nd + d];
+                    assert!(
+                        got == expected || (got - expected).abs() <= 1e-4 * expected,
+                        "({x}, {y}) d {d}: {got} against {expected}"
+                    );
+                }
+            }
+        }
+        // The arms reach their limit somewhere (the plane's smooth colours) and stop short at the rod.
+        assert_eq!(longest_seen, 5);
+        assert!(arms.arms.iter().any(|a| a.iter().any(|&l| l < 5)));
+    }
+
+    #[test]
+    fn the_window_minimum_is_the_plain_one() {
+        let (w, h) = (23, 17);
+        let values: Vec<f32> = (0..w * h)
+            .map(|i| {
+                if i % 11 == 3 {
+                    f32::NAN
+                } else {
+                    ((i * 7919) % 101) as f32
+                }
+            })
+            .collect();
+        for radius in [0, 1, 3, 8, 30] {
+            let got = window_min(&values, w, h, radius);
+            for y in 0..h {
+                for x in 0..w {
+                    let mut expected = f32::INFINITY;
+                    for qy in y.saturating_sub(radius)..(y + radius + 1).min(h) {
+                        for qx in x.saturating_sub(radius)..(x + radius + 1).min(w) {
+                            let v = values[qy * w + qx];
+                            if v.is_finite() {
+                                expected = expected.min(v);
+                            }
+                        }
+                    }
+                    assert_eq!(got[y * w + x], expected, "radius {radius} at ({x}, {y})");
+                }
             }
         }
     }
