@@ -195,5 +195,33 @@ fn winners(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, methods, mfusenet, graph_cuts, winners);
+/// MFuseNet's last step: the thin-part recovery on each pixel's own costs and over cross-shaped
+/// supports (the default), from a flat estimate (every pixel is tested).
+fn thin_parts(c: &mut Criterion) {
+    use fuse::thin_parts::{ThinParts, recover_thin_parts};
+    let problem = problem(640, 360, 64);
+    let flat = fuse::DisparityImage {
+        width: 640,
+        height: 360,
+        data: vec![20.0; 640 * 360],
+        confidence: None,
+    };
+    let mut group = c.benchmark_group("thin_parts_640x360x64");
+    group.sample_size(10);
+    let own = ThinParts {
+        cross_support: None,
+        ..ThinParts::default()
+    };
+    for (name, config) in [("own_costs", own), ("cross_support", ThinParts::default())] {
+        group.bench_function(name, |b| {
+            b.iter(|| {
+                let mut disparity = flat.clone();
+                black_box(recover_thin_parts(&problem, &mut disparity, &config))
+            })
+        });
+    }
+    group.finish();
+}
+
+criterion_group!(benches, methods, mfusenet, graph_cuts, winners, thin_parts);
 criterion_main!(benches);

@@ -261,50 +261,78 @@ impl BandCurves {
                 for x in 0..w {
                     let (done, next) = self.prefix_sums.split_at_mut((x + 1) * nd);
                     let (done_counts, next_counts) = self.prefix_counts.split_at_mut((x + 1) * nd);
-                    let previous = &done[x * nd..];
-                    let previous_counts = &done_counts[x * nd..];
-                    for d in 0..nd {
-                        let c = row[x * nd + d];
+                    let cells = next[..nd]
+                        .iter_mut()
+                        .zip(&mut next_counts[..nd])
+                        .zip(done[x * nd..].iter().zip(&done_counts[x * nd..]))
+                        .zip(&row[x * nd..(x + 1) * nd]);
+                    for (((sum, count), (previous, previous_count)), &c) in cells {
                         let valid = c != INVALID_COST;
-                        next[d] = previous[d] + if valid { u32::from(c) } else { 0 };
-                        next_counts[d] = previous_counts[d] + u16::from(valid);
+                        *sum = previous + if valid { u32::from(c) } else { 0 };
+                        *count = previous_count + u16::from(valid);
                     }
                 }
                 let out_sums = &mut self.sums[r * w * nd..(r + 1) * w * nd];
                 let out_counts = &mut self.counts[r * w * nd..(r + 1) * w * nd];
-                for x in 0..w {
+                for (x, (sums, counts)) in out_sums
+                    .chunks_exact_mut(nd)
+                    .zip(out_counts.chunks_exact_mut(nd))
+                    .enumerate()
+                {
                     let (left, right) = (x - arms.left_of(x, y), x + arms.right_of(x, y) + 1);
-                    for d in 0..nd {
-                        out_sums[x * nd + d] = self.prefix_sums[right * nd + d] - self.prefix_sums[left * nd + d];
-                        out_counts[x * nd + d] = self.prefix_counts[right * nd + d] - self.prefix_counts[left * nd + d];
+                    let (to, from) = (
+                        &self.prefix_sums[right * nd..][..nd],
+                        &self.prefix_sums[left * nd..][..nd],
+                    );
+                    for ((sum, to), from) in sums.iter_mut().zip(to).zip(from) {
+                        *sum = to - from;
+                    }
+                    let (to, from) = (
+                        &self.prefix_counts[right * nd..][..nd],
+                        &self.prefix_counts[left * nd..][..nd],
+                    );
+                    for ((count, to), from) in counts.iter_mut().zip(to).zip(from) {
+                        *count = to - from;
                     }
                 }
                 if r > 0 {
                     let (above, this) = self.sums.split_at_mut(r * w * nd);
                     let (above_counts, this_counts) = self.counts.split_at_mut(r * w * nd);
-                    let above = &above[(r - 1) * w * nd..];
-                    let above_counts = &above_counts[(r - 1) * w * nd..];
-                    for i in 0..w * nd {
-                        this[i] += above[i];
-                        this_counts[i] += above_counts[i];
+                    for (sum, above) in this[..w * nd].iter_mut().zip(&above[(r - 1) * w * nd..]) {
+                        *sum += above;
+                    }
+                    for (count, above) in this_counts[..w * nd].iter_mut().zip(&above_counts[(r - 1) * w * nd..]) {
+                        *count += above;
                     }
                 }
             }
-            // Each pixel's support: the rows of its vertical arm.
+            // Each pixel's support: the rows of its vertical arm (sums down to `bottom` less
+            // those down to the row above `top`).
             for (r, y) in rows.clone().enumerate() {
                 for x in 0..w {
                     let top = y - arms.up_of(x, y) - halo.start;
                     let bottom = y + arms.down_of(x, y) - halo.start;
-                    let at = |row: usize, d: usize| (row * w + x) * nd + d;
+                    let cell = |row: usize| (row * w + x) * nd;
                     let curve = &mut curves[(r * w + x) * nd..(r * w + x + 1) * nd];
-                    for (d, value) in curve.iter_mut().enumerate() {
-                        let (mut sum, mut count) = (self.sums[at(bottom, d)], self.counts[at(bottom, d)]);
-                        if top > 0 {
-                            sum -= self.sums[at(top - 1, d)];
-                            count -= self.counts[at(top - 1, d)];
-                        }
+                    let (sums, counts) = (&self.sums[cell(bottom)..][..nd], &self.counts[cell(bottom)..][..nd]);
+                    let average = |value: &mut f32, sum: u32, count: u16| {
                         if count > 0 {
                             *value = sum as f32 / f32::from(count);
+                        }
+                    };
+                    if top > 0 {
+                        let (above, above_counts) =
+                            (&self.sums[cell(top - 1)..][..nd], &self.counts[cell(top - 1)..][..nd]);
+                        let terms = curve
+                            .iter_mut()
+                            .zip(sums.iter().zip(counts))
+                            .zip(above.iter().zip(above_counts));
+                        for ((value, (sum, count)), (above, above_count)) in terms {
+                            average(value, sum - above, count - above_count);
+                        }
+                    } else {
+                        for (value, (sum, count)) in curve.iter_mut().zip(sums.iter().zip(counts)) {
+                            average(value, *sum, *count);
                         }
                     }
                 }
