@@ -671,6 +671,15 @@ mod tests {
         let mut unchanged = fattened.clone();
         recover_thin_parts(&problem, &mut unchanged, &ThinParts::default()).unwrap_or_else(|e| panic!("{e}"));
         assert_eq!(unchanged.data, fattened.data);
+        // The guard: with the rod's disparity everywhere within reach, the plane may not move
+        // farther than it by more than a pixel, so nothing moves.
+        let guarded = ThinParts {
+            farther_guard_px: 40,
+            ..config
+        };
+        let mut kept = fattened.clone();
+        recover_thin_parts(&problem, &mut kept, &guarded).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(kept.data, fattened.data);
     }
 
     #[test]
