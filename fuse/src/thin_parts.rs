@@ -73,7 +73,7 @@ pub struct ThinParts {
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct CrossSupport {
-    /// Longest arm (px).
+    /// Longest arm (px; at most [`MAX_ARM_PX`], larger values are taken as that).
     pub arm_px: usize,
     /// Largest colour difference (grey levels) along an arm.
     pub colour_threshold: u8,
@@ -341,6 +341,10 @@ impl BandCurves {
     }
 }
 
+/// The longest arm [`CrossSupport`] takes: a band's cumulative support counts (`u16`) then
+/// stay below 2¹⁶ ((32 + 2·32) rows × 65 columns).
+pub const MAX_ARM_PX: usize = 32;
+
 /// Rows per band of work with cross-shaped supports.
 const CROSS_BAND_ROWS: usize = 32;
 
@@ -355,7 +359,7 @@ struct Arms {
 impl Arms {
     fn new(reference: &Image, support: CrossSupport) -> Self {
         let (w, h, channels) = (reference.width, reference.height, reference.channels);
-        let longest = support.arm_px.min(u8::MAX as usize);
+        let longest = support.arm_px.min(MAX_ARM_PX);
         let pixel = |x: usize, y: usize| &reference.data[(y * w + x) * channels..(y * w + x + 1) * channels];
         let alike = |a: &[u8], b: &[u8]| a.iter().zip(b).all(|(p, q)| p.abs_diff(*q) <= support.colour_threshold);
         let arms = (0..w * h)
@@ -780,6 +784,33 @@ mod tests {
         // The arms reach their limit somewhere (the plane's smooth colours) and stop short at the rod.
         assert_eq!(longest_seen, 5);
         assert!(arms.arms.iter().any(|a| a.iter().any(|&l| l < 5)));
+    }
+
+    #[test]
+    fn arms_longer_than_the_limit_are_cut_to_it() {
+        let (w, h) = (80, 44);
+        let (problem, _) = rod_before_a_plane(w, h, false);
+        let long = ThinParts {
+            cross_support: Some(CrossSupport {
+                arm_px: 1000,
+                colour_threshold: 255,
+            }),
+            ..ThinParts::default()
+        };
+        let capped = ThinParts {
+            cross_support: Some(CrossSupport {
+                arm_px: MAX_ARM_PX,
+                colour_threshold: 255,
+            }),
+            ..ThinParts::default()
+        };
+        let (mut a, mut b) = (far_everywhere(w, h), far_everywhere(w, h));
+        recover_thin_parts(&problem, &mut a, &long).unwrap_or_else(|e| panic!("{e}"));
+        recover_thin_parts(&problem, &mut b, &capped).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(a.data, b.data);
+        let arms = Arms::new(&problem.reference, long.cross_support.unwrap_or_default());
+        assert_eq!(arms.longest, MAX_ARM_PX);
+        assert!(arms.arms.iter().any(|a| a.contains(&(MAX_ARM_PX as u8))));
     }
 
     #[test]
