@@ -30,7 +30,7 @@ use crate::FuseError;
 use crate::cost::{INVALID_COST, PixelCost};
 use crate::fusion::Fusion;
 use crate::image::{DisparityImage, Image};
-use crate::volume::{BandScratch, CostSpec, PreparedProblem, Problem, band_rows};
+use crate::volume::{BandScratch, CostSpec, PreparedProblem, Problem};
 use crate::wta::SubpixelFit;
 
 /// How [`recover_thin_parts`] decides.
@@ -131,12 +131,13 @@ pub fn recover_thin_parts(
     let (w, h, nd) = (heuristic.width(), heuristic.height(), heuristic.num_disparities());
     disparity.check_size(w, h, "disparity map for the thin-part recovery (the reference's size)")?;
     let min = problem.min_disparity as f32;
-    let arms = config
-        .cross_support
-        .map(|support| Arms::new(&problem.reference, support));
-    // Supports reach `arm_px` rows beyond a band, whose costs each band makes again: short
-    // bands keep those rows' sums small (1080p with 128 disparities: about 200 MB a worker).
-    let band = if arms.is_some() { CROSS_BAND_ROWS } else { band_rows(h) };
+    let arms = match config.cross_support {
+        Some(support) => Arms::new(&problem.reference, support),
+        None => Arms::own(w, h),
+    };
+    // Rows per chunk of work: each chunk streams its rows through a ring of support sums and
+    // makes the costs of `arm_px` rows beyond its ends again (`chunk_rows`).
+    let chunk = chunk_rows(h, arms.longest);
     // The farthest estimate near each pixel (slices from the range's start), for the guard.
     let farthest_near = (config.farther && config.farther_guard_px > 0).then(|| {
         let slices: Vec<f32> = disparity.data.iter().map(|d| d - min).collect();
@@ -145,27 +146,25 @@ pub fn recover_thin_parts(
     // Each pixel's candidate (the new disparity, its confidence), NaN where none.
     let mut candidates = vec![(f32::NAN, 0.0f32); w * h];
     candidates
-        .par_chunks_mut(band * w)
-        .zip(disparity.data.par_chunks(band * w))
+        .par_chunks_mut(chunk * w)
+        .zip(disparity.data.par_chunks(chunk * w))
         .enumerate()
-        .for_each_init(
-            || (BandScratch::default(), BandCurves::default()),
-            |(buffers, curves), (index, (out, estimates))| {
-                let start = index * band;
-                let rows = start..start + out.len() / w;
-                curves.fill(&heuristic, &mean, rows.clone(), arms.as_ref(), buffers);
-                for (i, (candidate, estimate)) in out.iter_mut().zip(estimates).enumerate() {
-                    let (costs, seen_by_all) = (
-                        &curves.heuristic[i * nd..(i + 1) * nd],
-                        &curves.mean[i * nd..(i + 1) * nd],
-                    );
-                    let farthest = farthest_near.as_ref().map_or(f32::NEG_INFINITY, |f| f[start * w + i]);
-                    if let Some(found) = candidate_of(*estimate - min, costs, seen_by_all, farthest, config) {
+        .for_each_init(SupportCurves::default, |curves, (index, (out, estimates))| {
+            let start = index * chunk;
+            let rows = start..start + out.len() / w;
+            curves.stream(&heuristic, &mean, rows, &arms, &mut |y, costs, seen_by_all| {
+                let row = (y - start) * w;
+                let at = |x: usize| &costs[x * nd..(x + 1) * nd];
+                let all = |x: usize| &seen_by_all[x * nd..(x + 1) * nd];
+                for (x, (candidate, estimate)) in out[row..row + w].iter_mut().zip(&estimates[row..row + w]).enumerate()
+                {
+                    let farthest = farthest_near.as_ref().map_or(f32::NEG_INFINITY, |f| f[y * w + x]);
+                    if let Some(found) = candidate_of(*estimate - min, at(x), all(x), farthest, config) {
                         *candidate = (found.0 + min, found.1);
                     }
                 }
-            },
-        );
+            });
+        });
     let supported: Vec<bool> = (0..w * h)
         .into_par_iter()
         .map(|i| {
@@ -199,154 +198,235 @@ pub fn recover_thin_parts(
     Ok(moved)
 }
 
-/// The per-pixel cost curves of one band of rows (`[pixel][d]`, `f32::INFINITY` where a view's
-/// correspondence leaves the image): the heuristic fusion's and the mean over every view, each
-/// pixel's own or averaged over its cross-shaped support.
+/// Rows per chunk of work for an image `height` rows high whose supports reach `reach` rows:
+/// two chunks per worker, each making the costs of `2·reach` rows of its neighbours again (at
+/// 1080p with arms of 17 px and two workers: 270 rows, 13 % more costs).
+fn chunk_rows(height: usize, reach: usize) -> usize {
+    height
+        .div_ceil(2 * rayon::current_num_threads().max(1))
+        .max(MIN_CHUNK_ROWS.max(2 * reach))
+}
+
+/// Fewest rows per chunk of [`recover_thin_parts`]'s work.
+const MIN_CHUNK_ROWS: usize = 16;
+
+/// Rows of fused costs made at a time.
+const COST_BATCH_ROWS: usize = 8;
+
+/// One worker's per-pixel cost curves (`[x][d]` per row, `f32::INFINITY` where a view's
+/// correspondence leaves the image), the heuristic fusion's and the mean over every view, each
+/// pixel's costs averaged over its support ([`Arms`]; its own costs where the arms are empty).
+/// The rows stream through a ring of support sums: the memory is `2·reach + 2` rows of sums
+/// whatever the chunk's height (at 1080p with 128 disparities and arms of 17 px, 55 MB per
+/// fusion), and every row's costs are made once per chunk.
 #[derive(Debug, Default)]
-struct BandCurves {
-    heuristic: Vec<f32>,
-    mean: Vec<f32>,
-    /// The fused costs of the band and its halo (the rows the supports reach).
-    costs: Vec<u16>,
-    /// Support sums and counts, cumulative down the halo's rows.
+struct SupportCurves {
+    rings: [SupportRing; 2],
+    /// A batch of rows' fused costs, per fusion.
+    costs: [Vec<u16>; 2],
+    buffers: BandScratch,
+    /// The emitted row's curves, per fusion.
+    curves: [Vec<f32>; 2],
+}
+
+/// Receives a row's curves: `(y, heuristic, mean)`, each `[x][d]`.
+type EmitRow<'a> = dyn FnMut(usize, &[f32], &[f32]) + 'a;
+
+/// The support sums of the last rows of one fusion's costs.
+#[derive(Debug, Default)]
+struct SupportRing {
+    /// Each row's sums over every pixel's horizontal arm, cumulative (wrapping) down the rows
+    /// from the first row pushed; row `r` in slot `r % slots`.
     sums: Vec<u32>,
+    /// The same for the counts of valid costs.
     counts: Vec<u16>,
+    slots: usize,
     /// One row's prefix sums and counts along `x`.
     prefix_sums: Vec<u32>,
     prefix_counts: Vec<u16>,
 }
 
-impl BandCurves {
-    fn fill(
+impl SupportCurves {
+    /// Calls `emit(y, heuristic, mean)` with the curves of each row of `rows`, in order: rows
+    /// `[x][d]` of `heuristic`'s and of `mean`'s fused costs averaged over each pixel's support.
+    fn stream(
         &mut self,
         heuristic: &PreparedProblem,
         mean: &PreparedProblem,
         rows: Range<usize>,
-        arms: Option<&Arms>,
-        buffers: &mut BandScratch,
+        arms: &Arms,
+        emit: &mut EmitRow<'_>,
     ) {
         let (w, h, nd) = (heuristic.width(), heuristic.height(), heuristic.num_disparities());
-        let cells = rows.len() * w * nd;
-        for (problem, curves) in [(heuristic, &mut self.heuristic), (mean, &mut self.mean)] {
-            curves.clear();
-            curves.resize(cells, f32::INFINITY);
-            let Some(arms) = arms else {
-                self.costs.clear();
-                self.costs.resize(cells, 0);
-                problem.fused_band_into(rows.clone(), &mut self.costs, buffers);
-                for (curve, &c) in curves.iter_mut().zip(&self.costs) {
-                    if c != INVALID_COST {
-                        *curve = f32::from(c);
-                    }
-                }
-                continue;
-            };
-            let reach = arms.longest;
-            let halo = rows.start.saturating_sub(reach)..(rows.end + reach).min(h);
-            let halo_cells = halo.len() * w * nd;
-            self.costs.clear();
-            self.costs.resize(halo_cells, 0);
-            problem.fused_band_into(halo.clone(), &mut self.costs, buffers);
-            // Each halo row's sums over every pixel's horizontal arm, then cumulative down the rows.
-            self.sums.clear();
-            self.sums.resize(halo_cells, 0);
-            self.counts.clear();
-            self.counts.resize(halo_cells, 0);
-            self.prefix_sums.resize((w + 1) * nd, 0);
-            self.prefix_counts.resize((w + 1) * nd, 0);
-            for (r, y) in halo.clone().enumerate() {
-                let row = &self.costs[r * w * nd..(r + 1) * w * nd];
-                self.prefix_sums[..nd].fill(0);
-                self.prefix_counts[..nd].fill(0);
-                for x in 0..w {
-                    let (done, next) = self.prefix_sums.split_at_mut((x + 1) * nd);
-                    let (done_counts, next_counts) = self.prefix_counts.split_at_mut((x + 1) * nd);
-                    let cells = next[..nd]
-                        .iter_mut()
-                        .zip(&mut next_counts[..nd])
-                        .zip(done[x * nd..].iter().zip(&done_counts[x * nd..]))
-                        .zip(&row[x * nd..(x + 1) * nd]);
-                    for (((sum, count), (previous, previous_count)), &c) in cells {
-                        let valid = c != INVALID_COST;
-                        *sum = previous + if valid { u32::from(c) } else { 0 };
-                        *count = previous_count + u16::from(valid);
-                    }
-                }
-                let out_sums = &mut self.sums[r * w * nd..(r + 1) * w * nd];
-                let out_counts = &mut self.counts[r * w * nd..(r + 1) * w * nd];
-                for (x, (sums, counts)) in out_sums
-                    .chunks_exact_mut(nd)
-                    .zip(out_counts.chunks_exact_mut(nd))
-                    .enumerate()
-                {
-                    let (left, right) = (x - arms.left_of(x, y), x + arms.right_of(x, y) + 1);
-                    let (to, from) = (
-                        &self.prefix_sums[right * nd..][..nd],
-                        &self.prefix_sums[left * nd..][..nd],
-                    );
-                    for ((sum, to), from) in sums.iter_mut().zip(to).zip(from) {
-                        *sum = to - from;
-                    }
-                    let (to, from) = (
-                        &self.prefix_counts[right * nd..][..nd],
-                        &self.prefix_counts[left * nd..][..nd],
-                    );
-                    for ((count, to), from) in counts.iter_mut().zip(to).zip(from) {
-                        *count = to - from;
-                    }
-                }
-                if r > 0 {
-                    let (above, this) = self.sums.split_at_mut(r * w * nd);
-                    let (above_counts, this_counts) = self.counts.split_at_mut(r * w * nd);
-                    for (sum, above) in this[..w * nd].iter_mut().zip(&above[(r - 1) * w * nd..]) {
-                        *sum += above;
-                    }
-                    for (count, above) in this_counts[..w * nd].iter_mut().zip(&above_counts[(r - 1) * w * nd..]) {
-                        *count += above;
-                    }
-                }
+        let reach = arms.longest;
+        if rows.is_empty() {
+            return;
+        }
+        // Every row a support of `rows` reaches, each pushed once; row `y` is emitted once the
+        // last row its support reaches is in (`y + reach`, or the image's last).
+        let halo = rows.start.saturating_sub(reach)..(rows.end + reach).min(h);
+        for ring in &mut self.rings {
+            ring.reset(w * nd, 2 * reach + 2);
+        }
+        for curve in &mut self.curves {
+            curve.clear();
+            curve.resize(w * nd, f32::INFINITY);
+        }
+        let row_cells = w * nd;
+        for batch_start in halo.clone().step_by(COST_BATCH_ROWS) {
+            let batch = batch_start..(batch_start + COST_BATCH_ROWS).min(halo.end);
+            for (problem, costs) in [heuristic, mean].into_iter().zip(&mut self.costs) {
+                costs.clear();
+                costs.resize(batch.len() * row_cells, 0);
+                problem.fused_band_into(batch.clone(), costs, &mut self.buffers);
             }
-            // Each pixel's support: the rows of its vertical arm (sums down to `bottom` less
-            // those down to the row above `top`).
-            for (r, y) in rows.clone().enumerate() {
-                for x in 0..w {
-                    let top = y - arms.up_of(x, y) - halo.start;
-                    let bottom = y + arms.down_of(x, y) - halo.start;
-                    let cell = |row: usize| (row * w + x) * nd;
-                    let curve = &mut curves[(r * w + x) * nd..(r * w + x + 1) * nd];
-                    let (sums, counts) = (&self.sums[cell(bottom)..][..nd], &self.counts[cell(bottom)..][..nd]);
-                    let average = |value: &mut f32, sum: u32, count: u16| {
-                        if count > 0 {
-                            *value = sum as f32 / f32::from(count);
-                        }
-                    };
-                    if top > 0 {
-                        let (above, above_counts) =
-                            (&self.sums[cell(top - 1)..][..nd], &self.counts[cell(top - 1)..][..nd]);
-                        let terms = curve
-                            .iter_mut()
-                            .zip(sums.iter().zip(counts))
-                            .zip(above.iter().zip(above_counts));
-                        for ((value, (sum, count)), (above, above_count)) in terms {
-                            average(value, sum - above, count - above_count);
-                        }
-                    } else {
-                        for (value, (sum, count)) in curve.iter_mut().zip(sums.iter().zip(counts)) {
-                            average(value, *sum, *count);
+            for (b, pushed) in batch.enumerate() {
+                if reach == 0 {
+                    // Each pixel's own costs: no sums to keep.
+                    for (curve, costs) in self.curves.iter_mut().zip(&self.costs) {
+                        for (value, &c) in curve.iter_mut().zip(&costs[b * row_cells..(b + 1) * row_cells]) {
+                            *value = if c == INVALID_COST { f32::INFINITY } else { f32::from(c) };
                         }
                     }
+                    emit(pushed, &self.curves[0], &self.curves[1]);
+                    continue;
+                }
+                for (ring, costs) in self.rings.iter_mut().zip(&self.costs) {
+                    ring.push(
+                        pushed - halo.start,
+                        pushed,
+                        &costs[b * row_cells..(b + 1) * row_cells],
+                        arms,
+                        nd,
+                    );
+                }
+                let ready = if pushed + 1 == h {
+                    pushed.saturating_sub(reach).max(rows.start)..rows.end
+                } else {
+                    let y = pushed.wrapping_sub(reach);
+                    if pushed >= reach && rows.contains(&y) {
+                        y..y + 1
+                    } else {
+                        0..0
+                    }
+                };
+                for y in ready {
+                    for (ring, curve) in self.rings.iter().zip(&mut self.curves) {
+                        ring.curve_row(y, halo.start, arms, nd, curve);
+                    }
+                    emit(y, &self.curves[0], &self.curves[1]);
                 }
             }
         }
     }
 }
 
-/// The longest arm [`CrossSupport`] takes: a band's cumulative support counts (`u16`) then
-/// stay below 2¹⁶ ((32 + 2·32) rows × 65 columns).
-pub const MAX_ARM_PX: usize = 32;
+impl SupportRing {
+    fn reset(&mut self, row_cells: usize, slots: usize) {
+        self.slots = slots;
+        self.sums.clear();
+        self.sums.resize(slots * row_cells, 0);
+        self.counts.clear();
+        self.counts.resize(slots * row_cells, 0);
+    }
 
-/// Rows per band of work with cross-shaped supports.
-const CROSS_BAND_ROWS: usize = 32;
+    /// Adds row `y` (the `r`-th pushed) of costs `[x][d]`: its sums over each pixel's
+    /// horizontal arm, plus the cumulative sums of the row before.
+    fn push(&mut self, r: usize, y: usize, costs: &[u16], arms: &Arms, nd: usize) {
+        let w = costs.len() / nd;
+        let row_cells = w * nd;
+        self.prefix_sums.resize((w + 1) * nd, 0);
+        self.prefix_counts.resize((w + 1) * nd, 0);
+        self.prefix_sums[..nd].fill(0);
+        self.prefix_counts[..nd].fill(0);
+        for x in 0..w {
+            let (done, next) = self.prefix_sums.split_at_mut((x + 1) * nd);
+            let (done_counts, next_counts) = self.prefix_counts.split_at_mut((x + 1) * nd);
+            let cells = next[..nd]
+                .iter_mut()
+                .zip(&mut next_counts[..nd])
+                .zip(done[x * nd..].iter().zip(&done_counts[x * nd..]))
+                .zip(&costs[x * nd..(x + 1) * nd]);
+            for (((sum, count), (previous, previous_count)), &c) in cells {
+                let valid = c != INVALID_COST;
+                *sum = previous.wrapping_add(if valid { u32::from(c) } else { 0 });
+                *count = previous_count.wrapping_add(u16::from(valid));
+            }
+        }
+        let slot = r % self.slots;
+        let above = (r > 0).then(|| (r - 1) % self.slots);
+        let (sums, counts) = (&mut self.sums, &mut self.counts);
+        for x in 0..w {
+            let (left, right) = (x - arms.left_of(x, y), x + arms.right_of(x, y) + 1);
+            let cell = (slot * w + x) * nd;
+            let (to, from) = (
+                &self.prefix_sums[right * nd..][..nd],
+                &self.prefix_sums[left * nd..][..nd],
+            );
+            for d in 0..nd {
+                sums[cell + d] = to[d].wrapping_sub(from[d]);
+            }
+            let (to, from) = (
+                &self.prefix_counts[right * nd..][..nd],
+                &self.prefix_counts[left * nd..][..nd],
+            );
+            for d in 0..nd {
+                counts[cell + d] = to[d].wrapping_sub(from[d]);
+            }
+        }
+        if let Some(above) = above {
+            let (this, previous) = (slot * row_cells, above * row_cells);
+            for i in 0..row_cells {
+                sums[this + i] = sums[this + i].wrapping_add(sums[previous + i]);
+                counts[this + i] = counts[this + i].wrapping_add(counts[previous + i]);
+            }
+        }
+    }
+
+    /// Row `y`'s curves into `out` (`[x][d]`): each pixel's sums over the rows of its vertical
+    /// arm (those down to `bottom` less those down to the row above `top`), divided by their
+    /// counts; `first` is the image row pushed first.
+    fn curve_row(&self, y: usize, first: usize, arms: &Arms, nd: usize, out: &mut [f32]) {
+        let w = out.len() / nd;
+        let cell = |row: usize, x: usize| ((row % self.slots) * w + x) * nd;
+        for (x, curve) in out.chunks_exact_mut(nd).enumerate() {
+            let top = y - arms.up_of(x, y) - first;
+            let bottom = y + arms.down_of(x, y) - first;
+            let (sums, counts) = (
+                &self.sums[cell(bottom, x)..][..nd],
+                &self.counts[cell(bottom, x)..][..nd],
+            );
+            let average = |value: &mut f32, sum: u32, count: u16| {
+                *value = if count > 0 {
+                    sum as f32 / f32::from(count)
+                } else {
+                    f32::INFINITY
+                };
+            };
+            if top > 0 {
+                let (above, above_counts) = (
+                    &self.sums[cell(top - 1, x)..][..nd],
+                    &self.counts[cell(top - 1, x)..][..nd],
+                );
+                let terms = curve
+                    .iter_mut()
+                    .zip(sums.iter().zip(counts))
+                    .zip(above.iter().zip(above_counts));
+                for ((value, (sum, count)), (above, above_count)) in terms {
+                    average(value, sum.wrapping_sub(*above), count.wrapping_sub(*above_count));
+                }
+            } else {
+                for (value, (sum, count)) in curve.iter_mut().zip(sums.iter().zip(counts)) {
+                    average(value, *sum, *count);
+                }
+            }
+        }
+    }
+}
+
+/// The longest arm [`CrossSupport`] takes: a support's count of valid costs (`u16`) then stays
+/// below 2¹⁶ (65 × 65 pixels).
+pub const MAX_ARM_PX: usize = 32;
 
 /// Each pixel's arms ([`CrossSupport`]) in the reference image: `[left, right, up, down]` (px).
 struct Arms {
@@ -387,6 +467,15 @@ impl Arms {
             width: w,
             arms,
             longest,
+        }
+    }
+
+    /// Empty arms: each pixel's own costs.
+    fn own(width: usize, height: usize) -> Self {
+        Self {
+            width,
+            arms: vec![[0; 4]; width * height],
+            longest: 0,
         }
     }
 
@@ -743,14 +832,13 @@ mod tests {
         let mut whole = vec![0u16; w * h * nd];
         heuristic.fused_band(0..h, &mut whole);
         let rows = 13..29;
-        let mut curves = BandCurves::default();
-        curves.fill(
-            &heuristic,
-            &mean,
-            rows.clone(),
-            Some(&arms),
-            &mut BandScratch::default(),
-        );
+        let mut curves = SupportCurves::default();
+        let (mut streamed, mut streamed_curves) = (Vec::new(), Vec::new());
+        curves.stream(&heuristic, &mean, rows.clone(), &arms, &mut |y, costs, _| {
+            streamed.push(y);
+            streamed_curves.extend_from_slice(costs);
+        });
+        assert_eq!(streamed, rows.clone().collect::<Vec<_>>(), "each row once, in order");
         let mut longest_seen = 0;
         for (r, y) in rows.enumerate() {
             for x in 0..w {
@@ -773,7 +861,7 @@ mod tests {
                     } else {
                         sum as f32 / count as f32
                     };
-                    let got = curves.heuristic[(r * w + x) * nd + d];
+                    let got = streamed_curves[(r * w + x) * nd + d];
                     assert!(
                         got == expected || (got - expected).abs() <= 1e-4 * expected,
                         "({x}, {y}) d {d}: {got} against {expected}"
