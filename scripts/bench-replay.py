@@ -14,6 +14,9 @@ PAUSE_S seconds, as a workcell runs one capture every few seconds (on virtual ma
 freed memory back to the host, a fresh page then costs a host fault). OpenCV is timed warm,
 its objects reused across calls as an application would.
 
+OUTPUTS=LIST passes `--outputs LIST` to replay (default: every result file; a workcell that needs
+only the depth: OUTPUTS=depth).
+
 Usage: .venv/bin/python scripts/bench-replay.py [capture.mcap]
   (pip install -r scripts/requirements-bench.txt into the venv first)
 """
@@ -36,6 +39,8 @@ PROCESS_LIMIT = 1.2
 # The replay binary measured (REPLAY=PATH for another build's).
 REPLAY = os.environ.get("REPLAY", os.path.join(ROOT, "target/release/replay"))
 RSS_LIMIT_MB = 1536
+# The result files replay writes (`--outputs`).
+OUTPUTS = os.environ.get("OUTPUTS", "all")
 # Seconds of idle before each cold run (PAUSE_S=0 to skip the cold runs).
 PAUSE_S = float(os.environ.get("PAUSE_S", "5"))
 
@@ -78,7 +83,8 @@ def run_replay(log, method, out):
     start = time.perf_counter()
     rss_file = os.path.join(tempfile.mkdtemp(), "rss")
     subprocess.run(["/usr/bin/time", "-f", "%M", "-o", rss_file, REPLAY, log,
-                    "--method", method, "--num-disparities", str(DISPARITIES), "--out", out, "-q"], check=True)
+                    "--method", method, "--num-disparities", str(DISPARITIES), "--out", out, "-q"]
+                   + ([] if OUTPUTS == "all" else ["--outputs", OUTPUTS]), check=True)
     wall = time.perf_counter() - start
     peak_kb = int(open(rss_file).read().split()[-1])
     summary = json.load(open(os.path.join(out, "summary.json")))
@@ -101,7 +107,7 @@ def main():
     opencv_bm = best_of(lambda: [bm.compute(l, r) for l, r in four])
     opencv_sgbm = best_of(lambda: sgbm.compute(four[0][0], four[0][1]))
     model = next((line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name")), "?")
-    results = {"host": f"{model}, {os.cpu_count()} vCPUs", "replay": REPLAY, "opencv": cv2.__version__, "threads": cv2.getNumThreads(), "opencv_bm_four_pairs_s": opencv_bm,
+    results = {"host": f"{model}, {os.cpu_count()} vCPUs", "replay": REPLAY, "outputs": OUTPUTS, "opencv": cv2.__version__, "threads": cv2.getNumThreads(), "opencv_bm_four_pairs_s": opencv_bm,
                "opencv_sgbm_hh_one_pair_s": opencv_sgbm}
     for method, peer, limit in [("bm-heuristic", opencv_bm, 1.0), ("sgm-heuristic", opencv_sgbm, 0.5)]:
         out = os.path.join(work, method)

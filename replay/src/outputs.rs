@@ -14,6 +14,87 @@ use crate::viewset::ViewSet;
 /// Range of the error-map colours (px): 0 is dark blue, 4 px and more dark red.
 pub const ERROR_MAP_RANGE_PX: (f32, f32) = (0.0, 4.0);
 
+/// Which result files of a set are written (`replay LOG --outputs`); `metrics.json` always is,
+/// when the set has ground truth. A workcell that needs only the depth skips the rest: at
+/// 1080p the points alone are 31 MB of PLY.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ResultFiles {
+    /// `disparity`: the disparity PFM.
+    pub disparity: bool,
+    /// `colormap`: the colour-mapped disparity PNG.
+    pub colormap: bool,
+    /// `depth`: depth in metres (PFM) and millimetres (16-bit PNG).
+    pub depth: bool,
+    /// `confidence`: the method's confidence (PFM and 16-bit PNG), when it gives one.
+    pub confidence: bool,
+    /// `points`: the back-projected points (PLY).
+    pub points: bool,
+    /// `error`: the error map against the ground truth (PNG), when there is one.
+    pub error: bool,
+}
+
+impl ResultFiles {
+    /// Every file.
+    pub const ALL: Self = Self {
+        disparity: true,
+        colormap: true,
+        depth: true,
+        confidence: true,
+        points: true,
+        error: true,
+    };
+
+    /// The names [`Self::parse`] takes.
+    pub const NAMES: [&'static str; 6] = ["disparity", "colormap", "depth", "confidence", "points", "error"];
+
+    /// `all`, `none`, or a comma-separated list of [`Self::NAMES`].
+    pub fn parse(spec: &str) -> Result<Self, UnknownResultFile> {
+        let none = Self {
+            disparity: false,
+            colormap: false,
+            depth: false,
+            confidence: false,
+            points: false,
+            error: false,
+        };
+        match spec.trim() {
+            "all" => return Ok(Self::ALL),
+            "none" => return Ok(none),
+            _ => {}
+        }
+        let mut files = none;
+        for name in spec.split(',').map(str::trim).filter(|n| !n.is_empty()) {
+            let flag = match name {
+                "disparity" => &mut files.disparity,
+                "colormap" => &mut files.colormap,
+                "depth" => &mut files.depth,
+                "confidence" => &mut files.confidence,
+                "points" => &mut files.points,
+                "error" => &mut files.error,
+                _ => {
+                    return Err(UnknownResultFile { name: name.to_owned() });
+                }
+            };
+            *flag = true;
+        }
+        Ok(files)
+    }
+}
+
+impl Default for ResultFiles {
+    fn default() -> Self {
+        Self::ALL
+    }
+}
+
+/// A name `--outputs` does not know.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("unknown result file `{name}`: expected all, none or a comma-separated list of {}", ResultFiles::NAMES.join(", "))]
+pub struct UnknownResultFile {
+    /// The name given.
+    pub name: String,
+}
+
 /// What was written for one set.
 #[derive(Debug, Clone, Serialize)]
 pub struct SetOutputs {
@@ -39,7 +120,7 @@ pub fn write_set_outputs(
     disparity: &DisparityImage,
     metrics: Option<RegionMetrics>,
 ) -> Result<SetOutputs, viz::files::FileError> {
-    write_set_outputs_evaluating(dir, set, method, disparity, || metrics)
+    write_set_outputs_evaluating(dir, set, method, disparity, ResultFiles::ALL, || metrics)
 }
 
 /// [`write_set_outputs`] with the metrics computed by `evaluate` while the files are written
@@ -50,6 +131,7 @@ pub fn write_set_outputs_evaluating(
     set: &ViewSet,
     method: &str,
     disparity: &DisparityImage,
+    wanted: ResultFiles,
     evaluate: impl FnOnce() -> Option<RegionMetrics> + Send,
 ) -> Result<SetOutputs, viz::files::FileError> {
     let set_dir = dir.join(sanitize(&format!("{:03}-{}", set.index, set.name)));
@@ -63,22 +145,25 @@ pub fn write_set_outputs_evaluating(
     // ones): the files of a 1080p set in about the time of the slowest.
     type Writer<'w> = Box<dyn FnOnce() -> Result<Vec<PathBuf>, viz::files::FileError> + Send + 'w>;
     let set_dir = &set_dir;
-    let mut writers: Vec<Writer<'_>> = vec![
-        Box::new(move || {
+    let mut writers: Vec<Writer<'_>> = Vec::new();
+    if wanted.disparity {
+        writers.push(Box::new(move || {
             let path = set_dir.join(format!("{method}_disparity.pfm"));
             viz::files::write_pfm(&path, w, h, &disparity.data)?;
             Ok(vec![path])
-        }),
-        Box::new(move || {
+        }));
+    }
+    if wanted.depth {
+        writers.push(Box::new(move || {
             let depth = depth_map(set, disparity, f32::INFINITY);
             let pfm = set_dir.join(format!("{method}_depth_m.pfm"));
             viz::files::write_pfm(&pfm, w, h, &depth)?;
             let png = set_dir.join(format!("{method}_depth_mm.png"));
             viz::files::write_depth_png_mm(&png, w, h, &depth)?;
             Ok(vec![pfm, png])
-        }),
-    ];
-    if let Some(confidence) = &disparity.confidence {
+        }));
+    }
+    if let Some(confidence) = disparity.confidence.as_ref().filter(|_| wanted.confidence) {
         writers.push(Box::new(move || {
             let pfm = set_dir.join(format!("{method}_confidence.pfm"));
             viz::files::write_pfm(&pfm, w, h, confidence)?;
@@ -87,7 +172,7 @@ pub fn write_set_outputs_evaluating(
             Ok(vec![pfm, png])
         }));
     }
-    if let Some(range) = range {
+    if let Some(range) = range.filter(|_| wanted.colormap) {
         writers.push(Box::new(move || {
             Ok(vec![viz::files::write_colormap_png(
                 set_dir,
@@ -99,50 +184,54 @@ pub fn write_set_outputs_evaluating(
             )?])
         }));
     }
-    writers.push(Box::new(move || {
-        let ply = set_dir.join(format!("{method}_points.ply"));
-        // The PLY writer takes z = f·b/d: hand it d + doffs (0 unless the set's calibration has one).
-        let doffs = set.disparity_offset_px() as f32;
-        let shifted: Vec<f32> = disparity.data.iter().map(|d| d + doffs).collect();
-        viz::files::write_ply_points(
-            &ply,
-            (w, h),
-            &shifted,
-            &set.reference.rgb,
-            [
-                set.reference.camera.fx,
-                set.reference.camera.fy,
-                set.reference.camera.cx,
-                set.reference.camera.cy,
-            ],
-            set.baseline_m,
-        )?;
-        Ok(vec![ply])
-    }));
-    writers.push(Box::new(move || {
-        let Some(truth) = set.ground_truth_disparity() else {
-            return Ok(Vec::new());
-        };
-        // |estimate − truth| where the truth is known (no estimate counts as the largest error).
-        let error: Vec<f32> = disparity
-            .data
-            .iter()
-            .zip(&truth)
-            .map(|(d, t)| match (t.is_finite(), d.is_finite()) {
-                (true, true) => (d - t).abs(),
-                (true, false) => ERROR_MAP_RANGE_PX.1,
-                _ => f32::NAN,
-            })
-            .collect();
-        Ok(vec![viz::files::write_colormap_png(
-            set_dir,
-            &format!("{method}_error"),
-            w,
-            h,
-            &error,
-            ERROR_MAP_RANGE_PX,
-        )?])
-    }));
+    if wanted.points {
+        writers.push(Box::new(move || {
+            let ply = set_dir.join(format!("{method}_points.ply"));
+            // The PLY writer takes z = f·b/d: hand it d + doffs (0 unless the set's calibration has one).
+            let doffs = set.disparity_offset_px() as f32;
+            let shifted: Vec<f32> = disparity.data.iter().map(|d| d + doffs).collect();
+            viz::files::write_ply_points(
+                &ply,
+                (w, h),
+                &shifted,
+                &set.reference.rgb,
+                [
+                    set.reference.camera.fx,
+                    set.reference.camera.fy,
+                    set.reference.camera.cx,
+                    set.reference.camera.cy,
+                ],
+                set.baseline_m,
+            )?;
+            Ok(vec![ply])
+        }));
+    }
+    if wanted.error {
+        writers.push(Box::new(move || {
+            let Some(truth) = set.ground_truth_disparity() else {
+                return Ok(Vec::new());
+            };
+            // |estimate − truth| where the truth is known (no estimate counts as the largest error).
+            let error: Vec<f32> = disparity
+                .data
+                .iter()
+                .zip(&truth)
+                .map(|(d, t)| match (t.is_finite(), d.is_finite()) {
+                    (true, true) => (d - t).abs(),
+                    (true, false) => ERROR_MAP_RANGE_PX.1,
+                    _ => f32::NAN,
+                })
+                .collect();
+            Ok(vec![viz::files::write_colormap_png(
+                set_dir,
+                &format!("{method}_error"),
+                w,
+                h,
+                &error,
+                ERROR_MAP_RANGE_PX,
+            )?])
+        }));
+    }
     let (written, metrics): (Vec<Result<Vec<PathBuf>, viz::files::FileError>>, _) = rayon::join(
         || {
             use rayon::prelude::*;
@@ -498,5 +587,25 @@ impl ResultLog {
             ResultWriter::Ros2(w) => w.finish()?.0,
         };
         self.file.commit(writer)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn result_files_parse_all_none_and_lists_and_name_what_they_know() {
+        assert_eq!(ResultFiles::parse("all"), Ok(ResultFiles::ALL));
+        let none = ResultFiles::parse("none").unwrap_or(ResultFiles::ALL);
+        assert!(!(none.disparity || none.colormap || none.depth || none.confidence || none.points || none.error));
+        let some = ResultFiles::parse(" depth , points").unwrap_or(ResultFiles::ALL);
+        assert!(some.depth && some.points && !some.disparity && !some.error);
+        for name in ResultFiles::NAMES {
+            assert!(ResultFiles::parse(name).is_ok(), "{name}");
+        }
+        let error = ResultFiles::parse("depth,cloud").err();
+        assert_eq!(error.as_ref().map(|e| e.name.as_str()), Some("cloud"));
+        assert!(error.is_some_and(|e| e.to_string().contains("points")));
     }
 }

@@ -1,10 +1,12 @@
-//! The per-set pipeline every subcommand shares (`replay LOG`, `eval`, `demo`): check the set's
-//! alignment, keep the requested neighbours, build the matching problem (rectified if asked),
-//! compute the occlusion mask once, run each method and measure it against the ground truth.
+//! The per-set pipeline every subcommand shares (`replay LOG`, `eval`, `demo`): keep the
+//! requested neighbours, build the matching problem (rectified if asked), run each method, check
+//! the set's alignment and measure each result against the ground truth (the occlusion mask made
+//! once, when first needed).
 //! The summaries written as JSON are the serde types here.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
 use std::time::Instant;
 
 use fuse::methods::Method;
@@ -91,10 +93,13 @@ pub struct PreparedSet<'a> {
     pub min_disparity: i32,
     /// Disparities searched.
     pub num_disparities: usize,
-    /// The alignment report of the set.
-    pub alignment: SetCheck,
-    /// Pixels of the reference occluded in some neighbour (from the ground truth).
-    pub occluded: Option<Vec<bool>>,
+    /// The alignment report of the set ([`Self::alignment`]), made when first asked for.
+    alignment: OnceLock<SetCheck>,
+    /// Pixels of the reference occluded in some neighbour, from the ground truth
+    /// ([`Self::occluded`]), made when first asked for.
+    occluded: OnceLock<Option<Vec<bool>>>,
+    /// How far the alignment check's image-based shift search reaches (px).
+    check_reach_px: usize,
 }
 
 /// One method's result on a set.
@@ -112,37 +117,44 @@ pub struct MethodResult {
 }
 
 impl<'a> PreparedSet<'a> {
-    /// Checks the alignment, selects the neighbours and builds the problem.
+    /// Selects the neighbours and builds the problem. The alignment check and the occlusion
+    /// mask wait until asked for ([`Self::alignment`], [`Self::occluded`]), so that neither
+    /// delays the methods: `replay LOG` makes them while it writes the first result.
     pub fn new(set: &'a ViewSet, options: &RunOptions) -> Result<Self, ReplayError> {
         let (min_disparity, num_disparities) = set.search_range(options.min_disparity, options.num_disparities);
         // The image-based shift search must reach the disparities searched.
         let end = min_disparity.saturating_add(i32::try_from(num_disparities).unwrap_or(i32::MAX));
-        let reach = min_disparity.unsigned_abs().max(end.unsigned_abs()) as usize;
-        // The check, the method's problem and the evaluation's occlusion mask are independent:
-        // computed at once, so that no core idles in the sequential parts of any.
-        let (alignment, (occluded, selected_problem)) = rayon::join(
-            || check_set(set, reach, crate::check::PixelLimits::default()),
-            || {
-                rayon::join(
-                    || set.occlusion_mask(),
-                    || -> Result<_, ReplayError> {
-                        let selected = set.with_neighbours(&options.neighbours)?;
-                        let problem = selected.problem(min_disparity, num_disparities, options.rectify)?;
-                        Ok((selected, problem))
-                    },
-                )
-            },
-        );
-        let (selected, problem) = selected_problem?;
+        let check_reach_px = min_disparity.unsigned_abs().max(end.unsigned_abs()) as usize;
+        let selected = set.with_neighbours(&options.neighbours)?;
+        let problem = selected.problem(min_disparity, num_disparities, options.rectify)?;
         Ok(Self {
             set,
             selected,
             problem,
             min_disparity,
             num_disparities,
-            alignment,
-            occluded,
+            alignment: OnceLock::new(),
+            occluded: OnceLock::new(),
+            check_reach_px,
         })
+    }
+
+    /// The set's alignment report (`replay check`'s), made on the first call.
+    pub fn alignment(&self) -> &SetCheck {
+        self.alignment
+            .get_or_init(|| check_set(self.set, self.check_reach_px, crate::check::PixelLimits::default()))
+    }
+
+    /// Pixels of the reference occluded in some neighbour of the whole set (from the ground
+    /// truth; `None` without one), made on the first call.
+    pub fn occluded(&self) -> Option<&[bool]> {
+        self.occluded.get_or_init(|| self.set.occlusion_mask()).as_deref()
+    }
+
+    /// The alignment report and the occlusion mask made at once (both cores busy), where
+    /// neither is yet.
+    pub fn check_and_mask(&self) {
+        rayon::join(|| self.alignment(), || self.occluded());
     }
 
     /// Runs a method and evaluates it; `progress` gets the fraction done.
@@ -178,7 +190,13 @@ impl<'a> PreparedSet<'a> {
     /// specular), when it has one.
     pub fn evaluate(&self, disparity: &DisparityImage) -> Option<RegionMetrics> {
         let evaluating = Instant::now();
-        let regions = self.occluded.as_deref().and_then(|mask| {
+        let mask = self.occluded();
+        tracing::debug!(
+            "set {}: occlusion mask in {:.3} s",
+            self.set.index,
+            evaluating.elapsed().as_secs_f64()
+        );
+        let regions = mask.and_then(|mask| {
             self.set.region_metrics_with(
                 &disparity.data,
                 disparity.confidence.as_deref(),

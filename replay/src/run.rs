@@ -43,6 +43,8 @@ pub struct RunRequest<'a> {
     pub stream: crate::foreign::StreamOptions,
     /// Folder of the result files and `summary.json`.
     pub out: &'a Path,
+    /// Which result files each set gets.
+    pub outputs: crate::outputs::ResultFiles,
     /// Also write the results as an MCAP log here.
     pub out_mcap: Option<&'a Path>,
     /// Its format (default: ROS 2 for a ROS 2 bag's results, else our own log's).
@@ -146,8 +148,7 @@ fn result_log_metadata(
     ])
 }
 
-fn report_alignment(set: &ViewSet, prepared: &PreparedSet<'_>, rectify: bool) {
-    let alignment = &prepared.alignment;
+fn report_alignment(set: &ViewSet, alignment: &crate::check::SetCheck, rectify: bool) {
     if alignment.status != crate::check::Status::Ok {
         warn!(
             "set {} alignment {:?} (see `replay check`):\n{}",
@@ -267,17 +268,15 @@ pub fn replay_log(
         let preparing = Instant::now();
         let prepared = PreparedSet::new(set, &request.options)?;
         debug!(
-            "set {}: alignment check, problem and occlusion mask in {:.3} s",
+            "set {}: problem in {:.3} s",
             set.index,
             preparing.elapsed().as_secs_f64()
         );
-        report_alignment(set, &prepared, request.options.rectify);
         viewer.log(|v| crate::viewer::log_capture(v, &prepared.selected));
         viewer.log(|v| crate::viewer::log_plans(v, &prepared.selected, &contents.plans));
-        viewer
-            .log(|v| crate::viewer::log_costs(v, &prepared.selected, &prepared.problem, prepared.occluded.as_deref()));
+        viewer.log(|v| crate::viewer::log_costs(v, &prepared.selected, &prepared.problem, prepared.occluded()));
         debug!("rerun: {:.3} s so far", viewer.seconds);
-        for method in request.methods {
+        for (index, method) in request.methods.iter().enumerate() {
             let name = method.name();
             let bar = progress(&format!(
                 "set {} {name} ({} neighbours, disparities {}..{})",
@@ -295,15 +294,26 @@ pub fn replay_log(
                 })?;
             drop(bar);
             let writing = Instant::now();
-            let outputs = write_set_outputs_evaluating(out, set, name, &result.disparity, || {
-                prepared.evaluate(&result.disparity)
-            })?;
+            // The alignment check (made once per set) beside the files and the evaluation: it
+            // says how far to trust a result, so it need not delay the first.
+            let (outputs, alignment) = rayon::join(
+                || {
+                    write_set_outputs_evaluating(out, set, name, &result.disparity, request.outputs, || {
+                        prepared.evaluate(&result.disparity)
+                    })
+                },
+                || prepared.alignment(),
+            );
+            let outputs = outputs?;
             result.regions = outputs.metrics;
             debug!(
-                "set {} {name}: result files in {:.3} s",
+                "set {} {name}: result files, evaluation and alignment check in {:.3} s",
                 set.index,
                 writing.elapsed().as_secs_f64()
             );
+            if index == 0 {
+                report_alignment(set, alignment, request.options.rectify);
+            }
             report_result(set, name, &result, &outputs.dir);
             viewer.log(|v| {
                 crate::viewer::log_result(
@@ -312,7 +322,7 @@ pub fn replay_log(
                     name,
                     &result.disparity,
                     result.regions.as_ref(),
-                    &prepared.alignment,
+                    prepared.alignment(),
                 )
             });
             let set_summary = SetSummary {
@@ -321,7 +331,7 @@ pub fn replay_log(
                 seconds: result.seconds,
                 min_disparity: prepared.min_disparity,
                 num_disparities: prepared.num_disparities,
-                alignment: prepared.alignment.clone(),
+                alignment: prepared.alignment().clone(),
                 details: result.details.clone(),
             };
             if let Some(result_log) = result_log.as_mut() {

@@ -1,5 +1,7 @@
 //! Depth quality: the paper's claims on real and simulated data, through the real binaries.
 
+use std::path::Path;
+
 use multiscopic_tests::{
     assert_success, eval_json, json_strings, middlebury_dev, recorded, replay_str, replay_summary, temp_dir,
 };
@@ -101,6 +103,68 @@ fn five_views_beat_three_which_beat_stereo_most_in_occlusions() {
             "{family}: occlusions did not improve most"
         );
     }
+}
+
+#[test]
+fn outputs_writes_only_the_files_asked_for_and_the_same_numbers() {
+    let (dir, log) = recorded("capture.mcap", "--resolution 320x180 --rig three-view");
+    let files_of = |out: &Path| -> Vec<String> {
+        let mut names: Vec<String> = std::fs::read_dir(out.join("000-toy-0"))
+            .into_iter()
+            .flatten()
+            .flatten()
+            .map(|e| e.file_name().to_string_lossy().into_owned())
+            .collect();
+        names.sort();
+        names
+    };
+    let all = dir.path().join("all");
+    let every = replay_summary(&log, &all, "--method bm-heuristic");
+    let depth = dir.path().join("depth");
+    let some = replay_summary(&log, &depth, "--method bm-heuristic --outputs depth,disparity");
+    assert_eq!(
+        files_of(&depth),
+        [
+            "bm-heuristic_depth_m.pfm",
+            "bm-heuristic_depth_mm.png",
+            "bm-heuristic_disparity.pfm",
+            "bm-heuristic_metrics.json"
+        ]
+    );
+    assert!(files_of(&all).len() > 8, "{:?}", files_of(&all));
+    // The same disparity, metrics and alignment report whichever files are written.
+    for name in ["bm-heuristic_disparity.pfm", "bm-heuristic_depth_m.pfm"] {
+        assert_eq!(
+            std::fs::read(all.join("000-toy-0").join(name)).ok(),
+            std::fs::read(depth.join("000-toy-0").join(name)).ok(),
+            "{name}"
+        );
+    }
+    for key in ["metrics", "alignment"] {
+        let pick = |summary: &serde_json::Value| {
+            let set = &summary["sets"][0];
+            if key == "metrics" {
+                set["outputs"]["metrics"].clone()
+            } else {
+                set[key].clone()
+            }
+        };
+        assert_eq!(pick(&every), pick(&some), "{key}");
+        assert!(!pick(&some).is_null(), "{key} missing");
+    }
+    let none = dir.path().join("none");
+    replay_summary(&log, &none, "--method bm-heuristic --outputs none");
+    assert_eq!(files_of(&none), ["bm-heuristic_metrics.json"]);
+    let wrong = multiscopic_tests::replay(&[
+        log.to_str().unwrap_or_default(),
+        "--outputs",
+        "depth,cloud",
+        "--out",
+        none.to_str().unwrap_or_default(),
+    ]);
+    assert_eq!(wrong.status.code(), Some(2), "a usage error");
+    let stderr = String::from_utf8_lossy(&wrong.stderr);
+    assert!(stderr.contains("cloud") && stderr.contains("points"), "{stderr}");
 }
 
 #[test]

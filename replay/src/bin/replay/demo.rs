@@ -91,6 +91,7 @@ pub fn run(args: &DemoArgs, quiet: bool) -> Result<Outcome> {
             method: args.method.clone(),
             config: None,
             out: args.out.join("results"),
+            outputs: replay::outputs::ResultFiles::ALL,
             // Each set's logged working range.
             num_disparities: None,
             min_disparity: None,

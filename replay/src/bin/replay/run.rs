@@ -24,6 +24,12 @@ pub struct RunArgs {
     /// Output directory for the result files.
     #[arg(long, default_value = "results")]
     pub(crate) out: PathBuf,
+    /// Which result files each set gets: `all`, `none`, or a comma-separated list of
+    /// disparity (PFM), colormap (PNG), depth (PFM in m, 16-bit PNG in mm), confidence (PFM,
+    /// PNG), points (PLY), error (PNG, with ground truth); `summary.json` and the metrics are
+    /// always written. A workcell that needs only the depth: `--outputs depth`.
+    #[arg(long, default_value = "all", value_name = "FILES", value_parser = parse_outputs)]
+    pub(crate) outputs: replay::outputs::ResultFiles,
     /// Disparities searched (default: the log's range for the set, else width/15 rounded up to
     /// a multiple of 16); at most 1024.
     #[arg(long)]
@@ -68,6 +74,10 @@ pub struct RunArgs {
     pub(crate) stream: crate::info::StreamArgs,
 }
 
+fn parse_outputs(spec: &str) -> Result<replay::outputs::ResultFiles, String> {
+    replay::outputs::ResultFiles::parse(spec).map_err(|e| e.to_string())
+}
+
 /// A method's progress bar, cleared when the method is done.
 struct Bar(ProgressBar);
 
@@ -108,6 +118,7 @@ pub fn run(args: &RunArgs, quiet: bool) -> Result<Outcome> {
         end_secs: args.end,
         stream: args.stream.options(),
         out: &args.out,
+        outputs: args.outputs,
         out_mcap: args.out_mcap.as_deref(),
         out_format: args.out_format,
         rerun: &args.rerun,
