@@ -151,12 +151,6 @@ impl<'a> PreparedSet<'a> {
         self.occluded.get_or_init(|| self.set.occlusion_mask()).as_deref()
     }
 
-    /// The alignment report and the occlusion mask made at once (both cores busy), where
-    /// neither is yet.
-    pub fn check_and_mask(&self) {
-        rayon::join(|| self.alignment(), || self.occluded());
-    }
-
     /// Runs a method and evaluates it; `progress` gets the fraction done.
     pub fn run(&self, method: &dyn Method, progress: &(dyn Fn(f32) + Sync)) -> Result<MethodResult, ReplayError> {
         let mut result = self.run_unevaluated(method, progress)?;
