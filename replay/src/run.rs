@@ -285,14 +285,20 @@ pub fn replay_log(
                 prepared.min_disparity,
                 prepared.problem.end_disparity()
             ));
-            let mut result = prepared
-                .run_unevaluated(method.as_ref(), &|fraction| bar.set(fraction))
-                .map_err(|source| ReplayError::InSet {
-                    set: set.index,
-                    method: name.to_owned(),
-                    source: Box::new(source),
-                })?;
+            let run = prepared.run_unevaluated(method.as_ref(), &|fraction| bar.set(fraction));
             drop(bar);
+            let mut result = match run {
+                Ok(result) => result,
+                Err(source) => {
+                    // A misaligned set may be why: say so before the error.
+                    report_alignment(set, prepared.alignment(), request.options.rectify);
+                    return Err(ReplayError::InSet {
+                        set: set.index,
+                        method: name.to_owned(),
+                        source: Box::new(source),
+                    });
+                }
+            };
             let writing = Instant::now();
             // The alignment check (made once per set) beside the files and the evaluation: it
             // says how far to trust a result, so it need not delay the first.
