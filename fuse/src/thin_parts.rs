@@ -814,7 +814,7 @@ mod tests {
 
     #[test]
     fn cross_support_averages_each_pixel_s_costs_over_the_horizontal_arms_along_its_vertical_arm() {
-        // The band's curves against a plain sum over the support, read from the whole volume.
+        // The streamed curves against a plain sum over the support, read from the whole volume.
         let (w, h) = (48, 40);
         let (problem, _) = rod_before_a_plane(w, h, false);
         let spec = CostSpec {
