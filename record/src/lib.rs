@@ -21,6 +21,7 @@ pub mod render;
 pub mod rig;
 pub mod rng;
 pub mod scene;
+mod sensor_noise;
 pub mod session;
 pub mod ur10;
 

@@ -11,8 +11,9 @@ use nalgebra::{Isometry3, Matrix3, Vector3};
 use rayon::prelude::*;
 
 use crate::camera::PinholeCamera;
-use crate::rng::{gaussian_from_bits, hash4, mix64};
+use crate::rng::{hash4, mix64};
 use crate::scene::{Material, Scene, Shape, SurfaceClass, Texture};
+use crate::sensor_noise::gaussians_from_bits;
 
 type V3 = Vector3<f64>;
 
@@ -176,10 +177,14 @@ pub struct PreparedScene {
 /// The objects that may block the light of one point light, for shadow rays: seen from the
 /// light, a ray towards a point below it is the point `(dx, dy) / −dz` of its direction `d`, and
 /// an object wholly below the light can only block the rays whose point lies in the box of its
-/// projected bounding cube ([`bounding_cube_corners`]). The rest (unbounded, or reaching up to
-/// the light) is tested by every ray.
+/// projected bounding cube ([`bounding_cube_corners`]). A plane can only block the rays from
+/// the far side of it, seen from the light. The rest (unbounded, or reaching up to the light) is
+/// tested by every ray.
 struct ShadowCasters {
     always: Vec<usize>,
+    /// `(object, normal, offset, side)`: a plane `normal · x = offset` with the light on the
+    /// `side` (signed distance) of it.
+    planes: Vec<(usize, V3, f64, f64)>,
     /// `(object, [u_min, v_min, u_max, v_max])`.
     boxed: Vec<(usize, [f64; 4])>,
 }
@@ -187,8 +192,17 @@ struct ShadowCasters {
 impl ShadowCasters {
     fn new(objects: &[Object], light: &V3) -> Self {
         let mut always = Vec::new();
+        let mut planes = Vec::new();
         let mut boxed = Vec::new();
         for (index, object) in objects.iter().enumerate() {
+            if let Geometry::Plane { point, normal, .. } = &object.geometry {
+                let offset = normal.dot(point);
+                let side = normal.dot(light) - offset;
+                if side != 0.0 {
+                    planes.push((index, *normal, offset, side));
+                    continue;
+                }
+            }
             let mut bounds = [f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY];
             let mut below = object.bound_radius.is_finite();
             for corner in bounding_cube_corners(object) {
@@ -208,19 +222,39 @@ impl ShadowCasters {
                 always.push(index);
             }
         }
-        Self { always, boxed }
+        Self { always, planes, boxed }
     }
 
-    /// The objects that may block the ray from `point` to the light at `light` (each once; in
-    /// no particular order).
-    fn for_ray<'a>(&'a self, point: &V3, light: &V3) -> impl Iterator<Item = usize> + 'a {
+    /// Whether any object blocks the segment from `point` to the light at `light`: the ray
+    /// along `dir` (unit) up to `distance`. Each object that may block it is tested once, the
+    /// planes and unbounded shapes first.
+    fn blocked(&self, objects: &[Object], point: &V3, light: &V3, dir: &V3, distance: f64) -> bool {
+        let blocks = |index: usize| {
+            let object = &objects[index];
+            bound_overlaps(object, point, dir, distance) && hit_distance(object, point, dir, distance).is_some()
+        };
+        if self.always.iter().any(|&i| blocks(i)) {
+            return true;
+        }
+        // A point strictly on the light's side of a plane sees the light past it: the segment
+        // between them does not meet the plane.
+        for (index, normal, offset, side) in &self.planes {
+            if (normal.dot(point) - offset) * side <= 0.0 && blocks(*index) {
+                return true;
+            }
+        }
         let d = point - light;
-        let projected = (d.z < -1e-9).then(|| (d.x / -d.z, d.y / -d.z));
-        let boxed = self.boxed.iter().filter(move |(_, b)| match projected {
-            Some((u, v)) => b[0] <= u && u <= b[2] && b[1] <= v && v <= b[3],
-            None => true,
-        });
-        self.always.iter().copied().chain(boxed.map(|(i, _)| *i))
+        if d.z < -1e-9 {
+            let (u, v) = (d.x / -d.z, d.y / -d.z);
+            for (index, b) in &self.boxed {
+                if b[0] <= u && u <= b[2] && b[1] <= v && v <= b[3] && blocks(*index) {
+                    return true;
+                }
+            }
+            false
+        } else {
+            self.boxed.iter().any(|(i, _)| blocks(*i))
+        }
     }
 }
 
@@ -556,13 +590,6 @@ impl PreparedScene {
         best
     }
 
-    /// Whether any of `objects` blocks the ray from `origin` along `dir` before `t_max`.
-    fn occluded_among(&self, objects: impl Iterator<Item = usize>, origin: &V3, dir: &V3, t_max: f64) -> bool {
-        objects.map(|i| &self.objects[i]).any(|object| {
-            bound_overlaps(object, origin, dir, t_max) && hit_distance(object, origin, dir, t_max).is_some()
-        })
-    }
-
     fn trace(&self, origin: &V3, dir: &V3, bounces_left: u32) -> V3 {
         self.shade(self.closest_hit(origin, dir, f64::INFINITY), origin, dir, bounces_left)
     }
@@ -591,7 +618,7 @@ impl PreparedScene {
             let distance = to_light.norm();
             let l = to_light / distance;
             let n_dot_l = normal.dot(&l);
-            if n_dot_l <= 0.0 || self.occluded_among(casters.for_ray(&lifted, position), &lifted, &l, distance) {
+            if n_dot_l <= 0.0 || casters.blocked(&self.objects, &lifted, position, &l, distance) {
                 continue;
             }
             diffuse += intensity * (material.diffuse * n_dot_l);
@@ -674,14 +701,15 @@ impl PreparedScene {
                     .filter(|(_, b)| b[1] <= y && y <= b[3])
                     .map(|(o, b)| (o, *b))
                     .collect();
+                let mut in_pixel: Vec<&Object> = Vec::with_capacity(in_row.len());
+                let mut display_row = vec![0f64; width * 3];
+                let (mut noise_a, mut noise_b) = (vec![0u64; width * 3], vec![0u64; width * 3]);
+                let mut noise = vec![0f64; width * 3];
                 for col in 0..width {
                     let x = col as f64;
-                    let candidates = || {
-                        in_row
-                            .iter()
-                            .filter(move |(_, b)| b[0] <= x && x <= b[2])
-                            .map(|(o, _)| *o)
-                    };
+                    in_pixel.clear();
+                    in_pixel.extend(in_row.iter().filter(|(_, b)| b[0] <= x && x <= b[2]).map(|(o, _)| *o));
+                    let candidates = || in_pixel.iter().copied();
                     let mut color = V3::zeros();
                     for (dx, dy) in &offsets {
                         let dir_camera = camera.ray_direction(col as f64 + dx, row as f64 + dy);
@@ -701,18 +729,25 @@ impl PreparedScene {
                             class_row[col] = SurfaceClass::Empty as u8;
                         }
                     }
-                    let pixel = (row * width + col) as u64;
                     for channel in 0..3 {
                         let linear = (color[channel] * inv_samples * settings.exposure_gain).clamp(0.0, 1.0);
-                        let display = gamma_lut[(linear * GAMMA_LUT_SIZE as f64) as usize];
-                        let noise = if settings.noise_sigma_levels > 0.0 {
-                            let bits = hash4(settings.noise_seed, pixel, channel as u64, 0);
-                            settings.noise_sigma_levels * gaussian_from_bits(bits, mix64(bits ^ 0x5851_F42D))
-                        } else {
-                            0.0
-                        };
-                        rgb_row[col * 3 + channel] = (display + noise).round().clamp(0.0, 255.0) as u8;
+                        display_row[col * 3 + channel] = gamma_lut[(linear * GAMMA_LUT_SIZE as f64) as usize];
                     }
+                }
+                // The sensor noise in passes of its own: the hashes, then the draws, four to a
+                // vector (`sensor_noise`).
+                if settings.noise_sigma_levels > 0.0 {
+                    let first_pixel = (row * width) as u64;
+                    for (i, (a, b)) in noise_a.iter_mut().zip(noise_b.iter_mut()).enumerate() {
+                        *a = hash4(settings.noise_seed, first_pixel + (i / 3) as u64, (i % 3) as u64, 0);
+                        *b = mix64(*a ^ 0x5851_F42D);
+                    }
+                    gaussians_from_bits(&noise_a, &noise_b, &mut noise);
+                }
+                for ((out, display), noise) in rgb_row.iter_mut().zip(&display_row).zip(&noise) {
+                    *out = (display + settings.noise_sigma_levels * noise)
+                        .round()
+                        .clamp(0.0, 255.0) as u8;
                 }
             });
         RenderedView {
