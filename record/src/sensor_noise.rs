@@ -1,9 +1,12 @@
 //! The renderer's sensor noise: a standard normal per pixel and channel from hashed bits, by
 //! Box–Muller, as [`fuse::rng::gaussian_from_bits`] but with the logarithm and the cosine inlined
 //! (fdlibm's kernels, within an ulp or two of the system's) and without branches, so that a
-//! row's draws run four to a vector instead of each paying two library calls. The image rounds the noise to 8-bit levels; the
-//! draws agree with the library's to about 1e-15 (tests below), far below what the rounding
-//! can see.
+//! row's draws run four to a vector instead of each paying two library calls. The image rounds
+//! the noise to 8-bit levels; the draws agree with the library's to about 1e-15 (tests below),
+//! far below what the rounding can see.
+
+// fdlibm's constants as published (their last digits round to the same doubles).
+#![allow(clippy::excessive_precision)]
 
 /// Standard normal from 128 bits (Box–Muller), as [`fuse::rng::gaussian_from_bits`].
 #[inline]
