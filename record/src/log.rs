@@ -59,8 +59,10 @@ pub const SURFACE_ENCODING: &str = "mono8";
 pub const DEPTH_ENCODING: &str = "32FC1";
 /// Default chunk size (bytes before compression).
 pub const DEFAULT_CHUNK_SIZE: u64 = 8 * 1024 * 1024;
-/// Default zstd level: fast enough for 1080p images at capture rate.
-pub const DEFAULT_ZSTD_LEVEL: u32 = 3;
+/// Default zstd level: the fastest. A five-view 1080p set (83 MB of images and ground truth)
+/// is written in 0.16–0.19 s at level 1 against 0.39–0.40 s at level 3, for a log 13 % larger
+/// (30.3 against 26.7 MB); the images' sensor noise leaves little for a slower level to find.
+pub const DEFAULT_ZSTD_LEVEL: u32 = 1;
 
 /// Image topic of a view role.
 pub fn image_topic(role: &str) -> String {

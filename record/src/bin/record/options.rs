@@ -105,8 +105,9 @@ pub struct SimulateArgs {
     /// CDR; a directory NAME/ with NAME_0.mcap and metadata.yaml, for ros2 bag play, rviz, Foxglove).
     #[arg(long, value_enum, default_value = "mcap")]
     pub(crate) format: record::session::LogFormat,
-    /// zstd level of the log's chunks (1 fastest … 19 smallest).
-    #[arg(long, default_value = "3", value_parser = clap::value_parser!(u32).range(1..=19))]
+    /// zstd level of the log's chunks (1 fastest … 19 smallest; 3 writes a 1080p set in twice
+    /// the time, 12 % smaller).
+    #[arg(long, default_value_t = record::log::DEFAULT_ZSTD_LEVEL, value_parser = clap::value_parser!(u32).range(1..=19))]
     pub(crate) zstd_level: u32,
     /// Do not write the viewer layout beside the log (`<log stem>.rbl`, opened with
     /// `rerun LOG.mcap LOG.rbl`).
