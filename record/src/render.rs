@@ -7,7 +7,7 @@
 //! from one extra ray through the pixel centre: z-depth (m, along the optical axis) and the
 //! surface class of what it hits.
 
-use nalgebra::{Isometry3, Matrix3, Vector3};
+use nalgebra::{Isometry3, Matrix3, Rotation3, Vector3};
 use rayon::prelude::*;
 
 use crate::camera::PinholeCamera;
@@ -466,8 +466,8 @@ impl PreparedScene {
                         yaw_deg,
                         tilt_deg,
                     } => {
-                        let rotation = nalgebra::Rotation3::from_axis_angle(&V3::z_axis(), yaw_deg.to_radians())
-                            * nalgebra::Rotation3::from_axis_angle(&V3::x_axis(), tilt_deg.to_radians());
+                        let rotation = Rotation3::from_axis_angle(&V3::z_axis(), yaw_deg.to_radians())
+                            * Rotation3::from_axis_angle(&V3::x_axis(), tilt_deg.to_radians());
                         let half = v3(*half_extents_m);
                         (
                             Geometry::Box {
@@ -667,12 +667,17 @@ impl PreparedScene {
         // unbounded (a plane), may appear anywhere.
         let camera_from_world = world_from_camera.inverse();
         let everywhere = [f64::NEG_INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::INFINITY];
+        let nowhere = [f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY];
         let boxes: Vec<[f64; 4]> = self
             .objects
             .iter()
             .map(|object| {
                 if !object.bound_radius.is_finite() {
-                    return everywhere;
+                    return if plane_behind(object, camera, &rotation, &origin) {
+                        nowhere
+                    } else {
+                        everywhere
+                    };
                 }
                 let mut bounds = [f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY];
                 for corner in bounding_cube_corners(object) {
@@ -761,6 +766,22 @@ impl PreparedScene {
 }
 
 const GAMMA_LUT_SIZE: usize = 4096;
+
+/// Whether every primary ray of the view (the image and a pixel around it) heads away from the
+/// plane `object`, so that none can meet it: the ceiling, seen by a camera looking down. The
+/// direction's component along the normal is linear in the pixel (before normalising), so its
+/// sign at the four corners is its sign everywhere; a margin keeps rays near parallel tested.
+fn plane_behind(object: &Object, camera: &PinholeCamera, rotation: &Rotation3<f64>, origin: &V3) -> bool {
+    let Geometry::Plane { point, normal, .. } = &object.geometry else {
+        return false;
+    };
+    let side = normal.dot(&(origin - point));
+    let (right, bottom) = (f64::from(camera.width), f64::from(camera.height));
+    side.abs() > 1e-9
+        && [(-1.0, -1.0), (right, -1.0), (-1.0, bottom), (right, bottom)]
+            .iter()
+            .all(|&(x, y)| side * normal.dot(&(rotation * camera.ray_direction(x, y))) > 1e-6)
+}
 
 fn sample_offsets(samples_per_pixel: u32) -> Vec<(f64, f64)> {
     match samples_per_pixel {
