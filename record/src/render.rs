@@ -1090,6 +1090,74 @@ mod tests {
         assert_eq!(a.depth_m, c.depth_m);
     }
 
+    /// The shadow test with its shortcuts (planes from the light's side, boxes seen from the
+    /// light) against every object tested, for points all over the toy scene's room.
+    #[test]
+    fn shadow_shortcuts_agree_with_testing_every_object() {
+        let scene = PreparedScene::new(&Scene::build(SceneKind::Toy, 5));
+        let mut rng = crate::rng::SplitMix64::new(17);
+        let (mut blocked, mut tested) = (0, 0);
+        for ((light, _), casters) in scene.lights.iter().zip(&scene.casters) {
+            for _ in 0..20_000 {
+                let point = V3::new(rng.range(-0.5, 2.5), rng.range(-1.5, 1.5), rng.range(-0.3, 2.8));
+                let to_light = light - point;
+                let distance = to_light.norm();
+                let dir = to_light / distance;
+                let every = scene
+                    .objects
+                    .iter()
+                    .any(|o| hit_distance(o, &point, &dir, distance).is_some());
+                assert_eq!(
+                    casters.blocked(&scene.objects, &point, light, &dir, distance),
+                    every,
+                    "{point:?}"
+                );
+                blocked += usize::from(every);
+                tested += 1;
+            }
+        }
+        // Both answers occur: the points include ones under the table and behind the walls.
+        assert!(
+            blocked > tested / 20 && blocked < tested - tested / 20,
+            "{blocked} of {tested}"
+        );
+    }
+
+    /// A plane every primary ray heads away from is met by none: the ceiling seen from above
+    /// the table; the table itself is kept.
+    #[test]
+    fn planes_behind_the_view_are_met_by_no_ray() {
+        let scene = PreparedScene::new(&Scene::build(SceneKind::Toy, 5));
+        let camera = PinholeCamera::from_horizontal_fov(64, 36, 60.0);
+        let pose = Isometry3::face_towards(
+            &nalgebra::Point3::new(0.8, 0.0, 0.7),
+            &nalgebra::Point3::new(0.85, 0.05, 0.0),
+            &V3::x(),
+        );
+        let rotation = pose.rotation.to_rotation_matrix();
+        let origin = pose.translation.vector;
+        let planes: Vec<&Object> = scene
+            .objects
+            .iter()
+            .filter(|o| matches!(o.geometry, Geometry::Plane { .. }))
+            .collect();
+        let behind: Vec<bool> = planes
+            .iter()
+            .map(|o| plane_behind(o, &camera, &rotation, &origin))
+            .collect();
+        assert_eq!(behind.iter().filter(|b| **b).count(), 1, "only the ceiling: {behind:?}");
+        for (plane, behind) in planes.iter().zip(&behind) {
+            let met = (0..36 * 4).any(|y| {
+                (0..64 * 4).any(|x| {
+                    let dir = rotation * camera.ray_direction(f64::from(x) / 4.0 - 0.5, f64::from(y) / 4.0 - 0.5);
+                    hit_distance(plane, &origin, &dir, f64::INFINITY).is_some()
+                })
+            });
+            assert!(!(met && *behind), "a plane taken as behind the view is met");
+        }
+        assert!(!behind[0], "the table is in view");
+    }
+
     #[test]
     fn shapes_report_correct_distances() {
         let origin = V3::zeros();
