@@ -745,6 +745,16 @@ impl Collected {
     }
 }
 
+/// Whether `topic` is a neighbour's ground truth (`/camera/ROLE/ground_truth/…` of a role other
+/// than the reference): a set is evaluated on its reference's ground truth only, so the
+/// neighbours' (half of a simulated set's bytes) are not copied out of the log.
+fn is_neighbour_ground_truth(topic: &str) -> bool {
+    topic
+        .strip_prefix("/camera/")
+        .and_then(|rest| rest.split_once("/ground_truth/"))
+        .is_some_and(|(role, _)| role != REFERENCE_ROLE)
+}
+
 /// Reads a log held in memory.
 pub fn read_log(bytes: &[u8]) -> Result<LogContents, ReplayError> {
     read_log_in(bytes, &TimeRange::default())
@@ -785,11 +795,12 @@ pub fn read_log_in(bytes: &[u8], range: &TimeRange) -> Result<LogContents, Repla
 /// within `range` (`options.stream` says how a stream becomes sets).
 pub fn read_logs_in(files: &[&[u8]], range: &TimeRange, options: &ReadOptions) -> Result<LogContents, ReplayError> {
     let wanted = |topic: &str, schema: &str| {
-        topic == CAPTURE_EVENTS_TOPIC
+        (topic == CAPTURE_EVENTS_TOPIC
             || topic == CAPTURE_PLAN_TOPIC
             || topic.starts_with("/camera/")
             || crate::foreign::is_foreign_input(schema)
-            || crate::ros2::is_ros2_schema(schema)
+            || crate::ros2::is_ros2_schema(schema))
+            && !is_neighbour_ground_truth(topic)
     };
     let mut collected = Collected {
         image_budget_bytes: options.image_budget_bytes.unwrap_or(IMAGE_PAYLOAD_BUDGET_BYTES),
@@ -846,11 +857,12 @@ pub fn read_logs_in(files: &[&[u8]], range: &TimeRange, options: &ReadOptions) -
         let needed: Vec<(String, u64)> = events
             .iter()
             .flat_map(|e| {
+                let reference = e.role == REFERENCE_ROLE;
                 [
                     Some(&e.image_topic),
                     Some(&e.calibration_topic),
-                    e.depth_topic.as_ref(),
-                    e.surface_topic.as_ref(),
+                    e.depth_topic.as_ref().filter(|_| reference),
+                    e.surface_topic.as_ref().filter(|_| reference),
                 ]
                 .into_iter()
                 .flatten()
@@ -1353,6 +1365,17 @@ mod tests {
             writer.write_set(s, None).unwrap_or_else(|e| panic!("{e}"));
         }
         writer.finish().unwrap_or_else(|e| panic!("{e}")).into_inner()
+    }
+
+    #[test]
+    fn only_the_reference_ground_truth_is_read() {
+        use record::log::{depth_topic, image_topic, surface_topic};
+        assert!(!is_neighbour_ground_truth(&depth_topic(REFERENCE_ROLE)));
+        assert!(!is_neighbour_ground_truth(&surface_topic(REFERENCE_ROLE)));
+        assert!(is_neighbour_ground_truth(&depth_topic("left")));
+        assert!(is_neighbour_ground_truth(&surface_topic("top2")));
+        assert!(!is_neighbour_ground_truth(&image_topic("left")));
+        assert!(!is_neighbour_ground_truth("/camera/left/calibration"));
     }
 
     #[test]
