@@ -68,6 +68,38 @@ fn methods(c: &mut Criterion) {
     group.bench_function("sgm-heuristic_weighted_median", |b| {
         b.iter(|| black_box(method.run(&problem, &|_| {})))
     });
+    // The fused, box-aggregated costs alone (the stage block matching and SGM share), handed
+    // to a sink that only reads them: the rest of block matching is the winners and filters.
+    let prepared = fuse::volume::PreparedProblem::new(
+        &problem,
+        fuse::volume::CostSpec {
+            pixel: fuse::cost::PixelCost::BirchfieldTomasi,
+            block_radius_px: 4,
+        },
+        fuse::fusion::Fusion::Heuristic,
+    )
+    .unwrap_or_else(|e| panic!("{e}"));
+    group.bench_function("fused_costs_heuristic", |b| {
+        use rayon::prelude::*;
+        let (height, band) = (
+            problem.reference.height,
+            fuse::volume::band_rows(problem.reference.height),
+        );
+        b.iter(|| {
+            let firsts: u32 = (0..height.div_ceil(band))
+                .into_par_iter()
+                .map_init(fuse::volume::BandScratch::default, |buffers, index| {
+                    let mut first = 0u32;
+                    let rows = index * band..((index + 1) * band).min(height);
+                    prepared.fused_band_with(rows, buffers, &mut |_, _, costs| {
+                        first = first.wrapping_add(u32::from(costs[0]));
+                    });
+                    first
+                })
+                .sum();
+            black_box(firsts)
+        })
+    });
     group.finish();
 }
 

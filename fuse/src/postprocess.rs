@@ -8,46 +8,37 @@ use crate::FuseError;
 use crate::image::{DisparityImage, Image};
 
 /// 3×3 median of the valid values around each pixel (invalid pixels stay invalid). Rows run in
-/// parallel; a pixel whose nine values are all valid goes through a 19-exchange sorting network,
-/// the others (borders, next to invalid pixels) through a sort of their valid values.
+/// parallel; runs of [`MEDIAN_LANES`] interior pixels whose nine values are all valid go through
+/// a 19-exchange sorting network lane by lane (it vectorises), the others (borders, next to
+/// invalid pixels) one by one: through the same network when their nine values are valid, else
+/// through a sort of their valid values.
 pub fn median3x3(input: &DisparityImage) -> DisparityImage {
     let (w, h) = (input.width, input.height);
     let mut data = input.data.clone();
     data.par_chunks_mut(w).enumerate().for_each(|(y, out)| {
         let mut window = Vec::with_capacity(9);
         let rows = [y.saturating_sub(1), y, (y + 1).min(h - 1)].map(|r| &input.data[r * w..(r + 1) * w]);
-        for (x, value) in out.iter_mut().enumerate() {
-            if !value.is_finite() {
-                continue;
-            }
-            if y > 0 && y + 1 < h && x > 0 && x + 1 < w {
-                let mut p = [
-                    rows[0][x - 1],
-                    rows[0][x],
-                    rows[0][x + 1],
-                    rows[1][x - 1],
-                    rows[1][x],
-                    rows[1][x + 1],
-                    rows[2][x - 1],
-                    rows[2][x],
-                    rows[2][x + 1],
-                ];
-                if p.iter().all(|v| v.is_finite()) {
-                    *value = median_of_nine(&mut p);
-                    continue;
+        // Pixels from `x` on are left for the one-by-one loop.
+        let mut x = 1;
+        if y > 0 && y + 1 < h {
+            while x + MEDIAN_LANES < w {
+                let mut p: [[f32; MEDIAN_LANES]; 9] = [[0.0; MEDIAN_LANES]; 9];
+                for (k, lane) in p.iter_mut().enumerate() {
+                    let start = x - 1 + k % 3;
+                    lane.copy_from_slice(&rows[k / 3][start..start + MEDIAN_LANES]);
                 }
-            }
-            window.clear();
-            for yy in y.saturating_sub(1)..(y + 2).min(h) {
-                for xx in x.saturating_sub(1)..(x + 2).min(w) {
-                    let v = input.data[yy * w + xx];
-                    if v.is_finite() {
-                        window.push(v);
+                if p.iter().flatten().all(|v| v.is_finite()) {
+                    out[x..x + MEDIAN_LANES].copy_from_slice(&median_of_nine_lanes(&mut p));
+                } else {
+                    for (at, value) in out[x..x + MEDIAN_LANES].iter_mut().enumerate() {
+                        median_at(&input.data, (w, h), (x + at, y), &rows, &mut window, value);
                     }
                 }
+                x += MEDIAN_LANES;
             }
-            window.sort_unstable_by(f32::total_cmp);
-            *value = window[window.len() / 2];
+        }
+        for at in (0..1.min(w)).chain(x..w) {
+            median_at(&input.data, (w, h), (at, y), &rows, &mut window, &mut out[at]);
         }
     });
     DisparityImage {
@@ -313,37 +304,97 @@ fn gather<'a, const C: usize>(
     }
 }
 
+/// Pixels a lane-wise median network handles at once (8 f32 lanes: one AVX2 register).
+const MEDIAN_LANES: usize = 8;
+
+/// [`median3x3`] of one pixel `(x, y)` into `value` (left alone where invalid); `rows` are the
+/// rows above, at and below `y` (clamped).
+fn median_at(
+    data: &[f32],
+    (w, h): (usize, usize),
+    (x, y): (usize, usize),
+    rows: &[&[f32]; 3],
+    window: &mut Vec<f32>,
+    value: &mut f32,
+) {
+    if !value.is_finite() {
+        return;
+    }
+    if y > 0 && y + 1 < h && x > 0 && x + 1 < w {
+        let mut p = [
+            rows[0][x - 1],
+            rows[0][x],
+            rows[0][x + 1],
+            rows[1][x - 1],
+            rows[1][x],
+            rows[1][x + 1],
+            rows[2][x - 1],
+            rows[2][x],
+            rows[2][x + 1],
+        ];
+        if p.iter().all(|v| v.is_finite()) {
+            *value = median_of_nine(&mut p);
+            return;
+        }
+    }
+    window.clear();
+    for yy in y.saturating_sub(1)..(y + 2).min(h) {
+        for xx in x.saturating_sub(1)..(x + 2).min(w) {
+            let v = data[yy * w + xx];
+            if v.is_finite() {
+                window.push(v);
+            }
+        }
+    }
+    window.sort_unstable_by(f32::total_cmp);
+    *value = window[window.len() / 2];
+}
+
+/// [`median_of_nine`] of each lane: the same exchanges (and so the same values, bit for bit) on
+/// `MEDIAN_LANES` pixels at once.
+#[inline]
+fn median_of_nine_lanes(p: &mut [[f32; MEDIAN_LANES]; 9]) -> [f32; MEDIAN_LANES] {
+    for (a, b) in MEDIAN_EXCHANGES {
+        let (pa, pb) = (p[a], p[b]);
+        p[a] = std::array::from_fn(|i| pa[i].min(pb[i]));
+        p[b] = std::array::from_fn(|i| pa[i].max(pb[i]));
+    }
+    p[4]
+}
+
 /// The median of nine finite values by the 19 compare-exchanges of Paeth's network.
 #[inline]
 fn median_of_nine(p: &mut [f32; 9]) -> f32 {
-    const EXCHANGES: [(usize, usize); 19] = [
-        (1, 2),
-        (4, 5),
-        (7, 8),
-        (0, 1),
-        (3, 4),
-        (6, 7),
-        (1, 2),
-        (4, 5),
-        (7, 8),
-        (0, 3),
-        (5, 8),
-        (4, 7),
-        (3, 6),
-        (1, 4),
-        (2, 5),
-        (4, 7),
-        (4, 2),
-        (6, 4),
-        (4, 2),
-    ];
-    for (a, b) in EXCHANGES {
+    for (a, b) in MEDIAN_EXCHANGES {
         let (low, high) = (p[a].min(p[b]), p[a].max(p[b]));
         p[a] = low;
         p[b] = high;
     }
     p[4]
 }
+
+/// Paeth's median-of-nine network: after these compare-exchanges, element 4 is the median.
+const MEDIAN_EXCHANGES: [(usize, usize); 19] = [
+    (1, 2),
+    (4, 5),
+    (7, 8),
+    (0, 1),
+    (3, 4),
+    (6, 7),
+    (1, 2),
+    (4, 5),
+    (7, 8),
+    (0, 3),
+    (5, 8),
+    (4, 7),
+    (3, 6),
+    (1, 4),
+    (2, 5),
+    (4, 7),
+    (4, 2),
+    (6, 4),
+    (4, 2),
+];
 
 /// Half-size of the window [`scale_by_local_consistency`] looks at.
 pub const CONSISTENCY_RADIUS: usize = 2;
@@ -358,38 +409,147 @@ pub fn scale_by_local_consistency(disparity: &mut DisparityImage) {
     let Some(confidence) = disparity.confidence.as_mut() else {
         return;
     };
-    let r = CONSISTENCY_RADIUS as isize;
-    // Row-wise minima and maxima over the window's columns, then over its rows.
+    if w == 0 || h == 0 {
+        return;
+    }
+    let r = CONSISTENCY_RADIUS;
+    // Row-wise minima and maxima of the finite values over the window's columns, then over its
+    // rows; rows in parallel, each pass as elementwise minima of shifted rows (they vectorise).
     let mut row_lo = vec![f32::INFINITY; w * h];
     let mut row_hi = vec![f32::NEG_INFINITY; w * h];
-    for y in 0..h {
-        for x in 0..w {
-            for dx in -r..=r {
-                let xx = (x as isize + dx).clamp(0, w as isize - 1) as usize;
-                let v = disparity.data[y * w + xx];
-                if v.is_finite() {
-                    row_lo[y * w + x] = row_lo[y * w + x].min(v);
-                    row_hi[y * w + x] = row_hi[y * w + x].max(v);
-                }
+    row_lo
+        .par_chunks_mut(w)
+        .zip(row_hi.par_chunks_mut(w))
+        .zip(disparity.data.par_chunks(w))
+        .for_each(|((lo, hi), row)| {
+            // Invalid values become the neutral element of each side.
+            let low: Vec<f32> = row
+                .iter()
+                .map(|v| if v.is_finite() { *v } else { f32::INFINITY })
+                .collect();
+            let high: Vec<f32> = row
+                .iter()
+                .map(|v| if v.is_finite() { *v } else { f32::NEG_INFINITY })
+                .collect();
+            sliding_extreme(&low, lo, r, f32::min);
+            sliding_extreme(&high, hi, r, f32::max);
+        });
+    confidence.par_chunks_mut(w).enumerate().for_each(|(y, sure)| {
+        let rows = y.saturating_sub(r)..(y + r + 1).min(h);
+        let mut lo = row_lo[rows.start * w..(rows.start + 1) * w].to_vec();
+        let mut hi = row_hi[rows.start * w..(rows.start + 1) * w].to_vec();
+        for yy in rows.skip(1) {
+            for (a, b) in lo.iter_mut().zip(&row_lo[yy * w..(yy + 1) * w]) {
+                *a = a.min(*b);
+            }
+            for (a, b) in hi.iter_mut().zip(&row_hi[yy * w..(yy + 1) * w]) {
+                *a = a.max(*b);
             }
         }
+        for ((c, lo), hi) in sure.iter_mut().zip(&lo).zip(&hi) {
+            if hi >= lo {
+                *c /= 1.0 + (hi - lo);
+            }
+        }
+    });
+}
+
+/// `out[x]` = `pick` over `values[x − r ..= x + r]` (the window clipped to the row): in the
+/// row's interior as `2r` elementwise passes over shifted slices.
+fn sliding_extreme(values: &[f32], out: &mut [f32], r: usize, pick: impl Fn(f32, f32) -> f32 + Copy) {
+    let w = values.len();
+    let clipped = |x: usize| {
+        values[x.saturating_sub(r)..(x + r + 1).min(w)]
+            .iter()
+            .copied()
+            .reduce(pick)
+            .unwrap_or(f32::NAN)
+    };
+    if w <= 2 * r {
+        for (x, o) in out.iter_mut().enumerate() {
+            *o = clipped(x);
+        }
+        return;
     }
-    for (i, c) in confidence.iter_mut().enumerate() {
-        let (x, y) = (i % w, i / w);
-        let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
-        for dy in -r..=r {
-            let yy = (y as isize + dy).clamp(0, h as isize - 1) as usize;
-            lo = lo.min(row_lo[yy * w + x]);
-            hi = hi.max(row_hi[yy * w + x]);
+    let inner = r..w - r;
+    out[inner.clone()].copy_from_slice(&values[..inner.len()]);
+    for shift in 1..=2 * r {
+        for (o, v) in out[inner.clone()].iter_mut().zip(&values[shift..]) {
+            *o = pick(*o, *v);
         }
-        if hi >= lo {
-            *c /= 1.0 + (hi - lo);
-        }
+    }
+    for x in (0..r).chain(w - r..w) {
+        out[x] = clipped(x);
     }
 }
 
 #[cfg(test)]
 mod tests {
+
+    /// A disparity map of pseudo-random values with invalid pixels sprinkled in (`every`-th).
+    fn speckled(width: usize, height: usize, every: usize) -> DisparityImage {
+        let mut d = disparity(width, height, |x, y| {
+            ((x * 7919 + y * 104_729) % 61) as f32 * 0.25 - 3.0
+        });
+        for (i, v) in d.data.iter_mut().enumerate() {
+            if (i * 2_654_435_761) % every == 0 {
+                *v = f32::INFINITY;
+            }
+        }
+        d.confidence = Some((0..width * height).map(|i| (i % 13) as f32 / 13.0).collect());
+        d
+    }
+
+    #[test]
+    fn the_median_in_lanes_is_the_median_pixel_by_pixel() {
+        for (w, h, every) in [(37, 11, 9), (64, 5, 1000), (9, 3, 7), (8, 8, 5), (2, 9, 3), (1, 1, 2)] {
+            let d = speckled(w, h, every);
+            let fast = median3x3(&d);
+            let rows = |y: usize| [y.saturating_sub(1), y, (y + 1).min(h - 1)].map(|r| &d.data[r * w..(r + 1) * w]);
+            let mut window = Vec::new();
+            for y in 0..h {
+                for x in 0..w {
+                    let mut value = d.data[y * w + x];
+                    median_at(&d.data, (w, h), (x, y), &rows(y), &mut window, &mut value);
+                    assert_eq!(fast.data[y * w + x].to_bits(), value.to_bits(), "{w}×{h} at ({x}, {y})");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn consistency_scaling_is_the_plain_window_scan() {
+        for (w, h, every) in [(37, 11, 9), (64, 6, 1000), (4, 3, 5), (5, 5, 2), (1, 7, 3)] {
+            let mut d = speckled(w, h, every);
+            let before = d.clone();
+            scale_by_local_consistency(&mut d);
+            let r = CONSISTENCY_RADIUS as isize;
+            let confidence = before.confidence.as_deref().unwrap_or_default();
+            for y in 0..h as isize {
+                for x in 0..w as isize {
+                    let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
+                    for dy in -r..=r {
+                        for dx in -r..=r {
+                            let (xx, yy) = ((x + dx).clamp(0, w as isize - 1), (y + dy).clamp(0, h as isize - 1));
+                            let v = before.data[(yy * w as isize + xx) as usize];
+                            if v.is_finite() {
+                                lo = lo.min(v);
+                                hi = hi.max(v);
+                            }
+                        }
+                    }
+                    let i = (y * w as isize + x) as usize;
+                    let expected = if hi >= lo {
+                        confidence[i] / (1.0 + (hi - lo))
+                    } else {
+                        confidence[i]
+                    };
+                    let got = d.confidence.as_deref().unwrap_or_default()[i];
+                    assert_eq!(got.to_bits(), expected.to_bits(), "{w}×{h} at ({x}, {y})");
+                }
+            }
+        }
+    }
 
     #[test]
     fn confidence_falls_next_to_a_depth_edge() {
