@@ -368,8 +368,10 @@ impl CostSpec {
 
 /// Cost cells (columns × disparities) per tile row: with the block's rows of pixel costs, the
 /// column sums and the aggregated row of up to four neighbours, a tile's working set stays in a
-/// 1 MiB L2 cache (about 0.5 MiB at radius 4).
-const TILE_CELLS: usize = 8192;
+/// 1 MiB L2 cache (about 0.75 MiB at radius 4: 96 columns at 128 disparities). Each tile computes
+/// the pixel costs of `2ρ` columns beyond it: 8192 cells (64 columns, 12.5 % more pixel costs)
+/// made block matching at 1080p × 128 about 10 % slower (docs/experiments.md, 2026-11-27).
+const TILE_CELLS: usize = 12288;
 
 /// Columns per tile for `disparities`.
 fn tile_columns(num_disparities: usize) -> usize {
