@@ -415,12 +415,19 @@ struct NeighbourScratch {
     resample: Vec<u16>,
 }
 
+/// Where a neighbour's pixel costs are read from.
+enum CostSource {
+    /// Its samples in search-line order (axis neighbours); the prepared view they were laid out
+    /// from is dropped, so that the next neighbour's reuses its memory instead of faulting more.
+    Lines(SearchLines),
+    /// The prepared view, through the generic cost loop (diagonal neighbours).
+    View(PreparedView),
+}
+
 /// A neighbour prepared for one cost.
 struct PreparedNeighbour {
-    view: PreparedView,
     offset: [i32; 2],
-    /// Samples in search-line order (axis neighbours); `None` uses the generic cost loop.
-    lines: Option<SearchLines>,
+    source: CostSource,
     /// Resampling along the disparity axis (baseline ratio ≠ 1).
     resampler: Option<DisparityResampler>,
     /// Disparities whose correspondence stays inside the image.
@@ -492,11 +499,13 @@ impl PreparedProblem {
                 // A resampled neighbour reads up to ratio × the range.
                 let scaled = |d: i32| (d as f32 * n.baseline_ratio.max(1.0)).ceil() as i32;
                 let reach = scaled(problem.min_disparity).min(problem.min_disparity)..scaled(end) + 1;
-                let lines = SearchLines::new(&view, spec.pixel, n.offset, reach);
+                let source = match SearchLines::new(&view, spec.pixel, n.offset, reach) {
+                    Some(lines) => CostSource::Lines(lines),
+                    None => CostSource::View(view),
+                };
                 PreparedNeighbour {
-                    view,
                     offset: n.offset,
-                    lines,
+                    source,
                     resampler: DisparityResampler::new(
                         problem.min_disparity,
                         problem.num_disparities,
@@ -541,8 +550,8 @@ impl PreparedProblem {
     /// Pixel costs of one neighbour for reference row `y` (clamped into the image), columns `xs`.
     fn pixel_costs(&self, neighbour: &PreparedNeighbour, y: isize, xs: Range<isize>, out: &mut [u8]) {
         let y = y.clamp(0, self.height as isize - 1) as usize;
-        match &neighbour.lines {
-            Some(lines) => pixel_cost_tile_lines(
+        match &neighbour.source {
+            CostSource::Lines(lines) => pixel_cost_tile_lines(
                 self.spec.pixel,
                 &self.reference,
                 lines,
@@ -552,10 +561,10 @@ impl PreparedProblem {
                 self.num_disparities,
                 out,
             ),
-            None => pixel_cost_tile(
+            CostSource::View(view) => pixel_cost_tile(
                 self.spec.pixel,
                 &self.reference,
-                &neighbour.view,
+                view,
                 neighbour.offset,
                 y,
                 xs,
@@ -891,8 +900,8 @@ mod tests {
 
     #[test]
     fn tiled_bands_give_the_defined_fused_costs() {
-        // 256 disparities make 32-column tiles: 70 columns are two full tiles and a partial one.
-        let (w, h, nd) = (70, 19, 256);
+        // 384 disparities make 32-column tiles: 70 columns are two full tiles and a partial one.
+        let (w, h, nd) = (70, 19, 384);
         let neighbour = |role: &str, offset: [i32; 2], seed: usize, ratio: f32| Neighbour {
             role: role.into(),
             image: view(w, h, seed),
