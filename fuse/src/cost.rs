@@ -88,50 +88,57 @@ impl PreparedView {
 /// and its half-pixel interpolants towards its 4-neighbours (left, right, up, down; borders
 /// replicated), `(c + n) / 2` rounded down.
 fn birchfield_tomasi_bounds(image: &Image) -> (Vec<u8>, Vec<u8>) {
-    let (w, h, channels) = (image.width, image.height, image.channels);
-    let stride = w * channels;
+    let stride = image.width * image.channels;
     let mut bt_min = vec![0u8; image.data.len()];
     let mut bt_max = vec![0u8; image.data.len()];
-    let half = |c: u8, n: u8| ((u16::from(c) + u16::from(n)) / 2) as u8;
-    for y in 0..h {
-        let row = &image.data[y * stride..(y + 1) * stride];
-        let up = &image.data[y.saturating_sub(1) * stride..][..stride];
-        let down = &image.data[(y + 1).min(h - 1) * stride..][..stride];
-        let (lo, hi) = (
-            &mut bt_min[y * stride..(y + 1) * stride],
-            &mut bt_max[y * stride..(y + 1) * stride],
-        );
-        // Interior columns: straight slices that the compiler vectorises.
-        if w > 2 {
-            let inner = channels..stride - channels;
-            let (centre, left, right) = (&row[inner.clone()], &row[..stride - 2 * channels], &row[2 * channels..]);
-            let (up, down) = (&up[inner.clone()], &down[inner.clone()]);
-            let (lo, hi) = (&mut lo[inner.clone()], &mut hi[inner]);
-            for i in 0..centre.len() {
-                let c = centre[i];
-                let (a, b, u, d) = (half(c, left[i]), half(c, right[i]), half(c, up[i]), half(c, down[i]));
-                lo[i] = c.min(a).min(b).min(u).min(d);
-                hi[i] = c.max(a).max(b).max(u).max(d);
-            }
-        }
-        // Border columns (or every column of a narrow image).
-        for x in (0..w).filter(|x| *x == 0 || *x + 1 >= w) {
-            for channel in 0..channels {
-                let i = x * channels + channel;
-                let c = row[i];
-                let left = row[x.saturating_sub(1) * channels + channel];
-                let right = row[(x + 1).min(w - 1) * channels + channel];
-                let (a, b, u, d) = (half(c, left), half(c, right), half(c, up[i]), half(c, down[i]));
-                lo[i] = c.min(a).min(b).min(u).min(d);
-                hi[i] = c.max(a).max(b).max(u).max(d);
-            }
-        }
+    for (y, (lo, hi)) in bt_min
+        .chunks_exact_mut(stride.max(1))
+        .zip(bt_max.chunks_exact_mut(stride.max(1)))
+        .enumerate()
+    {
+        birchfield_tomasi_row(image, y, lo, hi);
     }
     (bt_min, bt_max)
 }
 
+/// [`birchfield_tomasi_bounds`] of row `y` into `lo` and `hi` (`width × channels` each).
+pub(crate) fn birchfield_tomasi_row(image: &Image, y: usize, lo: &mut [u8], hi: &mut [u8]) {
+    let (w, h, channels) = (image.width, image.height, image.channels);
+    let stride = w * channels;
+    let half = |c: u8, n: u8| ((u16::from(c) + u16::from(n)) / 2) as u8;
+    let row = &image.data[y * stride..(y + 1) * stride];
+    let up = &image.data[y.saturating_sub(1) * stride..][..stride];
+    let down = &image.data[(y + 1).min(h - 1) * stride..][..stride];
+    let (lo, hi) = (&mut lo[..stride], &mut hi[..stride]);
+    // Interior columns: straight slices that the compiler vectorises.
+    if w > 2 {
+        let inner = channels..stride - channels;
+        let (centre, left, right) = (&row[inner.clone()], &row[..stride - 2 * channels], &row[2 * channels..]);
+        let (up, down) = (&up[inner.clone()], &down[inner.clone()]);
+        let (lo, hi) = (&mut lo[inner.clone()], &mut hi[inner]);
+        for i in 0..centre.len() {
+            let c = centre[i];
+            let (a, b, u, d) = (half(c, left[i]), half(c, right[i]), half(c, up[i]), half(c, down[i]));
+            lo[i] = c.min(a).min(b).min(u).min(d);
+            hi[i] = c.max(a).max(b).max(u).max(d);
+        }
+    }
+    // Border columns (or every column of a narrow image).
+    for x in (0..w).filter(|x| *x == 0 || *x + 1 >= w) {
+        for channel in 0..channels {
+            let i = x * channels + channel;
+            let c = row[i];
+            let left = row[x.saturating_sub(1) * channels + channel];
+            let right = row[(x + 1).min(w - 1) * channels + channel];
+            let (a, b, u, d) = (half(c, left), half(c, right), half(c, up[i]), half(c, down[i]));
+            lo[i] = c.min(a).min(b).min(u).min(d);
+            hi[i] = c.max(a).max(b).max(u).max(d);
+        }
+    }
+}
+
 /// A grey image with `r` replicated border pixels on every side, and its row length.
-fn padded_gray(gray: &Image, r: usize) -> (Vec<u8>, usize) {
+pub(crate) fn padded_gray(gray: &Image, r: usize) -> (Vec<u8>, usize) {
     let (w, h) = (gray.width, gray.height);
     let padded_w = w + 2 * r;
     let mut padded = Vec::with_capacity(padded_w * (h + 2 * r));
@@ -150,32 +157,43 @@ fn padded_gray(gray: &Image, r: usize) -> (Vec<u8>, usize) {
 pub fn census_planes(gray: &Image, radius: usize) -> Vec<Vec<u8>> {
     let (w, h, r) = (gray.width, gray.height, radius);
     let (padded, padded_w) = padded_gray(gray, r);
-    let side = 2 * r + 1;
-    let bits = side * side - 1;
-    // Window offsets in code order: position i sits at bit `bits − 1 − i`.
-    let offsets: Vec<(usize, usize)> = (0..side * side)
-        .map(|i| (i % side, i / side))
-        .filter(|&(dx, dy)| (dx, dy) != (r, r))
-        .collect();
-    (0..bits.div_ceil(8))
+    (0..census_plane_count(r))
         .map(|b| {
             let mut plane = vec![0u8; w * h];
             plane.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
-                let centre = &padded[(y + r) * padded_w + r..][..w];
-                for j in 0..8 {
-                    let Some(i) = (bits - 1).checked_sub(8 * b + j) else {
-                        break;
-                    };
-                    let (dx, dy) = offsets[i];
-                    let source = &padded[(y + dy) * padded_w + dx..][..w];
-                    for ((value, s), c) in row.iter_mut().zip(source).zip(centre) {
-                        *value |= u8::from(s < c) << j;
-                    }
-                }
+                census_row((&padded, padded_w), r, y, b, row);
             });
             plane
         })
         .collect()
+}
+
+/// Byte planes of a census code over a `(2r+1)²` window.
+pub(crate) fn census_plane_count(r: usize) -> usize {
+    ((2 * r + 1).pow(2) - 1).div_ceil(8)
+}
+
+/// Plane `b` of [`census_planes`] for row `y` into `row` (its `width` bytes, all overwritten), from
+/// the padded grey image ([`padded_gray`] with radius `r`).
+pub(crate) fn census_row((padded, padded_w): (&[u8], usize), r: usize, y: usize, b: usize, row: &mut [u8]) {
+    let w = row.len();
+    let side = 2 * r + 1;
+    let bits = side * side - 1;
+    row.fill(0);
+    let centre = &padded[(y + r) * padded_w + r..][..w];
+    for j in 0..8 {
+        let Some(i) = (bits - 1).checked_sub(8 * b + j) else {
+            break;
+        };
+        // The i-th window position in code order (row-major, the centre skipped) sits at bit
+        // `bits − 1 − i`.
+        let i = if i >= side * r + r { i + 1 } else { i };
+        let (dx, dy) = (i % side, i / side);
+        let source = &padded[(y + dy) * padded_w + dx..][..w];
+        for ((value, s), c) in row.iter_mut().zip(source).zip(centre) {
+            *value |= u8::from(s < c) << j;
+        }
+    }
 }
 
 /// Census codes of a grey image over a `(2r+1)²` window, border replicated: bit set where the

@@ -9,7 +9,11 @@
 
 use std::ops::Range;
 
-use crate::cost::{PixelCost, PreparedView, mean_of_three};
+use crate::cost::{
+    MAX_CENSUS_RADIUS, PixelCost, PreparedView, birchfield_tomasi_row, census_plane_count, census_row, mean_of_three,
+    padded_gray,
+};
+use crate::image::Image;
 
 /// A neighbour's samples in search-line order, with the border replicated past the image.
 #[derive(Debug, Clone)]
@@ -29,39 +33,51 @@ pub struct SearchLines {
 }
 
 impl SearchLines {
-    /// Lays out `view`'s samples for `offset`, long enough for the disparities `reach` (signed:
-    /// a converged rig searches below 0). `None` for diagonal offsets.
-    pub fn new(view: &PreparedView, cost: PixelCost, offset: [i32; 2], reach: Range<i32>) -> Option<Self> {
+    /// Lays out the samples a `cost` reads of the neighbour `image` for `offset`, long enough for
+    /// the disparities `reach` (signed: a converged rig searches below 0). `None` for diagonal
+    /// offsets. What the cost reads (the Birchfield–Tomasi bounds, the census codes) is made a row
+    /// at a time and written straight into the lines: the same samples as
+    /// [`PreparedView::new`]'s, without its whole-image planes.
+    pub fn new(image: &Image, cost: PixelCost, offset: [i32; 2], reach: Range<i32>) -> Option<Self> {
         if !matches!(offset, [1, 0] | [-1, 0] | [0, 1] | [0, -1]) {
             return None;
         }
-        let image = view.image();
         let (w, h, channels) = (image.width, image.height, image.channels);
         let before = reach.start.min(0).unsigned_abs() as usize;
         let after = reach.end.max(0) as usize;
         let line_len = before + if offset[1] == 0 { w } else { h } + after + 1;
         let layout = (offset, (w, h), (before, line_len));
+        let stride = w * channels;
         let mut planes = Vec::new();
         let mut census = Vec::new();
         match cost {
             PixelCost::AbsoluteDifference => {
-                for c in 0..channels {
-                    planes.push(gather_lines(layout, |p| image.data[p * channels + c]));
-                }
+                planes = lay_out(layout, channels, |y, rows| {
+                    let mut rows: Vec<&mut [u8]> = rows.iter_mut().map(|row| &mut row[..]).collect();
+                    deinterleave(&image.data[y * stride..(y + 1) * stride], &mut rows);
+                });
             }
             PixelCost::BirchfieldTomasi => {
-                let (lo, hi) = view.bt_bounds();
-                for c in 0..channels {
-                    planes.push(gather_lines(layout, |p| lo[p * channels + c]));
-                    planes.push(gather_lines(layout, |p| hi[p * channels + c]));
-                }
+                let (mut lo, mut hi) = (vec![0u8; stride], vec![0u8; stride]);
+                // Planes interleaved per channel: [min₀, max₀, min₁, max₁, …].
+                planes = lay_out(layout, 2 * channels, |y, rows| {
+                    birchfield_tomasi_row(image, y, &mut lo, &mut hi);
+                    let (mut low, mut high): (Vec<&mut [u8]>, Vec<&mut [u8]>) = (Vec::new(), Vec::new());
+                    for (k, row) in rows.iter_mut().enumerate() {
+                        if k % 2 == 0 { low.push(row) } else { high.push(row) }
+                    }
+                    deinterleave(&lo, &mut low);
+                    deinterleave(&hi, &mut high);
+                });
             }
-            PixelCost::Census { .. } => {
-                census = view
-                    .census_planes()
-                    .iter()
-                    .map(|plane| gather_lines(layout, |p| plane[p]))
-                    .collect();
+            PixelCost::Census { radius } => {
+                let r = radius.clamp(1, MAX_CENSUS_RADIUS);
+                let (padded, padded_w) = padded_gray(&image.to_gray(), r);
+                census = lay_out(layout, census_plane_count(r), |y, rows| {
+                    for (b, row) in rows.iter_mut().enumerate() {
+                        census_row((&padded, padded_w), r, y, b, row);
+                    }
+                });
             }
         }
         Some(Self {
@@ -88,37 +104,95 @@ impl SearchLines {
     }
 }
 
-/// One plane in search-line order: line `k` is image row `k` (horizontal offsets) or column `k`
-/// (vertical), read away from the neighbour's side, preceded by `before` copies of its first
-/// sample and continued past the far border with the border value; `value(p)` gives the sample
-/// of pixel index `p`. Lines are filled as runs (the rows forwards or backwards, the columns with a
-/// stride) rather than per-sample index arithmetic.
-fn gather_lines(
+/// The channels of an interleaved row `source` into one row each of `rows`.
+fn deinterleave(source: &[u8], rows: &mut [&mut [u8]]) {
+    match rows {
+        [only] => only.copy_from_slice(&source[..only.len()]),
+        [r, g, b] => {
+            for (((p, r), g), b) in source
+                .chunks_exact(3)
+                .zip(r.iter_mut())
+                .zip(g.iter_mut())
+                .zip(b.iter_mut())
+            {
+                (*r, *g, *b) = (p[0], p[1], p[2]);
+            }
+        }
+        rows => {
+            let channels = rows.len();
+            for (c, row) in rows.iter_mut().enumerate() {
+                for (v, s) in row.iter_mut().zip(source.iter().skip(c).step_by(channels)) {
+                    *v = *s;
+                }
+            }
+        }
+    }
+}
+
+/// Image rows a vertical neighbour's lines are written from at once: each column's line then
+/// gets runs of this many samples instead of one byte per cache line per row.
+const BLOCK_ROWS: usize = 16;
+
+/// `count` planes in search-line order, from the image's rows as `fill_row(y, rows)` makes them
+/// (one row of `width` samples per plane): line `k` is image row `k` (horizontal offsets) or
+/// column `k` (vertical), read away from the neighbour's side, preceded by `before` copies of its
+/// first sample and continued past the far border with the border value.
+fn lay_out(
     (offset, (w, h), (before, line_len)): ([i32; 2], (usize, usize), (usize, usize)),
-    value: impl Fn(usize) -> u8,
-) -> Vec<u8> {
+    count: usize,
+    mut fill_row: impl FnMut(usize, &mut [Vec<u8>]),
+) -> Vec<Vec<u8>> {
     let horizontal = offset[1] == 0;
     let (lines, run) = if horizontal { (h, w) } else { (w, h) };
-    let mut plane = Vec::with_capacity(lines * line_len);
-    for k in 0..lines {
-        let start = plane.len() + before;
-        let first = match offset {
-            [-1, 0] => value(k * w),
-            [1, 0] => value(k * w + w - 1),
-            [0, -1] => value(k),
-            _ => value((h - 1) * w + k),
-        };
-        plane.resize(start, first);
-        match offset {
-            [-1, 0] => plane.extend((0..w).map(|x| value(k * w + x))),
-            [1, 0] => plane.extend((0..w).rev().map(|x| value(k * w + x))),
-            [0, -1] => plane.extend((0..h).map(|y| value(y * w + k))),
-            _ => plane.extend((0..h).rev().map(|y| value(y * w + k))),
+    let mut planes = vec![vec![0u8; lines * line_len]; count];
+    let mut rows = vec![vec![0u8; w]; count];
+    if horizontal {
+        for y in 0..h {
+            fill_row(y, &mut rows);
+            for (plane, row) in planes.iter_mut().zip(&rows) {
+                let line = &mut plane[y * line_len + before..y * line_len + before + w];
+                if offset[0] < 0 {
+                    line.copy_from_slice(row);
+                } else {
+                    for (s, v) in line.iter_mut().rev().zip(row) {
+                        *s = *v;
+                    }
+                }
+            }
         }
-        let border = plane[start + run - 1];
-        plane.resize(start - before + line_len, border);
+    } else {
+        // A block of rows per plane (`[row][x]`), then each column's run of it into its line.
+        let mut block = vec![vec![0u8; BLOCK_ROWS * w]; count];
+        for y0 in (0..h).step_by(BLOCK_ROWS) {
+            let m = BLOCK_ROWS.min(h - y0);
+            for j in 0..m {
+                fill_row(y0 + j, &mut rows);
+                for (b, row) in block.iter_mut().zip(&rows) {
+                    b[j * w..(j + 1) * w].copy_from_slice(row);
+                }
+            }
+            // Downwards for the neighbour above (rows y0 … at positions y0 …), upwards below.
+            let down = offset[1] < 0;
+            let first = before + if down { y0 } else { h - y0 - m };
+            for (plane, b) in planes.iter_mut().zip(&block) {
+                for (x, line) in plane.chunks_exact_mut(line_len).enumerate() {
+                    let column = &mut line[first..first + m];
+                    for (j, s) in column.iter_mut().enumerate() {
+                        let row = if down { j } else { m - 1 - j };
+                        *s = b[row * w + x];
+                    }
+                }
+            }
+        }
     }
-    plane
+    for plane in &mut planes {
+        for line in plane.chunks_exact_mut(line_len) {
+            let (first, last) = (line[before], line[before + run - 1]);
+            line[..before].fill(first);
+            line[before + run..].fill(last);
+        }
+    }
+    planes
 }
 
 /// Pixel costs of reference row `y`, columns `xs` (outside the image: the border column), for
@@ -200,7 +274,6 @@ pub fn pixel_cost_tile_lines(
 mod tests {
     use super::*;
     use crate::cost::pixel_cost_tile;
-    use crate::image::Image;
 
     #[test]
     fn search_lines_give_the_generic_costs_for_every_axis_and_cost() {
@@ -218,12 +291,13 @@ mod tests {
                     PreparedView::new(if channels == 1 { image.to_gray() } else { image }, cost)
                 };
                 let (reference, neighbour) = (make(&rgb), make(&other));
+                let neighbour_image = neighbour.image().clone();
                 for (offset, min_d) in [[1, 0], [-1, 0], [0, 1], [0, -1]]
                     .into_iter()
                     .flat_map(|o| [(o, 2), (o, -6)])
                 {
                     let nd = 9;
-                    let lines = SearchLines::new(&neighbour, cost, offset, min_d..min_d + nd as i32)
+                    let lines = SearchLines::new(&neighbour_image, cost, offset, min_d..min_d + nd as i32)
                         .unwrap_or_else(|| panic!("no lines"));
                     // A tile reaching past both image borders.
                     let xs = -3..w as isize + 2;

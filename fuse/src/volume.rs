@@ -417,8 +417,8 @@ struct NeighbourScratch {
 
 /// Where a neighbour's pixel costs are read from.
 enum CostSource {
-    /// Its samples in search-line order (axis neighbours); the prepared view they were laid out
-    /// from is dropped, so that the next neighbour's reuses its memory instead of faulting more.
+    /// Its samples in search-line order (axis neighbours), made straight from its image: no
+    /// whole-image planes of the cost's samples are held (or faulted) besides.
     Lines(SearchLines),
     /// The prepared view, through the generic cost loop (diagonal neighbours).
     View(PreparedView),
@@ -494,14 +494,13 @@ impl PreparedProblem {
             .neighbours_for(fusion)
             .into_par_iter()
             .map(|n| {
-                let view = PreparedView::new(n.image.clone(), spec.pixel);
                 let end = problem.end_disparity();
                 // A resampled neighbour reads up to ratio × the range.
                 let scaled = |d: i32| (d as f32 * n.baseline_ratio.max(1.0)).ceil() as i32;
                 let reach = scaled(problem.min_disparity).min(problem.min_disparity)..scaled(end) + 1;
-                let source = match SearchLines::new(&view, spec.pixel, n.offset, reach) {
+                let source = match SearchLines::new(&n.image, spec.pixel, n.offset, reach) {
                     Some(lines) => CostSource::Lines(lines),
-                    None => CostSource::View(view),
+                    None => CostSource::View(PreparedView::new(n.image.clone(), spec.pixel)),
                 };
                 PreparedNeighbour {
                     offset: n.offset,
