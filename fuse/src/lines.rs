@@ -53,8 +53,7 @@ impl SearchLines {
         match cost {
             PixelCost::AbsoluteDifference => {
                 planes = lay_out(layout, channels, |y, rows| {
-                    let mut rows: Vec<&mut [u8]> = rows.iter_mut().map(|row| &mut row[..]).collect();
-                    deinterleave(&image.data[y * stride..(y + 1) * stride], &mut rows);
+                    deinterleave(&image.data[y * stride..(y + 1) * stride], channels, rows, (0, 1));
                 });
             }
             PixelCost::BirchfieldTomasi => {
@@ -62,12 +61,8 @@ impl SearchLines {
                 // Planes interleaved per channel: [min₀, max₀, min₁, max₁, …].
                 planes = lay_out(layout, 2 * channels, |y, rows| {
                     birchfield_tomasi_row(image, y, &mut lo, &mut hi);
-                    let (mut low, mut high): (Vec<&mut [u8]>, Vec<&mut [u8]>) = (Vec::new(), Vec::new());
-                    for (k, row) in rows.iter_mut().enumerate() {
-                        if k % 2 == 0 { low.push(row) } else { high.push(row) }
-                    }
-                    deinterleave(&lo, &mut low);
-                    deinterleave(&hi, &mut high);
+                    deinterleave(&lo, channels, rows, (0, 2));
+                    deinterleave(&hi, channels, rows, (1, 2));
                 });
             }
             PixelCost::Census { radius } => {
@@ -104,26 +99,26 @@ impl SearchLines {
     }
 }
 
-/// The channels of an interleaved row `source` into one row each of `rows`.
-fn deinterleave(source: &[u8], rows: &mut [&mut [u8]]) {
-    match rows {
-        [only] => only.copy_from_slice(&source[..only.len()]),
-        [r, g, b] => {
-            for (((p, r), g), b) in source
-                .chunks_exact(3)
-                .zip(r.iter_mut())
-                .zip(g.iter_mut())
-                .zip(b.iter_mut())
-            {
-                (*r, *g, *b) = (p[0], p[1], p[2]);
-            }
+/// The `channels` of an interleaved row `source` into rows of `rows`: channel `c` into row
+/// `first + step·c`.
+fn deinterleave(source: &[u8], channels: usize, rows: &mut [Vec<u8>], (first, step): (usize, usize)) {
+    if channels == 3
+        && let Ok([r, g, b]) = rows.get_disjoint_mut([first, first + step, first + 2 * step])
+    {
+        for (((p, r), g), b) in source
+            .chunks_exact(3)
+            .zip(r.iter_mut())
+            .zip(g.iter_mut())
+            .zip(b.iter_mut())
+        {
+            (*r, *g, *b) = (p[0], p[1], p[2]);
         }
-        rows => {
-            let channels = rows.len();
-            for (c, row) in rows.iter_mut().enumerate() {
-                for (v, s) in row.iter_mut().zip(source.iter().skip(c).step_by(channels)) {
-                    *v = *s;
-                }
+        return;
+    }
+    for c in 0..channels {
+        if let Some(row) = rows.get_mut(first + step * c) {
+            for (v, s) in row.iter_mut().zip(source.iter().skip(c).step_by(channels)) {
+                *v = *s;
             }
         }
     }
