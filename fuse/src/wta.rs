@@ -211,6 +211,26 @@ pub fn peak_confidence(costs: &[u16], best: usize) -> f32 {
     }
 }
 
+/// The smallest of `costs` and its first index (`(0, INVALID_COST)` when empty): a vectorised
+/// minimum, then the runs of [`MINIMUM_RUN`] searched for it with one comparison each (they
+/// vectorise too) before the run holding it is scanned.
+#[inline]
+fn first_minimum(costs: &[u16]) -> (usize, u16) {
+    let least = costs.iter().copied().fold(INVALID_COST, u16::min);
+    let mut start = 0;
+    for run in costs.chunks(MINIMUM_RUN) {
+        if run.iter().fold(false, |found, v| found | (*v == least)) {
+            let at = run.iter().position(|v| *v == least).unwrap_or(0);
+            return (start + at, least);
+        }
+        start += run.len();
+    }
+    (0, least)
+}
+
+/// Costs [`first_minimum`] compares at once.
+const MINIMUM_RUN: usize = 16;
+
 fn winners(
     costs: &[u16],
     num_disparities: usize,
@@ -220,15 +240,7 @@ fn winners(
     mut confidence: Option<&mut [f32]>,
 ) {
     for (i, (pixel, c)) in out.iter_mut().zip(costs.chunks_exact(num_disparities)).enumerate() {
-        // Cost and disparity packed into one u32 (cost high): one vectorised min finds the
-        // smallest cost at its first disparity.
-        let packed = c
-            .iter()
-            .zip(0u32..)
-            .map(|(v, d)| (u32::from(*v) << 16) | d)
-            .min()
-            .unwrap_or(u32::from(INVALID_COST) << 16);
-        let (best, best_cost) = ((packed & 0xFFFF) as usize, (packed >> 16) as u16);
+        let (best, best_cost) = first_minimum(c);
         if let Some(confidence) = confidence.as_deref_mut() {
             confidence[i] = peak_confidence(c, best);
         }
@@ -253,6 +265,42 @@ fn winners(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_first_minimum_is_the_packed_minimum() {
+        // Cost and disparity packed into one u32 (cost high): the smallest cost at its first
+        // disparity, the definition the search by runs must reproduce.
+        let packed = |c: &[u16]| {
+            let p = c
+                .iter()
+                .zip(0u32..)
+                .map(|(v, d)| (u32::from(*v) << 16) | d)
+                .min()
+                .unwrap_or(u32::from(INVALID_COST) << 16);
+            ((p & 0xFFFF) as usize, (p >> 16) as u16)
+        };
+        let mut state = 7u32;
+        let mut next = || {
+            state = state.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+            state >> 16
+        };
+        for n in [1, 5, 16, 17, 33, 128, 131] {
+            for spread in [3u32, 40, 60_000] {
+                let costs: Vec<u16> = (0..n)
+                    .map(|_| {
+                        if next() % 9 == 0 {
+                            INVALID_COST
+                        } else {
+                            (next() % spread) as u16
+                        }
+                    })
+                    .collect();
+                assert_eq!(first_minimum(&costs), packed(&costs), "{costs:?}");
+            }
+            let invalid = vec![INVALID_COST; n];
+            assert_eq!(first_minimum(&invalid), packed(&invalid));
+        }
+    }
 
     #[test]
     fn the_peak_confidence_compares_the_winner_with_the_best_cost_away_from_it() {
