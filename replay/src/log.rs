@@ -1063,7 +1063,8 @@ pub(crate) fn decode_rgb(set: u32, topic: &str, data: &[u8]) -> Result<(u32, u32
         && raw.width > 0
         && !raw.encoding.is_empty()
     {
-        return raw_to_rgb(set, topic, &raw).map(|rgb| (raw.width, raw.height, rgb));
+        let (width, height) = (raw.width, raw.height);
+        return raw_to_rgb(set, topic, raw).map(|rgb| (width, height, rgb));
     }
     let compressed: CompressedImage = prost::Message::decode(data).map_err(decode_error(
         set,
@@ -1114,7 +1115,9 @@ fn decode_png(data: &[u8]) -> Result<(u32, u32, Vec<u8>), String> {
     Ok((info.width, info.height, rgb))
 }
 
-fn raw_to_rgb(set: u32, topic: &str, raw: &RawImage) -> Result<Vec<u8>, ReplayError> {
+/// The pixels of `raw` as tightly packed RGB: a tight `rgb8` image's own buffer, else converted
+/// row by row.
+fn raw_to_rgb(set: u32, topic: &str, raw: RawImage) -> Result<Vec<u8>, ReplayError> {
     let (w, h, step) = (raw.width as usize, raw.height as usize, raw.step as usize);
     let channels = match raw.encoding.as_str() {
         "rgb8" | "bgr8" | "8UC3" => 3,
@@ -1138,15 +1141,20 @@ fn raw_to_rgb(set: u32, topic: &str, raw: &RawImage) -> Result<Vec<u8>, ReplayEr
         });
     }
     let bgr = raw.encoding.starts_with("bgr") || raw.encoding == "8UC3";
+    if channels == 3 && !bgr && step == row_bytes {
+        // (The decoded payload is uniquely owned: `Vec::from` takes its buffer.)
+        let mut rgb = Vec::from(raw.data);
+        rgb.truncate(row_bytes * h);
+        return Ok(rgb);
+    }
     let mut rgb = Vec::with_capacity(w * h * 3);
     for row in 0..h {
-        let line = &raw.data[row * step..row * step + w * channels];
-        for p in line.chunks_exact(channels) {
-            match (channels, bgr) {
-                (1, _) => rgb.extend_from_slice(&[p[0]; 3]),
-                (_, true) => rgb.extend_from_slice(&[p[2], p[1], p[0]]),
-                (_, false) => rgb.extend_from_slice(&p[..3]),
-            }
+        let line = &raw.data[row * step..row * step + row_bytes];
+        match (channels, bgr) {
+            (3, false) => rgb.extend_from_slice(line),
+            (1, _) => rgb.extend(line.iter().flat_map(|v| [*v; 3])),
+            (_, true) => rgb.extend(line.chunks_exact(channels).flat_map(|p| [p[2], p[1], p[0]])),
+            (_, false) => rgb.extend(line.chunks_exact(channels).flat_map(|p| [p[0], p[1], p[2]])),
         }
     }
     Ok(rgb)
@@ -1328,6 +1336,50 @@ mod tests {
     use super::*;
     use record::rig::RigKind;
     use record::{CapturedSet, CapturedView};
+
+    #[test]
+    fn raw_images_of_every_encoding_become_packed_rgb() {
+        // Two rows of two pixels, each row padded by one byte (step = row + 1), and tight.
+        let pixels: [[u8; 4]; 4] = [[10, 20, 30, 40], [11, 21, 31, 41], [12, 22, 32, 42], [13, 23, 33, 43]];
+        for (encoding, channels) in [
+            ("rgb8", 3),
+            ("bgr8", 3),
+            ("8UC3", 3),
+            ("rgba8", 4),
+            ("bgra8", 4),
+            ("mono8", 1),
+        ] {
+            let bgr = encoding.starts_with("bgr") || encoding == "8UC3";
+            let expected: Vec<u8> = pixels
+                .iter()
+                .flat_map(|p| match (channels, bgr) {
+                    (1, _) => [p[0]; 3],
+                    (_, true) => [p[2], p[1], p[0]],
+                    (_, false) => [p[0], p[1], p[2]],
+                })
+                .collect();
+            for pad in [0, 1] {
+                let step = 2 * channels + pad;
+                let mut data = Vec::new();
+                for row in pixels.chunks(2) {
+                    for p in row {
+                        data.extend_from_slice(&p[..channels]);
+                    }
+                    data.extend(std::iter::repeat_n(99, pad));
+                }
+                let raw = RawImage {
+                    width: 2,
+                    height: 2,
+                    encoding: encoding.into(),
+                    step: step as u32,
+                    data: data.into(),
+                    ..Default::default()
+                };
+                let rgb = raw_to_rgb(0, "/camera/center/image", raw).unwrap_or_else(|e| panic!("{e}"));
+                assert_eq!(rgb, expected, "{encoding}, step {step}");
+            }
+        }
+    }
 
     fn set(index: u32) -> CapturedSet {
         let camera = PinholeCamera::from_horizontal_fov(4, 3, 60.0);
