@@ -96,7 +96,7 @@ fn heuristic4(a: u16, b: u16, c: u16, d: u16) -> u16 {
     }
 }
 
-/// Largest valid cost for which [`heuristic4`]'s `u16` arithmetic is exact (three valid costs
+/// Largest valid cost for which the four-way heuristic's `u16` arithmetic is exact (three valid costs
 /// and the rounding one sum below 2¹⁶).
 pub const HEURISTIC_U16_MAX_COST: u16 = 21_844;
 

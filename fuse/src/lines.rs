@@ -5,7 +5,7 @@
 //! computing and clamping a 2-D index per (pixel, disparity).
 //!
 //! Built for the four axis neighbours (left, right, top, bottom); diagonal neighbours use the
-//! generic [`crate::cost::pixel_cost_row`].
+//! generic [`crate::cost::pixel_cost_tile`].
 
 use std::ops::Range;
 

@@ -8,7 +8,7 @@ use crate::FuseError;
 use crate::image::{DisparityImage, Image};
 
 /// 3×3 median of the valid values around each pixel (invalid pixels stay invalid). Rows run in
-/// parallel; runs of [`MEDIAN_LANES`] interior pixels whose nine values are all valid go through
+/// parallel; runs of eight interior pixels whose nine values are all valid go through
 /// a 19-exchange sorting network lane by lane (it vectorises), the others (borders, next to
 /// invalid pixels) one by one: through the same network when their nine values are valid, else
 /// through a sort of their valid values.

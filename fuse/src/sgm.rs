@@ -252,7 +252,7 @@ pub fn select_prepared(
     )
 }
 
-/// [`select`] on a [`CostVolume`] (quantised costs; its `max_cost` bounds the valid ones, its
+/// SGM's winners on a [`CostVolume`] (quantised costs; its `max_cost` bounds the valid ones, its
 /// `min_disparity` is the first slice's): the disparities and confidences, `[y][x]`.
 pub fn select_volume(
     volume: &CostVolume<u8>,

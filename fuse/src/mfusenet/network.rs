@@ -310,7 +310,7 @@ pub struct Tape {
     pub disparity: Vec<f32>,
 }
 
-/// Gradients of every trainable parameter, in [`Network::parameters`] order.
+/// Gradients of every trainable parameter, in [`Network::parameters_mut`] order.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Gradients {
     /// `(PyTorch name, gradient)`.

@@ -10,7 +10,7 @@
 //! - [`regression`]: softmax over disparity, soft-argmin and the smooth-L1 loss.
 //! - [`pool`]: the mean and the maximum across any number of views' features (order-invariant
 //!   fusion), with its backward.
-//! - [`reference`]: plain loop implementations the fast kernels are tested against.
+//! - [`reference`](mod@reference): plain loop implementations the fast kernels are tested against.
 //!
 //! Every layer has its forward and backward here; the network (`crate::mfusenet`) wires them.
 
