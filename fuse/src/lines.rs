@@ -139,7 +139,9 @@ fn lay_out(
 ) -> Vec<Vec<u8>> {
     let horizontal = offset[1] == 0;
     let (lines, run) = if horizontal { (h, w) } else { (w, h) };
-    let mut planes = vec![vec![0u8; lines * line_len]; count];
+    // Each plane allocated zeroed on its own (`vec![plane; count]` would copy the first's zeros
+    // into every other before they are written over).
+    let mut planes: Vec<Vec<u8>> = (0..count).map(|_| vec![0u8; lines * line_len]).collect();
     let mut rows = vec![vec![0u8; w]; count];
     if horizontal {
         for y in 0..h {
