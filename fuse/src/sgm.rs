@@ -1,11 +1,16 @@
 //! Semi-global matching (Hirschmüller, PAMI 2008) over a fused cost volume: eight paths,
-//! penalties P1 for ±1 disparity steps and P2 for larger jumps, summed into one `u16` volume.
+//! penalties P1 for ±1 disparity steps and P2 for larger jumps, summed in `u16`.
 //!
 //! The cost volume is held as bytes ([`quantise`]): at 1080p and 128 disparities that is 265 MB
-//! instead of 530 MB, half the memory traffic and page faults of the three passes, for a change in
+//! instead of 530 MB, half the memory traffic and page faults of the passes, for a change in
 //! the Middlebury AvgErr of about 0.002 px. Or it is not held at all ([`aggregate_prepared`],
 //! [`select_prepared`]): each pass makes the costs of the rows it reaches, a band at a time, from
-//! the prepared views (the same bytes; three times the cost work for 265 MB less at that size).
+//! the prepared views (the same bytes; more cost work for 265 MB less at that size).
+//!
+//! The winners ([`select_volume`], [`select_prepared`]) never hold the image's summed volume
+//! (530 MB at that size): the sums live one band of rows at a time, the downward paths
+//! recomputed in each band from a row saved by a first pass (`select_in_bands`). The whole
+//! sums ([`aggregate_volume`], [`aggregate_prepared`]) are for the consumers that read them.
 
 use std::ops::Range;
 use std::sync::atomic::{AtomicU16, AtomicUsize, Ordering};
@@ -188,8 +193,8 @@ pub fn aggregate_prepared(
 }
 
 /// Winner-take-all over the eight-path sums of `volume` (as [`aggregate_volume`] then
-/// [`crate::wta::winner_take_all`]), picked while the last pass visits each pixel so that the
-/// summed volume is never written back or read again. Returns the disparities and their
+/// [`crate::wta::winner_take_all`]), picked while the last pass visits each pixel, the sums held
+/// one band of rows at a time (`select_in_bands`): the same numbers. Returns the disparities and their
 /// confidences (`[y][x]`, [`crate::wta::peak_confidence`] of the summed costs).
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn select(
@@ -211,7 +216,7 @@ pub(crate) fn select(
     select_from(Costs::Stored(volume), geometry, &penalties, min_disparity, subpixel)
 }
 
-/// [`select`] over the costs `costs` of `geometry`.
+/// [`select`] over the costs `costs` of `geometry`, in bands of [`SELECT_BAND_ROWS`].
 fn select_from(
     costs: Costs<'_>,
     geometry: Geometry,
@@ -219,13 +224,127 @@ fn select_from(
     min_disparity: i32,
     subpixel: Option<SubpixelFit>,
 ) -> (Vec<f32>, Vec<f32>) {
-    let mut out = vec![f32::INFINITY; 2 * geometry.width * geometry.height];
-    let selection = Selection {
-        min_disparity,
-        subpixel,
-        out: &mut out,
-    };
-    passes(costs, geometry, penalties, Some(selection), Vec::new(), &|| {});
+    select_in_bands(costs, geometry, penalties, (min_disparity, subpixel), SELECT_BAND_ROWS)
+}
+
+/// Rows per band of [`select_in_bands`]: at 1080p and 128 disparities a band's sums are 63 MB
+/// and the 8 saved rows of paths 12 MB, where the whole image's sums are 530 MB. Bands of 64
+/// rows took more time there (each band's passes start cold), bands of 256 no less.
+const SELECT_BAND_ROWS: usize = 128;
+
+/// [`select`] without the image's summed volume: a first pass runs the three downward paths
+/// over the whole image and keeps their values at the last row of every band; then, band by
+/// band from the bottom, the horizontal paths, the downward paths resumed from the band above's
+/// saved row, and the upward paths carried from the band below are summed in one band's buffer
+/// and the winners picked. The downward paths are computed twice (11 paths' work instead of
+/// 8), but the sums' pages are faulted in once per band-sized buffer instead of once per
+/// pixel: the same numbers in a fraction of the memory.
+fn select_in_bands(
+    costs: Costs<'_>,
+    geometry: Geometry,
+    penalties: &Penalties,
+    (min_disparity, subpixel): (i32, Option<SubpixelFit>),
+    band_rows: usize,
+) -> (Vec<f32>, Vec<f32>) {
+    let Geometry { width, height, nd } = geometry;
+    let mut out = vec![f32::INFINITY; 2 * width * height];
+    let row_len = width * nd;
+    if row_len == 0 || height == 0 {
+        return out.chunks_exact(2).map(|pair| (pair[0], pair[1])).unzip();
+    }
+    let band_rows = band_rows.max(1);
+    let bands: Vec<Range<usize>> = (0..height)
+        .step_by(band_rows)
+        .map(|start| start..(start + band_rows).min(height))
+        .collect();
+    // The downward paths at the last row of every band but the last.
+    let mut saved: Vec<PathRow> = (1..bands.len()).map(|_| PathRow::new(width, nd)).collect();
+    let mut scratch = Vec::new();
+    if !saved.is_empty() {
+        let saves = bands
+            .iter()
+            .zip(saved.iter_mut())
+            .map(|(band, state)| (band.end - 1, state))
+            .collect();
+        let sweep = Sweep {
+            costs,
+            geometry,
+            penalties,
+            downward: true,
+        };
+        vertical_pass(sweep, None, None, (None, saves), &mut scratch);
+    }
+    let mut sums = vec![0u16; band_rows.min(height) * row_len];
+    let mut made = Vec::new();
+    // The upward paths at the first row of the band below, and the same for this band.
+    let (mut below, mut this) = (PathRow::new(width, nd), PathRow::new(width, nd));
+    for (index, band) in bands.iter().enumerate().rev() {
+        let band_geometry = Geometry {
+            width,
+            height: band.len(),
+            nd,
+        };
+        let band_costs: &[u8] = match costs {
+            Costs::Stored(volume) => &volume[band.start * row_len..band.end * row_len],
+            Costs::Made { prepared, shift } => {
+                made.resize(band.len() * row_len, 0);
+                // Shares of the band's rows in parallel, each with its block's 2ρ rows before it.
+                let share = band.len().div_ceil(rayon::current_num_threads().max(1));
+                made.par_chunks_mut(share * row_len).enumerate().for_each_init(
+                    BandScratch::default,
+                    |scratch, (k, out)| {
+                        let first = band.start + k * share;
+                        let rows = first..first + out.len() / row_len;
+                        prepared.fused_quantised_into(rows, 0..width, shift, out, scratch);
+                    },
+                );
+                &made
+            }
+        };
+        let band_sums = &mut sums[..band.len() * row_len];
+        // On threads of their own, as the vertical passes: a pool's idle workers would spin
+        // beside those passes' workers for a while after a parallel iterator.
+        let share = band.len().div_ceil(vertical_workers(width)) * row_len;
+        std::thread::scope(|scope| {
+            for (sums, costs) in band_sums.chunks_mut(share).zip(band_costs.chunks(share)) {
+                scope.spawn(move || {
+                    let (mut previous, mut current) = (vec![0u16; nd + 2], vec![0u16; nd + 2]);
+                    for (sum_row, cost_row) in sums.chunks_mut(row_len).zip(costs.chunks(row_len)) {
+                        horizontal_paths(penalties, cost_row, sum_row, nd, &mut previous, &mut current);
+                    }
+                });
+            }
+        });
+        let band_costs = Costs::Stored(band_costs);
+        let above = index.checked_sub(1).map(|i| &saved[i]);
+        let resume = (above, Vec::new());
+        let sweep = Sweep {
+            costs: band_costs,
+            geometry: band_geometry,
+            penalties,
+            downward: true,
+        };
+        vertical_pass(sweep, Some(&mut *band_sums), None, resume, &mut scratch);
+        let mut selection = Selection {
+            min_disparity,
+            subpixel,
+            out: &mut out[2 * band.start * width..2 * band.end * width],
+        };
+        let resume = (index + 1 < bands.len()).then_some(&below);
+        // The last row of the upward pass over the band is its first row.
+        let save = if index > 0 {
+            vec![(band.len() - 1, &mut this)]
+        } else {
+            Vec::new()
+        };
+        let resume = (resume, save);
+        let sweep = Sweep {
+            downward: false,
+            ..sweep
+        };
+        vertical_pass(sweep, Some(band_sums), Some(&mut selection), resume, &mut scratch);
+        std::mem::swap(&mut below, &mut this);
+    }
     out.chunks_exact(2).map(|pair| (pair[0], pair[1])).unzip()
 }
 
@@ -411,8 +530,20 @@ fn passes(
             },
         ),
     }
-    vertical_pass(costs, &mut sum, geometry, penalties, true, None);
-    vertical_pass(costs, &mut sum, geometry, penalties, false, selection.as_mut());
+    let scratch = &mut Vec::new();
+    let sweep = Sweep {
+        costs,
+        geometry,
+        penalties,
+        downward: true,
+    };
+    vertical_pass(sweep, Some(&mut sum), None, (None, Vec::new()), scratch);
+    let resume = (None, Vec::new());
+    let sweep = Sweep {
+        downward: false,
+        ..sweep
+    };
+    vertical_pass(sweep, Some(&mut sum), selection.as_mut(), resume, scratch);
     sum
 }
 
@@ -434,24 +565,40 @@ struct Geometry {
 /// exchange (double-buffered by row parity, so a worker never overwrites what its neighbour has
 /// yet to read). Workers never sleep between rows: a pool's wake-ups cost more than a row.
 fn vertical_pass(
-    costs: Costs<'_>,
-    sum: &mut [u16],
-    geometry: Geometry,
-    penalties: &Penalties,
-    downward: bool,
+    sweep: Sweep<'_>,
+    sum: Option<&mut [u16]>,
     selection: Option<&mut Selection<'_>>,
+    (start, saves): (Option<&PathRow>, Vec<(usize, &mut PathRow)>),
+    scratch: &mut Vec<PassScratch>,
 ) {
+    let Sweep {
+        costs,
+        geometry,
+        penalties,
+        downward,
+    } = sweep;
     let Geometry { width, height, nd } = geometry;
-    let workers = rayon::current_num_threads().clamp(1, width.div_ceil(MIN_CHUNK_COLUMNS).max(1));
+    let workers = vertical_workers(width);
+    if scratch.len() < workers {
+        scratch.resize_with(workers, PassScratch::default);
+    }
     let block = width.div_ceil(workers);
     // Each worker's column block of every row (rows in image order).
     let mut sum_blocks: Vec<Vec<&mut [u16]>> = (0..workers).map(|_| Vec::with_capacity(height)).collect();
-    for row in sum.chunks_mut(width * nd) {
+    for row in sum.into_iter().flat_map(|sum| sum.chunks_mut(width * nd)) {
         let mut rest = row;
         for blocks in &mut sum_blocks {
             let (left, right) = rest.split_at_mut((block * nd).min(rest.len()));
             blocks.push(left);
             rest = right;
+        }
+    }
+    // Each worker's column block of every saved state.
+    let mut save_blocks: Vec<Vec<(usize, SavedBlock<'_>)>> =
+        (0..workers).map(|_| Vec::with_capacity(saves.len())).collect();
+    for (row_index, state) in saves {
+        for (blocks, saved) in save_blocks.iter_mut().zip(state.blocks(block, nd)) {
+            blocks.push((row_index, saved));
         }
     }
     let pick = selection.as_ref().map(|s| (s.min_disparity, s.subpixel));
@@ -469,7 +616,12 @@ fn vertical_pass(
     let exchange = Exchange::new(workers, nd);
     let barrier = SpinBarrier::new(workers);
     std::thread::scope(|scope| {
-        for (worker, (sums, winners)) in sum_blocks.into_iter().zip(winner_blocks).enumerate() {
+        let jobs = sum_blocks
+            .into_iter()
+            .zip(winner_blocks)
+            .zip(save_blocks)
+            .zip(scratch.iter_mut());
+        for (worker, (((sums, winners), saves), scratch)) in jobs.enumerate() {
             let columns = worker * block..((worker + 1) * block).min(width);
             let job = BlockJob {
                 costs,
@@ -481,10 +633,62 @@ fn vertical_pass(
                 worker,
                 exchange: &exchange,
                 barrier: &barrier,
+                start,
             };
-            scope.spawn(move || job.run(sums, winners));
+            scope.spawn(move || job.run(sums, winners, saves, scratch));
         }
     });
+}
+
+/// What a vertical pass runs over: its costs, their size, the penalties and the direction.
+#[derive(Clone, Copy)]
+struct Sweep<'a> {
+    costs: Costs<'a>,
+    geometry: Geometry,
+    penalties: &'a Penalties,
+    /// From the top row down, else from the bottom row up.
+    downward: bool,
+}
+
+/// Column blocks (worker threads) of a vertical pass over `width` columns.
+fn vertical_workers(width: usize) -> usize {
+    rayon::current_num_threads().clamp(1, width.div_ceil(MIN_CHUNK_COLUMNS).max(1))
+}
+
+/// The three vertical paths' values at one row, the state a pass resumes from: per path (the
+/// diagonal from the left, the vertical, the diagonal from the right), every column's padded
+/// path vector (`[x][PAD + d + PAD]`) and its minimum.
+struct PathRow {
+    paths: [Vec<u16>; 3],
+    minima: [Vec<u16>; 3],
+}
+
+/// One worker's columns of a [`PathRow`]: its paths and minima, per path.
+type SavedBlock<'a> = ([&'a mut [u16]; 3], [&'a mut [u16]; 3]);
+
+impl PathRow {
+    fn new(width: usize, nd: usize) -> Self {
+        Self {
+            paths: std::array::from_fn(|_| vec![0u16; width * (nd + 2)]),
+            minima: std::array::from_fn(|_| vec![0u16; width]),
+        }
+    }
+
+    /// The row split into column blocks of `block` columns.
+    fn blocks(&mut self, block: usize, nd: usize) -> Vec<SavedBlock<'_>> {
+        let [p0, p1, p2] = &mut self.paths;
+        let [m0, m1, m2] = &mut self.minima;
+        let stride = nd + 2;
+        let paths = p0
+            .chunks_mut(block * stride)
+            .zip(p1.chunks_mut(block * stride))
+            .zip(p2.chunks_mut(block * stride));
+        let minima = m0.chunks_mut(block).zip(m1.chunks_mut(block)).zip(m2.chunks_mut(block));
+        paths
+            .zip(minima)
+            .map(|(((a, b), c), ((x, y), z))| ([a, b, c], [x, y, z]))
+            .collect()
+    }
 }
 
 /// One worker's share of a vertical pass.
@@ -498,18 +702,36 @@ struct BlockJob<'a> {
     worker: usize,
     exchange: &'a Exchange,
     barrier: &'a SpinBarrier,
+    /// The paths at the row before the first (in the pass's direction), else the first row starts them.
+    start: Option<&'a PathRow>,
 }
 
 impl BlockJob<'_> {
-    fn run(self, mut sums: Vec<&mut [u16]>, mut winners: Vec<&mut [f32]>) {
+    /// Runs the pass over the rows, adding into `sums` (none: the paths alone), or with a
+    /// selection into `winners`, and copies the paths after row index `i` into each `saves` entry `(i, _)`.
+    fn run(
+        self,
+        mut sums: Vec<&mut [u16]>,
+        mut winners: Vec<&mut [f32]>,
+        mut saves: Vec<(usize, SavedBlock<'_>)>,
+        scratch: &mut PassScratch,
+    ) {
         let Geometry { width, height, nd } = self.geometry;
         let stride = nd + 2;
         let count = self.columns.len();
         let x0 = self.columns.start;
-        let mut previous: [Vec<u16>; 3] = std::array::from_fn(|_| vec![0u16; count * stride]);
-        let mut current: [Vec<u16>; 3] = std::array::from_fn(|_| vec![0u16; count * stride]);
-        let mut previous_min = [vec![0u16; count], vec![0u16; count], vec![0u16; count]];
-        let mut current_min = previous_min.clone();
+        let PassScratch {
+            previous,
+            current,
+            previous_min,
+            current_min,
+        } = scratch;
+        for paths in [&mut *previous, &mut *current] {
+            paths.iter_mut().for_each(|path| path.resize(count * stride, 0));
+        }
+        for minima in [&mut *previous_min, &mut *current_min] {
+            minima.iter_mut().for_each(|minimum| minimum.resize(count, 0));
+        }
         // The previous row's diagonal paths just outside the block: path 0 of x0 − 1 (from the
         // left neighbour) and path 2 of the block's end (from the right neighbour), with their minima.
         let mut left_ghost = vec![0u16; stride];
@@ -538,15 +760,28 @@ impl BlockJob<'_> {
                 }
             }
             let cost_row = rows.row(y, self.downward);
-            let sum_row = &mut *sums[y];
+            let mut sum_row = sums.get_mut(y).map(|row| &mut **row);
             for i in 0..count {
                 let x = x0 + i;
                 let cost = &cost_row[i * nd..(i + 1) * nd];
                 for (k, dx) in [-1isize, 0, 1].into_iter().enumerate() {
                     let px = x as isize + dx;
                     let cell = &mut current[k][i * stride..(i + 1) * stride];
-                    current_min[k][i] = if row_index == 0 || px < 0 || px as usize >= width {
+                    current_min[k][i] = if px < 0 || px as usize >= width {
                         self.penalties.start(cost, cell)
+                    } else if row_index == 0 {
+                        match self.start {
+                            Some(state) => {
+                                let p = px as usize;
+                                self.penalties.step(
+                                    cost,
+                                    &state.paths[k][p * stride..(p + 1) * stride],
+                                    state.minima[k][p],
+                                    cell,
+                                )
+                            }
+                            None => self.penalties.start(cost, cell),
+                        }
                     } else if (px as usize) < x0 {
                         self.penalties.step(cost, &left_ghost, left_ghost_min, cell)
                     } else if px as usize >= x0 + count {
@@ -559,6 +794,9 @@ impl BlockJob<'_> {
                 }
                 let [a, b, c] =
                     [&current[0], &current[1], &current[2]].map(|o| &o[i * stride + PAD..i * stride + PAD + nd]);
+                let Some(sum_row) = sum_row.as_deref_mut() else {
+                    continue;
+                };
                 let sum_cell = &mut sum_row[i * nd..(i + 1) * nd];
                 match self.pick {
                     Some((min_disparity, subpixel)) => {
@@ -593,10 +831,28 @@ impl BlockJob<'_> {
                     current_min[0][last],
                 );
             }
-            std::mem::swap(&mut previous, &mut current);
-            std::mem::swap(&mut previous_min, &mut current_min);
+            if let Some(at) = saves.iter().position(|(after, _)| *after == row_index) {
+                let (_, (paths, minima)) = saves.swap_remove(at);
+                for k in 0..3 {
+                    paths[k].copy_from_slice(&current[k]);
+                    minima[k].copy_from_slice(&current_min[k]);
+                }
+            }
+            std::mem::swap(previous, current);
+            std::mem::swap(previous_min, current_min);
         }
     }
+}
+
+/// A worker's path values of the row before and the current row in a vertical pass, per path,
+/// kept from one pass to the next: fresh pages for each band's passes would cost more than
+/// the band's rows.
+#[derive(Default)]
+struct PassScratch {
+    previous: [Vec<u16>; 3],
+    current: [Vec<u16>; 3],
+    previous_min: [Vec<u16>; 3],
+    current_min: [Vec<u16>; 3],
 }
 
 /// Which edge of a worker's block.
@@ -869,19 +1125,35 @@ mod tests {
                         aggregate_volume(&as_volume(&volume, [w, h, nd], max_cost), 40, 400).data == reference,
                         "{w}x{h}x{nd} {threads}"
                     );
-                    let (selected, confidence) =
-                        select(&volume, w, h, nd, max_cost, (40, 400), 3, Some(SubpixelFit::Parabola));
-                    assert!(
-                        selected
-                            .iter()
-                            .zip(&expected)
-                            .all(|(a, b)| a == b || (a.is_infinite() && b.is_infinite())),
-                        "{w}x{h}x{nd} selection, {threads} threads"
-                    );
-                    assert!(
-                        confidence == expected_confidence,
-                        "{w}x{h}x{nd} confidence, {threads} threads"
-                    );
+                    let check = |(selected, confidence): (Vec<f32>, Vec<f32>), bands: usize| {
+                        assert!(
+                            selected
+                                .iter()
+                                .zip(&expected)
+                                .all(|(a, b)| a == b || (a.is_infinite() && b.is_infinite())),
+                            "{w}x{h}x{nd} selection, {threads} threads, bands of {bands}"
+                        );
+                        assert!(
+                            confidence == expected_confidence,
+                            "{w}x{h}x{nd} confidence, {threads} threads, bands of {bands}"
+                        );
+                    };
+                    let fit = Some(SubpixelFit::Parabola);
+                    check(select(&volume, w, h, nd, max_cost, (40, 400), 3, fit), SELECT_BAND_ROWS);
+                    // Bands of one row, of two, and bands that end inside the image.
+                    for band_rows in [1, 2, 4] {
+                        let geometry = Geometry {
+                            width: w,
+                            height: h,
+                            nd,
+                        };
+                        let penalties = Penalties::new(max_cost, 40, 400);
+                        let costs = Costs::Stored(&volume);
+                        check(
+                            select_in_bands(costs, geometry, &penalties, (3, fit), band_rows),
+                            band_rows,
+                        );
+                    }
                 });
             }
         }

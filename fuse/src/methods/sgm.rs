@@ -47,8 +47,8 @@ pub struct SgmConfig {
     pub block_subpixel: Option<BlockSubpixel>,
     /// Make the fused costs where each of SGM's passes reads them instead of holding them as
     /// one byte volume (`sgm::select_prepared`): the same result in less memory, for images
-    /// whose volume would not fit (1080p with 128 disparities: 1.12 → 0.88 GB peak RSS, 0.88 →
-    /// 1.40 s with `sgm-heuristic`).
+    /// whose volume would not fit (1080p with 128 disparities: 0.59 → 0.40 GB peak RSS, about
+    /// 0.9 → 1.3 s with `sgm-heuristic`).
     #[serde(default)]
     pub costs_in_passes: bool,
     /// With the heuristic, how the views on one side of the reference along one ray (a line's
