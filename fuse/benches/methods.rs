@@ -70,36 +70,40 @@ fn methods(c: &mut Criterion) {
     });
     // The fused, box-aggregated costs alone (the stage block matching and SGM share), handed
     // to a sink that only reads them: the rest of block matching is the winners and filters.
-    let prepared = fuse::volume::PreparedProblem::new(
-        &problem,
-        fuse::volume::CostSpec {
-            pixel: fuse::cost::PixelCost::BirchfieldTomasi,
-            block_radius_px: 4,
-        },
-        fuse::fusion::Fusion::Heuristic,
-    )
-    .unwrap_or_else(|e| panic!("{e}"));
-    group.bench_function("fused_costs_heuristic", |b| {
-        use rayon::prelude::*;
-        let (height, band) = (
-            problem.reference.height,
-            fuse::volume::band_rows(problem.reference.height),
-        );
-        b.iter(|| {
-            let firsts: u32 = (0..height.div_ceil(band))
-                .into_par_iter()
-                .map_init(fuse::volume::BandScratch::default, |buffers, index| {
-                    let mut first = 0u32;
-                    let rows = index * band..((index + 1) * band).min(height);
-                    prepared.fused_band_with(rows, buffers, &mut |_, _, costs| {
-                        first = first.wrapping_add(u32::from(costs[0]));
-                    });
-                    first
-                })
-                .sum();
-            black_box(firsts)
-        })
-    });
+    // Block matching's costs (Birchfield–Tomasi, 9×9) and SGM's (census 7×7, 7×7).
+    for (name, pixel, block_radius_px) in [
+        ("fused_costs_heuristic", fuse::cost::PixelCost::BirchfieldTomasi, 4),
+        (
+            "fused_costs_census_heuristic",
+            fuse::cost::PixelCost::Census { radius: 3 },
+            3,
+        ),
+    ] {
+        let spec = fuse::volume::CostSpec { pixel, block_radius_px };
+        let prepared = fuse::volume::PreparedProblem::new(&problem, spec, fuse::fusion::Fusion::Heuristic)
+            .unwrap_or_else(|e| panic!("{e}"));
+        group.bench_function(name, |b| {
+            use rayon::prelude::*;
+            let (height, band) = (
+                problem.reference.height,
+                fuse::volume::band_rows(problem.reference.height),
+            );
+            b.iter(|| {
+                let firsts: u32 = (0..height.div_ceil(band))
+                    .into_par_iter()
+                    .map_init(fuse::volume::BandScratch::default, |buffers, index| {
+                        let mut first = 0u32;
+                        let rows = index * band..((index + 1) * band).min(height);
+                        prepared.fused_band_with(rows, buffers, &mut |_, _, costs| {
+                            first = first.wrapping_add(u32::from(costs[0]));
+                        });
+                        first
+                    })
+                    .sum();
+                black_box(firsts)
+            })
+        });
+    }
     group.finish();
 }
 

@@ -255,15 +255,82 @@ pub fn pixel_cost_tile_lines(
                 }
             }
             (PixelCost::Census { .. }, _) => {
-                costs.fill(0);
-                let codes = reference.census_planes().iter().map(|plane| plane[y * width + x]);
-                for (plane, c) in lines.census.iter().zip(codes) {
-                    for (o, v) in costs.iter_mut().zip(&plane[range.clone()]) {
-                        *o += (c ^ v).count_ones() as u8;
+                let at = y * width + x;
+                if let ([p0, p1, p2, p3, p4, p5], [c0, c1, c2, c3, c4, c5]) =
+                    (&lines.census[..], reference.census_planes())
+                {
+                    // The 7×7 window (SGM's default): 48 bits.
+                    census_distances_48(
+                        [p0, p1, p2, p3, p4, p5].map(|plane| &plane[range.clone()]),
+                        [c0[at], c1[at], c2[at], c3[at], c4[at], c5[at]],
+                        costs,
+                    );
+                } else {
+                    costs.fill(0);
+                    for (plane, codes) in lines.census.iter().zip(reference.census_planes()) {
+                        let c = codes[at];
+                        for (o, v) in costs.iter_mut().zip(&plane[range.clone()]) {
+                            *o += (c ^ v).count_ones() as u8;
+                        }
                     }
                 }
             }
         }
+    }
+}
+
+/// Hamming distances of a 48-bit census code (six byte planes, `codes`) to the codes along a
+/// search line (`planes`), one per disparity: the six planes' differing bits summed by
+/// carry-save adders (Harley–Seal) into bits of weight 1, 2 and 4, so that three byte
+/// population counts do the work of six.
+fn census_distances_48(planes: [&[u8]; 6], codes: [u8; 6], out: &mut [u8]) {
+    let n = out.len();
+    let planes = planes.map(|plane| &plane[..n]);
+    let (runs, rest) = out.as_chunks_mut::<CENSUS_RUN>();
+    let whole = runs.len() * CENSUS_RUN;
+    let plane_runs = planes.map(|plane| plane.as_chunks::<CENSUS_RUN>().0);
+    for (r, run) in runs.iter_mut().enumerate() {
+        census_run_48(plane_runs.map(|line| &line[r]), codes, run);
+    }
+    if !rest.is_empty() {
+        // The last cells through a zero-padded run.
+        let lines = planes.map(|plane| {
+            let mut line = [0u8; CENSUS_RUN];
+            line[..rest.len()].copy_from_slice(&plane[whole..]);
+            line
+        });
+        let mut run = [0u8; CENSUS_RUN];
+        census_run_48(
+            [&lines[0], &lines[1], &lines[2], &lines[3], &lines[4], &lines[5]],
+            codes,
+            &mut run,
+        );
+        rest.copy_from_slice(&run[..rest.len()]);
+    }
+}
+
+/// Cells per run of [`census_run_48`]: one AVX2 register of bytes.
+const CENSUS_RUN: usize = 32;
+
+/// [`census_distances_48`] over one run of cells. Written over named lanes and fixed-size
+/// runs: a loop over the whole line, or cells gathered into arrays, compiled to scalar or
+/// shuffled code in some callers.
+#[inline(always)]
+fn census_run_48(lines: [&[u8; CENSUS_RUN]; 6], codes: [u8; 6], out: &mut [u8; CENSUS_RUN]) {
+    let [l0, l1, l2, l3, l4, l5] = lines;
+    let [c0, c1, c2, c3, c4, c5] = codes;
+    for d in 0..CENSUS_RUN {
+        let (x0, x1, x2) = (l0[d] ^ c0, l1[d] ^ c1, l2[d] ^ c2);
+        let (x3, x4, x5) = (l3[d] ^ c3, l4[d] ^ c4, l5[d] ^ c5);
+        // Full adders: (sum, carry) of three bits.
+        let u = x0 ^ x1;
+        let (s1, k1) = (u ^ x2, (x0 & x1) | (u & x2));
+        let u = x3 ^ x4;
+        let (s2, k2) = (u ^ x5, (x3 & x4) | (u & x5));
+        let (ones, t) = (s1 ^ s2, s1 & s2);
+        let u = t ^ k1;
+        let (twos, fours) = (u ^ k2, (t & k1) | (u & k2));
+        out[d] = ones.count_ones() as u8 + 2 * twos.count_ones() as u8 + 4 * fours.count_ones() as u8;
     }
 }
 
@@ -281,6 +348,7 @@ mod tests {
             PixelCost::AbsoluteDifference,
             PixelCost::BirchfieldTomasi,
             PixelCost::Census { radius: 2 },
+            PixelCost::Census { radius: 3 },
         ] {
             for channels in [1, 3] {
                 let make = |data: &[u8]| {
@@ -289,11 +357,11 @@ mod tests {
                 };
                 let (reference, neighbour) = (make(&rgb), make(&other));
                 let neighbour_image = neighbour.image().clone();
-                for (offset, min_d) in [[1, 0], [-1, 0], [0, 1], [0, -1]]
+                for (offset, min_d, nd) in [[1, 0], [-1, 0], [0, 1], [0, -1]]
                     .into_iter()
-                    .flat_map(|o| [(o, 2), (o, -6)])
+                    .flat_map(|o| [(o, 2, 9), (o, -6, 9), (o, -20, 41)])
                 {
-                    let nd = 9;
+                    // 41 disparities: whole runs of 32 and a remainder.
                     let lines = SearchLines::new(&neighbour_image, cost, offset, min_d..min_d + nd as i32)
                         .unwrap_or_else(|| panic!("no lines"));
                     // A tile reaching past both image borders.
