@@ -288,9 +288,9 @@ fn census_distances_48(planes: [&[u8]; 6], codes: [u8; 6], out: &mut [u8]) {
     let planes = planes.map(|plane| &plane[..n]);
     let (runs, rest) = out.as_chunks_mut::<CENSUS_RUN>();
     let whole = runs.len() * CENSUS_RUN;
-    let plane_runs = planes.map(|plane| plane.as_chunks::<CENSUS_RUN>().0);
+    let [r0, r1, r2, r3, r4, r5] = planes.map(|plane| plane.as_chunks::<CENSUS_RUN>().0);
     for (r, run) in runs.iter_mut().enumerate() {
-        census_run_48(plane_runs.map(|line| &line[r]), codes, run);
+        census_run_48([&r0[r], &r1[r], &r2[r], &r3[r], &r4[r], &r5[r]], codes, run);
     }
     if !rest.is_empty() {
         // The last cells through a zero-padded run.
