@@ -266,9 +266,17 @@ fn select_in_bands(
             .zip(saved.iter_mut())
             .map(|(band, state)| (band.end - 1, state))
             .collect();
+        // Down to the last saved row: the last band's rows are not needed.
+        let rows = bands[bands.len() - 2].end;
         let sweep = Sweep {
-            costs,
-            geometry,
+            costs: match costs {
+                Costs::Stored(volume) => Costs::Stored(&volume[..rows * row_len]),
+                made => made,
+            },
+            geometry: Geometry {
+                height: rows,
+                ..geometry
+            },
             penalties,
             downward: true,
         };
