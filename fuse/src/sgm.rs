@@ -143,14 +143,7 @@ pub fn aggregate_volume(volume: &CostVolume<u8>, p1: u16, p2: u16) -> CostVolume
         height: volume.height,
         nd: volume.num_disparities,
     };
-    let data = passes(
-        Costs::Stored(&volume.data),
-        geometry,
-        &penalties,
-        None,
-        Vec::new(),
-        &|| {},
-    );
+    let data = passes(Costs::Stored(&volume.data), geometry, &penalties, Vec::new(), &|| {});
     volume.with_data(data, 8 * (u32::from(penalties.cap) + u32::from(p2)))
 }
 
@@ -173,14 +166,7 @@ pub fn aggregate_prepared(
         height: prepared.height(),
         nd: prepared.num_disparities(),
     };
-    let data = passes(
-        Costs::Made { prepared, shift },
-        geometry,
-        &penalties,
-        None,
-        reuse,
-        on_band,
-    );
+    let data = passes(Costs::Made { prepared, shift }, geometry, &penalties, reuse, on_band);
     CostVolume {
         width: geometry.width,
         height: geometry.height,
@@ -486,16 +472,15 @@ impl<'a> RowCosts<'a> {
     }
 }
 
-/// The three passes, each parallel: the two horizontal paths (rows in parallel) write the sums;
-/// the three paths from the row above are added row by row from the top, and the three from the
-/// row below from the bottom, or, with a `selection`, summed per pixel and its winner picked
-/// ([`vertical_pass`]). The sums go into `reuse` when it has their length, else into a new
+/// The eight paths' sums of the whole image in three passes, each parallel: the two horizontal
+/// paths (rows in parallel) write the sums; the three paths from the row above are added row by
+/// row from the top, and the three from the row below from the bottom ([`vertical_pass`]). The
+/// sums go into `reuse` when it has their length, else into a new
 /// buffer; `on_band` is called after each band of the horizontal pass over made costs.
 fn passes(
     costs: Costs<'_>,
     geometry: Geometry,
     penalties: &Penalties,
-    mut selection: Option<Selection<'_>>,
     reuse: Vec<u16>,
     on_band: &(dyn Fn() + Sync),
 ) -> Vec<u16> {
@@ -551,7 +536,7 @@ fn passes(
         downward: false,
         ..sweep
     };
-    vertical_pass(sweep, Some(&mut sum), selection.as_mut(), resume, scratch);
+    vertical_pass(sweep, Some(&mut sum), None, resume, scratch);
     sum
 }
 
