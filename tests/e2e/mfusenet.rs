@@ -115,11 +115,12 @@ fn replay_runs_mfusenet_and_names_bad_weight_files() {
         "five-view network needs",
     );
     // A bad parameter is named with its value: a readout reach that is no distance, a share of
-    // the locking correction outside 0..=1, and a bad weighted-median parameter for a classical
-    // method that opts in as well.
+    // the locking correction outside 0..=1, a farther view's vote of nothing, and a bad
+    // weighted-median parameter for a classical method that opts in as well.
     let cases = [
         ("mfusenet", r#"{"refine_reach": -1}"#, "refine_reach = -1"),
         ("mfusenet", r#"{"locking_strength": 2}"#, "locking_strength = 2"),
+        ("mfusenet", r#"{"farther_vote": 0}"#, "farther_vote = 0"),
         (
             "sgm-heuristic",
             r#"{"weighted_median": {"sigma_colour": 0}}"#,

@@ -62,6 +62,9 @@ const SHIPPED: [(usize, &str, &[u8]); 3] = [
 /// Default [`MFuseNetConfig::locking_strength`].
 pub const DEFAULT_LOCKING_STRENGTH: f64 = 0.5;
 
+/// Default [`MFuseNetConfig::farther_vote`].
+pub const DEFAULT_FARTHER_VOTE: f32 = 0.5;
+
 /// Configuration of MFuseNet.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -153,6 +156,18 @@ pub struct MFuseNetConfig {
     /// only (its metadata's `train_config` names no `grid-cross` rig), which read far and
     /// diagonal views worse than nothing (docs/experiments.md).
     pub every_view: Option<bool>,
+    /// With several groups (`every_view`), the vote of each view of a group `k` baselines out
+    /// is `farther_vote^(k − 1)` of a nearest view's. The networks' logits are saturated, so
+    /// where two groups disagree the one with the more extreme log-probabilities wins, and a
+    /// farther group that reads an alias of periodic texture (at half the nearer one's period)
+    /// can win with a wrong answer; a smaller vote gives such near-ties to the nearer views
+    /// while a farther group still decides where the nearer one is unsure. 1 = every view
+    /// alike (docs/experiments.md, "A farther group's vote"). With 0.5, over its three or five
+    /// nearest views: the `random` line of seed 8 +9.9 → −10.9 %, crosses at two baselines of
+    /// the same scene +875 → −9.2 %, a workpiece line −10.4 → −5.7 % (reflections the far pair
+    /// fixed, now partly left); 0.9 kept more of the workpiece's gain but not the crosses'.
+    #[serde(default = "default_farther_vote")]
+    pub farther_vote: f32,
     /// Each input of a fixed network's nearest group made from its whole side: the costs of
     /// the views along its ray (a line of five's left input from −1 and −2), made one by
     /// `side_rule`, as the classical heuristic counts sides (on by default; a set with one view
@@ -202,6 +217,7 @@ impl Default for MFuseNetConfig {
             flips: false,
             max_direct_disparities: DEFAULT_MAX_DIRECT_DISPARITIES,
             every_view: None,
+            farther_vote: DEFAULT_FARTHER_VOTE,
             side_inputs: true,
             side_rule: SideRule::NearCapped,
             block_subpixel: Some(BlockSubpixel::default()),
@@ -476,6 +492,10 @@ fn yes() -> bool {
 }
 
 /// [`MFuseNetConfig::side_rule`]'s default.
+fn default_farther_vote() -> f32 {
+    DEFAULT_FARTHER_VOTE
+}
+
 fn near_capped() -> SideRule {
     SideRule::NearCapped
 }
@@ -543,6 +563,13 @@ impl MFuseNet {
                 field: "refine_reach",
                 value: self.config.refine_reach.to_string(),
                 reason: "a distance in pixels, 0 or more",
+            });
+        }
+        if !(self.config.farther_vote > 0.0 && self.config.farther_vote.is_finite()) {
+            return Err(FuseError::Config {
+                field: "farther_vote",
+                value: self.config.farther_vote.to_string(),
+                reason: "a farther view's vote relative to a nearest one's, over 0 (1 = every view alike)",
             });
         }
         if !(0.0..=1.0).contains(&self.config.locking_strength) {
@@ -726,10 +753,22 @@ impl MFuseNet {
                     .map(|n| ValidDisparities::new(n.offset, size, axis, n.baseline_ratio))
                     .collect()
             });
+            // A group's baseline multiple: its views' farthest offset, in baselines.
+            let multiple = group
+                .neighbours
+                .iter()
+                .map(|n| n.offset[0].unsigned_abs().max(n.offset[1].unsigned_abs()))
+                .max()
+                .unwrap_or(1)
+                .max(1);
             members.push(Member {
                 net: &loaded.net,
                 inputs: (*start..start + group.neighbours.len()).collect(),
                 reach,
+                vote: self
+                    .config
+                    .farther_vote
+                    .powi(i32::try_from(multiple - 1).unwrap_or(i32::MAX)),
             });
         }
         // The estimate is refined and filtered with the nearest group's costs: the farther

@@ -281,12 +281,17 @@ pub struct Member<'a> {
     /// border bands as wide as its baseline times the range, where its network answers from
     /// mirrored costs.
     pub reach: Option<Vec<ValidDisparities>>,
+    /// The vote of each of its views, relative to one of a member that votes 1 (the nearest
+    /// group's): with saturated logits, two members that disagree are nearly tied, and a
+    /// farther group's smaller vote settles it for the nearer views, which alias less
+    /// (`MFuseNetConfig::farther_vote`).
+    pub vote: f32,
 }
 
 /// [`infer_with_confidence`] for several networks over one set, each on its own neighbours'
-/// volumes (`members`), their logits averaged (each weighted by its number of inputs, so that
-/// every view has one vote; with a member's [`Member::reach`], their log-probabilities, each
-/// where its member votes) before the estimate is read; the refinement reads `costs` (the
+/// volumes (`members`), their logits averaged (each weighted by its number of inputs times its
+/// [`Member::vote`], so that every view has its vote; with a member's [`Member::reach`], their
+/// log-probabilities, each where its member votes) before the estimate is read; the refinement reads `costs` (the
 /// set's fused costs, of the volumes' shape). Test-time flips are not applied here.
 pub fn infer_fused(
     members: &[Member<'_>],
@@ -324,7 +329,7 @@ pub fn infer_fused(
     let widest = members.iter().map(|m| m.net.views).max().unwrap_or(1);
     let dp = round4(nd);
     let tiles = tiles((w, h, nd), widest, budget_bytes);
-    let total_weight: f32 = members.iter().map(|m| m.net.views as f32).sum();
+    let total_weight: f32 = members.iter().map(|m| m.net.views as f32 * m.vote).sum();
     // With a member that votes only where its views see, each member's logits become
     // log-probabilities (their softmax is unchanged; their offsets then agree) and every
     // (pixel, disparity) averages those of the members that vote there.
@@ -359,7 +364,7 @@ pub fn infer_fused(
             if partial {
                 add_log_probabilities(m, &core.data, (&mut fused, &mut votes), nd, (y0, x0), (ch, cw));
             } else {
-                let weight = m.net.views as f32 / total_weight;
+                let weight = m.net.views as f32 * m.vote / total_weight;
                 fused.iter_mut().zip(&core.data).for_each(|(f, l)| *f += weight * l);
             }
             progress((t * members.len() + done + 1) as f32 / steps as f32);
@@ -389,7 +394,7 @@ pub fn infer_fused(
 }
 
 /// Adds `member`'s log-probabilities (from its core logits `[d][row][column]`, `ch × cw` from
-/// pixel `(y0, x0)`) weighted by its views into `sums` where it votes, and its weight into
+/// pixel `(y0, x0)`) weighted by its views' votes into `sums` where it votes, and its weight into
 /// `votes` (both `[d][row][column]` over the first `nd` slices).
 fn add_log_probabilities(
     member: &Member<'_>,
@@ -400,7 +405,7 @@ fn add_log_probabilities(
     (ch, cw): (usize, usize),
 ) {
     let plane = ch * cw;
-    let weight = member.net.views as f32;
+    let weight = member.net.views as f32 * member.vote;
     for at in 0..plane {
         let (y, x) = (y0 + at / cw, x0 + at % cw);
         let (first, end) = member.reach.as_ref().map_or((0, nd), |views| {
@@ -720,6 +725,7 @@ mod tests {
             net,
             inputs,
             reach: None,
+            vote: 1.0,
         };
         let one = infer_fused(&[member(&a, vec![0, 1])], &volumes, &near, usize::MAX, refine, &|_| {})
             .unwrap_or_else(|e| panic!("{e}"));
@@ -793,6 +799,34 @@ mod tests {
                 assert!((seen.0[y * w + x] - fused.0[y * w + x]).abs() < 1e-4, "({y}, {x})");
             }
         }
+        // The second member at a quarter of the first's vote: where it sees, each disparity's
+        // log-probability is (pa + pb / 4) / (1 + 1 / 4); elsewhere the first member's alone.
+        let [near_member, far_member] = partial;
+        let quieter = [
+            near_member,
+            Member {
+                vote: 0.25,
+                ..far_member
+            },
+        ];
+        let weighted = infer_fused(&quieter, &volumes, &near, usize::MAX, Estimate::default(), &|_| {})
+            .unwrap_or_else(|e| panic!("{e}"));
+        for (y, x) in [(0, 0), (20, 5), (7, 11), (30, 14), (43, 26), (10, 59)] {
+            let (pa, pb): (Vec<f32>, Vec<f32>) = (
+                log_probabilities(&la, y, x).collect(),
+                log_probabilities(&lb, y, x).collect(),
+            );
+            let column = |d: usize| {
+                if 2 * (3 + d) <= x {
+                    (pa[d] + 0.25 * pb[d]) / 1.25
+                } else {
+                    pa[d]
+                }
+            };
+            let expected = 3.0 + expected_disparity_from(column, nd, 0, None);
+            assert!((f64::from(weighted.0[y * w + x]) - expected).abs() < 1e-4, "({y}, {x})");
+        }
+        assert!(differs(&weighted.0, &seen.0) > 10, "the smaller vote changed nothing");
     }
 
     #[test]
