@@ -162,10 +162,11 @@ pub struct MFuseNetConfig {
     /// farther group that reads an alias of periodic texture (at half the nearer one's period)
     /// can win with a wrong answer; a smaller vote gives such near-ties to the nearer views
     /// while a farther group still decides where the nearer one is unsure. 1 = every view
-    /// alike (docs/experiments.md, "A farther group's vote"). With 0.5, over its three or five
-    /// nearest views: the `random` line of seed 8 +9.9 → −10.9 %, crosses at two baselines of
-    /// the same scene +875 → −9.2 %, a workpiece line −10.4 → −5.7 % (reflections the far pair
-    /// fixed, now partly left); 0.9 kept more of the workpiece's gain but not the crosses'.
+    /// alike (docs/experiments.md, "A farther group's vote"). Every view against the nearest
+    /// group alone, 1 → 0.5: the `random` line of seed 8 +9.9 → −10.9 %, crosses at two
+    /// baselines of the same scene +874 → −9.2 %, a workpiece line −10.4 → −5.7 % (reflections
+    /// the far pair fixed, now partly left); 0.9 kept more of the workpiece's gain but not the
+    /// crosses' (`scripts/eval-votes.sh`).
     #[serde(default = "default_farther_vote")]
     pub farther_vote: f32,
     /// Each input of a fixed network's nearest group made from its whole side: the costs of
@@ -491,11 +492,12 @@ fn yes() -> bool {
     true
 }
 
-/// [`MFuseNetConfig::side_rule`]'s default.
+/// [`MFuseNetConfig::farther_vote`]'s default.
 fn default_farther_vote() -> f32 {
     DEFAULT_FARTHER_VOTE
 }
 
+/// [`MFuseNetConfig::side_rule`]'s default.
 fn near_capped() -> SideRule {
     SideRule::NearCapped
 }

@@ -291,8 +291,9 @@ pub struct Member<'a> {
 /// [`infer_with_confidence`] for several networks over one set, each on its own neighbours'
 /// volumes (`members`), their logits averaged (each weighted by its number of inputs times its
 /// [`Member::vote`], so that every view has its vote; with a member's [`Member::reach`], their
-/// log-probabilities, each where its member votes) before the estimate is read; the refinement reads `costs` (the
-/// set's fused costs, of the volumes' shape). Test-time flips are not applied here.
+/// log-probabilities, each where its member votes) before the estimate is read; the refinement
+/// reads `costs` (the set's fused costs, of the volumes' shape). Test-time flips are not
+/// applied here.
 pub fn infer_fused(
     members: &[Member<'_>],
     volumes: &[CostVolume<u8>],
