@@ -6,13 +6,14 @@
 # against the nearest group alone, per capture and vote. The captures are kept in OUT_DIR.
 #
 #   scripts/eval-votes.sh [OUT_DIR] [VOTES] [LINES] [CROSSES]
-#     default out/votes, "1 0.5", "random:8 random:9 workpiece:71 toy:3 clutter:5", "random:8 bin:11"
+#     default out/votes, "1 0.5", "random:8 random:9 workpiece:71 toy:3 clutter:5", "random:8 bin:11";
+#     an empty LINES or CROSSES ("") leaves that kind out
 set -euo pipefail
 cd "$(dirname "$0")/.."
 out="${1:-out/votes}"
 votes="${2:-1 0.5}"
-lines="${3:-random:8 random:9 workpiece:71 toy:3 clutter:5}"
-crosses="${4:-random:8 bin:11}"
+lines="${3-random:8 random:9 workpiece:71 toy:3 clutter:5}"
+crosses="${4-random:8 bin:11}"
 mkdir -p "$out"
 cargo build --release -q -p record -p replay
 record=target/release/record
