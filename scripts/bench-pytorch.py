@@ -38,6 +38,7 @@ def parameter_count(net):
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--views", type=int, default=2, help="cost volumes (1, 2 or 4) for the inference timing")
+    parser.add_argument("--architecture", default="paper", choices=sorted(Reference.KERNELS), help="kernel sizes (lite: about a fifth of the work per voxel)")
     parser.add_argument("--disparities", type=int, default=32)
     parser.add_argument("--height", type=int, default=372)
     parser.add_argument("--width", type=int, default=428)
@@ -47,7 +48,7 @@ def main():
     args = parser.parse_args()
 
     torch.manual_seed(1)
-    net = Reference(args.views).eval()
+    net = Reference(args.views, args.architecture).eval()
     if args.weights:
         from safetensors.torch import load_file
 

@@ -29,24 +29,31 @@ class Reference(nn.Module):
     `view_fusion = mean-max`): any number of volumes, their features' mean and maximum (8 channels,
     the mean's first) instead of the features side by side."""
 
-    def __init__(self, views):
+    # Kernel sizes: feature.0, .2, .4, .6; concat, dconv21, uconv2, distill1 (the rest are 3).
+    # `lite` (`fuse::mfusenet::Architecture::Lite`, metadata `architecture = lite`): about a
+    # fifth of the paper's work per voxel, the same channels and `state_dict` names.
+    KERNELS = {"paper": ((7, 5, 5, 3), (7, 7, 7, 5)), "lite": ((5, 3, 3, 3), (3, 7, 3, 3))}
+
+    def __init__(self, views, architecture="paper"):
         super().__init__()
         self.views = views
+        self.architecture = architecture
+        (f0, f2, f4, f6), (kc, k21, ku2, kd1) = self.KERNELS[architecture]
         relu = lambda: nn.ReLU(True)  # noqa: E731
         self.feature = nn.Sequential(
-            conv_bn(1, 4, 7), relu(), conv_bn(4, 4, 5), relu(), conv_bn(4, 4, 5), relu(), conv_bn(4, 4, 3), relu()
+            conv_bn(1, 4, f0), relu(), conv_bn(4, 4, f2), relu(), conv_bn(4, 4, f4), relu(), conv_bn(4, 4, f6), relu()
         )
-        self.concat = conv_bn(8 if views == 0 else 4 * views, 4, 7)
+        self.concat = conv_bn(8 if views == 0 else 4 * views, 4, kc)
         self.down1 = conv_bn(4, 4, 3, stride=2)
         self.dconv1 = conv_bn(4, 4, 3)
         self.down2 = conv_bn(4, 4, 3, stride=2)
-        self.dconv21 = conv_bn(4, 4, 7)
+        self.dconv21 = conv_bn(4, 4, k21)
         self.dconv22 = conv_bn(4, 4, 3)
         self.up1 = up_bn(4, 4)
         self.uconv1 = conv_bn(8, 4, 3)
         self.up2 = up_bn(4, 4)
-        self.uconv2 = conv_bn(8, 4, 7)
-        self.distill1 = conv_bn(4, 4, 5)
+        self.uconv2 = conv_bn(8, 4, ku2)
+        self.distill1 = conv_bn(4, 4, kd1)
         self.classify = nn.Conv3d(4, 1, 3, padding=1)
 
     def logits(self, volumes):

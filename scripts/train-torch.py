@@ -246,7 +246,7 @@ def load_checkpoint(path, device):
     # Older files spell some keys the short way (`crop`, `disparities`).
     config.setdefault("crop_px", config.get("crop"))
     config.setdefault("num_disparities", config.get("disparities"))
-    net = Reference(config["views"]).to(device)
+    net = Reference(config["views"], metadata.get("architecture", config.get("architecture", "paper"))).to(device)
     state = {k[len("model.") :]: v for k, v in tensors.items() if k.startswith("model.")}
     net.load_state_dict(state, strict=True)
     step = int(metadata.get("adam_step", "0"))

@@ -6,14 +6,15 @@
 //!
 //! `MIMALLOC_PURGE_DELAY=-1 cargo run --release -p fuse --example mfusenet_layers [D H W [N]]`
 //! (default 36 136 240 4: the demo's 36 slices on a quarter of its 960 × 540 image, the
-//! five-view network's four volumes; N = 2 is the three-view network). The figures are in
+//! five-view network's four volumes; N = 2 is the three-view network; `lite` anywhere among the
+//! arguments: the lite architecture's kernels). The figures are in
 //! docs/benchmarks.md ("MFuseNet per layer").
 
 use std::hint::black_box;
 use std::time::Instant;
 
-use fuse::mfusenet::Network;
 use fuse::mfusenet::network::ConvKind;
+use fuse::mfusenet::{Architecture, Network};
 use fuse::nn::Tensor;
 use rayon::prelude::*;
 use wide::f32x8;
@@ -84,9 +85,17 @@ fn main() {
         peak / 1e9,
         rayon::current_num_threads()
     );
-    let net = Network::init(views, 1);
+    let architecture = if std::env::args().any(|a| a == "lite") {
+        Architecture::Lite
+    } else {
+        Architecture::Paper
+    };
+    let net = Network::init_with(views, architecture, 1);
     let voxels = d * h * w;
-    println!("network for {views} volumes, input {d} × {h} × {w} ({voxels} voxels per volume)");
+    println!(
+        "{} network for {views} volumes, input {d} × {h} × {w} ({voxels} voxels per volume)",
+        architecture.name()
+    );
     println!("| layer | k | in → out | output voxels | GFLOP | seconds | GFLOP/s | of peak |");
     println!("|---|---|---|---|---|---|---|---|");
     let mut total_flop = 0.0;

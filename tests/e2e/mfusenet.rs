@@ -400,6 +400,58 @@ fn safetensors_tensor_bytes(path: &Path) -> Vec<u8> {
 }
 
 #[test]
+fn training_the_lite_architecture_gives_a_file_mfusenet_runs() {
+    // `--architecture lite`: smaller kernels, the same tensor names; the file says so in its
+    // metadata and its shapes, `replay --weights` runs it, and it cannot seed a paper run.
+    let dir = temp_dir();
+    let run = train_with(dir.path(), "2", &["--architecture", "lite"]);
+    assert_eq!(run["config"]["architecture"], "lite", "{run}");
+    assert!(run["val_avg_err_px"].as_f64().is_some_and(f64::is_finite), "{run}");
+    let weights = dir.path().join("run/mfusenet-3view-lite.safetensors");
+    let header = safetensors_header(&weights);
+    assert_eq!(header["__metadata__"]["architecture"], "lite", "{header}");
+    assert_eq!(header["__metadata__"]["variant"], "mfusenet-3view-lite", "{header}");
+    assert_eq!(
+        header["concat.0.weight"]["shape"],
+        serde_json::json!([4, 8, 3, 3, 3]),
+        "{header}"
+    );
+    assert_eq!(
+        header["feature.0.0.weight"]["shape"],
+        serde_json::json!([4, 1, 5, 5, 5]),
+        "{header}"
+    );
+    let log = record_args(
+        dir.path(),
+        "three.mcap",
+        "--rig three-view --resolution 96x72 --samples-per-pixel 1",
+    );
+    let out = dir.path().join("out");
+    let output = replay(&[
+        log.to_str().unwrap_or_default(),
+        "--method",
+        "mfusenet",
+        "--weights",
+        weights.to_str().unwrap_or_default(),
+        "--out",
+        out.to_str().unwrap_or_default(),
+        "-q",
+    ]);
+    assert_success(&output, "replay with lite weights");
+    assert!(read_summary(&out)["sets"][0]["outputs"]["metrics"].is_object());
+    // A paper run cannot start from a lite file: an error naming the option.
+    let output = tiny_training(
+        &dir.path().join("paper"),
+        &dir.path().join("dataset"),
+        "1",
+        &["--init-weights", weights.to_str().unwrap_or_default()],
+    );
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert_eq!(output.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains("architecture") && stderr.contains("lite"), "{stderr}");
+}
+
+#[test]
 fn training_can_give_its_network_context_below_the_range() {
     // `--context-below 4`: the dataset's volumes are 4 slices deeper (costs under 0), the run's
     // configuration says it, and the weights' metadata asks inference for the same context.

@@ -13,7 +13,7 @@ pub mod pyramid;
 pub mod train;
 pub mod weights;
 
-pub use network::Network;
+pub use network::{Architecture, Network};
 pub use weights::WeightsInfo;
 
 /// Errors of the network and its weight files; each names the file and tensor or the shape.

@@ -15,6 +15,11 @@
 //! classify:    logits = conv 4→1 k3 + bias;  disparity = Σ_d d · softmax_d(logits)
 //! ```
 //!
+//! [`Architecture::Lite`] keeps every layer, channel count and name but shrinks the kernels
+//! that cost the most per voxel at full resolution (about 11 k multiply-adds per voxel with four
+//! views against the paper's 58 k): feature 1→4 k5, 4→4 k3 (three times), `concat` k3, `uconv2`
+//! k3, `distill1` k3; `dconv21` keeps k7 at a quarter of the size, where it is cheap.
+//!
 //! D, H and W must be multiples of 4 here ([`super::infer`] pads and crops). Eval mode folds
 //! every BatchNorm into its convolution; train mode keeps what the backward pass needs.
 
@@ -51,6 +56,59 @@ pub enum ConvKind {
     /// Transposed: kernel 3, stride 2, padding 1, output padding 1 (twice the size); weight
     /// `[cin][cout][3][3][3]`.
     Up,
+}
+
+/// The kernel sizes of the network's layers (channels, names and connections are the same).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Architecture {
+    /// The paper's: feature k7, k5, k5, k3; `concat` k7; `dconv21` k7; `uconv2` k7; `distill1` k5.
+    #[default]
+    Paper,
+    /// About a fifth of the paper's work per voxel: feature k5, k3, k3, k3; `concat` k3;
+    /// `dconv21` k7 (a quarter of the size); `uconv2` k3; `distill1` k3.
+    Lite,
+}
+
+impl Architecture {
+    /// Both, the paper's first.
+    pub const ALL: [Architecture; 2] = [Architecture::Paper, Architecture::Lite];
+
+    /// `paper` or `lite` (the weights' metadata value and the command-line word).
+    pub fn name(self) -> &'static str {
+        match self {
+            Architecture::Paper => "paper",
+            Architecture::Lite => "lite",
+        }
+    }
+
+    /// The architecture named `name` ([`Self::name`]).
+    pub fn from_name(name: &str) -> Option<Self> {
+        Self::ALL.into_iter().find(|a| a.name() == name)
+    }
+
+    /// Kernel sizes of `feature.0`, `.2`, `.4`, `.6`.
+    fn feature_kernels(self) -> [usize; 4] {
+        match self {
+            Architecture::Paper => [7, 5, 5, 3],
+            Architecture::Lite => [5, 3, 3, 3],
+        }
+    }
+
+    /// Kernel sizes of `concat`, `dconv21`, `uconv2` and `distill1` (the other layers are k3).
+    fn fuse_kernels(self) -> [usize; 4] {
+        match self {
+            Architecture::Paper => [7, 7, 7, 5],
+            Architecture::Lite => [3, 7, 3, 3],
+        }
+    }
+
+    /// The receptive radius (px, in H and W) of the last full-resolution layers together:
+    /// `uconv2`, `distill1` and `classify` (k3: 1); 6 for the paper's (3 + 2 + 1).
+    pub fn last_layers_radius(self) -> usize {
+        let [_, _, uconv2, distill1] = self.fuse_kernels();
+        uconv2 / 2 + distill1 / 2 + 1
+    }
 }
 
 /// `convbn3d` / `convTbn3d` of the reference: a convolution without bias and a BatchNorm3d
@@ -266,6 +324,8 @@ pub struct Network {
     /// maximum ([`crate::nn::pool`]) instead of concatenated, so that `concat` reads 8 channels
     /// whatever the count and the order of the views (see [`Network::pooled`]).
     pub views: usize,
+    /// The layers' kernel sizes.
+    pub architecture: Architecture,
     /// `feature.0`, `feature.2`, `feature.4`, `feature.6` (shared by the views).
     pub feature: Vec<ConvBn>,
     /// `concat`, `down1`, `dconv1`, `down2`, `dconv21`, `dconv22`, `up1`, `uconv1`, `up2`,
@@ -274,10 +334,6 @@ pub struct Network {
     /// `classify`.
     pub classify: Classify,
 }
-
-/// The receptive radius (px, in H and W) of the last full-resolution layers together:
-/// `uconv2` (k7: 3), `distill1` (k5: 2) and `classify` (k3: 1).
-pub const LAST_LAYERS_RADIUS: usize = 6;
 
 /// Input channels of `concat`: four per view, or the pooled mean and maximum (views = 0).
 fn concat_channels(views: usize) -> usize {
@@ -318,30 +374,38 @@ pub struct Gradients {
 }
 
 impl Network {
-    /// The architecture with zero weights and fresh BatchNorms.
+    /// The paper's architecture with zero weights and fresh BatchNorms.
     pub fn zeros(views: usize) -> Self {
+        Self::zeros_with(views, Architecture::Paper)
+    }
+
+    /// An architecture with zero weights and fresh BatchNorms.
+    pub fn zeros_with(views: usize, architecture: Architecture) -> Self {
         use ConvKind::{Down, Same, Up};
+        let [f0, f2, f4, f6] = architecture.feature_kernels();
+        let [concat, dconv21, uconv2, distill1] = architecture.fuse_kernels();
         let feature = vec![
-            ConvBn::new("feature.0", 1, 4, 7, Same),
-            ConvBn::new("feature.2", 4, 4, 5, Same),
-            ConvBn::new("feature.4", 4, 4, 5, Same),
-            ConvBn::new("feature.6", 4, 4, 3, Same),
+            ConvBn::new("feature.0", 1, 4, f0, Same),
+            ConvBn::new("feature.2", 4, 4, f2, Same),
+            ConvBn::new("feature.4", 4, 4, f4, Same),
+            ConvBn::new("feature.6", 4, 4, f6, Same),
         ];
         let fuse = vec![
-            ConvBn::new("concat", concat_channels(views), 4, 7, Same),
+            ConvBn::new("concat", concat_channels(views), 4, concat, Same),
             ConvBn::new("down1", 4, 4, 3, Down),
             ConvBn::new("dconv1", 4, 4, 3, Same),
             ConvBn::new("down2", 4, 4, 3, Down),
-            ConvBn::new("dconv21", 4, 4, 7, Same),
+            ConvBn::new("dconv21", 4, 4, dconv21, Same),
             ConvBn::new("dconv22", 4, 4, 3, Same),
             ConvBn::new("up1", 4, 4, 3, Up),
             ConvBn::new("uconv1", 8, 4, 3, Same),
             ConvBn::new("up2", 4, 4, 3, Up),
-            ConvBn::new("uconv2", 8, 4, 7, Same),
-            ConvBn::new("distill1", 4, 4, 5, Same),
+            ConvBn::new("uconv2", 8, 4, uconv2, Same),
+            ConvBn::new("distill1", 4, 4, distill1, Same),
         ];
         Self {
             views,
+            architecture,
             feature,
             fuse,
             classify: Classify {
@@ -389,7 +453,12 @@ impl Network {
     /// PyTorch's default initialisation (`kaiming_uniform_(a=√5)`: U(±1/√fan_in) for weights and
     /// the classifier's bias; γ = 1, β = 0), from a seed.
     pub fn init(views: usize, seed: u64) -> Self {
-        let mut net = Self::zeros(views);
+        Self::init_with(views, Architecture::Paper, seed)
+    }
+
+    /// [`Self::init`] for an architecture.
+    pub fn init_with(views: usize, architecture: Architecture, seed: u64) -> Self {
+        let mut net = Self::zeros_with(views, architecture);
         let mut rng = crate::rng::SplitMix64::new(seed);
         for layer in net.feature.iter_mut().chain(net.fuse.iter_mut()) {
             // PyTorch's fan_in is weight.size(1)·k³: cin for convolutions, cout for transposed.
@@ -472,7 +541,7 @@ impl Network {
 
     /// [`Network::logits`] where only the rows and columns `keep` are wanted: the last
     /// full-resolution layers (`uconv2`, `distill1`, `classify`, whose receptive radius together
-    /// is [`LAST_LAYERS_RADIUS`] px) run on `keep` widened by that radius only, not on the whole
+    /// is [`Architecture::last_layers_radius`] px) run on `keep` widened by that radius only, not on the whole
     /// input (which the U-Net's coarse levels need). The logits of `keep` equal
     /// [`Network::logits`]'s; returned with those of the margin around it, and the margin's
     /// first row and column: `(logits [1, D, rows, columns], (row, column))`.
@@ -533,8 +602,9 @@ impl Network {
         // The widest point at full resolution: the 8 skip channels and their padded copy, over
         // `keep` and the last layers' reach only (a row or column the crop cuts off is read as
         // the zero padding: it only changes outputs within the margin, which are not kept).
-        let rows = keep.0.start.saturating_sub(LAST_LAYERS_RADIUS)..(keep.0.end + LAST_LAYERS_RADIUS).min(h);
-        let columns = keep.1.start.saturating_sub(LAST_LAYERS_RADIUS)..(keep.1.end + LAST_LAYERS_RADIUS).min(w);
+        let radius = self.architecture.last_layers_radius();
+        let rows = keep.0.start.saturating_sub(radius)..(keep.0.end + radius).min(h);
+        let columns = keep.1.start.saturating_sub(radius)..(keep.1.end + radius).min(w);
         let origin = (rows.start, columns.start);
         let skip2 = if rows.len() == h && columns.len() == w {
             Tensor::concat(&[&u2, &c])

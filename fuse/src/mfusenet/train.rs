@@ -295,6 +295,7 @@ pub fn load_checkpoint(path: &Path, views: usize) -> Result<(Network, Adam, Weig
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::mfusenet::Architecture;
 
     /// Two views of a fronto-parallel plane at disparity 5: each volume's cost is lowest at 5.
     fn plane_volumes(w: usize, h: usize, nd: usize) -> (Vec<CostVolume<u8>>, Vec<f32>) {
@@ -341,31 +342,37 @@ mod tests {
         let refs: Vec<&CostVolume<u8>> = volumes.iter().collect();
         let example = crop(&refs, &truth, (0, 0), (16, 16), 12);
         assert!(example.mask.iter().all(|m| *m));
-        let mut net = Network::init(2, 3);
-        let mut adam = Adam::new(&mut net, 1e-2);
-        let mut losses = Vec::new();
-        for _ in 0..30 {
-            let (loss, _, gradients) = net
-                .loss_and_gradients(&example.inputs, &example.target, &example.mask)
-                .unwrap_or_else(|e| panic!("{e}"));
-            adam.update(&mut net, &gradients);
-            losses.push(loss);
-        }
-        let first = losses[..3].iter().sum::<f32>() / 3.0;
-        let last = losses[losses.len() - 3..].iter().sum::<f32>() / 3.0;
-        assert!(last < 0.5 * first, "loss {first} → {last}: {losses:?}");
+        for architecture in Architecture::ALL {
+            let mut net = Network::init_with(2, architecture, 3);
+            let mut adam = Adam::new(&mut net, 1e-2);
+            let mut losses = Vec::new();
+            for _ in 0..30 {
+                let (loss, _, gradients) = net
+                    .loss_and_gradients(&example.inputs, &example.target, &example.mask)
+                    .unwrap_or_else(|e| panic!("{e}"));
+                adam.update(&mut net, &gradients);
+                losses.push(loss);
+            }
+            let first = losses[..3].iter().sum::<f32>() / 3.0;
+            let last = losses[losses.len() - 3..].iter().sum::<f32>() / 3.0;
+            assert!(
+                last < 0.5 * first,
+                "{architecture:?}: loss {first} → {last}: {losses:?}"
+            );
 
-        let dir = std::env::temp_dir().join(format!("mfusenet-ckpt-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap_or_else(|e| panic!("{e}"));
-        let path = dir.join("checkpoint.safetensors");
-        let mut info = WeightsInfo::default();
-        info.set("step", "30");
-        save_checkpoint(&mut net, &adam, &info, &path).unwrap_or_else(|e| panic!("{e}"));
-        let (again, adam_again, info_again) = load_checkpoint(&path, 2).unwrap_or_else(|e| panic!("{e}"));
-        assert_eq!(again, net);
-        assert_eq!(adam_again, adam);
-        assert_eq!(info_again.get("step"), Some("30"));
-        std::fs::remove_dir_all(&dir).ok();
+            let dir =
+                std::env::temp_dir().join(format!("mfusenet-ckpt-{}-{}", std::process::id(), architecture.name()));
+            std::fs::create_dir_all(&dir).unwrap_or_else(|e| panic!("{e}"));
+            let path = dir.join("checkpoint.safetensors");
+            let mut info = WeightsInfo::default();
+            info.set("step", "30");
+            save_checkpoint(&mut net, &adam, &info, &path).unwrap_or_else(|e| panic!("{e}"));
+            let (again, adam_again, info_again) = load_checkpoint(&path, 2).unwrap_or_else(|e| panic!("{e}"));
+            assert_eq!(again, net);
+            assert_eq!(adam_again, adam);
+            assert_eq!(info_again.get("step"), Some("30"));
+            std::fs::remove_dir_all(&dir).ok();
+        }
     }
 
     #[test]

@@ -12,7 +12,7 @@ use std::path::Path;
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 
 use super::Error;
-use super::network::Network;
+use super::network::{Architecture, Network};
 
 /// The metadata of a weights file (safetensors `__metadata__`, all strings).
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -110,13 +110,23 @@ pub const VIEW_FUSION_KEY: &str = "view_fusion";
 /// See [`VIEW_FUSION_KEY`].
 pub const MEAN_MAX: &str = "mean-max";
 
+/// Metadata key of the layers' kernel sizes ([`Architecture::name`]: `paper` or `lite`). Files
+/// without it (PyTorch's exports) are read by the kernel size of `concat.0.weight`: 7 the
+/// paper's, 3 the lite one.
+pub const ARCHITECTURE_KEY: &str = "architecture";
+
 /// Most context slices below the range a weights file may ask for.
 pub const MAX_CONTEXT_BELOW: usize = 16;
 
 /// Every tensor of the reference `state_dict` for `views` inputs, with its shape, in the
 /// reference's order.
 pub fn state_dict_shapes(views: usize) -> Vec<(String, Vec<usize>)> {
-    let net = Network::zeros(views);
+    state_dict_shapes_with(views, Architecture::Paper)
+}
+
+/// [`state_dict_shapes`] of an architecture.
+pub fn state_dict_shapes_with(views: usize, architecture: Architecture) -> Vec<(String, Vec<usize>)> {
+    let net = Network::zeros_with(views, architecture);
     let mut out = Vec::new();
     for layer in net.layers() {
         let c = layer.cout;
@@ -191,12 +201,23 @@ pub fn from_bytes(
             });
         }
     };
+    let architecture = match info.get(ARCHITECTURE_KEY) {
+        Some(name) => Architecture::from_name(name).ok_or_else(|| Error::Metadata {
+            file: file.to_owned(),
+            key: ARCHITECTURE_KEY,
+            value: name.to_owned(),
+            expected: "\"paper\" or \"lite\" (or no entry: read from the kernel size of concat.0.weight)",
+        })?,
+        None if concat.shape().get(2) == Some(&3) => Architecture::Lite,
+        None => Architecture::Paper,
+    };
+    let concat_k = Network::zeros_with(1, architecture).fuse[0].k;
     let channels = concat.shape().get(1).copied().unwrap_or(0);
     if pooled && channels != 8 {
         return Err(Error::TensorShape {
             file: file.to_owned(),
             tensor: "concat.0.weight".to_owned(),
-            expected: "[4, 8, 7, 7, 7] (the pooled mean and maximum)".to_owned(),
+            expected: format!("[4, 8, {concat_k}, {concat_k}, {concat_k}] (the pooled mean and maximum)"),
             got: concat.shape().to_vec(),
         });
     }
@@ -205,7 +226,7 @@ pub fn from_bytes(
         return Err(Error::TensorShape {
             file: file.to_owned(),
             tensor: "concat.0.weight".to_owned(),
-            expected: "[4, 4·N, 7, 7, 7] with N = 1, 2 or 4".to_owned(),
+            expected: format!("[4, 4·N, {concat_k}, {concat_k}, {concat_k}] with N = 1, 2 or 4"),
             got: concat.shape().to_vec(),
         });
     }
@@ -220,7 +241,7 @@ pub fn from_bytes(
     }
     let mut values: HashMap<String, Vec<f32>> = HashMap::new();
     let mut batches: HashMap<String, i64> = HashMap::new();
-    let expected = state_dict_shapes(found_views);
+    let expected = state_dict_shapes_with(found_views, architecture);
     for (name, shape) in &expected {
         let full = format!("{prefix}{name}");
         let tracked = name.ends_with("num_batches_tracked");
@@ -293,7 +314,7 @@ pub fn from_bytes(
             tensor,
         });
     }
-    let mut net = Network::zeros(found_views);
+    let mut net = Network::zeros_with(found_views, architecture);
     let mut take = |name: String| values.remove(&name).unwrap_or_default();
     for layer in net.feature.iter_mut().chain(net.fuse.iter_mut()) {
         let n = layer.name.clone();
@@ -389,6 +410,10 @@ pub fn to_bytes(net: &Network, info: &WeightsInfo) -> Result<Vec<u8>, Error> {
     } else {
         metadata.remove(VIEW_FUSION_KEY);
     }
+    match net.architecture {
+        Architecture::Paper => metadata.remove(ARCHITECTURE_KEY),
+        other => metadata.insert(ARCHITECTURE_KEY.to_owned(), other.name().to_owned()),
+    };
     safetensors::serialize(views, Some(metadata)).map_err(|e| Error::Format {
         file: "(serialising)".to_owned(),
         reason: e.to_string(),
@@ -439,6 +464,45 @@ mod tests {
             })
             .collect();
         safetensors::serialize(views, None).unwrap_or_else(|e| panic!("{e}"))
+    }
+
+    #[test]
+    fn a_lite_network_is_read_by_its_metadata_or_its_kernel_sizes() {
+        let net = Network::init_with(4, Architecture::Lite, 9);
+        let good = saved(&net);
+        let (_, metadata) = SafeTensors::read_metadata(&good).unwrap_or_else(|e| panic!("{e}"));
+        let entries = metadata.metadata().clone().unwrap_or_default();
+        assert_eq!(entries.get(ARCHITECTURE_KEY).map(String::as_str), Some("lite"));
+        let (again, _) = from_bytes(&good, "w", "", Some(4)).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(again, net);
+        // Without metadata (a PyTorch export): from `concat.0.weight`'s kernel size.
+        let bare = edited(&good, "(none)", None);
+        let (again, info) = from_bytes(&bare, "w", "", Some(4)).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!((again, info.get(ARCHITECTURE_KEY)), (net.clone(), None));
+        // The paper's network writes no entry and reads back as the paper's.
+        let paper = saved(&Network::init(4, 9));
+        let (again, info) = from_bytes(&paper, "w", "", Some(4)).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(
+            (again.architecture, info.get(ARCHITECTURE_KEY)),
+            (Architecture::Paper, None)
+        );
+        // Metadata that contradicts the shapes, or names no architecture: errors naming them.
+        let relabelled = |name: &str| {
+            let tensors = SafeTensors::deserialize(&good).unwrap_or_else(|e| panic!("{e}"));
+            let views: Vec<(String, TensorView<'_>)> = tensors.tensors();
+            let metadata = HashMap::from([(ARCHITECTURE_KEY.to_owned(), name.to_owned())]);
+            safetensors::serialize(views, Some(metadata)).unwrap_or_else(|e| panic!("{e}"))
+        };
+        let error = from_bytes(&relabelled("paper"), "w", "", None).err();
+        assert!(
+            matches!(&error, Some(Error::TensorShape { tensor, .. }) if tensor == "feature.0.0.weight"),
+            "{error:?}"
+        );
+        let error = from_bytes(&relabelled("tiny"), "w", "", None).err();
+        assert!(
+            matches!(&error, Some(Error::Metadata { key, value, .. }) if *key == ARCHITECTURE_KEY && value == "tiny"),
+            "{error:?}"
+        );
     }
 
     #[test]

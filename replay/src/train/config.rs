@@ -4,6 +4,7 @@
 
 use std::path::PathBuf;
 
+use fuse::mfusenet::Architecture;
 use fuse::mfusenet::input::InputSpec;
 use fuse::mfusenet::weights;
 use record::capture::SimulationConfig;
@@ -52,6 +53,10 @@ pub struct TrainConfig {
     pub checkpoint_every: u64,
     /// Steps between validations.
     pub validate_every: u64,
+    /// The layers' kernel sizes (`paper`, or `lite`: about a fifth of the paper's work per
+    /// voxel); with `init_weights`, the file's must be the same.
+    #[serde(default, skip_serializing_if = "is_paper")]
+    pub architecture: Architecture,
     /// Start from these weights (safetensors, the variant's) instead of a random initialisation
     /// (their BatchNorm statistics are kept): fine-tuning.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -128,6 +133,10 @@ fn is_zero(n: &u64) -> bool {
     *n == 0
 }
 
+fn is_paper(architecture: &Architecture) -> bool {
+    *architecture == Architecture::Paper
+}
+
 fn is_zero_f32(x: &f32) -> bool {
     *x == 0.0
 }
@@ -165,6 +174,7 @@ impl Default for TrainConfig {
             checkpoint_every: 100,
             validate_every: 250,
             init_weights: None,
+            architecture: Architecture::Paper,
         }
     }
 }

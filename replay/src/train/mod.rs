@@ -282,13 +282,24 @@ pub fn train(
                         } else {
                             weights::load(path, Some(config.views))?.0
                         };
+                        if net.architecture != config.architecture {
+                            return Err(TrainError::Config {
+                                field: "architecture",
+                                value: config.architecture.name().to_owned(),
+                                reason: if net.architecture == fuse::mfusenet::Architecture::Lite {
+                                    "the --init-weights file is a lite network (--architecture lite)"
+                                } else {
+                                    "the --init-weights file is the paper's network (--architecture paper)"
+                                },
+                            });
+                        }
                         if config.recalibrate_every > 0 {
                             recalibrate_batch_norm(&mut net, &calibration)?;
                         }
                         net
                     }
                     None => {
-                        let mut net = Network::init(config.views, config.seed);
+                        let mut net = Network::init_with(config.views, config.architecture, config.seed);
                         recalibrate_batch_norm(&mut net, &calibration)?;
                         net
                     }
@@ -399,7 +410,7 @@ pub fn train(
     write_curves(&files, &history)?;
     let mut info = info_for(train_seconds);
     info.set("format", "mfusenet-weights/1");
-    info.set("variant", variant_name(config.views));
+    info.set("variant", variant_name(config.views, config.architecture));
     info.set(
         "views",
         if config.views == 0 {
@@ -488,13 +499,18 @@ pub fn train(
     Ok(summary)
 }
 
-/// The registry name of a variant.
-pub fn variant_name(views: usize) -> &'static str {
-    match views {
+/// The registry name of a variant: `mfusenet-stereo`, `mfusenet-3view`, `mfusenet-5view` or
+/// `mfusenet-any`, with `-lite` for the lite architecture.
+pub fn variant_name(views: usize, architecture: fuse::mfusenet::Architecture) -> String {
+    let name = match views {
         0 => "mfusenet-any",
         1 => "mfusenet-stereo",
         2 => "mfusenet-3view",
         _ => "mfusenet-5view",
+    };
+    match architecture {
+        fuse::mfusenet::Architecture::Paper => name.to_owned(),
+        other => format!("{name}-{}", other.name()),
     }
 }
 

@@ -46,6 +46,8 @@ impl TrainArgs {
             checkpoint_every: self.checkpoint_every.max(1),
             validate_every: self.validate_every.max(1),
             init_weights: self.init_weights.clone(),
+            architecture: fuse::mfusenet::Architecture::from_name(&self.architecture)
+                .ok_or_else(|| usage(format!("--architecture {}: expected paper or lite", self.architecture)))?,
             disparity_shift: self.disparity_shift,
             recalibrate_every: self.recalibrate_every,
             statistics_momentum: self.statistics_momentum,

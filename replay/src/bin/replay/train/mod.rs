@@ -19,8 +19,11 @@ pub fn run(args: &TrainArgs, quiet: bool) -> Result<Outcome> {
         return calibrate::run(args, file, quiet);
     }
     let config = args.config()?;
-    let variant = variant_name(config.views);
-    let dir = args.dir.clone().unwrap_or_else(|| PathBuf::from("train").join(variant));
+    let variant = variant_name(config.views, config.architecture);
+    let dir = args
+        .dir
+        .clone()
+        .unwrap_or_else(|| PathBuf::from("train").join(&variant));
     let weights_out = args
         .weights_out
         .clone()

@@ -16,6 +16,11 @@ pub struct TrainArgs {
     /// starts from any fixed network or a pooled file.
     #[arg(long, default_value = "2", value_parser = ["1", "2", "4", "any"])]
     pub(crate) views: String,
+    /// The layers' kernel sizes: `paper` (the paper's 7³ and 5³ kernels) or `lite` (3³ and 5³
+    /// where the paper's cost the most: about a fifth of the work per voxel, same channels and
+    /// tensor names); a lite file records it in its metadata and `mfusenet` runs it as it is.
+    #[arg(long, default_value = "paper", value_parser = ["paper", "lite"])]
+    pub(crate) architecture: String,
     /// Run folder: dataset cache, checkpoint, curves.csv, curves.rrd, training.json
     /// (default: train/<variant>; a run in it resumes).
     #[arg(long)]
