@@ -32,7 +32,7 @@ use crate::mfusenet::input::{
 use crate::mfusenet::pyramid::{
     Band, DEFAULT_MAX_DIRECT_DISPARITIES, band_minimum, downsampled, pyramid_factor, reduced_range,
 };
-use crate::mfusenet::{Network, weights};
+use crate::mfusenet::{Architecture, Network, weights};
 use crate::postprocess::{WeightedMedian, median3x3, scale_by_local_consistency, weighted_median_with_votes};
 use crate::subpixel::{BlockSubpixel, refine_with_block_costs};
 use crate::thin_parts::{ThinParts, recover_thin_parts};
@@ -40,22 +40,32 @@ use crate::volume::Neighbour;
 use crate::volume::{CostVolume, Problem};
 use crate::wta::{LockingCurve, SubpixelFit};
 
-/// The shipped weights, per number of input volumes.
-const SHIPPED: [(usize, &str, &[u8]); 3] = [
+/// The shipped weights: per number of input volumes, the paper's architecture and, for the
+/// five-view network, the lite one ([`MFuseNetConfig::architecture`] picks).
+const SHIPPED: [(usize, Architecture, &str, &[u8]); 4] = [
     (
         1,
+        Architecture::Paper,
         "mfusenet-stereo.safetensors",
         include_bytes!("../../weights/mfusenet-stereo.safetensors"),
     ),
     (
         2,
+        Architecture::Paper,
         "mfusenet-3view.safetensors",
         include_bytes!("../../weights/mfusenet-3view.safetensors"),
     ),
     (
         4,
+        Architecture::Paper,
         "mfusenet-5view.safetensors",
         include_bytes!("../../weights/mfusenet-5view.safetensors"),
+    ),
+    (
+        4,
+        Architecture::Lite,
+        "mfusenet-5view-lite.safetensors",
+        include_bytes!("../../weights/mfusenet-5view-lite.safetensors"),
     ),
 ];
 
@@ -72,6 +82,12 @@ pub struct MFuseNetConfig {
     /// A safetensors weights file (the reference `state_dict`'s names); `null` = the shipped
     /// weights of the variant the set needs.
     pub weights: Option<String>,
+    /// Which shipped network runs where both exist (the five-view one): `lite` (default; its
+    /// 3³ and 5³ kernels do a fifth of the paper's work per voxel, trained on the paper
+    /// five-view file's recipe for three times its steps: 1.5 × faster on the demo's capture,
+    /// AvgErr ×0.92 on nine 960×540 captures, ×1.00 on 32 held-out simulated ones) or `paper`
+    /// (the paper's kernels, as the three-view and stereo files always are).
+    pub architecture: Architecture,
     /// How each neighbour's input volume is made (must match the training); `null` = as the
     /// weights file's metadata `input_spec` says (our default inputs when it says nothing).
     pub input: Option<InputSpec>,
@@ -203,6 +219,7 @@ impl Default for MFuseNetConfig {
     fn default() -> Self {
         Self {
             weights: None,
+            architecture: Architecture::Lite,
             input: None,
             tile_budget_mib: DEFAULT_TILE_BUDGET_BYTES >> 20,
             window: None,
@@ -296,7 +313,7 @@ impl MFuseNet {
             None => SHIPPED
                 .iter()
                 .filter(|(views, ..)| !stereo || *views == 1)
-                .map(|(views, file, bytes)| {
+                .map(|(views, _, file, bytes)| {
                     let file = format!("(shipped) {file}");
                     let (net, info) = weights::from_bytes(bytes, &file, "", Some(*views))?;
                     Loaded::new(net, &info, &file)
@@ -311,6 +328,16 @@ impl MFuseNet {
         })
     }
 
+    /// The network for `views` volumes: the configured architecture's where one is shipped for
+    /// them, else the paper's (a `weights` file is the only network).
+    fn network_of(&self, views: usize) -> Option<&Loaded> {
+        let of_views = || self.networks.iter().filter(move |n| n.views == views);
+        of_views()
+            .find(|n| n.net.architecture == self.config.architecture)
+            .or_else(|| of_views().find(|n| n.net.architecture == Architecture::Paper))
+            .or_else(|| of_views().next())
+    }
+
     /// The network for a problem.
     fn network_for(&self, problem: &Problem) -> Result<&Loaded, FuseError> {
         let views = match (&self.config.weights, self.stereo) {
@@ -318,14 +345,11 @@ impl MFuseNet {
             (Some(_), false) => self.networks.first().map_or(1, |n| n.views),
             (None, false) => views_for(problem),
         };
-        self.networks
-            .iter()
-            .find(|n| n.views == views)
-            .ok_or(FuseError::Config {
-                field: "weights",
-                value: String::new(),
-                reason: "no network for this number of neighbours",
-            })
+        self.network_of(views).ok_or(FuseError::Config {
+            field: "weights",
+            value: String::new(),
+            reason: "no network for this number of neighbours",
+        })
     }
 }
 
@@ -426,6 +450,7 @@ impl Method for MFuseNet {
         }
         serde_json::json!({
             "network": match loaded.views { 0 => "view-count-agnostic", 1 => "stereo", 2 => "three-view", _ => "five-view" },
+            "architecture": loaded.net.architecture.name(),
             "scale": format!("1/{factor}"),
             "network_width": width,
             "network_height": height,
@@ -510,7 +535,8 @@ impl MFuseNet {
         if self.stereo || !self.config.every_view.unwrap_or(true) || self.config.weights.is_some() {
             return None;
         }
-        let available: Vec<usize> = self.networks.iter().map(|n| n.views).collect();
+        let mut available: Vec<usize> = self.networks.iter().map(|n| n.views).collect();
+        available.dedup();
         let (groups, rest) = view_groups(problem, &available);
         if groups.len() < 2 {
             return None;
@@ -518,7 +544,7 @@ impl MFuseNet {
         let groups = groups
             .into_iter()
             .filter_map(|g| {
-                let loaded = self.networks.iter().find(|n| n.views == g.views)?;
+                let loaded = self.network_of(g.views)?;
                 Some((g, loaded))
             })
             .collect();
@@ -536,9 +562,13 @@ impl MFuseNet {
         Some(serde_json::json!({
             "networks": groups
                 .iter()
-                .map(|(g, _)| format!(
-                    "{} [{}]",
+                .map(|(g, loaded)| format!(
+                    "{}{} [{}]",
                     name(g.views),
+                    match loaded.net.architecture {
+                        Architecture::Paper => String::new(),
+                        other => format!(" ({})", other.name()),
+                    },
                     g.neighbours.iter().map(|n| n.role.as_str()).collect::<Vec<_>>().join(", ")
                 ))
                 .collect::<Vec<_>>(),
@@ -1071,14 +1101,21 @@ mod tests {
 
     #[test]
     fn every_shipped_network_finds_a_plane_at_its_range_start_with_context_up_to_the_borders() {
-        // Every shipped file asks for 4 slices of context below the range (the five-view one
-        // since its metadata was set after training: without context it put this plane 6 px
-        // off, fuse/weights/README.md); each runs here with its defaults.
+        // Every shipped file asks for context below the range: 4 slices, 8 for the lite
+        // five-view one (the two five-view files since their metadata was set after training:
+        // without context they put this plane 6 and 8–11 px off, fuse/weights/README.md); each
+        // runs here with its defaults.
         type Layout<'a> = (&'a str, &'a [[i32; 2]], Option<serde_json::Value>);
-        let layouts: [Layout<'_>; 3] = [
+        let five = &[[-1, 0], [1, 0], [0, -1], [0, 1]];
+        let layouts: [Layout<'_>; 4] = [
             ("stereo", &[[1, 0]], None),
             ("three-view", &[[-1, 0], [1, 0]], None),
-            ("five-view", &[[-1, 0], [1, 0], [0, -1], [0, 1]], None),
+            ("five-view (lite)", five, None),
+            (
+                "five-view (paper)",
+                five,
+                Some(serde_json::json!({"architecture": "paper"})),
+            ),
         ];
         for (name, offsets, config) in layouts {
             // A far wall at the start of an unsigned range, and of a converged rig's signed one.

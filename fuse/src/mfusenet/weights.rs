@@ -696,14 +696,16 @@ mod tests {
         // The stereo and three-view networks were trained with shifted crops (context below
         // their range); the five-view one was not, and its metadata asks for context since
         // (without it the network cannot answer in the range's first slices).
-        for (views, file, expected_context) in [
-            (1, "mfusenet-stereo", 4),
-            (2, "mfusenet-3view", 4),
-            (4, "mfusenet-5view", 4),
+        // The lite five-view file too, whose range-start test needs 8 slices.
+        for (views, file, expected_context, architecture) in [
+            (1, "mfusenet-stereo", 4, Architecture::Paper),
+            (2, "mfusenet-3view", 4, Architecture::Paper),
+            (4, "mfusenet-5view", 4, Architecture::Paper),
+            (4, "mfusenet-5view-lite", 8, Architecture::Lite),
         ] {
             let path = Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("weights/{file}.safetensors"));
             let (net, info) = load(&path, Some(views)).unwrap_or_else(|e| panic!("{e}"));
-            assert_eq!(net.views, views);
+            assert_eq!((net.views, net.architecture), (views, architecture), "{file}");
             assert_eq!(info.get("views"), Some(views.to_string().as_str()), "{file}");
             assert!(
                 info.get("made_by").is_some() && info.get("input_normalisation").is_some(),
