@@ -23,11 +23,18 @@ fn shipped_weights_have_the_reference_state_dict_names_and_shapes() {
         &weights("mfusenet-3view.safetensors"),
         "4",
         &weights("mfusenet-5view.safetensors"),
+        "4",
+        &weights("mfusenet-5view-lite.safetensors"),
     ]));
     assert_success(&output, "check_weights.py");
     let text = String::from_utf8_lossy(&output.stdout);
     println!("{text}");
-    for count in ["33441 trainable", "38929 trainable", "49905 trainable"] {
+    for count in [
+        "33441 trainable",
+        "38929 trainable",
+        "49905 trainable",
+        "13993 trainable parameters, variant mfusenet-5view-lite, architecture lite",
+    ] {
         assert!(text.contains(count), "{count} not in {text}");
     }
 }

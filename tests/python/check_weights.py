@@ -2,7 +2,9 @@
 tensor name, shape and dtype against the state_dict of the authors' FuseNetwork, written out
 here independently of our Rust code from the architecture (weihaosky/MFuseNet, network.py):
 convbn3d = Sequential(Conv3d(bias=False), BatchNorm3d), convTbn3d likewise with ConvTranspose3d
-(weight [in, out, k, k, k]), classify = Conv3d(4, 1, 3) with bias.
+(weight [in, out, k, k, k]), classify = Conv3d(4, 1, 3) with bias. A file whose metadata says
+`architecture = lite` is checked against the lite kernels (feature 5, 3, 3, 3; concat 3; uconv2 3;
+distill1 3; the rest as the paper's).
 
 Usage: check_weights.py VIEWS FILE [VIEWS FILE ...]; prints one line per file, exits 1 on a
 mismatch."""
@@ -15,23 +17,31 @@ from safetensors import safe_open
 from safetensors.numpy import load_file
 
 
-def state_dict(n_views):
+KERNELS = {
+    # feature.0, .2, .4, .6, concat, dconv21, uconv2, distill1
+    "paper": (7, 5, 5, 3, 7, 7, 7, 5),
+    "lite": (5, 3, 3, 3, 3, 7, 3, 3),
+}
+
+
+def state_dict(n_views, architecture="paper"):
+    f0, f2, f4, f6, kc, k21, ku2, kd1 = KERNELS[architecture]
     layers = [
-        ("feature.0", "conv", 1, 4, 7),
-        ("feature.2", "conv", 4, 4, 5),
-        ("feature.4", "conv", 4, 4, 5),
-        ("feature.6", "conv", 4, 4, 3),
-        ("concat", "conv", 4 * n_views, 4, 7),
+        ("feature.0", "conv", 1, 4, f0),
+        ("feature.2", "conv", 4, 4, f2),
+        ("feature.4", "conv", 4, 4, f4),
+        ("feature.6", "conv", 4, 4, f6),
+        ("concat", "conv", 4 * n_views, 4, kc),
         ("down1", "conv", 4, 4, 3),
         ("dconv1", "conv", 4, 4, 3),
         ("down2", "conv", 4, 4, 3),
-        ("dconv21", "conv", 4, 4, 7),
+        ("dconv21", "conv", 4, 4, k21),
         ("dconv22", "conv", 4, 4, 3),
         ("up1", "transposed", 4, 4, 3),
         ("uconv1", "conv", 8, 4, 3),
         ("up2", "transposed", 4, 4, 3),
-        ("uconv2", "conv", 8, 4, 7),
-        ("distill1", "conv", 4, 4, 5),
+        ("uconv2", "conv", 8, 4, ku2),
+        ("distill1", "conv", 4, 4, kd1),
     ]
     expected = {}
     for name, kind, cin, cout, k in layers:
@@ -54,7 +64,13 @@ def trainable(expected):
 
 
 def check(n_views, path):
-    expected = state_dict(n_views)
+    with safe_open(path, framework="numpy") as f:
+        metadata = f.metadata() or {}
+    architecture = metadata.get("architecture", "paper")
+    if architecture not in KERNELS:
+        print(f"FAIL {path}: metadata architecture = {architecture!r}, expected one of {sorted(KERNELS)}")
+        return False
+    expected = state_dict(n_views, architecture)
     tensors = load_file(path)
     problems = []
     for name in sorted(set(expected) | set(tensors)):
@@ -71,8 +87,6 @@ def check(n_views, path):
             problems.append(f"{name}: dtype {tensors[name].dtype} or non-finite values")
         elif name.endswith("running_var") and np.any(tensors[name] < 0):
             problems.append(f"{name}: negative variance")
-    with safe_open(path, framework="numpy") as f:
-        metadata = f.metadata() or {}
     for key in ("variant", "views", "input_order", "input_normalisation", "input_steps_per_unit", "estimate", "made_by", "steps"):
         if key not in metadata:
             problems.append(f"metadata has no '{key}'")
@@ -84,7 +98,7 @@ def check(n_views, path):
     if problems:
         print(f"FAIL {path}: " + "; ".join(problems))
         return False
-    print(f"ok {path}: {len(tensors)} tensors, {parameters} trainable parameters, variant {metadata['variant']}")
+    print(f"ok {path}: {len(tensors)} tensors, {parameters} trainable parameters, variant {metadata['variant']}, architecture {architecture}")
     return True
 
 

@@ -84,7 +84,7 @@ pub struct MFuseNetConfig {
     pub weights: Option<String>,
     /// Which shipped network runs where both exist (the five-view one): `lite` (default; its
     /// 3³ and 5³ kernels do a fifth of the paper's work per voxel, trained on the paper
-    /// five-view file's recipe for three times its steps: 1.5 × faster on the demo's capture,
+    /// five-view file's recipe for three times its steps: 1.4–1.5 × faster on 960×540 captures,
     /// AvgErr ×0.92 on nine 960×540 captures, ×1.00 on 32 held-out simulated ones) or `paper`
     /// (the paper's kernels, as the three-view and stereo files always are).
     pub architecture: Architecture,
