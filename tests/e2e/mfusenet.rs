@@ -526,8 +526,8 @@ fn training_can_give_its_network_context_below_the_range() {
 #[test]
 fn a_wide_range_goes_coarse_to_fine_and_the_summary_says_what_the_network_saw() {
     // A 60 mm baseline at 320×240 puts the toy scene at about 27–40 px; searched over 0..64, the
-    // network runs at half size over 0..33 with 4 slices of context below (−4..33) and the
-    // full-size band is ± 2 px.
+    // network (the lite five-view one) runs at half size over 0..33 with the 8 slices of context
+    // below its file asks for (−8..33) and the full-size band is ± 2 px.
     let (dir, log) = recorded(
         "wide.mcap",
         "--resolution 320x240 --baseline-mm 60 --samples-per-pixel 1",
@@ -545,7 +545,9 @@ fn a_wide_range_goes_coarse_to_fine_and_the_summary_says_what_the_network_saw() 
     assert_success(&output, "replay --method mfusenet,sgm-heuristic --num-disparities 64");
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(
-        stderr.contains("scale 1/2") && stderr.contains("network_min_disparity -4, network_num_disparities 37"),
+        stderr.contains("architecture lite")
+            && stderr.contains("scale 1/2")
+            && stderr.contains("network_min_disparity -8, network_num_disparities 41"),
         "the log names the level and range the network saw: {stderr}"
     );
     let summary = read_summary(&out);
