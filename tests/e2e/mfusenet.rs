@@ -350,11 +350,18 @@ fn training_resumes_and_its_weights_run() {
     let before = safetensors_tensor_bytes(&weights);
     assert!(!before.is_empty());
     assert_eq!(before, safetensors_tensor_bytes(&calibrated), "tensors changed");
+    replay_three_view_with(dir.path(), &weights);
+}
+
+/// Records a tiny three-view capture into `dir` and replays it with `mfusenet` and `weights`
+/// (which must run); returns the results folder.
+fn replay_three_view_with(dir: &Path, weights: &Path) -> std::path::PathBuf {
     let log = record_args(
-        dir.path(),
+        dir,
         "three.mcap",
         "--rig three-view --resolution 96x72 --samples-per-pixel 1",
     );
+    let out = dir.join("out");
     let output = replay(&[
         log.to_str().unwrap_or_default(),
         "--method",
@@ -362,10 +369,11 @@ fn training_resumes_and_its_weights_run() {
         "--weights",
         weights.to_str().unwrap_or_default(),
         "--out",
-        dir.path().join("out").to_str().unwrap_or_default(),
+        out.to_str().unwrap_or_default(),
         "-q",
     ]);
-    assert_success(&output, "replay with trained weights");
+    assert_success(&output, &format!("replay with the weights {}", weights.display()));
+    out
 }
 
 /// The `summary.json` that `replay --out DIR` wrote.
@@ -428,23 +436,7 @@ fn training_the_lite_architecture_gives_a_file_mfusenet_runs() {
         serde_json::json!([4, 1, 5, 5, 5]),
         "{header}"
     );
-    let log = record_args(
-        dir.path(),
-        "three.mcap",
-        "--rig three-view --resolution 96x72 --samples-per-pixel 1",
-    );
-    let out = dir.path().join("out");
-    let output = replay(&[
-        log.to_str().unwrap_or_default(),
-        "--method",
-        "mfusenet",
-        "--weights",
-        weights.to_str().unwrap_or_default(),
-        "--out",
-        out.to_str().unwrap_or_default(),
-        "-q",
-    ]);
-    assert_success(&output, "replay with lite weights");
+    let out = replay_three_view_with(dir.path(), &weights);
     assert!(read_summary(&out)["sets"][0]["outputs"]["metrics"].is_object());
     // A paper run cannot start from a lite file: an error naming the option.
     let output = tiny_training(
