@@ -535,8 +535,7 @@ impl MFuseNet {
         if self.stereo || !self.config.every_view.unwrap_or(true) || self.config.weights.is_some() {
             return None;
         }
-        let mut available: Vec<usize> = self.networks.iter().map(|n| n.views).collect();
-        available.dedup();
+        let available: Vec<usize> = self.networks.iter().map(|n| n.views).collect();
         let (groups, rest) = view_groups(problem, &available);
         if groups.len() < 2 {
             return None;

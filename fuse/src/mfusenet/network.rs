@@ -103,6 +103,11 @@ impl Architecture {
         }
     }
 
+    /// Kernel size of `concat` (how a weights file without metadata tells the two apart).
+    pub fn concat_kernel(self) -> usize {
+        self.fuse_kernels()[0]
+    }
+
     /// The receptive radius (px, in H and W) of the last full-resolution layers together:
     /// `uconv2`, `distill1` and `classify` (k3: 1); 6 for the paper's (3 + 2 + 1).
     pub fn last_layers_radius(self) -> usize {

@@ -208,10 +208,10 @@ pub fn from_bytes(
             value: name.to_owned(),
             expected: "\"paper\" or \"lite\" (or no entry: read from the kernel size of concat.0.weight)",
         })?,
-        None if concat.shape().get(2) == Some(&3) => Architecture::Lite,
+        None if concat.shape().get(2) == Some(&Architecture::Lite.concat_kernel()) => Architecture::Lite,
         None => Architecture::Paper,
     };
-    let concat_k = Network::zeros_with(1, architecture).fuse[0].k;
+    let concat_k = architecture.concat_kernel();
     let channels = concat.shape().get(1).copied().unwrap_or(0);
     if pooled && channels != 8 {
         return Err(Error::TensorShape {
