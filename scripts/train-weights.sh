@@ -7,6 +7,7 @@
 #
 #   scripts/train-weights.sh            # all three
 #   scripts/train-weights.sh 2          # only the three-view network
+#   scripts/train-weights.sh 1-lite 4-lite   # the lite networks (`--architecture lite`)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 cargo build --release -q -p replay
@@ -15,9 +16,9 @@ mkdir -p train
 cp target/release/replay train/replay-bin
 common=(--train-sets 100 --val-sets 6)
 # Stage 1: from a random initialisation, baselines uniform in 6-28 mm.
-first() { # views name steps crop
+first() { # views name steps crop [more options]
     train/replay-bin train --views "$1" --steps "$3" --crop-px "$4" "${common[@]}" \
-        --baseline-mm 6,28 --baseline-draw uniform --dir "train/$2"
+        --baseline-mm 6,28 --baseline-draw uniform --dir "train/$2" "${@:5}"
 }
 # Later stages: from the previous stage's weights at half the learning rate, on captures whose
 # baselines are drawn log-uniformly from 3-30 mm (small disparities, as in far backgrounds, as
@@ -58,6 +59,23 @@ for views in ${*:-2 1 4}; do
             first 4 mfusenet-5view 700 96
             ship mfusenet-5view mfusenet-5view
             ;;
-        *) echo "unknown variant $views (1, 2 or 4)" >&2; exit 2 ;;
+        1-lite)
+            # The paper stereo recipe, stage 1 twice as long (the lite network needs more steps).
+            lite=(--architecture lite)
+            first 1 mfusenet-stereo-lite 2000 128 "${lite[@]}"
+            tune 1 mfusenet-stereo-lite 600 128 mfusenet-stereo-lite mfusenet-stereo-lite-ft "${lite[@]}"
+            tune 1 mfusenet-stereo-lite 1000 128 mfusenet-stereo-lite-ft mfusenet-stereo-lite-shift "${lite[@]}" \
+                --disparity-shift 12 --validate-every 200
+            tune 1 mfusenet-stereo-lite 600 128 mfusenet-stereo-lite-shift mfusenet-stereo-lite-keep "${lite[@]}" \
+                --disparity-shift 12 --keep-hopeless --validate-every 200
+            ship mfusenet-stereo-lite mfusenet-stereo-lite-keep
+            ;;
+        4-lite)
+            # The paper five-view file's stage 1, three times its steps; trained without context,
+            # so its metadata's `context_below` was set to 8 afterwards (fuse/weights/README.md).
+            first 4 mfusenet-5view-lite 2100 96 --architecture lite
+            ship mfusenet-5view-lite mfusenet-5view-lite
+            ;;
+        *) echo "unknown variant $views (1, 2, 4, 1-lite or 4-lite)" >&2; exit 2 ;;
     esac
 done
