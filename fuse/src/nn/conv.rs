@@ -21,6 +21,7 @@ use rayon::prelude::*;
 use wide::f32x8;
 
 use super::Tensor;
+use super::fma_kernel::{self, ACCUMULATORS};
 
 /// Lanes of one vector.
 const LANES: usize = 8;
@@ -97,8 +98,14 @@ impl Padded {
     /// Row `(c, z, y)` of tile `t`.
     #[inline]
     fn tile_row(&self, t: usize, c: usize, z: usize, y: usize) -> &[f32] {
-        let at = (((t * self.channels + c) * self.depth + z) * self.height + y) * self.row;
+        let at = self.tile_row_start(t, c, z, y);
         &self.data[at..at + self.row]
+    }
+
+    /// Where row `(c, z, y)` of tile `t` starts in `data`.
+    #[inline]
+    fn tile_row_start(&self, t: usize, c: usize, z: usize, y: usize) -> usize {
+        (((t * self.channels + c) * self.depth + z) * self.height + y) * self.row
     }
 }
 
@@ -249,6 +256,14 @@ fn conv_k<const K: usize>(
             }
         }
     }
+    // Each input row (i, td, th) a block reads, as an offset from row (0, z, y) of its tile, in
+    // the packed weights' order (for the assembly kernels, `fma_kernel`).
+    let rows = fma_kernel::RowTable::new(
+        (0..cin)
+            .flat_map(|i| (0..K).flat_map(move |td| (0..K).map(move |th| (i, td, th))))
+            .map(|(i, td, th)| padded.tile_row_start(0, i, td, th))
+            .collect(),
+    );
     // The input is cut into column tiles of TILE_BLOCKS blocks, each tile's rows short and
     // contiguous: an output row's block reads cin · K² input rows (392 at k7 with 8 channels),
     // and whole-width rows (1.75 KB apart at 428 columns) spread them over as many pages and ran
@@ -280,18 +295,29 @@ fn conv_k<const K: usize>(
                 for b in t * TILE_BLOCKS..((t + 1) * TILE_BLOCKS).min(blocks) {
                     let x0 = b * BLOCK;
                     let mut acc = [[f32x8::ZERO; VECTORS]; GROUP];
-                    for i in 0..cin {
-                        for td in 0..K {
-                            for th in 0..K {
-                                let row = &padded.tile_row(t, i, z + td, y + th)[x0 - c0..x0 - c0 + BLOCK + K - 1];
-                                let tap = ((i * K + td) * K + th) * K * GROUP;
-                                let wk = &weights[tap..tap + K * GROUP];
-                                for tw in 0..K {
-                                    let xs: [f32x8; VECTORS] = std::array::from_fn(|j| load(&row[tw + LANES * j..]));
-                                    for (o, acc_o) in acc.iter_mut().enumerate() {
-                                        let wv = f32x8::splat(wk[tw * GROUP + o]);
-                                        for (a, xv) in acc_o.iter_mut().zip(&xs) {
-                                            *a = xv.mul_add(wv, *a);
+                    let mut flat = [0f32; ACCUMULATORS];
+                    let base = padded.tile_row_start(t, 0, z, y) + x0 - c0;
+                    if (K == 3 || K == 5) && fma_kernel::rows::<K>(&padded.data, base, &rows, weights, &mut flat) {
+                        for (o, acc_o) in acc.iter_mut().enumerate() {
+                            for (j, a) in acc_o.iter_mut().enumerate() {
+                                *a = load(&flat[(o * VECTORS + j) * LANES..]);
+                            }
+                        }
+                    } else {
+                        for i in 0..cin {
+                            for td in 0..K {
+                                for th in 0..K {
+                                    let row = &padded.tile_row(t, i, z + td, y + th)[x0 - c0..x0 - c0 + BLOCK + K - 1];
+                                    let tap = ((i * K + td) * K + th) * K * GROUP;
+                                    let wk = &weights[tap..tap + K * GROUP];
+                                    for tw in 0..K {
+                                        let xs: [f32x8; VECTORS] =
+                                            std::array::from_fn(|j| load(&row[tw + LANES * j..]));
+                                        for (o, acc_o) in acc.iter_mut().enumerate() {
+                                            let wv = f32x8::splat(wk[tw * GROUP + o]);
+                                            for (a, xv) in acc_o.iter_mut().zip(&xs) {
+                                                *a = xv.mul_add(wv, *a);
+                                            }
                                         }
                                     }
                                 }
@@ -301,8 +327,22 @@ fn conv_k<const K: usize>(
                     let columns = BLOCK.min(w - x0);
                     for (o, (acc_o, plane_o)) in acc.iter().zip(dst.iter_mut()).enumerate() {
                         let add = bias.map_or(0.0, |bias| bias[g * GROUP + o]);
-                        let lanes: [[f32; LANES]; VECTORS] = acc_o.map(|v| v.to_array());
                         let row = &mut plane_o[y / stride * ow..(y / stride + 1) * ow];
+                        if stride == 1 && columns == BLOCK {
+                            // A whole block: its vectors written as they are.
+                            for (v, out) in acc_o.iter().zip(row[x0..x0 + BLOCK].chunks_exact_mut(LANES)) {
+                                let mut value = *v + f32x8::splat(add);
+                                if accumulate {
+                                    value += load(out);
+                                }
+                                if relu {
+                                    value = value.max(f32x8::ZERO);
+                                }
+                                out.copy_from_slice(&value.to_array());
+                            }
+                            continue;
+                        }
+                        let lanes: [[f32; LANES]; VECTORS] = acc_o.map(|v| v.to_array());
                         if accumulate {
                             for (c, v) in row[x0..x0 + columns].iter_mut().enumerate() {
                                 *v = activate(*v + lanes[c / LANES][c % LANES] + add, relu);

@@ -16,6 +16,7 @@
 
 pub mod batch_norm;
 pub mod conv;
+mod fma_kernel;
 pub mod pool;
 pub mod reference;
 pub mod regression;
