@@ -7,7 +7,7 @@
 #
 #   scripts/train-weights.sh            # all three
 #   scripts/train-weights.sh 2          # only the three-view network
-#   scripts/train-weights.sh 1-lite 2-lite 4-lite   # the lite networks (`--architecture lite`)
+#   scripts/train-weights.sh 4-lite     # the lite five-view network (`--architecture lite`)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 cargo build --release -q -p replay
@@ -59,34 +59,12 @@ for views in ${*:-2 1 4}; do
             first 4 mfusenet-5view 700 96
             ship mfusenet-5view mfusenet-5view
             ;;
-        1-lite)
-            # The paper stereo recipe, stage 1 twice as long (the lite network needs more steps).
-            lite=(--architecture lite)
-            first 1 mfusenet-stereo-lite 2000 128 "${lite[@]}"
-            tune 1 mfusenet-stereo-lite 600 128 mfusenet-stereo-lite mfusenet-stereo-lite-ft "${lite[@]}"
-            tune 1 mfusenet-stereo-lite 1000 128 mfusenet-stereo-lite-ft mfusenet-stereo-lite-shift "${lite[@]}" \
-                --disparity-shift 12 --validate-every 200
-            tune 1 mfusenet-stereo-lite 600 128 mfusenet-stereo-lite-shift mfusenet-stereo-lite-keep "${lite[@]}" \
-                --disparity-shift 12 --keep-hopeless --validate-every 200
-            ship mfusenet-stereo-lite mfusenet-stereo-lite-keep
-            ;;
-        2-lite)
-            # The paper three-view recipe, stage 1 one and a half times as long.
-            lite=(--architecture lite)
-            first 2 mfusenet-3view-lite 2400 128 "${lite[@]}"
-            tune 2 mfusenet-3view-lite 600 128 mfusenet-3view-lite mfusenet-3view-lite-ft "${lite[@]}"
-            tune 2 mfusenet-3view-lite 1000 128 mfusenet-3view-lite-ft mfusenet-3view-lite-shift "${lite[@]}" \
-                --disparity-shift 12 --validate-every 200
-            tune 2 mfusenet-3view-lite 600 128 mfusenet-3view-lite-shift mfusenet-3view-lite-keep "${lite[@]}" \
-                --disparity-shift 12 --keep-hopeless --validate-every 200
-            ship mfusenet-3view-lite mfusenet-3view-lite-keep
-            ;;
         4-lite)
             # The paper five-view file's stage 1, three times its steps; trained without context,
             # so its metadata's `context_below` was set to 8 afterwards (fuse/weights/README.md).
             first 4 mfusenet-5view-lite 2100 96 --architecture lite
             ship mfusenet-5view-lite mfusenet-5view-lite
             ;;
-        *) echo "unknown variant $views (1, 2, 4, 1-lite, 2-lite or 4-lite)" >&2; exit 2 ;;
+        *) echo "unknown variant $views (1, 2, 4 or 4-lite)" >&2; exit 2 ;;
     esac
 done
