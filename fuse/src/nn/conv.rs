@@ -3,8 +3,10 @@
 //! 3, 5 and 7): the input is copied once into a zero-padded buffer cut into tiles of 48 columns
 //! (each tile's rows short and contiguous, with their halo), then every output row is computed in
 //! blocks of 24 columns with the four output channels' accumulators held in registers (12 AVX
-//! vectors): per kernel tap, three unaligned loads feed twelve fused multiply-adds. Work is split
-//! over (channel group, depth plane) pairs with rayon, each writing its output planes in place.
+//! vectors): per kernel tap, three unaligned loads feed twelve fused multiply-adds (for kernels 3
+//! and 5 written out in assembly, [`super::fma_kernel`], where LLVM's loop spilled the
+//! accumulators). Work is split over (channel group, depth plane) pairs with rayon, each writing
+//! its output planes in place.
 //!
 //! Measured on 2 AMD EPYC vCPUs (`cargo run --release -p fuse --example conv_speed`), k7 with
 //! 8 → 4 channels on 32 × 372 × 428: 81 GFLOP/s with whole-width rows (an output block's 392
