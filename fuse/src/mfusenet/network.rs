@@ -27,8 +27,9 @@ use super::Error;
 use crate::nn::Tensor;
 use crate::nn::batch_norm::{BatchNorm, BatchNormCache};
 use crate::nn::conv::{
-    Epilogue, conv3d_accumulate_owned, conv3d_same, conv3d_same_input_grad, conv3d_same_weight_grad, conv3d_with,
-    conv3d_with_owned, input_channels, transposed_as_conv, transposed_weight_grad,
+    ConvInput, Epilogue, PaddedTensor, conv3d_accumulate_input, conv3d_input, conv3d_padded, conv3d_same,
+    conv3d_same_input_grad, conv3d_same_weight_grad, conv3d_with, conv3d_with_owned, input_channels,
+    transposed_as_conv, transposed_weight_grad,
 };
 use crate::nn::regression::{smooth_l1, soft_argmin, soft_argmin_backward};
 
@@ -250,6 +251,22 @@ impl ConvBn {
         let (weight, bias) = self.bn.fold_into(&self.conv_weight());
         let epilogue = Epilogue { stride: 1, relu: true };
         conv3d_with_owned(x, &weight, self.cout, self.k, Some(&bias), epilogue)
+    }
+
+    /// [`ConvBn::forward_eval`] of any input, written straight into the padded tiles that a layer
+    /// with kernel `next_k` reads (a chain of "same" layers: each skips the padded copy of its
+    /// input). Other kinds compute their tensor and pad it.
+    pub fn forward_eval_padded(&self, x: ConvInput<'_>, next_k: usize) -> PaddedTensor {
+        if self.kind != ConvKind::Same {
+            let y = match x {
+                ConvInput::Borrowed(x) => self.forward_eval(x),
+                ConvInput::Owned(x) => self.forward_eval(&x),
+                ConvInput::Padded(x) => self.forward_eval(&x.to_tensor()),
+            };
+            return PaddedTensor::of(&y, next_k);
+        }
+        let (weight, bias) = self.bn.fold_into(&self.conv_weight());
+        conv3d_padded(x, &weight, self.cout, self.k, Some(&bias), true, next_k)
     }
 
     /// Train mode: `ReLU(BN(conv(x)))` with batch statistics (running statistics updated) or
@@ -556,15 +573,20 @@ impl Network {
         keep: &(std::ops::Range<usize>, std::ops::Range<usize>),
     ) -> Result<(Tensor, (usize, usize)), Error> {
         let [d, h, w] = self.check_inputs(inputs)?;
-        let tower = |x: &Tensor| {
-            let mut y = self.feature[0].forward_eval(x);
-            for layer in &self.feature[1..] {
-                y = layer.forward_eval_owned(y);
+        // The feature tower, each layer writing the next one's padded tiles (the last one's for
+        // `concat`), so that no layer copies its input.
+        let concat_k = self.fuse[CONCAT].k;
+        let tower = |x: &Tensor| -> PaddedTensor {
+            let next_k = |i: usize| self.feature.get(i + 1).map_or(concat_k, |l| l.k);
+            let mut y = self.feature[0].forward_eval_padded(ConvInput::Borrowed(x), next_k(0));
+            for (i, layer) in self.feature.iter().enumerate().skip(1) {
+                y = layer.forward_eval_padded(ConvInput::Padded(y), next_k(i));
             }
             y
         };
         let c = if self.views == 0 {
-            let features = crate::nn::pool::mean_max(&inputs.iter().map(tower).collect::<Vec<_>>());
+            let features = inputs.iter().map(|x| tower(x).to_tensor()).collect::<Vec<_>>();
+            let features = crate::nn::pool::mean_max(&features);
             self.fuse[CONCAT].forward_eval_owned(features)
         } else {
             // The widest layer, `concat` over the views' 4·N feature channels, a view at a time:
@@ -579,11 +601,11 @@ impl Network {
             let last = inputs.len() - 1;
             for (i, x) in inputs.iter().enumerate() {
                 let own = input_channels(&weight, cout, cin, k, 4 * i..4 * (i + 1));
-                let features = tower(x);
+                let features = ConvInput::Padded(tower(x));
                 let relu = i == last;
                 c = Some(match c {
-                    None => conv3d_with_owned(features, &own, cout, k, Some(&bias), Epilogue { stride: 1, relu }),
-                    Some(sum) => conv3d_accumulate_owned(features, &own, k, sum, relu),
+                    None => conv3d_input(features, &own, cout, k, Some(&bias), Epilogue { stride: 1, relu }),
+                    Some(sum) => conv3d_accumulate_input(features, &own, k, sum, relu),
                 });
             }
             // (`check_inputs` holds at least one input.)

@@ -12,6 +12,10 @@
 //! 8 → 4 channels on 32 × 372 × 428: 81 GFLOP/s with whole-width rows (an output block's 392
 //! input rows 1.75 KB apart, each on its own page), 140–160 with the tiles.
 //!
+//! A layer can also write its output straight into the padded tiles of the layer that reads it
+//! ([`conv3d_padded`], [`ConvInput::Padded`]): MFuseNet's feature tower and `concat` then make no
+//! padded copies (about 13 % of the method's time at 960×540 before, all of it memory traffic).
+//!
 //! [`conv3d_with`] adds an epilogue for inference: the ReLU after a folded BatchNorm, and stride
 //! 2 computed on the kept planes and rows only. In training the stride-2 convolution is this
 //! convolution sampled at even positions ([`Tensor::subsample2`]); the stride-2 transposed
@@ -46,6 +50,12 @@ struct Padded {
     depth: usize,
     height: usize,
     row: usize,
+    /// The tensor's own `[c, d, h, w]`.
+    shape: [usize; 4],
+    /// The zero border in each dimension (`K / 2` of the kernel it was made for).
+    p: usize,
+    /// Columns per tile.
+    step: usize,
 }
 
 impl Padded {
@@ -88,7 +98,47 @@ impl Padded {
             depth,
             height,
             row,
+            shape: x.shape,
+            p,
+            step,
         }
+    }
+
+    /// The padded, tiled layout of a `shape` tensor of zeros.
+    fn zeros(shape: [usize; 4], p: usize, step: usize, row: usize) -> Self {
+        let [c, d, h, w] = shape;
+        let (depth, height) = (d + 2 * p, h + 2 * p);
+        let tiles = w.div_ceil(step).max(1);
+        Self {
+            data: vec![0f32; tiles * c * depth * height * row],
+            channels: c,
+            depth,
+            height,
+            row,
+            shape,
+            p,
+            step,
+        }
+    }
+
+    /// The tensor itself, its padding and halos dropped.
+    fn to_tensor(&self) -> Tensor {
+        let [_, d, h, w] = self.shape;
+        let mut out = Tensor::zeros(self.shape);
+        out.data
+            .par_chunks_mut((h * w).max(1))
+            .enumerate()
+            .for_each(|(plane, dst)| {
+                let (cc, z) = (plane / d.max(1), plane % d.max(1));
+                for y in 0..h {
+                    for (t, x0) in (0..w).step_by(self.step.max(1)).enumerate() {
+                        let columns = self.step.min(w - x0);
+                        let at = self.tile_row_start(t, cc, z + self.p, y + self.p) + self.p;
+                        dst[y * w + x0..y * w + x0 + columns].copy_from_slice(&self.data[at..at + columns]);
+                    }
+                }
+            });
+        out
     }
 
     /// Row `(c, z, y)` of the padded grid (tile 0).
@@ -155,7 +205,16 @@ pub fn conv3d_with(
     bias: Option<&[f32]>,
     epilogue: Epilogue,
 ) -> Tensor {
-    conv_source(Source::Borrowed(x), weight, cout, k, bias, epilogue, None)
+    conv_source(
+        ConvInput::Borrowed(x),
+        weight,
+        cout,
+        k,
+        bias,
+        epilogue,
+        Output::Tensor(None),
+    )
+    .tensor()
 }
 
 /// [`conv3d_with`] of an input it is handed: the input is freed once its padded copy is made,
@@ -169,7 +228,38 @@ pub fn conv3d_with_owned(
     bias: Option<&[f32]>,
     epilogue: Epilogue,
 ) -> Tensor {
-    conv_source(Source::Owned(x), weight, cout, k, bias, epilogue, None)
+    conv3d_input(ConvInput::Owned(x), weight, cout, k, bias, epilogue)
+}
+
+/// [`conv3d_with`] of any [`ConvInput`].
+pub fn conv3d_input(
+    x: ConvInput<'_>,
+    weight: &[f32],
+    cout: usize,
+    k: usize,
+    bias: Option<&[f32]>,
+    epilogue: Epilogue,
+) -> Tensor {
+    conv_source(x, weight, cout, k, bias, epilogue, Output::Tensor(None)).tensor()
+}
+
+/// The stride-1 [`conv3d_with`] (bias, then the ReLU with `relu`) written straight into the
+/// padded tiles that a convolution with kernel `next_k` reads: that layer skips its padded copy
+/// of its input (a copy of the whole tensor per layer, bandwidth-bound at full size).
+pub fn conv3d_padded(
+    x: ConvInput<'_>,
+    weight: &[f32],
+    cout: usize,
+    k: usize,
+    bias: Option<&[f32]>,
+    relu: bool,
+    next_k: usize,
+) -> PaddedTensor {
+    let epilogue = Epilogue { stride: 1, relu };
+    match conv_source(x, weight, cout, k, bias, epilogue, Output::Padded(next_k)) {
+        Written::Padded(p) => PaddedTensor(p),
+        Written::Tensor(t) => PaddedTensor::of(&t, next_k),
+    }
 }
 
 /// The kernel `weight` (`[cout][cin][k³]`) restricted to the input channels `channels`:
@@ -190,53 +280,160 @@ pub fn input_channels(weight: &[f32], cout: usize, cin: usize, k: usize, channel
 /// group's input made, added in and freed), so that the whole input never exists. `into` must
 /// have the output's shape (else a new tensor is written).
 pub fn conv3d_accumulate_owned(x: Tensor, weight: &[f32], k: usize, into: Tensor, relu: bool) -> Tensor {
+    conv3d_accumulate_input(ConvInput::Owned(x), weight, k, into, relu)
+}
+
+/// [`conv3d_accumulate_owned`] of any [`ConvInput`].
+pub fn conv3d_accumulate_input(x: ConvInput<'_>, weight: &[f32], k: usize, into: Tensor, relu: bool) -> Tensor {
     let cout = into.shape[0];
     let epilogue = Epilogue { stride: 1, relu };
-    conv_source(Source::Owned(x), weight, cout, k, None, epilogue, Some(into))
+    conv_source(x, weight, cout, k, None, epilogue, Output::Tensor(Some(into))).tensor()
 }
 
-/// A convolution's input, lent or handed over.
-enum Source<'a> {
+/// A convolution's input, lent or handed over; or the output of a convolution written straight
+/// into the padded tiles a convolution with kernel `k` reads ([`conv3d_padded`]), which that
+/// convolution reads without copying.
+pub enum ConvInput<'a> {
+    /// A tensor the caller keeps.
     Borrowed(&'a Tensor),
+    /// A tensor freed once its padded copy is made.
     Owned(Tensor),
+    /// Padded tiles, read as they are when made for this kernel size (else copied).
+    Padded(PaddedTensor),
 }
 
-impl Source<'_> {
-    fn tensor(&self) -> &Tensor {
+/// A tensor held as a convolution reads it: zero-padded and cut into column tiles with their
+/// halos (made by [`conv3d_padded`] for the next layer's kernel size).
+pub struct PaddedTensor(Padded);
+
+impl PaddedTensor {
+    /// `x` padded and tiled for a convolution with kernel `k`.
+    pub fn of(x: &Tensor, k: usize) -> Self {
+        let p = k / 2;
+        PaddedTensor(Padded::tiled(x, p, TILE_BLOCKS * BLOCK, TILE_BLOCKS * BLOCK + 2 * p))
+    }
+
+    /// `[c, d, h, w]` of the tensor it holds.
+    pub fn shape(&self) -> [usize; 4] {
+        self.0.shape
+    }
+
+    /// The tensor it holds.
+    pub fn to_tensor(&self) -> Tensor {
+        self.0.to_tensor()
+    }
+}
+
+impl ConvInput<'_> {
+    fn shape(&self) -> [usize; 4] {
         match self {
-            Source::Borrowed(x) => x,
-            Source::Owned(x) => x,
+            ConvInput::Borrowed(x) => x.shape,
+            ConvInput::Owned(x) => x.shape,
+            ConvInput::Padded(x) => x.0.shape,
+        }
+    }
+
+    /// The padded tiles a kernel of size `2p + 1` reads: the input's own when they are laid out
+    /// so, else a padded copy (the input freed once copied when it was handed over).
+    fn into_padded(self, p: usize, step: usize, row: usize) -> Padded {
+        match self {
+            ConvInput::Borrowed(x) => Padded::tiled(x, p, step, row),
+            ConvInput::Owned(x) => Padded::tiled(&x, p, step, row),
+            ConvInput::Padded(x) if x.0.p == p && x.0.step == step && x.0.row == row => x.0,
+            ConvInput::Padded(x) => Padded::tiled(&x.0.to_tensor(), p, step, row),
         }
     }
 }
 
-/// The convolution of `x`, written into a new tensor or added into `into`.
+/// What a convolution writes.
+enum Output {
+    /// A new tensor, or the sum into `into` where it has the output's shape.
+    Tensor(Option<Tensor>),
+    /// The padded tiles of a convolution with this kernel size (stride 1 only).
+    Padded(usize),
+}
+
+/// What a convolution wrote.
+enum Written {
+    Tensor(Tensor),
+    Padded(Padded),
+}
+
+impl Written {
+    fn tensor(self) -> Tensor {
+        match self {
+            Written::Tensor(t) => t,
+            Written::Padded(p) => p.to_tensor(),
+        }
+    }
+}
+
+/// The convolution of `x`, written into a new tensor, added into one, or written as padded tiles.
 fn conv_source(
-    x: Source<'_>,
+    x: ConvInput<'_>,
     weight: &[f32],
     cout: usize,
     k: usize,
     bias: Option<&[f32]>,
     epilogue: Epilogue,
-    into: Option<Tensor>,
-) -> Tensor {
+    output: Output,
+) -> Written {
     match k {
-        1 => conv_k::<1>(x, weight, cout, bias, epilogue, into),
-        3 => conv_k::<3>(x, weight, cout, bias, epilogue, into),
-        5 => conv_k::<5>(x, weight, cout, bias, epilogue, into),
-        _ => conv_k::<7>(x, weight, cout, bias, epilogue, into),
+        1 => conv_k::<1>(x, weight, cout, bias, epilogue, output),
+        3 => conv_k::<3>(x, weight, cout, bias, epilogue, output),
+        5 => conv_k::<5>(x, weight, cout, bias, epilogue, output),
+        _ => conv_k::<7>(x, weight, cout, bias, epilogue, output),
+    }
+}
+
+/// Where one job (channel group, output plane) writes: its planes of a tensor (`[o]`), or its
+/// plane of each tile of a padded output (`[o][tile]`).
+enum Destination<'a> {
+    Planes(Vec<&'a mut [f32]>),
+    Tiles(Vec<Vec<&'a mut [f32]>>),
+}
+
+/// Output row `y`'s columns `x0 ..` (`values`) of one channel and plane into the padded tiles
+/// (each tile's plane in `tiles`; `step` columns per tile, border `p`, rows `row` long): at their
+/// place in their tile, and the `p` columns at either edge of a tile into the neighbour tile's
+/// halo as well.
+fn write_tiles(tiles: &mut [&mut [f32]], values: &[f32], x0: usize, y: usize, step: usize, p: usize, row: usize) {
+    let t = x0 / step;
+    let at = (y + p) * row;
+    let start = x0 % step;
+    if let Some(tile) = tiles.get_mut(t) {
+        tile[at + start + p..at + start + p + values.len()].copy_from_slice(values);
+    }
+    let end = start + values.len();
+    // The columns within `p` of the tile's left edge are the previous tile's right halo too …
+    if t > 0
+        && start < p
+        && let Some(previous) = tiles.get_mut(t - 1)
+    {
+        for xm in start..p.min(end) {
+            previous[at + step + p + xm] = values[xm - start];
+        }
+    }
+    // … and those within `p` of its right edge the next tile's left halo.
+    let from = step.saturating_sub(p).max(start);
+    if from < end
+        && let Some(next) = tiles.get_mut(t + 1)
+    {
+        for xm in from..end {
+            next[at + xm + p - step] = values[xm - start];
+        }
     }
 }
 
 fn conv_k<const K: usize>(
-    source: Source<'_>,
+    source: ConvInput<'_>,
     weight: &[f32],
     cout: usize,
     bias: Option<&[f32]>,
     epilogue: Epilogue,
-    into: Option<Tensor>,
-) -> Tensor {
-    let [cin, d, h, w] = source.tensor().shape;
+    output: Output,
+) -> Written {
+    let [cin, d, h, w] = source.shape();
     // 1 or 2 (blocks start at multiples of 24 columns, so even columns stay even).
     let stride = epilogue.stride.clamp(1, 2);
     let (od, oh, ow) = (d.div_ceil(stride), h.div_ceil(stride), w.div_ceil(stride));
@@ -244,9 +441,8 @@ fn conv_k<const K: usize>(
     let p = K / 2;
     let blocks = w.div_ceil(BLOCK);
     let step = TILE_BLOCKS * BLOCK;
-    let padded = Padded::tiled(source.tensor(), p, step, step + K - 1);
-    // Only the padded copy is read from here on.
-    drop(source);
+    // Only the padded tiles are read from here on (a handed-over input freed once copied).
+    let padded = source.into_padded(p, step, step + K - 1);
     let groups = cout.div_ceil(GROUP);
     // Weights per group as [i][td][th][tw][4] (missing channels zero).
     let taps = K * K * K;
@@ -272,22 +468,74 @@ fn conv_k<const K: usize>(
     // at half the speed (81 against 137 GFLOP/s on 2 AMD EPYC vCPUs).
     let tiles = blocks.div_ceil(TILE_BLOCKS);
     let plane = oh * ow;
+    let (into, padded_for) = match output {
+        Output::Tensor(into) => (into, None),
+        // Padded output at stride 1 only (a strided layer's output is a tensor, padded by its reader).
+        Output::Padded(next_k) if stride == 1 => (None, Some(next_k)),
+        Output::Padded(_) => (None, None),
+    };
     // Added into `into` when it has the output's shape (stride 1).
     let accumulate = stride == 1 && into.as_ref().is_some_and(|t| t.shape == [cout, od, oh, ow]);
-    let mut out = into
-        .filter(|_| accumulate)
-        .unwrap_or_else(|| Tensor::zeros([cout, od, oh, ow]));
+    let mut written = match padded_for {
+        Some(next_k) => {
+            let np = next_k / 2;
+            Written::Padded(Padded::zeros([cout, od, oh, ow], np, step, step + 2 * np))
+        }
+        None => Written::Tensor(
+            into.filter(|_| accumulate)
+                .unwrap_or_else(|| Tensor::zeros([cout, od, oh, ow])),
+        ),
+    };
+    let (out_p, out_row) = match &written {
+        Written::Padded(out) => (out.p, out.row),
+        Written::Tensor(_) => (0, 0),
+    };
     // One job per (channel group, output plane), writing its output planes in place: the planes
-    // of `out` ([c][z]) regrouped as [g][z][o].
-    let mut planes: Vec<Option<&mut [f32]>> = out.data.chunks_mut(plane.max(1)).map(Some).collect();
-    let jobs: Vec<(usize, usize, Vec<&mut [f32]>)> = (0..groups)
+    // of the tensor ([c][z]) regrouped as [g][z][o], or of the padded tiles ([t][c][z']) as
+    // [g][z][o][t].
+    let channel_range = |g: usize| g * GROUP..((g + 1) * GROUP).min(cout);
+    let mut destinations: Vec<Destination<'_>> = match &mut written {
+        Written::Tensor(out) => {
+            let mut planes: Vec<Option<&mut [f32]>> = out.data.chunks_mut(plane.max(1)).map(Some).collect();
+            (0..groups)
+                .flat_map(|g| (0..od).map(move |z| (g, z)))
+                .map(|(g, z)| {
+                    Destination::Planes(
+                        channel_range(g)
+                            .filter_map(|channel| planes.get_mut(channel * od + z).and_then(Option::take))
+                            .collect(),
+                    )
+                })
+                .collect()
+        }
+        Written::Padded(out) => {
+            let (np, depth, chunk) = (out.p, out.depth, (out.height * out.row).max(1));
+            let mut chunks: Vec<Option<&mut [f32]>> = out.data.chunks_mut(chunk).map(Some).collect();
+            let tiles_out = w.div_ceil(step).max(1);
+            (0..groups)
+                .flat_map(|g| (0..od).map(move |z| (g, z)))
+                .map(|(g, z)| {
+                    Destination::Tiles(
+                        channel_range(g)
+                            .map(|channel| {
+                                (0..tiles_out)
+                                    .filter_map(|t| {
+                                        chunks
+                                            .get_mut((t * cout + channel) * depth + z + np)
+                                            .and_then(Option::take)
+                                    })
+                                    .collect()
+                            })
+                            .collect(),
+                    )
+                })
+                .collect()
+        }
+    };
+    let jobs: Vec<(usize, usize, Destination<'_>)> = (0..groups)
         .flat_map(|g| (0..od).map(move |z| (g, z)))
-        .map(|(g, z)| {
-            let mine = (g * GROUP..((g + 1) * GROUP).min(cout))
-                .filter_map(|channel| planes.get_mut(channel * od + z).and_then(Option::take))
-                .collect();
-            (g, z * stride, mine)
-        })
+        .zip(destinations.drain(..))
+        .map(|((g, z), dst)| (g, z * stride, dst))
         .collect();
     jobs.into_par_iter().for_each(|(g, z, mut dst)| {
         let weights = &packed[g * cin * taps * GROUP..(g + 1) * cin * taps * GROUP];
@@ -327,36 +575,54 @@ fn conv_k<const K: usize>(
                         }
                     }
                     let columns = BLOCK.min(w - x0);
-                    for (o, (acc_o, plane_o)) in acc.iter().zip(dst.iter_mut()).enumerate() {
-                        let add = bias.map_or(0.0, |bias| bias[g * GROUP + o]);
-                        let row = &mut plane_o[y / stride * ow..(y / stride + 1) * ow];
-                        if stride == 1 && columns == BLOCK {
-                            // A whole block: its vectors written as they are.
-                            for (v, out) in acc_o.iter().zip(row[x0..x0 + BLOCK].chunks_exact_mut(LANES)) {
-                                let mut value = *v + f32x8::splat(add);
-                                if accumulate {
-                                    value += load(out);
+                    match &mut dst {
+                        Destination::Tiles(tiles) => {
+                            for (o, (acc_o, tiles_o)) in acc.iter().zip(tiles.iter_mut()).enumerate() {
+                                let add = bias.map_or(0.0, |bias| bias[g * GROUP + o]);
+                                let mut values = [0f32; BLOCK];
+                                for (v, lanes) in values.chunks_exact_mut(LANES).zip(acc_o) {
+                                    let mut value = *lanes + f32x8::splat(add);
+                                    if relu {
+                                        value = value.max(f32x8::ZERO);
+                                    }
+                                    v.copy_from_slice(&value.to_array());
                                 }
-                                if relu {
-                                    value = value.max(f32x8::ZERO);
-                                }
-                                out.copy_from_slice(&value.to_array());
+                                write_tiles(tiles_o, &values[..columns], x0, y, step, out_p, out_row);
                             }
-                            continue;
                         }
-                        let lanes: [[f32; LANES]; VECTORS] = acc_o.map(|v| v.to_array());
-                        if accumulate {
-                            for (c, v) in row[x0..x0 + columns].iter_mut().enumerate() {
-                                *v = activate(*v + lanes[c / LANES][c % LANES] + add, relu);
-                            }
-                        } else if stride == 1 {
-                            for (c, v) in row[x0..x0 + columns].iter_mut().enumerate() {
-                                *v = activate(lanes[c / LANES][c % LANES] + add, relu);
-                            }
-                        } else {
-                            // x0 is a multiple of the stride (BLOCK is, for the strides 1 and 2).
-                            for c in (0..columns).step_by(stride) {
-                                row[(x0 + c) / stride] = activate(lanes[c / LANES][c % LANES] + add, relu);
+                        Destination::Planes(planes) => {
+                            for (o, (acc_o, plane_o)) in acc.iter().zip(planes.iter_mut()).enumerate() {
+                                let add = bias.map_or(0.0, |bias| bias[g * GROUP + o]);
+                                let row = &mut plane_o[y / stride * ow..(y / stride + 1) * ow];
+                                if stride == 1 && columns == BLOCK {
+                                    // A whole block: its vectors written as they are.
+                                    for (v, out) in acc_o.iter().zip(row[x0..x0 + BLOCK].chunks_exact_mut(LANES)) {
+                                        let mut value = *v + f32x8::splat(add);
+                                        if accumulate {
+                                            value += load(out);
+                                        }
+                                        if relu {
+                                            value = value.max(f32x8::ZERO);
+                                        }
+                                        out.copy_from_slice(&value.to_array());
+                                    }
+                                    continue;
+                                }
+                                let lanes: [[f32; LANES]; VECTORS] = acc_o.map(|v| v.to_array());
+                                if accumulate {
+                                    for (c, v) in row[x0..x0 + columns].iter_mut().enumerate() {
+                                        *v = activate(*v + lanes[c / LANES][c % LANES] + add, relu);
+                                    }
+                                } else if stride == 1 {
+                                    for (c, v) in row[x0..x0 + columns].iter_mut().enumerate() {
+                                        *v = activate(lanes[c / LANES][c % LANES] + add, relu);
+                                    }
+                                } else {
+                                    // x0 is a multiple of the stride (BLOCK is, for the strides 1 and 2).
+                                    for c in (0..columns).step_by(stride) {
+                                        row[(x0 + c) / stride] = activate(lanes[c / LANES][c % LANES] + add, relu);
+                                    }
+                                }
                             }
                         }
                     }
@@ -364,7 +630,7 @@ fn conv_k<const K: usize>(
             }
         }
     });
-    out
+    written
 }
 
 /// The kernel of the input gradient: `[cin][cout][k³]` with every tap flipped, so that the
@@ -588,6 +854,49 @@ pub(crate) mod tests {
             let weight_grad = conv3d_same_weight_grad(&x, &grad, k);
             let expected_weight_grad = reference::conv3d_weight_grad(&x, &grad, k);
             assert_close(&weight_grad, &expected_weight_grad, 1e-4, "weight grad");
+        }
+    }
+
+    #[test]
+    fn layers_that_write_the_next_ones_padded_tiles_give_the_plain_chain() {
+        // Widths around the 48-column tile (halos on both sides of a boundary, a last tile of a
+        // few columns), kernels 5 → 3 → 3 → 7 as a tower then a wider layer, and a padded
+        // output read by a kernel it was not made for (copied again).
+        for (seed, &[d, h, w]) in [[3usize, 4, 101], [2, 3, 49], [4, 2, 47], [2, 5, 9]].iter().enumerate() {
+            let seed = seed as u64 * 10;
+            let x = random([1, d, h, w], seed);
+            let layers: [(usize, usize, usize); 4] = [(1, 4, 5), (4, 4, 3), (4, 4, 3), (4, 2, 7)];
+            let weights: Vec<Vec<f32>> = layers
+                .iter()
+                .enumerate()
+                .map(|(i, &(cin, cout, k))| random_values(cout * cin * k * k * k, seed + 1 + i as u64))
+                .collect();
+            let biases: Vec<Vec<f32>> = layers
+                .iter()
+                .enumerate()
+                .map(|(i, &(_, cout, _))| random_values(cout, seed + 5 + i as u64))
+                .collect();
+            let relu = Epilogue { stride: 1, relu: true };
+            let mut plain = x.clone();
+            for (((_, cout, k), weight), bias) in layers.iter().zip(&weights).zip(&biases) {
+                plain = conv3d_with(&plain, weight, *cout, *k, Some(bias), relu);
+            }
+            let mut chained = ConvInput::Borrowed(&x);
+            for i in 0..3 {
+                let (_, cout, k) = layers[i];
+                // The third layer's tiles are made for kernel 5, which the 7³ layer does not read.
+                let next_k = if i == 2 { 5 } else { layers[i + 1].2 };
+                let padded = conv3d_padded(chained, &weights[i], cout, k, Some(&biases[i]), true, next_k);
+                assert_eq!(padded.shape(), [cout, d, h, w]);
+                chained = ConvInput::Padded(padded);
+            }
+            let (_, cout, k) = layers[3];
+            let got = conv3d_input(chained, &weights[3], cout, k, Some(&biases[3]), relu);
+            assert_close(&got.data, &plain.data, 1e-4, &format!("chain over {d}x{h}x{w}"));
+            // A padded output back to a tensor.
+            let padded = conv3d_padded(ConvInput::Borrowed(&x), &weights[0], 4, 5, Some(&biases[0]), true, 3);
+            let first = conv3d_with(&x, &weights[0], 4, 5, Some(&biases[0]), relu);
+            assert_eq!(padded.to_tensor().data, first.data, "{d}x{h}x{w}");
         }
     }
 
