@@ -112,8 +112,8 @@ fn methods(c: &mut Criterion) {
 fn mfusenet(c: &mut Criterion) {
     use fuse::nn::Tensor;
     use fuse::nn::conv::{
-        Epilogue, conv3d_accumulate_owned, conv3d_same, conv3d_same_input_grad, conv3d_same_weight_grad,
-        conv3d_with_owned, input_channels,
+        ConvInput, Epilogue, conv3d_accumulate_input, conv3d_input, conv3d_same, conv3d_same_input_grad,
+        conv3d_same_weight_grad, input_channels,
     };
     let shape = [8, 32, 96, 128];
     let x = Tensor {
@@ -151,9 +151,9 @@ fn mfusenet(c: &mut Criterion) {
     group.bench_function("conv_k7_8to4_forward_two_groups", |b| {
         b.iter(|| {
             let (first, own) = half(0);
-            let sum = conv3d_with_owned(first, &own, 4, 7, None, Epilogue::default());
+            let sum = conv3d_input(ConvInput::Owned(first), &own, 4, 7, None, Epilogue::default());
             let (second, own) = half(1);
-            black_box(conv3d_accumulate_owned(second, &own, 7, sum, true))
+            black_box(conv3d_accumulate_input(ConvInput::Owned(second), &own, 7, sum, true))
         })
     });
     let three_view = Problem {

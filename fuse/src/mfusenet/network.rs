@@ -28,8 +28,8 @@ use crate::nn::Tensor;
 use crate::nn::batch_norm::{BatchNorm, BatchNormCache};
 use crate::nn::conv::{
     ConvInput, Epilogue, PaddedTensor, conv3d_accumulate_input, conv3d_input, conv3d_padded, conv3d_same,
-    conv3d_same_input_grad, conv3d_same_weight_grad, conv3d_with, conv3d_with_owned, input_channels,
-    transposed_as_conv, transposed_weight_grad,
+    conv3d_same_input_grad, conv3d_same_weight_grad, conv3d_with, input_channels, transposed_as_conv,
+    transposed_weight_grad,
 };
 use crate::nn::regression::{smooth_l1, soft_argmin, soft_argmin_backward};
 
@@ -250,7 +250,7 @@ impl ConvBn {
         }
         let (weight, bias) = self.bn.fold_into(&self.conv_weight());
         let epilogue = Epilogue { stride: 1, relu: true };
-        conv3d_with_owned(x, &weight, self.cout, self.k, Some(&bias), epilogue)
+        conv3d_input(ConvInput::Owned(x), &weight, self.cout, self.k, Some(&bias), epilogue)
     }
 
     /// [`ConvBn::forward_eval`] of any input, written straight into the padded tiles that a layer

@@ -217,21 +217,9 @@ pub fn conv3d_with(
     .tensor()
 }
 
-/// [`conv3d_with`] of an input it is handed: the input is freed once its padded copy is made,
-/// before the output is allocated (inference's widest layer, `concat`, holds its 16 feature
-/// channels once instead of twice).
-pub fn conv3d_with_owned(
-    x: Tensor,
-    weight: &[f32],
-    cout: usize,
-    k: usize,
-    bias: Option<&[f32]>,
-    epilogue: Epilogue,
-) -> Tensor {
-    conv3d_input(ConvInput::Owned(x), weight, cout, k, bias, epilogue)
-}
-
-/// [`conv3d_with`] of any [`ConvInput`].
+/// [`conv3d_with`] of any [`ConvInput`]: one handed over (`Owned`) is freed once its padded copy
+/// is made, before the output is allocated (inference's widest layer, `concat`, holds its 16
+/// feature channels once instead of twice).
 pub fn conv3d_input(
     x: ConvInput<'_>,
     weight: &[f32],
@@ -263,7 +251,7 @@ pub fn conv3d_padded(
 }
 
 /// The kernel `weight` (`[cout][cin][k³]`) restricted to the input channels `channels`:
-/// `[cout][channels.len()][k³]`, for [`conv3d_accumulate_owned`] over a group of channels.
+/// `[cout][channels.len()][k³]`, for [`conv3d_accumulate_input`] over a group of channels.
 pub fn input_channels(weight: &[f32], cout: usize, cin: usize, k: usize, channels: std::ops::Range<usize>) -> Vec<f32> {
     let taps = k * k * k;
     (0..cout)
@@ -275,15 +263,10 @@ pub fn input_channels(weight: &[f32], cout: usize, cin: usize, k: usize, channel
         .collect()
 }
 
-/// `into += conv3d_same(x, weight, cout, k, None)`, then `max(0, ·)` with `relu`; `x` freed once
-/// padded: a convolution over many input channels computed a group of channels at a time (each
-/// group's input made, added in and freed), so that the whole input never exists. `into` must
-/// have the output's shape (else a new tensor is written).
-pub fn conv3d_accumulate_owned(x: Tensor, weight: &[f32], k: usize, into: Tensor, relu: bool) -> Tensor {
-    conv3d_accumulate_input(ConvInput::Owned(x), weight, k, into, relu)
-}
-
-/// [`conv3d_accumulate_owned`] of any [`ConvInput`].
+/// `into += conv3d_same(x, weight, cout, k, None)`, then `max(0, ·)` with `relu`; `x` (if
+/// handed over) freed once padded: a convolution over many input channels computed a group of
+/// channels at a time (each group's input made, added in and freed), so that the whole input
+/// never exists. `into` must have the output's shape (else a new tensor is written).
 pub fn conv3d_accumulate_input(x: ConvInput<'_>, weight: &[f32], k: usize, into: Tensor, relu: bool) -> Tensor {
     let cout = into.shape[0];
     let epilogue = Epilogue { stride: 1, relu };
@@ -799,9 +782,9 @@ pub(crate) mod tests {
             (part, own)
         };
         let (first, own) = group(0);
-        let sum = conv3d_with_owned(first, &own, cout, k, Some(&bias), Epilogue::default());
+        let sum = conv3d_input(ConvInput::Owned(first), &own, cout, k, Some(&bias), Epilogue::default());
         let (second, own) = group(1);
-        let got = conv3d_accumulate_owned(second, &own, k, sum, true);
+        let got = conv3d_accumulate_input(ConvInput::Owned(second), &own, k, sum, true);
         assert_eq!(got.shape, expected.shape);
         assert_close(&got.data, &expected.data, 1e-4, "accumulated");
         assert!(got.data.contains(&0.0) && got.data.iter().any(|v| *v > 0.0));
