@@ -477,12 +477,12 @@ fn conv_k<const K: usize>(
     // of the tensor ([c][z]) regrouped as [g][z][o], or of the padded tiles ([t][c][z']) as
     // [g][z][o][t].
     let channel_range = |g: usize| g * GROUP..((g + 1) * GROUP).min(cout);
-    let mut destinations: Vec<Destination<'_>> = match &mut written {
+    let keys: Vec<(usize, usize)> = (0..groups).flat_map(|g| (0..od).map(move |z| (g, z))).collect();
+    let destinations: Vec<Destination<'_>> = match &mut written {
         Written::Tensor(out) => {
             let mut planes: Vec<Option<&mut [f32]>> = out.data.chunks_mut(plane.max(1)).map(Some).collect();
-            (0..groups)
-                .flat_map(|g| (0..od).map(move |z| (g, z)))
-                .map(|(g, z)| {
+            keys.iter()
+                .map(|&(g, z)| {
                     Destination::Planes(
                         channel_range(g)
                             .filter_map(|channel| planes.get_mut(channel * od + z).and_then(Option::take))
@@ -495,9 +495,8 @@ fn conv_k<const K: usize>(
             let (np, depth, chunk) = (out.p, out.depth, (out.height * out.row).max(1));
             let mut chunks: Vec<Option<&mut [f32]>> = out.data.chunks_mut(chunk).map(Some).collect();
             let tiles_out = w.div_ceil(step).max(1);
-            (0..groups)
-                .flat_map(|g| (0..od).map(move |z| (g, z)))
-                .map(|(g, z)| {
+            keys.iter()
+                .map(|&(g, z)| {
                     Destination::Tiles(
                         channel_range(g)
                             .map(|channel| {
@@ -515,10 +514,10 @@ fn conv_k<const K: usize>(
                 .collect()
         }
     };
-    let jobs: Vec<(usize, usize, Destination<'_>)> = (0..groups)
-        .flat_map(|g| (0..od).map(move |z| (g, z)))
-        .zip(destinations.drain(..))
-        .map(|((g, z), dst)| (g, z * stride, dst))
+    let jobs: Vec<(usize, usize, Destination<'_>)> = keys
+        .iter()
+        .zip(destinations)
+        .map(|(&(g, z), dst)| (g, z * stride, dst))
         .collect();
     jobs.into_par_iter().for_each(|(g, z, mut dst)| {
         let weights = &packed[g * cin * taps * GROUP..(g + 1) * cin * taps * GROUP];
