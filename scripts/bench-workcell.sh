@@ -4,10 +4,10 @@
 #   2. bm-heuristic and sgm-heuristic on it with 128 disparities against OpenCV StereoBM (four
 #      pairs) and StereoSGBM MODE_HH (one pair): scripts/bench-replay.py (goals <= 1.0 x, <= 0.5 x,
 #      process wall <= 1.2 x the method's time);
-#   3. mfusenet on a five-view 640x360 toy capture with its working range (32 + 4 slices) and on
+#   3. mfusenet on a five-view 640x360 toy capture with its working range (the lite network on 16 + 8 slices of context) and on
 #      the demo's 960x540 capture: method time, AvgErr, Bad1 (goal <= 5 s at 960x540);
-#   4. with TORCH_PYTHON (a Python with torch and safetensors): the reference network in PyTorch on
-#      the same 640x360 shape, N = 4, and on Middlebury third size, N = 2, against ours (goals
+#   4. with TORCH_PYTHON (a Python with torch and safetensors): the same network in PyTorch on
+#      the 640x360 capture's shape (and on 40 slices), N = 4, and on Middlebury third size, N = 2, against ours (goals
 #      <= 0.10 x and <= 0.25 x);
 #   5. `replay demo`, whole (goal <= 30 s).
 # With OLD=DIR (a folder holding an earlier build's `record` and `replay`), each of our figures is
@@ -54,8 +54,14 @@ done
 
 if [ -n "${TORCH_PYTHON:-}" ]; then
     echo "== 4. the reference network in PyTorch (network only, best of 2)"
-    "$TORCH_PYTHON" scripts/bench-pytorch.py --views 4 --disparities 36 --height 360 --width 640 --train-steps 0 \
-        --weights fuse/weights/mfusenet-5view.safetensors | python3 -c "import json,sys;d=json.load(sys.stdin);print(f\"pytorch {d['torch']}, N=4 36x360x640: {d['inference']['seconds']:.2f} s\")"
+    # The default five-view network (lite) on the shape our run gave it (its slices, context and
+    # padding included: the summary's details), and on the 40 slices it had when narrow ranges
+    # were widened to 32 disparities.
+    slices=$(python3 -c "import json,sys;print(json.load(open(sys.argv[1]))['sets'][0]['details']['network_num_disparities'])" "$T/m640-new/summary.json")
+    for dd in $(printf '%s\n' "$slices" 40 | sort -un); do
+        "$TORCH_PYTHON" scripts/bench-pytorch.py --views 4 --architecture lite --disparities "$dd" --height 360 --width 640 --train-steps 0 \
+            --weights fuse/weights/mfusenet-5view-lite.safetensors | python3 -c "import json,sys;d=json.load(sys.stdin);print(f\"pytorch {d['torch']}, lite N=4 $dd×360×640: {d['inference']['seconds']:.2f} s\")"
+    done
     "$TORCH_PYTHON" scripts/bench-pytorch.py --train-steps 0 --weights fuse/weights/mfusenet-3view.safetensors \
         | python3 -c "import json,sys;d=json.load(sys.stdin);print(f\"pytorch {d['torch']}, N=2 32x372x428: {d['inference']['seconds']:.2f} s\")"
     DATA=../shared/data/middlebury2006-third-dev

@@ -157,6 +157,12 @@ pub struct MFuseNetConfig {
     /// (64 → 1/2, 96 → 1/3, 128 → 1/4), then the minimum of the summed input costs at full size
     /// within ± factor px of its answer. `replay` logs the level and range the network saw.
     pub max_direct_disparities: usize,
+    /// The fewest disparities the network is run on: a narrower search range is widened
+    /// evenly on both sides to this many and the result clamped back into it (see
+    /// [`widened_range`]); 16 = [`MIN_NETWORK_DISPARITIES`]. Weights trained without context
+    /// below their range may need the 32 they were trained on.
+    #[serde(default = "min_network_disparities")]
+    pub min_network_disparities: usize,
     /// Every cross and opposite pair of the set, not only the nearest: each baseline's cross or
     /// its horizontal and vertical pairs go to the network that takes them
     /// (`mfusenet::input::view_groups`), and their log-probabilities are averaged with a vote
@@ -234,6 +240,7 @@ impl Default for MFuseNetConfig {
             room_below: None,
             flips: false,
             max_direct_disparities: DEFAULT_MAX_DIRECT_DISPARITIES,
+            min_network_disparities: MIN_NETWORK_DISPARITIES,
             every_view: None,
             farther_vote: DEFAULT_FARTHER_VOTE,
             side_inputs: true,
@@ -417,7 +424,7 @@ impl Method for MFuseNet {
         let Ok(loaded) = self.network_for(problem) else {
             return serde_json::Value::Null;
         };
-        let (min_disparity, num_disparities) = widened_range(range).unwrap_or(range);
+        let (min_disparity, num_disparities) = widened_range(range, self.config.min_network_disparities).unwrap_or(range);
         let room_below = self.config.room_below.unwrap_or(loaded.context_below);
         // Each input of the nearest group and the views it was made from, where one has several.
         let side_inputs = self
@@ -636,7 +643,7 @@ impl MFuseNet {
     fn network_estimate(&self, problem: &Problem, progress: Progress<'_>) -> Result<NetworkEstimate, FuseError> {
         let requested = (problem.min_disparity, problem.num_disparities);
         let widened;
-        let problem = match widened_range(requested) {
+        let problem = match widened_range(requested, self.config.min_network_disparities) {
             Some((min_disparity, num_disparities)) => {
                 widened = Problem {
                     min_disparity,
@@ -929,21 +936,26 @@ fn cost_agreement(disparity: &DisparityImage, costs: &CostVolume<u16>, first: i6
         .collect()
 }
 
-/// The fewest disparities the networks see: the depth the shipped weights were trained on. A
-/// narrower search range gives the network a volume shape it never saw (the demo's 16
-/// num_disparities: Bad1 16 % against 2 % over 32), so the costs are computed over this many
-/// around the requested range, and the result clamped back into it.
-pub const MIN_NETWORK_DISPARITIES: usize = 32;
+/// The fewest disparities the networks see. A narrower search range gives the network a volume
+/// shape it was not trained on (the shipped weights saw 32 and more), so the costs are computed
+/// over this many around the requested range, and the result clamped back into it. 32 was
+/// needed before the networks had context below their range (the demo's 16 disparities: Bad1
+/// 16 % against 2 % over 32); with it, 16 is as accurate as 32 or better for every shipped
+/// network and runs the network on 20 slices instead of 36 (the demo's capture 1.55 × faster;
+/// docs/experiments.md, "The networks on 16 disparities").
+pub const MIN_NETWORK_DISPARITIES: usize = 16;
 
 /// The range `(min, count)` searched for a requested `(min, count)` narrower than
 /// [`MIN_NETWORK_DISPARITIES`]: widened evenly on both sides (signed: a range near 0 reaches
 /// under it); `None` when wide enough.
-pub fn widened_range((min_disparity, num_disparities): (i32, usize)) -> Option<(i32, usize)> {
-    let extra = MIN_NETWORK_DISPARITIES
-        .checked_sub(num_disparities)
-        .filter(|e| *e > 0)?;
+pub fn widened_range((min_disparity, num_disparities): (i32, usize), fewest: usize) -> Option<(i32, usize)> {
+    let extra = fewest.checked_sub(num_disparities).filter(|e| *e > 0)?;
     let below = i32::try_from(extra / 2).unwrap_or(0);
-    Some((min_disparity - below, MIN_NETWORK_DISPARITIES))
+    Some((min_disparity - below, fewest))
+}
+
+fn min_network_disparities() -> usize {
+    MIN_NETWORK_DISPARITIES
 }
 
 fn build(
@@ -1156,13 +1168,16 @@ mod tests {
 
     #[test]
     fn narrow_ranges_are_widened_evenly_on_both_sides() {
-        assert_eq!(widened_range((24, 16)), Some((16, 32)));
-        assert_eq!(widened_range((3, 16)), Some((-5, 32)));
-        assert_eq!(widened_range((0, 8)), Some((-12, 32)));
-        assert_eq!(widened_range((-20, 16)), Some((-28, 32)));
-        assert_eq!(widened_range((10, 31)), Some((10, 32)));
-        assert_eq!(widened_range((0, 32)), None);
-        assert_eq!(widened_range((5, 64)), None);
+        assert_eq!(widened_range((24, 8), MIN_NETWORK_DISPARITIES), Some((20, 16)));
+        assert_eq!(widened_range((3, 9), MIN_NETWORK_DISPARITIES), Some((0, 16)));
+        assert_eq!(widened_range((-4, 9), MIN_NETWORK_DISPARITIES), Some((-7, 16)));
+        assert_eq!(widened_range((24, 16), 32), Some((16, 32)));
+        assert_eq!(widened_range((0, 8), 32), Some((-12, 32)));
+        assert_eq!(widened_range((-20, 16), 32), Some((-28, 32)));
+        assert_eq!(widened_range((10, 31), 32), Some((10, 32)));
+        assert_eq!(widened_range((0, 16), MIN_NETWORK_DISPARITIES), None);
+        assert_eq!(widened_range((0, 32), 32), None);
+        assert_eq!(widened_range((5, 64), MIN_NETWORK_DISPARITIES), None);
     }
 
     #[test]
