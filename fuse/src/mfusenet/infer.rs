@@ -1,7 +1,8 @@
 //! Inference over whole images with bounded memory: D, H and W are padded to multiples of 4
 //! (edge values repeated), the image is cut into square tiles whose side follows from a memory
-//! budget, each tile is run with a halo of [`HALO`] pixels (more than the network's receptive
-//! radius, 46 px, and a multiple of 4 so that every tile's stride-2 grids are the whole image's),
+//! budget, each tile is run with a halo of [`Architecture::halo`](super::network::Architecture::halo) pixels (the network's receptive
+//! radius, 43 px for the paper's kernels and 35 for the lite ones, rounded up to a multiple of 4
+//! so that every tile's stride-2 grids are the whole image's),
 //! and only the tile's core is kept. The result equals the untiled run up to rounding. The
 //! soft-argmin runs over the real disparities only (padded slices are dropped).
 
@@ -14,9 +15,6 @@ use crate::cost::ValidDisparities;
 use crate::nn::Tensor;
 use crate::volume::CostVolume;
 use crate::wta::{LockingCurve, SubpixelFit};
-
-/// Pixels of context around each tile (≥ the receptive radius, a multiple of 4).
-pub const HALO: usize = 48;
 
 /// Default memory budget of one tile's activations (a Middlebury third-size set runs whole, and
 /// a five-view 640×360 set of 36 slices). With the allocator keeping freed pages the process
@@ -38,11 +36,11 @@ fn round4(n: usize) -> usize {
 }
 
 /// The side of a square tile core (a multiple of 4, at least 16) whose padded region fits
-/// `budget_bytes` at `disparities` slices.
-pub fn tile_side(views: usize, num_disparities: usize, budget_bytes: usize) -> usize {
+/// `budget_bytes` at `disparities` slices with a `halo` around it.
+pub fn tile_side(views: usize, num_disparities: usize, budget_bytes: usize, halo: usize) -> usize {
     let voxels = budget_bytes / bytes_per_voxel(views) / round4(num_disparities).max(1);
     let region = (voxels as f64).sqrt() as usize;
-    (region.saturating_sub(2 * HALO) / 4 * 4).max(16)
+    (region.saturating_sub(2 * halo) / 4 * 4).max(16)
 }
 
 /// The tiles along one axis: each core and its region (the core with its halo).
@@ -169,7 +167,7 @@ pub fn infer_with_confidence(
         (true, false) => Some(flip_axes(&offsets).ok_or_else(no_mirror)?),
     };
     let dp = round4(nd);
-    let tiles = tiles((w, h, nd), volumes.len(), budget_bytes);
+    let tiles = tiles((w, h, nd), volumes.len(), budget_bytes, net.architecture.halo());
     let mut disparity = vec![0f32; w * h];
     let mut confidence = vec![0f32; w * h];
     for (done, ((rows, region_rows), (columns, region_columns))) in tiles.iter().enumerate() {
@@ -252,15 +250,15 @@ fn check_shapes(volumes: &[CostVolume<u8>], (w, h, nd): (usize, usize, usize)) -
 
 /// The tiles `(rows, region rows), (columns, region columns)` of a `w × h × nd` set for a
 /// network of `views` inputs under `budget_bytes`: the whole padded image when it fits, else
-/// [`plan_tiles`]'s cores with their [`HALO`].
-fn tiles((w, h, nd): (usize, usize, usize), views: usize, budget_bytes: usize) -> Vec<(Tile, Tile)> {
+/// [`plan_tiles`]'s cores with their `halo`.
+fn tiles((w, h, nd): (usize, usize, usize), views: usize, budget_bytes: usize, halo: usize) -> Vec<(Tile, Tile)> {
     let (dp, hp, wp) = (round4(nd), round4(h), round4(w));
     let whole = dp * hp * wp * bytes_per_voxel(views) <= budget_bytes;
     let (row_tiles, column_tiles) = if whole {
         (axis_tiles(hp, hp, 0), axis_tiles(wp, wp, 0))
     } else {
-        let side = tile_side(views, nd, budget_bytes) + 2 * HALO;
-        plan_tiles(hp, wp, side * side, HALO)
+        let side = tile_side(views, nd, budget_bytes, halo) + 2 * halo;
+        plan_tiles(hp, wp, side * side, halo)
     };
     row_tiles
         .iter()
@@ -329,7 +327,8 @@ pub fn infer_fused(
     }
     let widest = members.iter().map(|m| m.net.views).max().unwrap_or(1);
     let dp = round4(nd);
-    let tiles = tiles((w, h, nd), widest, budget_bytes);
+    let halo = members.iter().map(|m| m.net.architecture.halo()).max().unwrap_or(0);
+    let tiles = tiles((w, h, nd), widest, budget_bytes, halo);
     let total_weight: f32 = members.iter().map(|m| m.net.views as f32 * m.vote).sum();
     // With a member that votes only where its views see, each member's logits become
     // log-probabilities (their softmax is unchanged; their offsets then agree) and every
@@ -590,6 +589,10 @@ pub fn expected_disparity_from(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::mfusenet::network::Architecture;
+
+    /// The halo of the paper's kernels, which the test networks have.
+    const HALO: usize = Architecture::Paper.halo();
 
     #[test]
     fn the_peak_margin_measures_the_searched_mode_against_the_next_best() {
@@ -688,7 +691,7 @@ mod tests {
         }
         // The demo's 960 × 540 under the default budget: three tiles of whole columns (3 × 2
         // at 192 bytes a voxel and 1 GiB, when the concatenated features were whole).
-        let side = tile_side(4, 36, DEFAULT_TILE_BUDGET_BYTES) + 2 * HALO;
+        let side = tile_side(4, 36, DEFAULT_TILE_BUDGET_BYTES, HALO) + 2 * HALO;
         let (rows, columns) = plan_tiles(540, 960, side * side, HALO);
         assert_eq!((rows.len(), columns.len()), (1, 3));
     }
@@ -854,7 +857,7 @@ mod tests {
         let volumes = [volume(0), volume(1)];
         let whole = infer(&net, &volumes, usize::MAX, Estimate::default(), &|_| {}).unwrap_or_else(|e| panic!("{e}"));
         let budget = (16 + 2 * HALO).pow(2) * 12 * bytes_per_voxel(2);
-        assert_eq!(tile_side(2, nd, budget), 16);
+        assert_eq!(tile_side(2, nd, budget, HALO), 16);
         let (rows, columns) = plan_tiles(132, 152, (16 + 2 * HALO).pow(2), HALO);
         assert!(rows.len() * columns.len() > 1, "the test must cut tiles");
         let tiled = infer(&net, &volumes, budget, Estimate::default(), &|_| {}).unwrap_or_else(|e| panic!("{e}"));
@@ -920,6 +923,45 @@ mod tests {
             ),
             "{error:?}"
         );
+    }
+
+    #[test]
+    fn the_lite_network_tiled_with_its_own_smaller_halo_equals_the_whole_image() {
+        let halo = Architecture::Lite.halo();
+        assert!(halo < HALO);
+        let mut net = Network::init_with(2, Architecture::Lite, 9);
+        // Weights that carry far context into every output (PyTorch's initialisation damps it
+        // below f32's resolution within the halo of the paper's network) and a soft softmax, so
+        // that a halo too small changes the disparities.
+        for layer in net.feature.iter_mut().chain(net.fuse.iter_mut()) {
+            for w in &mut layer.weight {
+                *w *= 3.0;
+            }
+        }
+        for w in &mut net.classify.weight {
+            *w *= 40.0;
+        }
+        let (w, h, nd) = (150, 129, 10);
+        let volumes: Vec<_> = [("left", [-1, 0]), ("right", [1, 0])]
+            .into_iter()
+            .enumerate()
+            .map(|(seed, (role, offset))| {
+                CostVolume::from_fn([w, h, nd], 3, (role, offset), |x, y, d| {
+                    let i = (y * w + x) * nd + d;
+                    ((x * 5 + y * 7 + d * (13 + seed) + seed * 3 + (i * i) % 11) as u8) % 89
+                })
+            })
+            .collect();
+        let whole = infer(&net, &volumes, usize::MAX, Estimate::default(), &|_| {}).unwrap_or_else(|e| panic!("{e}"));
+        let budget = (16 + 2 * halo).pow(2) * 12 * bytes_per_voxel(2);
+        assert!(tiles((w, h, nd), 2, budget, halo).len() > 1, "the test must cut tiles");
+        let tiled = infer(&net, &volumes, budget, Estimate::default(), &|_| {}).unwrap_or_else(|e| panic!("{e}"));
+        let worst = whole.iter().zip(&tiled).map(|(a, b)| (a - b).abs()).fold(0f32, f32::max);
+        // Bit for bit: every output's sums run in the same order whole or tiled, and the halo
+        // holds all that reaches it (4 px less moves outputs by up to 0.007 px, 12 px less 0.35 px).
+        assert!(worst == 0.0, "tiled differs by {worst} px");
+        let spread = whole.iter().fold(0f32, |m, d| m.max(*d)) - whole.iter().fold(f32::MAX, |m, d| m.min(*d));
+        assert!(spread > 0.01, "spread {spread}");
     }
 
     #[test]

@@ -89,7 +89,7 @@ impl Architecture {
     }
 
     /// Kernel sizes of `feature.0`, `.2`, `.4`, `.6`.
-    fn feature_kernels(self) -> [usize; 4] {
+    const fn feature_kernels(self) -> [usize; 4] {
         match self {
             Architecture::Paper => [7, 5, 5, 3],
             Architecture::Lite => [5, 3, 3, 3],
@@ -97,7 +97,7 @@ impl Architecture {
     }
 
     /// Kernel sizes of `concat`, `dconv21`, `uconv2` and `distill1` (the other layers are k3).
-    fn fuse_kernels(self) -> [usize; 4] {
+    const fn fuse_kernels(self) -> [usize; 4] {
         match self {
             Architecture::Paper => [7, 7, 7, 5],
             Architecture::Lite => [3, 7, 3, 3],
@@ -111,9 +111,30 @@ impl Architecture {
 
     /// The receptive radius (px, in H and W) of the last full-resolution layers together:
     /// `uconv2`, `distill1` and `classify` (k3: 1); 6 for the paper's (3 + 2 + 1).
-    pub fn last_layers_radius(self) -> usize {
+    pub const fn last_layers_radius(self) -> usize {
         let [_, _, uconv2, distill1] = self.fuse_kernels();
         uconv2 / 2 + distill1 / 2 + 1
+    }
+
+    /// The receptive radius (px, in H and W) of a logit: how far an input voxel can change it.
+    /// The longest path runs through the quarter-size level: the feature tower and `concat`,
+    /// `down1` and `dconv1` (± 1 px and ± 2 px at half size), `down2` (± 2 px), `dconv21` and
+    /// `dconv22` at a quarter (± 4 px per tap), back up through `up1` (± 2 px), `uconv1` (± 2 px)
+    /// and `up2` (± 1 px), then the last layers. 43 for the paper's kernels, 35 for the lite
+    /// ones: what an impulse reaches at any phase of the quarter-size grid (test).
+    pub const fn receptive_radius(self) -> usize {
+        let [f0, f2, f4, f6] = self.feature_kernels();
+        let tower = f0 / 2 + f2 / 2 + f4 / 2 + f6 / 2;
+        let [concat, dconv21, ..] = self.fuse_kernels();
+        let u_net = 1 + 2 + 2 + 4 * (dconv21 / 2) + 4 + 2 + 2 + 1;
+        tower + concat / 2 + u_net + self.last_layers_radius()
+    }
+
+    /// Pixels of context around each inference tile: the receptive radius rounded up to a
+    /// multiple of 4, so that every tile's stride-2 grids are the whole image's: 44 for the
+    /// paper's kernels, 36 for the lite ones.
+    pub const fn halo(self) -> usize {
+        self.receptive_radius().div_ceil(4) * 4
     }
 }
 
@@ -1073,5 +1094,57 @@ mod pooled_tests {
                 ..
             })
         ));
+    }
+}
+
+#[cfg(test)]
+mod receptive_tests {
+    use super::*;
+    use crate::nn::conv::tests::random;
+
+    /// How far (px, in H and W) a change of one input pixel (every slice) of a random network
+    /// reaches in its logits.
+    fn measured_radius(architecture: Architecture) -> usize {
+        let mut net = Network::init_with(2, architecture, 3);
+        // Non-zero BatchNorm shifts, so that the ReLUs pass the change on.
+        for layer in net.feature.iter_mut().chain(net.fuse.iter_mut()) {
+            for (i, b) in layer.bn.bias.iter_mut().enumerate() {
+                *b = 0.1 * (i as f32 + 1.0);
+            }
+        }
+        let (d, h, w) = (8, 8, 128);
+        let inputs = [random([1, d, h, w], 1), random([1, d, h, w], 2)];
+        let before = net.logits(&inputs).unwrap_or_else(|e| panic!("{e}"));
+        // The impulse at each phase of the quarter-size grid.
+        let mut reach = 0;
+        for x0 in 60..64 {
+            let mut changed = inputs.clone();
+            for z in 0..d {
+                let at = changed[0].index(0, z, 4, x0);
+                changed[0].data[at] += 10.0;
+            }
+            let after = net.logits(&changed).unwrap_or_else(|e| panic!("{e}"));
+            for (i, (a, b)) in before.data.iter().zip(&after.data).enumerate() {
+                if a != b {
+                    reach = reach.max((i % w).abs_diff(x0));
+                }
+            }
+        }
+        reach
+    }
+
+    #[test]
+    fn the_receptive_radius_is_what_an_impulse_reaches_and_the_halo_covers_it() {
+        for architecture in Architecture::ALL {
+            let measured = measured_radius(architecture);
+            let radius = architecture.receptive_radius();
+            assert!(
+                measured == radius,
+                "{}: an impulse reaches {measured} px, the formula says {radius}",
+                architecture.name()
+            );
+            assert!(architecture.halo() >= measured && architecture.halo() % 4 == 0);
+        }
+        assert_eq!((Architecture::Paper.halo(), Architecture::Lite.halo()), (44, 36));
     }
 }
