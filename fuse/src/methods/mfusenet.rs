@@ -424,7 +424,8 @@ impl Method for MFuseNet {
         let Ok(loaded) = self.network_for(problem) else {
             return serde_json::Value::Null;
         };
-        let (min_disparity, num_disparities) = widened_range(range, self.config.min_network_disparities).unwrap_or(range);
+        let (min_disparity, num_disparities) =
+            widened_range(range, self.config.min_network_disparities).unwrap_or(range);
         let room_below = self.config.room_below.unwrap_or(loaded.context_below);
         // Each input of the nearest group and the views it was made from, where one has several.
         let side_inputs = self
