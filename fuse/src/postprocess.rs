@@ -176,13 +176,14 @@ pub fn weighted_median_with_votes(
             (-(dx * dx + dy * dy) * (step * step) as f32 / two_var).exp()
         })
         .collect();
-    // The window's values are binned by eighths of a pixel (coarser beyond 8192 px of range),
-    // the bins grouped in blocks of 16:
-    // the block holding the weighted median is found from the blocks' sums, its bin from the
-    // bins', and only that bin's values are sorted.
-    const BINS_PER_PX: f32 = 8.0;
-    const MAX_BINS: f32 = 65_536.0;
-    const BLOCK: usize = 16;
+    // The window's values are binned by 64ths of a pixel (coarser beyond 64 px of range, so
+    // that there are at most 4096 bins), the bins grouped in blocks of 32: the block holding the
+    // weighted median is found from the blocks' sums, its bin from the bins', and only that
+    // bin's values are sorted (on a smooth surface the window's 121 values fall within a pixel:
+    // eighths of a pixel left dozens of them to sort).
+    const BINS_PER_PX: f32 = 64.0;
+    const MAX_BINS: f32 = 4096.0;
+    const BLOCK: usize = 32;
     let finite = || disparity.data.iter().copied().filter(|v| v.is_finite());
     let (low, high) = (
         finite().fold(f32::INFINITY, f32::min),
@@ -192,7 +193,7 @@ pub fn weighted_median_with_votes(
         // No finite value at all.
         return Ok(disparity.clone());
     }
-    // Coarser bins for a range wider than 8192 px, so that the bins stay few.
+    // Coarser bins for a range wider than 64 px, so that the bins stay few.
     let per_px = BINS_PER_PX.min(MAX_BINS / (high - low).max(1.0));
     let bins = ((high - low) * per_px) as usize + 1;
     let bin = |v: f32| (((v - low) * per_px) as usize).min(bins - 1);
@@ -731,9 +732,11 @@ mod tests {
             state = state.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
             state >> 8
         };
-        for (w, h, channels, f) in [
-            (37, 29, 3, WeightedMedian::default()),
-            (23, 31, 1, WeightedMedian::default()),
+        // The clusters 17.3 px apart, or 1730 px (bins coarser than 1/64 px: at most 4096 of them).
+        for (w, h, channels, f, apart) in [
+            (37, 29, 3, WeightedMedian::default(), 17.3),
+            (23, 31, 1, WeightedMedian::default(), 17.3),
+            (29, 23, 3, WeightedMedian::default(), 1730.0),
             (
                 30,
                 20,
@@ -744,6 +747,7 @@ mod tests {
                     sigma_colour: 20.0,
                     sigma_space_px: 3.0,
                 },
+                17.3,
             ),
         ] {
             let image = Image {
@@ -752,14 +756,14 @@ mod tests {
                 channels,
                 data: (0..w * h * channels).map(|_| (next() % 256) as u8).collect(),
             };
-            // Values in a few clusters (several per 1/8 px bin) and some invalid pixels.
+            // Values in a few clusters (several per bin) and some invalid pixels.
             let d = DisparityImage {
                 width: w,
                 height: h,
                 data: (0..w * h)
                     .map(|_| match next() % 10 {
                         0 => f32::INFINITY,
-                        k => (k % 3) as f32 * 17.3 + (next() % 1000) as f32 / 997.0,
+                        k => (k % 3) as f32 * apart + (next() % 1000) as f32 / 997.0,
                     })
                     .collect(),
                 confidence: None,
