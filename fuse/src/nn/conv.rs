@@ -389,22 +389,19 @@ fn write_tiles(tiles: &mut [&mut [f32]], values: &[f32], x0: usize, y: usize, st
     }
     let end = start + values.len();
     // The columns within `p` of the tile's left edge are the previous tile's right halo too …
+    let to = p.min(end);
     if t > 0
-        && start < p
+        && start < to
         && let Some(previous) = tiles.get_mut(t - 1)
     {
-        for xm in start..p.min(end) {
-            previous[at + step + p + xm] = values[xm - start];
-        }
+        previous[at + step + p + start..at + step + p + to].copy_from_slice(&values[..to - start]);
     }
     // … and those within `p` of its right edge the next tile's left halo.
     let from = step.saturating_sub(p).max(start);
     if from < end
         && let Some(next) = tiles.get_mut(t + 1)
     {
-        for xm in from..end {
-            next[at + xm + p - step] = values[xm - start];
-        }
+        next[at + from + p - step..at + end + p - step].copy_from_slice(&values[from - start..end - start]);
     }
 }
 
