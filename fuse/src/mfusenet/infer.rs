@@ -833,6 +833,16 @@ mod tests {
         assert!(differs(&weighted.0, &seen.0) > 10, "the smaller vote changed nothing");
     }
 
+    /// The largest difference (px) between `whole` and the network run in tiles under `budget`.
+    fn worst_tiled_difference(net: &Network, volumes: &[CostVolume<u8>], budget: usize, whole: &[f32]) -> f32 {
+        let tiled = infer(net, volumes, budget, Estimate::default(), &|_| {}).unwrap_or_else(|e| panic!("{e}"));
+        whole
+            .iter()
+            .zip(&tiled)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0f32, f32::max)
+    }
+
     #[test]
     fn tiled_inference_equals_the_whole_image() {
         let mut net = Network::init(2, 7);
@@ -860,12 +870,7 @@ mod tests {
         assert_eq!(tile_side(2, nd, budget, HALO), 16);
         let (rows, columns) = plan_tiles(132, 152, (16 + 2 * HALO).pow(2), HALO);
         assert!(rows.len() * columns.len() > 1, "the test must cut tiles");
-        let tiled = infer(&net, &volumes, budget, Estimate::default(), &|_| {}).unwrap_or_else(|e| panic!("{e}"));
-        let worst = whole
-            .iter()
-            .zip(&tiled)
-            .map(|(a, b)| (a - b).abs())
-            .fold(0f32, f32::max);
+        let worst = worst_tiled_difference(&net, &volumes, budget, &whole);
         assert!(worst < 1e-3, "tiled differs by {worst} px");
         // With test-time flips too: each haloed tile's mirror is the mirrored image's tile.
         let flips = Estimate {
@@ -955,12 +960,7 @@ mod tests {
         let whole = infer(&net, &volumes, usize::MAX, Estimate::default(), &|_| {}).unwrap_or_else(|e| panic!("{e}"));
         let budget = (16 + 2 * halo).pow(2) * 12 * bytes_per_voxel(2);
         assert!(tiles((w, h, nd), 2, budget, halo).len() > 1, "the test must cut tiles");
-        let tiled = infer(&net, &volumes, budget, Estimate::default(), &|_| {}).unwrap_or_else(|e| panic!("{e}"));
-        let worst = whole
-            .iter()
-            .zip(&tiled)
-            .map(|(a, b)| (a - b).abs())
-            .fold(0f32, f32::max);
+        let worst = worst_tiled_difference(&net, &volumes, budget, &whole);
         // Bit for bit: every output's sums run in the same order whole or tiled, and the halo
         // holds all that reaches it (4 px less moves outputs by up to 0.007 px, 12 px less 0.35 px).
         assert!(worst == 0.0, "tiled differs by {worst} px");
