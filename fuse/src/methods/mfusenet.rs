@@ -159,7 +159,7 @@ pub struct MFuseNetConfig {
     pub max_direct_disparities: usize,
     /// The fewest disparities the network is run on: a narrower search range is widened
     /// evenly on both sides to this many and the result clamped back into it (see
-    /// [`widened_range`]); 16 = [`MIN_NETWORK_DISPARITIES`]. Weights trained without context
+    /// [`widened_range`]); 16 = [`MIN_NETWORK_DISPARITIES`], at most 64. Weights trained without context
     /// below their range may need the 32 they were trained on.
     #[serde(default = "min_network_disparities")]
     pub min_network_disparities: usize,
@@ -628,6 +628,13 @@ impl MFuseNet {
                 reason: "a vote weight from 0 to 1",
             });
         }
+        if self.config.min_network_disparities > MAX_MIN_NETWORK_DISPARITIES {
+            return Err(FuseError::Config {
+                field: "min_network_disparities",
+                value: self.config.min_network_disparities.to_string(),
+                reason: "at most 64 disparities (a narrow range is widened to this many)",
+            });
+        }
         if let Some(room_below) = self.config.room_below
             && room_below > weights::MAX_CONTEXT_BELOW
         {
@@ -942,9 +949,13 @@ fn cost_agreement(disparity: &DisparityImage, costs: &CostVolume<u16>, first: i6
 /// over this many around the requested range, and the result clamped back into it. 32 was
 /// needed before the networks had context below their range (the demo's 16 disparities: Bad1
 /// 16 % against 2 % over 32); with it, 16 is as accurate as 32 or better for every shipped
-/// network and runs the network on 20 slices instead of 36 (the demo's capture 1.55 × faster;
+/// network and runs the network on 24 slices instead of 40 where the range is 16 (the lite
+/// five-view file's 8 of context included: the demo's capture 1.55 × faster;
 /// docs/experiments.md, "The networks on 16 disparities").
 pub const MIN_NETWORK_DISPARITIES: usize = 16;
+
+/// The largest [`MFuseNetConfig::min_network_disparities`].
+pub const MAX_MIN_NETWORK_DISPARITIES: usize = 64;
 
 /// The range `(min, count)` searched for a requested `(min, count)` narrower than
 /// [`MIN_NETWORK_DISPARITIES`]: widened evenly on both sides (signed: a range near 0 reaches
@@ -1179,6 +1190,21 @@ mod tests {
         assert_eq!(widened_range((0, 16), MIN_NETWORK_DISPARITIES), None);
         assert_eq!(widened_range((0, 32), 32), None);
         assert_eq!(widened_range((5, 64), MIN_NETWORK_DISPARITIES), None);
+        // Wider than the networks' trained depths is refused before any work.
+        let problem = plane_sized(&[[-1, 0], [1, 0]], 4, (0, 8), (32, 24));
+        let config = serde_json::json!({"min_network_disparities": MAX_MIN_NETWORK_DISPARITIES + 1});
+        let method = crate::methods::build("mfusenet", Some(&config)).unwrap_or_else(|e| panic!("{e}"));
+        let error = method.run(&problem, &|_| {}).err();
+        assert!(
+            matches!(
+                error,
+                Some(FuseError::Config {
+                    field: "min_network_disparities",
+                    ..
+                })
+            ),
+            "{error:?}"
+        );
     }
 
     #[test]
