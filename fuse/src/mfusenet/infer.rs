@@ -23,10 +23,12 @@ use crate::wta::{LockingCurve, SubpixelFit};
 pub const DEFAULT_TILE_BUDGET_BYTES: usize = 768 << 20;
 
 /// Peak bytes per voxel of a forward pass with `views` inputs: the N input volumes plus about 20
-/// channels alive at the widest point (`uconv2`'s 8 input channels and their padded copy beside
-/// the 4 of `concat`; the concatenated features are never whole), 4 bytes each. Measured: 84 B
-/// per voxel live at N = 4 (a 640×360 five-view set of 36 slices whole, 775 MB peak RSS with
-/// `MIMALLOC_PURGE_DELAY=0`).
+/// channels alive at the widest point (a view's feature tower, its padded input and output and a
+/// spare buffer of 4 channels each with their borders, beside the 4 of `concat`'s sum; neither
+/// the concatenated features nor `uconv2`'s 8 input channels are ever whole), 4 bytes each.
+/// Measured at N = 4: the demo's 960×540 capture (24 slices) whole, 1.09 GB peak RSS for the
+/// whole process with `MIMALLOC_PURGE_DELAY=0` (88 B per voxel; 84 B live on a 640×360 set of
+/// 36 slices before the spare buffers).
 pub fn bytes_per_voxel(views: usize) -> usize {
     4 * (views + 20)
 }

@@ -647,26 +647,36 @@ impl Network {
         let cup1 = self.fuse[UCONV1].forward_eval_owned(skip1);
         let u2 = self.fuse[UP2].forward_eval(&cup1);
         drop(cup1);
-        // The widest point at full resolution: the 8 skip channels and their padded copy, over
-        // `keep` and the last layers' reach only (a row or column the crop cuts off is read as
-        // the zero padding: it only changes outputs within the margin, which are not kept).
+        // The last layers at full resolution over `keep` and their reach only (a row or column
+        // the crop cuts off is read as the zero padding: it only changes outputs within the
+        // margin, which are not kept).
         let radius = self.architecture.last_layers_radius();
         let rows = keep.0.start.saturating_sub(radius)..(keep.0.end + radius).min(h);
         let columns = keep.1.start.saturating_sub(radius)..(keep.1.end + radius).min(w);
         let origin = (rows.start, columns.start);
-        let skip2 = if rows.len() == h && columns.len() == w {
-            Tensor::concat(&[&u2, &c])
+        let (u2, c) = if rows.len() == h && columns.len() == w {
+            (u2, c)
         } else {
-            Tensor::concat(&[&u2.crop_hw(rows.clone(), columns.clone()), &c.crop_hw(rows, columns)])
+            (u2.crop_hw(rows.clone(), columns.clone()), c.crop_hw(rows, columns))
         };
-        drop((u2, c));
-        let cup2 = self.fuse[UCONV2].forward_eval_owned(skip2);
+        // `uconv2` over the skip connection's two halves, one after the other (each convolved
+        // with its channels of the kernel and added in, then freed), as `concat` over the views:
+        // the 8-channel concatenation and its padded copy, the network's widest point, never exist.
+        let layer = &self.fuse[UCONV2];
+        let (weight, bias) = layer.bn.fold_into(&layer.conv_weight());
+        let [cout, k] = [layer.cout, layer.k];
+        let halves = [u2.shape[0], u2.shape[0] + c.shape[0]];
+        let upper = input_channels(&weight, cout, halves[1], k, 0..halves[0]);
+        let skipped = input_channels(&weight, cout, halves[1], k, halves[0]..halves[1]);
+        let plain = Epilogue { stride: 1, relu: false };
+        let cup2 = conv3d_input(ConvInput::Owned(u2), &upper, cout, k, Some(&bias), plain);
+        let cup2 = conv3d_accumulate_input(ConvInput::Owned(c), &skipped, k, cup2, true);
         let f = residual(self.fuse[DISTILL1].forward_eval(&cup2), &cup2);
         drop(cup2);
-        Ok((
-            conv3d_same(&f, &self.classify.weight, 1, 3, Some(&self.classify.bias)),
-            origin,
-        ))
+        let logits = conv3d_same(&f, &self.classify.weight, 1, 3, Some(&self.classify.bias));
+        drop(f);
+        crate::nn::conv::release_spares();
+        Ok((logits, origin))
     }
 
     /// Train mode: the disparity with batch-statistics BatchNorms (running statistics updated,

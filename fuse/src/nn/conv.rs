@@ -15,6 +15,9 @@
 //! A layer can also write its output straight into the padded tiles of the layer that reads it
 //! ([`conv3d_padded`], [`ConvInput::Padded`]): MFuseNet's feature tower and `concat` then make no
 //! padded copies (about 13 % of the method's time at 960×540 before, all of it memory traffic).
+//! The padded buffers a layer frees are kept (two per thread) for the next layer's padded input
+//! or output, which then zeroes only its border: neither a whole-buffer `memset` nor fresh pages
+//! faulted in and cleared by the kernel, per layer, at over 100 MB each.
 //!
 //! [`conv3d_with`] adds an epilogue for inference: the ReLU after a folded BatchNorm, and stride
 //! 2 computed on the kept planes and rows only. In training the stride-2 convolution is this
@@ -69,21 +72,26 @@ impl Padded {
         let [c, d, h, w] = x.shape;
         let (depth, height) = (d + 2 * p, h + 2 * p);
         let tiles = w.div_ceil(step).max(1);
-        let mut data = vec![0f32; tiles * c * depth * height * row];
+        let (mut data, dirty) = spare_buffer(tiles * c * depth * height * row);
+        let layout = Layout {
+            shape: x.shape,
+            p,
+            step,
+            row,
+        };
         // One (tile, channel) block per task.
         data.par_chunks_mut((depth * height * row).max(1))
             .enumerate()
             .for_each(|(block, dst)| {
-                let (t, cc) = (block / c, block % c);
-                // Padded columns [t·step, t·step + row) of the whole padded row, i.e. source columns
-                // from t·step − p.
-                let first = (t * step) as isize - p as isize;
-                let from_col = first.max(0) as usize;
-                let to_col = ((first + row as isize).max(0) as usize).min(w);
+                let t = block / c.max(1);
+                if dirty {
+                    layout.zero_border(dst, t);
+                }
+                let cc = block % c.max(1);
+                let (from_col, to_col, offset) = layout.columns(t);
                 if from_col >= to_col {
                     return;
                 }
-                let offset = (from_col as isize - first) as usize;
                 for z in 0..d {
                     for y in 0..h {
                         let from = x.index(cc, z, y, from_col);
@@ -104,13 +112,22 @@ impl Padded {
         }
     }
 
-    /// The padded, tiled layout of a `shape` tensor of zeros.
-    fn zeros(shape: [usize; 4], p: usize, step: usize, row: usize) -> Self {
+    /// The padded, tiled layout of a `shape` tensor whose every value the caller writes
+    /// ([`write_tiles`]): the zero border is zero, the rest unspecified (a spare buffer's old
+    /// values).
+    fn for_writing(shape: [usize; 4], p: usize, step: usize, row: usize) -> Self {
         let [c, d, h, w] = shape;
         let (depth, height) = (d + 2 * p, h + 2 * p);
         let tiles = w.div_ceil(step).max(1);
+        let (mut data, dirty) = spare_buffer(tiles * c * depth * height * row);
+        if dirty {
+            let layout = Layout { shape, p, step, row };
+            data.par_chunks_mut((depth * height * row).max(1))
+                .enumerate()
+                .for_each(|(block, dst)| layout.zero_border(dst, block / c.max(1)));
+        }
         Self {
-            data: vec![0f32; tiles * c * depth * height * row],
+            data,
             channels: c,
             depth,
             height,
@@ -159,6 +176,116 @@ impl Padded {
     fn tile_row_start(&self, t: usize, c: usize, z: usize, y: usize) -> usize {
         (((t * self.channels + c) * self.depth + z) * self.height + y) * self.row
     }
+}
+
+impl Drop for Padded {
+    /// The buffer kept as a spare for the next layer's padded tiles (see [`spare_buffer`]).
+    fn drop(&mut self) {
+        let data = std::mem::take(&mut self.data);
+        if data.len() >= MIN_SPARE_FLOATS {
+            offer_spare(data);
+        }
+    }
+}
+
+/// Where the values of a tensor lie in its padded tiles ([`Padded`]), for zeroing the rest.
+#[derive(Debug, Clone, Copy)]
+struct Layout {
+    /// The tensor's `[c, d, h, w]`.
+    shape: [usize; 4],
+    p: usize,
+    step: usize,
+    row: usize,
+}
+
+impl Layout {
+    /// Tile `t`'s columns of the tensor, `from .. to`, and where the first lies in the tile's
+    /// rows (its own columns and the halos its neighbours give it).
+    fn columns(&self, t: usize) -> (usize, usize, usize) {
+        let w = self.shape[3];
+        // Padded columns [t·step, t·step + row) of the whole padded row, i.e. tensor columns from
+        // t·step − p.
+        let first = (t * self.step) as isize - self.p as isize;
+        let from = first.max(0) as usize;
+        let to = ((first + self.row as isize).max(0) as usize).min(w);
+        (from, to, (from as isize - first).max(0) as usize)
+    }
+
+    /// Zeroes everything of one (tile `t`, channel) block that holds no tensor value: the
+    /// border planes and rows, and the columns outside [`Layout::columns`].
+    fn zero_border(&self, block: &mut [f32], t: usize) {
+        let [_, d, h, _] = self.shape;
+        let (p, row) = (self.p, self.row);
+        let (height, plane) = (h + 2 * p, (h + 2 * p) * row);
+        let (from, to, offset) = self.columns(t);
+        let width = to.saturating_sub(from);
+        for (z, plane_values) in block.chunks_mut(plane.max(1)).enumerate() {
+            if z < p || z >= d + p {
+                plane_values.fill(0.0);
+                continue;
+            }
+            for (y, values) in plane_values.chunks_mut(row.max(1)).enumerate().take(height) {
+                if y < p || y >= h + p || width == 0 {
+                    values.fill(0.0);
+                } else {
+                    values[..offset.min(row)].fill(0.0);
+                    values[(offset + width).min(row)..].fill(0.0);
+                }
+            }
+        }
+    }
+}
+
+thread_local! {
+    /// Buffers of padded tiles that this thread's layers no longer need, kept for the next
+    /// ones: a layer's padded input or output taken from here is neither zeroed whole (`calloc`
+    /// of reused memory) nor faulted in afresh (memory handed back to the system between
+    /// layers), only its border zeroed. At full size a layer's tensor is over 100 MB and that
+    /// zeroing was a tenth of MFuseNet's time (docs/benchmarks.md).
+    static SPARES: std::cell::RefCell<Vec<Vec<f32>>> = const { std::cell::RefCell::new(Vec::new()) };
+}
+
+/// At most this many spares per thread: a layer frees its input while its output is alive,
+/// the next one takes it; more would only hold memory.
+const MAX_SPARES: usize = 2;
+/// Smaller buffers (the coarse levels', tests') are left to the allocator.
+const MIN_SPARE_FLOATS: usize = 1 << 18;
+
+/// Keeps `data` as a spare of this thread (dropped when it has [`MAX_SPARES`]).
+fn offer_spare(data: Vec<f32>) {
+    SPARES.with_borrow_mut(|spares| {
+        if spares.len() < MAX_SPARES {
+            spares.push(data);
+        }
+    });
+}
+
+/// A buffer of `len` floats and whether it is dirty: this thread's smallest spare that holds
+/// `len` (its old values left in place), else a new zeroed one.
+fn spare_buffer(len: usize) -> (Vec<f32>, bool) {
+    let spare = SPARES.with_borrow_mut(|spares| {
+        let best = (0..spares.len())
+            .filter(|&i| spares[i].capacity() >= len)
+            .min_by_key(|&i| spares[i].capacity())?;
+        Some(spares.swap_remove(best))
+    });
+    match spare {
+        Some(mut data) => {
+            if data.len() >= len {
+                data.truncate(len);
+            } else {
+                data.resize(len, 0.0);
+            }
+            (data, true)
+        }
+        None => (vec![0f32; len], false),
+    }
+}
+
+/// Frees this thread's spare buffers (at the end of a network's pass, so that they do not hold
+/// memory through what follows).
+pub fn release_spares() {
+    SPARES.with_borrow_mut(Vec::clear);
 }
 
 #[inline]
@@ -459,7 +586,7 @@ fn conv_k<const K: usize>(
     let mut written = match padded_for {
         Some(next_k) => {
             let np = next_k / 2;
-            Written::Padded(Padded::zeros([cout, od, oh, ow], np, step, step + 2 * np))
+            Written::Padded(Padded::for_writing([cout, od, oh, ow], np, step, step + 2 * np))
         }
         None => Written::Tensor(
             into.filter(|_| accumulate)
@@ -876,6 +1003,35 @@ pub(crate) mod tests {
             let padded = conv3d_padded(ConvInput::Borrowed(&x), &weights[0], 4, 5, Some(&biases[0]), true, 3);
             let first = conv3d_with(&x, &weights[0], 4, 5, Some(&biases[0]), relu);
             assert_eq!(padded.to_tensor().data, first.data, "{d}x{h}x{w}");
+        }
+    }
+
+    #[test]
+    fn padded_tiles_in_dirty_spare_buffers_give_the_plain_convolutions() {
+        // Every layer's padded input and output taken from spares full of NaN (old values of
+        // another layer): only the values written and the zeroed border may be read.
+        for &[d, h, w] in &[[3usize, 4, 101], [2, 3, 49], [4, 2, 47], [2, 5, 9]] {
+            let x = random([1, d, h, w], 3);
+            let (w1, w2) = (random_values(4 * 125, 4), random_values(2 * 4 * 27, 5));
+            let relu = Epilogue { stride: 1, relu: true };
+            release_spares();
+            let expected_first = conv3d_with(&x, &w1, 4, 5, None, relu);
+            let expected = conv3d_with(&expected_first, &w2, 2, 3, None, relu);
+            for _ in 0..MAX_SPARES {
+                offer_spare(vec![f32::NAN; 4 * (d + 6) * (h + 6) * (w + 60)]);
+            }
+            let first = conv3d_padded(ConvInput::Borrowed(&x), &w1, 4, 5, None, true, 3);
+            let got = conv3d_input(ConvInput::Padded(first), &w2, 2, 3, None, relu);
+            // Both taken (buffers this small are not kept again).
+            assert_eq!(SPARES.with_borrow(Vec::len), 0, "{d}x{h}x{w}: spares left unused");
+            let differ = got
+                .data
+                .iter()
+                .zip(&expected.data)
+                .filter(|(a, b)| a.to_bits() != b.to_bits())
+                .count();
+            assert_eq!(differ, 0, "{d}x{h}x{w}: values that differ, of {}", got.data.len());
+            release_spares();
         }
     }
 
