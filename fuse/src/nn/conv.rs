@@ -77,13 +77,13 @@ impl Padded {
         let [c, d, h, w] = x.shape;
         let (depth, height) = (d + 2 * p, h + 2 * p);
         let tiles = w.div_ceil(step).max(1);
-        let (mut data, dirty) = spare_buffer(tiles * c * depth * height * row);
         let layout = Layout {
             shape: x.shape,
             p,
             step,
             row,
         };
+        let (mut data, dirty) = spare_buffer(tiles * c * depth * height * row, layout);
         // One (tile, padded plane) block per task.
         data.par_chunks_mut((height * c * row).max(1))
             .enumerate()
@@ -124,9 +124,9 @@ impl Padded {
         let [c, d, h, w] = shape;
         let (depth, height) = (d + 2 * p, h + 2 * p);
         let tiles = w.div_ceil(step).max(1);
-        let (mut data, dirty) = spare_buffer(tiles * c * depth * height * row);
+        let layout = Layout { shape, p, step, row };
+        let (mut data, dirty) = spare_buffer(tiles * c * depth * height * row, layout);
         if dirty {
-            let layout = Layout { shape, p, step, row };
             data.par_chunks_mut((height * c * row).max(1))
                 .enumerate()
                 .for_each(|(block, dst)| layout.zero_border(dst, block / depth.max(1), block % depth.max(1)));
@@ -188,13 +188,19 @@ impl Drop for Padded {
     fn drop(&mut self) {
         let data = std::mem::take(&mut self.data);
         if data.len() >= MIN_SPARE_FLOATS {
-            offer_spare(data);
+            let layout = Layout {
+                shape: self.shape,
+                p: self.p,
+                step: self.step,
+                row: self.row,
+            };
+            offer_spare(data, Some(layout));
         }
     }
 }
 
 /// Where the values of a tensor lie in its padded tiles ([`Padded`]), for zeroing the rest.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 struct Layout {
     /// The tensor's `[c, d, h, w]`.
     shape: [usize; 4],
@@ -247,7 +253,8 @@ thread_local! {
     /// of reused memory) nor faulted in afresh (memory handed back to the system between
     /// layers), only its border zeroed. At full size a layer's tensor is over 100 MB and that
     /// zeroing was a tenth of MFuseNet's time (docs/benchmarks.md).
-    static SPARES: std::cell::RefCell<Vec<Vec<f32>>> = const { std::cell::RefCell::new(Vec::new()) };
+    /// Each with the layout it held (`None`: unknown), whose border is zero.
+    static SPARES: std::cell::RefCell<Vec<Spare>> = const { std::cell::RefCell::new(Vec::new()) };
 }
 
 /// At most this many spares per thread: a layer frees its input while its output is alive,
@@ -256,26 +263,37 @@ const MAX_SPARES: usize = 2;
 /// Smaller buffers (the coarse levels', tests') are left to the allocator.
 const MIN_SPARE_FLOATS: usize = 1 << 18;
 
+/// A spare buffer and the layout of the padded tiles it held (their border zero), if known.
+type Spare = (Vec<f32>, Option<Layout>);
+
 /// Keeps `data` as a spare of this thread (dropped when it has [`MAX_SPARES`]).
-fn offer_spare(data: Vec<f32>) {
+fn offer_spare(data: Vec<f32>, layout: Option<Layout>) {
     SPARES.with_borrow_mut(|spares| {
         if spares.len() < MAX_SPARES {
-            spares.push(data);
+            spares.push((data, layout));
         }
     });
 }
 
-/// A buffer of `len` floats and whether it is dirty: this thread's smallest spare that holds
-/// `len` (its old values left in place), else a new zeroed one.
-fn spare_buffer(len: usize) -> (Vec<f32>, bool) {
+/// A buffer of `len` floats for padded tiles laid out as `layout`, and whether its border must
+/// be zeroed: this thread's spare that held the same layout (its border zero already: a feature
+/// tower's layers all share one), else its smallest spare that holds `len` (old values left in
+/// place), else a new zeroed one.
+fn spare_buffer(len: usize, layout: Layout) -> (Vec<f32>, bool) {
     let spare = SPARES.with_borrow_mut(|spares| {
-        let best = (0..spares.len())
-            .filter(|&i| spares[i].capacity() >= len)
-            .min_by_key(|&i| spares[i].capacity())?;
+        let same = spares
+            .iter()
+            .position(|(data, held)| *held == Some(layout) && data.len() == len);
+        let best = same.or_else(|| {
+            (0..spares.len())
+                .filter(|&i| spares[i].0.capacity() >= len)
+                .min_by_key(|&i| spares[i].0.capacity())
+        })?;
         Some(spares.swap_remove(best))
     });
     match spare {
-        Some(mut data) => {
+        Some((data, Some(held))) if held == layout && data.len() == len => (data, false),
+        Some((mut data, _)) => {
             if data.len() >= len {
                 data.truncate(len);
             } else {
@@ -1036,7 +1054,7 @@ pub(crate) mod tests {
             let expected_first = conv3d_with(&x, &w1, 4, 5, None, relu);
             let expected = conv3d_with(&expected_first, &w2, 2, 3, None, relu);
             for _ in 0..MAX_SPARES {
-                offer_spare(vec![f32::NAN; 4 * (d + 6) * (h + 6) * (w + 60)]);
+                offer_spare(vec![f32::NAN; 4 * (d + 6) * (h + 6) * (w + 60)], None);
             }
             let first = conv3d_padded(ConvInput::Borrowed(&x), &w1, 4, 5, None, true, 3);
             let got = conv3d_input(ConvInput::Padded(first), &w2, 2, 3, None, relu);
@@ -1051,6 +1069,60 @@ pub(crate) mod tests {
             assert_eq!(differ, 0, "{d}x{h}x{w}: values that differ, of {}", got.data.len());
             release_spares();
         }
+    }
+
+    #[test]
+    fn a_spare_of_the_same_layout_keeps_its_zero_border_and_gives_the_plain_convolutions() {
+        // A chain of 3³ layers, whose padded tiles share one layout: each output goes into the
+        // buffer its input's input held, whose interior is set to NaN here before it is taken;
+        // only its border, kept from before, is read unwritten.
+        let [d, h, w] = [2usize, 40, 700];
+        let x = random([4, d, h, w], 6);
+        let weights: Vec<Vec<f32>> = (0..3).map(|i| random_values(4 * 4 * 27, 7 + i)).collect();
+        let relu = Epilogue { stride: 1, relu: true };
+        release_spares();
+        let mut plain = x.clone();
+        for weight in &weights {
+            plain = conv3d_with(&plain, weight, 4, 3, None, relu);
+        }
+        let mut input = PaddedTensor::of(&x, 3);
+        let layout = Layout {
+            shape: [4, d, h, w],
+            p: 1,
+            step: input.0.step,
+            row: input.0.row,
+        };
+        let block = (h + 2) * 4 * layout.row;
+        let mut spoiled = 0;
+        for weight in &weights {
+            input = conv3d_padded(ConvInput::Padded(input), weight, 4, 3, None, true, 3);
+            SPARES.with_borrow_mut(|spares| {
+                for (data, _) in spares.iter_mut().filter(|(_, held)| *held == Some(layout)) {
+                    data.fill(f32::NAN);
+                    for (i, chunk) in data.chunks_mut(block).enumerate() {
+                        layout.zero_border(chunk, i / (d + 2), i % (d + 2));
+                    }
+                    spoiled += 1;
+                }
+            });
+        }
+        assert!(spoiled >= 2, "spares of the same layout: {spoiled}");
+        let got = input.to_tensor();
+        let differ = got
+            .data
+            .iter()
+            .zip(&plain.data)
+            .filter(|(a, b)| a.to_bits() != b.to_bits())
+            .count();
+        assert_eq!(differ, 0, "values that differ, of {}", got.data.len());
+        // Such a spare is taken as it is; one of another layout has its border zeroed.
+        release_spares();
+        let len = input.0.data.len();
+        offer_spare(vec![1.0; len], Some(layout));
+        assert!(!spare_buffer(len, layout).1);
+        offer_spare(vec![1.0; len], Some(Layout { p: 2, ..layout }));
+        assert!(spare_buffer(len, layout).1);
+        release_spares();
     }
 
     #[test]
