@@ -283,6 +283,7 @@ impl ConvBn {
                 ConvInput::Borrowed(x) => self.forward_eval(x),
                 ConvInput::Owned(x) => self.forward_eval(&x),
                 ConvInput::Padded(x) => self.forward_eval(&x.to_tensor()),
+                ConvInput::Window(x, rows, columns) => self.forward_eval(&x.crop_hw(rows, columns)),
             };
             return PaddedTensor::of(&y, next_k);
         }
@@ -654,14 +655,10 @@ impl Network {
         let rows = keep.0.start.saturating_sub(radius)..(keep.0.end + radius).min(h);
         let columns = keep.1.start.saturating_sub(radius)..(keep.1.end + radius).min(w);
         let origin = (rows.start, columns.start);
-        let (u2, c) = if rows.len() == h && columns.len() == w {
-            (u2, c)
-        } else {
-            (u2.crop_hw(rows.clone(), columns.clone()), c.crop_hw(rows, columns))
-        };
         // `uconv2` over the skip connection's two halves, one after the other (each convolved
-        // with its channels of the kernel and added in, then freed), as `concat` over the views:
-        // the 8-channel concatenation and its padded copy, the network's widest point, never exist.
+        // with its channels of the kernel and added in), as `concat` over the views: the
+        // 8-channel concatenation and its padded copy, the network's widest point, never exist,
+        // and each half's window is padded without a cropped copy first.
         let layer = &self.fuse[UCONV2];
         let (weight, bias) = layer.bn.fold_into(&layer.conv_weight());
         let [cout, k] = [layer.cout, layer.k];
@@ -669,8 +666,11 @@ impl Network {
         let upper = input_channels(&weight, cout, halves[1], k, 0..halves[0]);
         let skipped = input_channels(&weight, cout, halves[1], k, halves[0]..halves[1]);
         let plain = Epilogue { stride: 1, relu: false };
-        let cup2 = conv3d_input(ConvInput::Owned(u2), &upper, cout, k, Some(&bias), plain);
-        let cup2 = conv3d_accumulate_input(ConvInput::Owned(c), &skipped, k, cup2, true);
+        let upper_half = ConvInput::Window(&u2, rows.clone(), columns.clone());
+        let cup2 = conv3d_input(upper_half, &upper, cout, k, Some(&bias), plain);
+        drop(u2);
+        let cup2 = conv3d_accumulate_input(ConvInput::Window(&c, rows, columns), &skipped, k, cup2, true);
+        drop(c);
         let f = residual(self.fuse[DISTILL1].forward_eval(&cup2), &cup2);
         drop(cup2);
         let logits = conv3d_same(&f, &self.classify.weight, 1, 3, Some(&self.classify.bias));

@@ -26,6 +26,8 @@
 //! input with the kernel flipped and its channels swapped ([`transposed_as_conv`]); both run at
 //! the coarse levels of the U-Net, about 3 % of the work.
 
+use std::ops::Range;
+
 use rayon::prelude::*;
 use wide::f32x8;
 
@@ -74,15 +76,28 @@ impl Padded {
 
     /// Tiles of `step` columns (the last may be narrower), each row `row` long.
     fn tiled(x: &Tensor, p: usize, step: usize, row: usize) -> Self {
-        let [c, d, h, w] = x.shape;
+        let [_, _, h, w] = x.shape;
+        Self::tiled_window(x, (0..h, 0..w), p, step, row)
+    }
+
+    /// [`Padded::tiled`] of the `rows × columns` window of `x` (clamped to it), as if cropped.
+    fn tiled_window(
+        x: &Tensor,
+        (rows, columns): (Range<usize>, Range<usize>),
+        p: usize,
+        step: usize,
+        row: usize,
+    ) -> Self {
+        let [c, d, full_h, full_w] = x.shape;
+        let (y0, x0) = (rows.start.min(full_h), columns.start.min(full_w));
+        let (h, w) = (
+            rows.end.min(full_h).saturating_sub(y0),
+            columns.end.min(full_w).saturating_sub(x0),
+        );
+        let shape = [c, d, h, w];
         let (depth, height) = (d + 2 * p, h + 2 * p);
         let tiles = w.div_ceil(step).max(1);
-        let layout = Layout {
-            shape: x.shape,
-            p,
-            step,
-            row,
-        };
+        let layout = Layout { shape, p, step, row };
         let (mut data, dirty) = spare_buffer(tiles * c * depth * height * row, layout);
         // One (tile, padded plane) block per task.
         data.par_chunks_mut((height * c * row).max(1))
@@ -99,7 +114,7 @@ impl Padded {
                 let z = zz - p;
                 for y in 0..h {
                     for cc in 0..c {
-                        let from = x.index(cc, z, y, from_col);
+                        let from = x.index(cc, z, y0 + y, x0 + from_col);
                         let to = ((y + p) * c + cc) * row + offset;
                         dst[to..to + to_col - from_col].copy_from_slice(&x.data[from..from + to_col - from_col]);
                     }
@@ -111,7 +126,7 @@ impl Padded {
             depth,
             height,
             row,
-            shape: x.shape,
+            shape,
             p,
             step,
         }
@@ -305,6 +320,24 @@ fn spare_buffer(len: usize, layout: Layout) -> (Vec<f32>, bool) {
     }
 }
 
+/// A buffer of `len` floats whose every value the caller writes: this thread's smallest spare
+/// that holds `len` (old values left in place), else a new zeroed one.
+fn scratch_buffer(len: usize) -> Vec<f32> {
+    let spare = SPARES.with_borrow_mut(|spares| {
+        let best = (0..spares.len())
+            .filter(|&i| spares[i].0.capacity() >= len)
+            .min_by_key(|&i| spares[i].0.capacity())?;
+        Some(spares.swap_remove(best).0)
+    });
+    match spare {
+        Some(mut data) => {
+            data.resize(len, 0.0);
+            data
+        }
+        None => vec![0f32; len],
+    }
+}
+
 /// Frees this thread's spare buffers (at the end of a network's pass, so that they do not hold
 /// memory through what follows).
 pub fn release_spares() {
@@ -402,7 +435,7 @@ pub fn conv3d_padded(
 
 /// The kernel `weight` (`[cout][cin][k³]`) restricted to the input channels `channels`:
 /// `[cout][channels.len()][k³]`, for [`conv3d_accumulate_input`] over a group of channels.
-pub fn input_channels(weight: &[f32], cout: usize, cin: usize, k: usize, channels: std::ops::Range<usize>) -> Vec<f32> {
+pub fn input_channels(weight: &[f32], cout: usize, cin: usize, k: usize, channels: Range<usize>) -> Vec<f32> {
     let taps = k * k * k;
     (0..cout)
         .flat_map(|o| {
@@ -433,6 +466,9 @@ pub enum ConvInput<'a> {
     Owned(Tensor),
     /// Padded tiles, read as they are when made for this kernel size (else copied).
     Padded(PaddedTensor),
+    /// The `rows × columns` window of a tensor the caller keeps, read as if cropped (the
+    /// window's padded copy is the only copy).
+    Window(&'a Tensor, Range<usize>, Range<usize>),
 }
 
 /// A tensor held as a convolution reads it: zero-padded and cut into column tiles with their
@@ -463,6 +499,11 @@ impl ConvInput<'_> {
             ConvInput::Borrowed(x) => x.shape,
             ConvInput::Owned(x) => x.shape,
             ConvInput::Padded(x) => x.0.shape,
+            ConvInput::Window(x, rows, columns) => {
+                let [c, d, h, w] = x.shape;
+                let span = |r: &Range<usize>, n: usize| r.end.min(n).saturating_sub(r.start.min(n));
+                [c, d, span(rows, h), span(columns, w)]
+            }
         }
     }
 
@@ -474,6 +515,7 @@ impl ConvInput<'_> {
             ConvInput::Owned(x) => Padded::tiled(&x, p, step, row),
             ConvInput::Padded(x) if x.0.p == p && x.0.step == step && x.0.row == row => x.0,
             ConvInput::Padded(x) => Padded::tiled(&x.0.to_tensor(), p, step, row),
+            ConvInput::Window(x, rows, columns) => Padded::tiled_window(x, (rows, columns), p, step, row),
         }
     }
 }
@@ -622,10 +664,11 @@ fn conv_k<const K: usize>(
             let np = next_k / 2;
             Written::Padded(Padded::for_writing([cout, od, oh, ow], np, step, step + 2 * np))
         }
-        None => Written::Tensor(
-            into.filter(|_| accumulate)
-                .unwrap_or_else(|| Tensor::zeros([cout, od, oh, ow])),
-        ),
+        // A new tensor is written whole: a spare buffer's old values need no zeroing.
+        None => Written::Tensor(into.filter(|_| accumulate).unwrap_or_else(|| Tensor {
+            shape: [cout, od, oh, ow],
+            data: scratch_buffer(cout * od * oh * ow),
+        })),
     };
     let tile_plane = match &written {
         Written::Padded(out) => TilePlane {
@@ -1123,6 +1166,22 @@ pub(crate) mod tests {
         offer_spare(vec![1.0; len], Some(Layout { p: 2, ..layout }));
         assert!(spare_buffer(len, layout).1);
         release_spares();
+    }
+
+    #[test]
+    fn a_window_is_convolved_as_its_crop() {
+        let x = random([3, 4, 9, 103], 11);
+        let weight = random_values(4 * 3 * 27, 12);
+        let relu = Epilogue { stride: 1, relu: true };
+        // Inside, at the edges, and reaching past them (clamped).
+        for (rows, columns) in [(2..7, 5..90), (0..9, 0..103), (3..20, 50..200), (4..4, 0..10)] {
+            let crop = x.crop_hw(rows.clone(), columns.clone());
+            let expected = conv3d_with(&crop, &weight, 4, 3, None, relu);
+            let window = ConvInput::Window(&x, rows.clone(), columns.clone());
+            assert_eq!(window.shape(), crop.shape, "{rows:?} × {columns:?}");
+            let got = conv3d_input(window, &weight, 4, 3, None, relu);
+            assert_eq!(got, expected, "{rows:?} × {columns:?}");
+        }
     }
 
     #[test]
