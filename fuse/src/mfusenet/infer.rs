@@ -22,13 +22,15 @@ use crate::wta::{LockingCurve, SubpixelFit};
 /// 768 MiB, 1.53 GB and 18.5 s at 1 GiB (docs/benchmarks.md).
 pub const DEFAULT_TILE_BUDGET_BYTES: usize = 768 << 20;
 
-/// Peak bytes per voxel of a forward pass with `views` inputs: the N input volumes plus about 20
-/// channels alive at the widest point (a view's feature tower, its padded input and output and a
-/// spare buffer of 4 channels each with their borders, beside the 4 of `concat`'s sum; neither
-/// the concatenated features nor `uconv2`'s 8 input channels are ever whole), 4 bytes each.
-/// Measured at N = 4: the demo's 960×540 capture (24 slices) whole, 1.09 GB peak RSS for the
-/// whole process with `MIMALLOC_PURGE_DELAY=0` (88 B per voxel; 84 B live on a 640×360 set of
-/// 36 slices before the spare buffers).
+/// Peak bytes per voxel of a forward pass with `views` inputs, as planned: the N input volumes
+/// plus about 20 channels, 4 bytes each. A pass now needs less: each view's input is made when
+/// its feature tower starts and freed after it, and at the widest point (a view's tower: its
+/// padded input and output and a spare buffer of 4 channels each, beside the 4 of `concat`'s
+/// sum) neither the concatenated features nor `uconv2`'s 8 input channels are ever whole.
+/// Measured at N = 4, the demo's 960×540 capture (24 slices) in one tile: 957 MB peak RSS for
+/// the process with `MIMALLOC_PURGE_DELAY=0`, against 155 MB in tiles of 32 MiB: 64 B per
+/// voxel. The plan keeps the larger figure, so tiles are no larger than before: that capture in
+/// one tile ran 5 % faster, but the allocator then held 1.19 GB (docs/experiments.md).
 pub fn bytes_per_voxel(views: usize) -> usize {
     4 * (views + 20)
 }
@@ -176,14 +178,40 @@ pub fn infer_with_confidence(
         let (y0, y1, x0, x1) = (rows.start, rows.end, columns.start, columns.end);
         let (ry0, rx0) = (region_rows.start, region_columns.start);
         let (rh, rw) = (region_rows.len(), region_columns.len());
-        let inputs: Vec<Tensor> = volumes
-            .iter()
-            .map(|v| super::input::to_tensor(v, (ry0, rx0), (rh, rw), dp))
-            .collect();
+        let input = |i: usize| super::input::to_tensor(&volumes[i], (ry0, rx0), (rh, rw), dp);
         // Only the core's logits are read: the last layers skip most of the halo.
         let (core_rows, core_columns) = (y0 - ry0..y1 - ry0, x0 - rx0..x1 - rx0);
-        let (mut logits, (oy, ox)) = net.logits_within(&inputs, &(core_rows.clone(), core_columns.clone()))?;
-        if let Some((vertical, horizontal)) = mirror {
+        let keep = (core_rows.clone(), core_columns.clone());
+        // The estimate and its confidence over the core, from the logits of the region from
+        // `(oy, ox)`.
+        let read_tile =
+            |logits: &Tensor, (oy, ox): (usize, usize), (disparity, confidence): (&mut [f32], &mut [f32])| {
+                let (lh, lw) = (logits.shape[2], logits.shape[3]);
+                let plane = lh * lw;
+                for y in y0..y1.min(h) {
+                    for x in x0..x1.min(w) {
+                        let at = (y - ry0 - oy) * lw + (x - rx0 - ox);
+                        let column = |d: usize| logits.data[d * plane + at];
+                        let mut value = expected_disparity_from(column, nd, skip, estimate.window);
+                        if estimate.refine {
+                            let cost = |d: usize| volumes.iter().map(|v| f64::from(v.costs(x, y)[d])).sum::<f64>();
+                            value = refined(value, cost, nd, estimate.refine_reach, estimate.fit, estimate.locking);
+                        }
+                        disparity[y * w + x] = (first.min_disparity as f64 + value) as f32;
+                        confidence[y * w + x] = peak_margin(column, nd, skip);
+                    }
+                }
+            };
+        let Some((vertical, horizontal)) = mirror else {
+            // Each view's input made when the pass reaches it.
+            let (logits, origin) = net.logits_within_made((volumes.len(), [1, dp, rh, rw]), &input, &keep)?;
+            read_tile(&logits, origin, (&mut disparity, &mut confidence));
+            progress((done + 1) as f32 / tiles.len() as f32);
+            continue;
+        };
+        let inputs: Vec<Tensor> = (0..volumes.len()).map(input).collect();
+        let (mut logits, origin) = net.logits_within(&inputs, &keep)?;
+        {
             // The set's mirror image answered and mirrored back; the mean of the two passes'
             // logits is the network made symmetric, at its own temperature (where the logits
             // are peaked, the surer pass decides).
@@ -215,24 +243,8 @@ pub fn infer_with_confidence(
                 .iter_mut()
                 .zip(&answer.data)
                 .for_each(|(a, b)| *a = 0.5 * (*a + b));
-        } else {
-            drop(inputs);
         }
-        let (lh, lw) = (logits.shape[2], logits.shape[3]);
-        let plane = lh * lw;
-        for y in y0..y1.min(h) {
-            for x in x0..x1.min(w) {
-                let at = (y - ry0 - oy) * lw + (x - rx0 - ox);
-                let column = |d: usize| logits.data[d * plane + at];
-                let mut value = expected_disparity_from(column, nd, skip, estimate.window);
-                if estimate.refine {
-                    let cost = |d: usize| volumes.iter().map(|v| f64::from(v.costs(x, y)[d])).sum::<f64>();
-                    value = refined(value, cost, nd, estimate.refine_reach, estimate.fit, estimate.locking);
-                }
-                disparity[y * w + x] = (first.min_disparity as f64 + value) as f32;
-                confidence[y * w + x] = peak_margin(column, nd, skip);
-            }
-        }
+        read_tile(&logits, origin, (&mut disparity, &mut confidence));
         progress((done + 1) as f32 / tiles.len() as f32);
     }
     Ok((disparity, confidence))
@@ -349,15 +361,13 @@ pub fn infer_fused(
         let mut fused = vec![0f32; dp * ch * cw];
         let mut votes = if partial { vec![0f32; nd * ch * cw] } else { Vec::new() };
         for (done, m) in members.iter().enumerate() {
-            let inputs: Vec<Tensor> = m
-                .inputs
-                .iter()
-                .map(|&i| super::input::to_tensor(&volumes[i], (ry0, rx0), (rh, rw), dp))
-                .collect();
-            let (logits, (oy, ox)) = m
-                .net
-                .logits_within(&inputs, &(core_rows.clone(), core_columns.clone()))?;
-            drop(inputs);
+            // Each view's input made when the pass reaches it.
+            let input = |i: usize| super::input::to_tensor(&volumes[m.inputs[i]], (ry0, rx0), (rh, rw), dp);
+            let (logits, (oy, ox)) = m.net.logits_within_made(
+                (m.inputs.len(), [1, dp, rh, rw]),
+                &input,
+                &(core_rows.clone(), core_columns.clone()),
+            )?;
             let core = logits.crop_hw(
                 core_rows.start - oy..core_rows.end - oy,
                 core_columns.start - ox..core_columns.end - ox,

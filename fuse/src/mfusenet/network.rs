@@ -555,25 +555,38 @@ impl Network {
     }
 
     fn check_inputs(&self, inputs: &[Tensor]) -> Result<[usize; 3], Error> {
+        self.check_input_shapes(inputs.iter().map(|t| t.shape))
+    }
+
+    /// [`Network::check_inputs`] of inputs of these shapes.
+    fn check_input_shapes(&self, shapes: impl ExactSizeIterator<Item = [usize; 4]>) -> Result<[usize; 3], Error> {
+        let count = shapes.len();
         let count_ok = if self.views == 0 {
-            (1..=crate::nn::pool::MAX_VIEWS).contains(&inputs.len())
+            (1..=crate::nn::pool::MAX_VIEWS).contains(&count)
         } else {
-            inputs.len() == self.views
+            count == self.views
         };
         if !count_ok {
             return Err(Error::InputCount {
                 expected: self.views,
-                got: inputs.len(),
+                got: count,
             });
         }
-        let shape = inputs[0].shape;
-        for input in inputs {
-            let [c, d, h, w] = input.shape;
-            if input.shape != shape || c != 1 || d % 4 != 0 || h % 4 != 0 || w % 4 != 0 || d * h * w == 0 {
-                return Err(Error::InputShape { shape: input.shape });
+        let mut first = None;
+        for shape in shapes {
+            let [c, d, h, w] = shape;
+            if *first.get_or_insert(shape) != shape
+                || c != 1
+                || d % 4 != 0
+                || h % 4 != 0
+                || w % 4 != 0
+                || d * h * w == 0
+            {
+                return Err(Error::InputShape { shape });
             }
         }
-        Ok([shape[1], shape[2], shape[3]])
+        let [_, d, h, w] = first.unwrap_or_default();
+        Ok([d, h, w])
     }
 
     /// Eval-mode logits `[1, D, H, W]` of `views` cost volumes `[1, D, H, W]` (D, H, W multiples
@@ -594,7 +607,30 @@ impl Network {
         inputs: &[Tensor],
         keep: &(std::ops::Range<usize>, std::ops::Range<usize>),
     ) -> Result<(Tensor, (usize, usize)), Error> {
-        let [d, h, w] = self.check_inputs(inputs)?;
+        self.check_inputs(inputs)?;
+        self.logits_of(Inputs::Given(inputs), keep)
+    }
+
+    /// [`Network::logits_within`] of `count` inputs of `shape` that `make(i)` makes when the
+    /// pass reaches view `i`'s feature tower, each freed after it: a pass holds one view's input
+    /// at a time (inference's tiles, where the inputs were a fifth of the peak memory).
+    pub fn logits_within_made(
+        &self,
+        (count, shape): (usize, [usize; 4]),
+        make: &dyn Fn(usize) -> Tensor,
+        keep: &(std::ops::Range<usize>, std::ops::Range<usize>),
+    ) -> Result<(Tensor, (usize, usize)), Error> {
+        self.check_input_shapes(std::iter::repeat_n(shape, count))?;
+        self.logits_of(Inputs::Made { count, shape, make }, keep)
+    }
+
+    /// [`Network::logits_within`] of checked inputs.
+    fn logits_of(
+        &self,
+        inputs: Inputs<'_>,
+        keep: &(std::ops::Range<usize>, std::ops::Range<usize>),
+    ) -> Result<(Tensor, (usize, usize)), Error> {
+        let [_, d, h, w] = inputs.shape();
         // The feature tower, each layer writing the next one's padded tiles (the last one's for
         // `concat`), so that no layer copies its input.
         let concat_k = self.fuse[CONCAT].k;
@@ -607,7 +643,9 @@ impl Network {
             y
         };
         let c = if self.views == 0 {
-            let features = inputs.iter().map(|x| tower(x).to_tensor()).collect::<Vec<_>>();
+            let features = (0..inputs.count())
+                .map(|i| Ok(tower(inputs.get(i)?.as_ref()).to_tensor()))
+                .collect::<Result<Vec<_>, Error>>()?;
             let features = crate::nn::pool::mean_max(&features);
             self.fuse[CONCAT].forward_eval_owned(features)
         } else {
@@ -620,10 +658,10 @@ impl Network {
             let (weight, bias) = layer.bn.fold_into(&layer.conv_weight());
             let [cout, cin, k] = [layer.cout, 4 * self.views, layer.k];
             let mut c: Option<Tensor> = None;
-            let last = inputs.len() - 1;
-            for (i, x) in inputs.iter().enumerate() {
+            let last = inputs.count() - 1;
+            for i in 0..inputs.count() {
                 let own = input_channels(&weight, cout, cin, k, 4 * i..4 * (i + 1));
-                let features = ConvInput::Padded(tower(x));
+                let features = ConvInput::Padded(tower(inputs.get(i)?.as_ref()));
                 let relu = i == last;
                 c = Some(match c {
                     None => conv3d_input(features, &own, cout, k, Some(&bias), Epilogue { stride: 1, relu }),
@@ -830,6 +868,50 @@ impl Network {
         let (loss, grad) = smooth_l1(&tape.disparity, target, mask);
         let gradients = self.backward(&tape, &grad);
         Ok((loss, tape.disparity, gradients))
+    }
+}
+
+/// Where a forward pass takes its views' input tensors from.
+#[derive(Clone, Copy)]
+enum Inputs<'a> {
+    /// Tensors the caller holds.
+    Given(&'a [Tensor]),
+    /// `count` tensors of `shape`, each made when the pass reaches it.
+    Made {
+        count: usize,
+        shape: [usize; 4],
+        make: &'a dyn Fn(usize) -> Tensor,
+    },
+}
+
+impl Inputs<'_> {
+    fn count(&self) -> usize {
+        match self {
+            Inputs::Given(inputs) => inputs.len(),
+            Inputs::Made { count, .. } => *count,
+        }
+    }
+
+    /// The shape every input has (checked).
+    fn shape(&self) -> [usize; 4] {
+        match self {
+            Inputs::Given(inputs) => inputs.first().map_or([0; 4], |t| t.shape),
+            Inputs::Made { shape, .. } => *shape,
+        }
+    }
+
+    /// Input `i`, made if it is made; one made with another shape is an error.
+    fn get(&self, i: usize) -> Result<std::borrow::Cow<'_, Tensor>, Error> {
+        match self {
+            Inputs::Given(inputs) => Ok(std::borrow::Cow::Borrowed(&inputs[i])),
+            Inputs::Made { shape, make, .. } => {
+                let made = make(i);
+                if made.shape != *shape {
+                    return Err(Error::InputShape { shape: made.shape });
+                }
+                Ok(std::borrow::Cow::Owned(made))
+            }
+        }
     }
 }
 
@@ -1066,6 +1148,27 @@ mod pooled_tests {
             Network::init(2, 5).logits(&[random([1, 8, 8, 8], 1)]),
             Err(Error::InputCount { expected: 2, got: 1 })
         ));
+    }
+
+    #[test]
+    fn inputs_made_one_at_a_time_give_the_logits_of_inputs_given() {
+        for (net, count) in [(Network::init(4, 3), 4usize), (Network::init(0, 4), 3)] {
+            let inputs: Vec<Tensor> = (0..count).map(|v| random([1, 8, 12, 16], 40 + v as u64)).collect();
+            let keep = (2..10, 4..12);
+            let given = net.logits_within(&inputs, &keep).unwrap_or_else(|e| panic!("{e}"));
+            let made = net
+                .logits_within_made((count, [1, 8, 12, 16]), &|i| inputs[i].clone(), &keep)
+                .unwrap_or_else(|e| panic!("{e}"));
+            assert_eq!(made, given, "{count} views");
+            // A count or a shape the network does not take, announced or made, is an error.
+            let wrong = net.logits_within_made((count, [1, 8, 12, 16]), &|_| random([1, 8, 12, 12], 1), &keep);
+            assert!(matches!(wrong, Err(Error::InputShape { shape: [1, 8, 12, 12] })));
+            let odd = net.logits_within_made((count, [1, 7, 12, 16]), &|i| inputs[i].clone(), &keep);
+            assert!(matches!(odd, Err(Error::InputShape { .. })));
+        }
+        let few =
+            Network::init(4, 3).logits_within_made((2, [1, 8, 8, 8]), &|_| random([1, 8, 8, 8], 1), &(0..8, 0..8));
+        assert!(matches!(few, Err(Error::InputCount { expected: 4, got: 2 })));
     }
 
     #[test]
