@@ -278,6 +278,13 @@ const MAX_SPARES: usize = 2;
 /// Smaller buffers (the coarse levels', tests') are left to the allocator.
 const MIN_SPARE_FLOATS: usize = 1 << 18;
 
+/// Whether a spare of `capacity` floats is taken for `len`: it holds them, and not more than twice
+/// (a 4-channel buffer is not held by a 1-channel tensor, nor the coarse levels' by a tensor
+/// half their size).
+fn fits(capacity: usize, len: usize) -> bool {
+    capacity >= len && capacity <= 2 * len
+}
+
 /// A spare buffer and the layout of the padded tiles it held (their border zero), if known.
 type Spare = (Vec<f32>, Option<Layout>);
 
@@ -301,7 +308,7 @@ fn spare_buffer(len: usize, layout: Layout) -> (Vec<f32>, bool) {
             .position(|(data, held)| *held == Some(layout) && data.len() == len);
         let best = same.or_else(|| {
             (0..spares.len())
-                .filter(|&i| spares[i].0.capacity() >= len)
+                .filter(|&i| fits(spares[i].0.capacity(), len))
                 .min_by_key(|&i| spares[i].0.capacity())
         })?;
         Some(spares.swap_remove(best))
@@ -325,7 +332,7 @@ fn spare_buffer(len: usize, layout: Layout) -> (Vec<f32>, bool) {
 fn scratch_buffer(len: usize) -> Vec<f32> {
     let spare = SPARES.with_borrow_mut(|spares| {
         let best = (0..spares.len())
-            .filter(|&i| spares[i].0.capacity() >= len)
+            .filter(|&i| fits(spares[i].0.capacity(), len))
             .min_by_key(|&i| spares[i].0.capacity())?;
         Some(spares.swap_remove(best).0)
     });
@@ -1096,9 +1103,11 @@ pub(crate) mod tests {
             release_spares();
             let expected_first = conv3d_with(&x, &w1, 4, 5, None, relu);
             let expected = conv3d_with(&expected_first, &w2, 2, 3, None, relu);
-            for _ in 0..MAX_SPARES {
-                offer_spare(vec![f32::NAN; 4 * (d + 6) * (h + 6) * (w + 60)], None);
-            }
+            // The first layer's padded input (1 channel, border 2, rows of 52) and padded
+            // output (4 channels, border 1, rows of 50).
+            let tiles = w.div_ceil(TILE_BLOCKS * BLOCK);
+            offer_spare(vec![f32::NAN; tiles * (d + 4) * (h + 4) * 52], None);
+            offer_spare(vec![f32::NAN; tiles * 4 * (d + 2) * (h + 2) * 50], None);
             let first = conv3d_padded(ConvInput::Borrowed(&x), &w1, 4, 5, None, true, 3);
             let got = conv3d_input(ConvInput::Padded(first), &w2, 2, 3, None, relu);
             // Both taken (buffers this small are not kept again).
@@ -1165,6 +1174,11 @@ pub(crate) mod tests {
         assert!(!spare_buffer(len, layout).1);
         offer_spare(vec![1.0; len], Some(Layout { p: 2, ..layout }));
         assert!(spare_buffer(len, layout).1);
+        // One more than twice as large is left for a larger tensor.
+        offer_spare(vec![1.0; 2 * len + 1], None);
+        assert_eq!(spare_buffer(len, layout), (vec![0.0; len], false));
+        assert_eq!(scratch_buffer(len).len(), len);
+        assert_eq!(SPARES.with_borrow(Vec::len), 1);
         release_spares();
     }
 
