@@ -267,8 +267,8 @@ thread_local! {
     /// ones: a layer's padded input or output taken from here is neither zeroed whole (`calloc`
     /// of reused memory) nor faulted in afresh (memory handed back to the system between
     /// layers), only its border zeroed. At full size a layer's tensor is over 100 MB and that
-    /// zeroing was a tenth of MFuseNet's time (docs/benchmarks.md).
-    /// Each with the layout it held (`None`: unknown), whose border is zero.
+    /// zeroing was a tenth of MFuseNet's time (docs/benchmarks.md). Each is kept with the layout
+    /// it held (`None`: unknown), whose border is zero.
     static SPARES: std::cell::RefCell<Vec<Spare>> = const { std::cell::RefCell::new(Vec::new()) };
 }
 
@@ -297,52 +297,38 @@ fn offer_spare(data: Vec<f32>, layout: Option<Layout>) {
     });
 }
 
-/// A buffer of `len` floats for padded tiles laid out as `layout`, and whether its border must
-/// be zeroed: this thread's spare that held the same layout (its border zero already: a feature
-/// tower's layers all share one), else its smallest spare that holds `len` (old values left in
-/// place), else a new zeroed one.
-fn spare_buffer(len: usize, layout: Layout) -> (Vec<f32>, bool) {
-    let spare = SPARES.with_borrow_mut(|spares| {
-        let same = spares
-            .iter()
-            .position(|(data, held)| *held == Some(layout) && data.len() == len);
-        let best = same.or_else(|| {
-            (0..spares.len())
-                .filter(|&i| fits(spares[i].0.capacity(), len))
-                .min_by_key(|&i| spares[i].0.capacity())
-        })?;
-        Some(spares.swap_remove(best))
-    });
-    match spare {
-        Some((data, Some(held))) if held == layout && data.len() == len => (data, false),
-        Some((mut data, _)) => {
-            if data.len() >= len {
-                data.truncate(len);
-            } else {
-                data.resize(len, 0.0);
-            }
-            (data, true)
+/// A spare of this thread for `len` floats, and whether its border must be zeroed: the one that
+/// held `layout` (its border zero already: a feature tower's layers all share one), else the
+/// smallest that [`fits`] (its old values left in place).
+fn take_spare(len: usize, layout: Option<Layout>) -> Option<(Vec<f32>, bool)> {
+    SPARES.with_borrow_mut(|spares| {
+        let same = layout.and_then(|layout| {
+            spares
+                .iter()
+                .position(|(data, held)| *held == Some(layout) && data.len() == len)
+        });
+        if let Some(i) = same {
+            return Some((spares.swap_remove(i).0, false));
         }
-        None => (vec![0f32; len], false),
-    }
-}
-
-/// A buffer of `len` floats whose every value the caller writes: this thread's smallest spare
-/// that holds `len` (old values left in place), else a new zeroed one.
-fn scratch_buffer(len: usize) -> Vec<f32> {
-    let spare = SPARES.with_borrow_mut(|spares| {
         let best = (0..spares.len())
             .filter(|&i| fits(spares[i].0.capacity(), len))
             .min_by_key(|&i| spares[i].0.capacity())?;
-        Some(spares.swap_remove(best).0)
-    });
-    match spare {
-        Some(mut data) => {
-            data.resize(len, 0.0);
-            data
-        }
-        None => vec![0f32; len],
-    }
+        let mut data = spares.swap_remove(best).0;
+        data.resize(len, 0.0);
+        Some((data, true))
+    })
+}
+
+/// A buffer of `len` floats for padded tiles laid out as `layout`, and whether its border must
+/// be zeroed: a spare ([`take_spare`]), else a new zeroed one.
+fn spare_buffer(len: usize, layout: Layout) -> (Vec<f32>, bool) {
+    take_spare(len, Some(layout)).unwrap_or_else(|| (vec![0f32; len], false))
+}
+
+/// A buffer of `len` floats whose every value the caller writes: a spare with its old values
+/// ([`take_spare`]), else a new zeroed one.
+fn scratch_buffer(len: usize) -> Vec<f32> {
+    take_spare(len, None).map_or_else(|| vec![0f32; len], |(data, _)| data)
 }
 
 /// Frees this thread's spare buffers (at the end of a network's pass, so that they do not hold
