@@ -211,39 +211,37 @@ pub fn infer_with_confidence(
         };
         let inputs: Vec<Tensor> = (0..volumes.len()).map(input).collect();
         let (mut logits, origin) = net.logits_within(&inputs, &keep)?;
-        {
-            // The set's mirror image answered and mirrored back; the mean of the two passes'
-            // logits is the network made symmetric, at its own temperature (where the logits
-            // are peaked, the surer pass decides).
-            let flipped = if pooled {
-                inputs.iter().map(|t| t.flipped(vertical, horizontal)).collect()
+        // The set's mirror image answered and mirrored back; the mean of the two passes'
+        // logits is the network made symmetric, at its own temperature (where the logits
+        // are peaked, the surer pass decides).
+        let flipped = if pooled {
+            inputs.iter().map(|t| t.flipped(vertical, horizontal)).collect()
+        } else {
+            mirrored(&inputs, &offsets, vertical, horizontal).ok_or_else(no_mirror)?
+        };
+        drop(inputs);
+        // The core mirrored: its margin, mirrored back, is the same rows and columns.
+        let mirror_range = |range: &Range<usize>, length: usize, flip: bool| {
+            if flip {
+                length - range.end..length - range.start
             } else {
-                mirrored(&inputs, &offsets, vertical, horizontal).ok_or_else(no_mirror)?
-            };
-            drop(inputs);
-            // The core mirrored: its margin, mirrored back, is the same rows and columns.
-            let mirror_range = |range: &Range<usize>, length: usize, flip: bool| {
-                if flip {
-                    length - range.end..length - range.start
-                } else {
-                    range.clone()
-                }
-            };
-            let (answer, _) = net.logits_within(
-                &flipped,
-                &(
-                    mirror_range(&core_rows, rh, vertical),
-                    mirror_range(&core_columns, rw, horizontal),
-                ),
-            )?;
-            drop(flipped);
-            let answer = answer.flipped(vertical, horizontal);
-            logits
-                .data
-                .iter_mut()
-                .zip(&answer.data)
-                .for_each(|(a, b)| *a = 0.5 * (*a + b));
-        }
+                range.clone()
+            }
+        };
+        let (answer, _) = net.logits_within(
+            &flipped,
+            &(
+                mirror_range(&core_rows, rh, vertical),
+                mirror_range(&core_columns, rw, horizontal),
+            ),
+        )?;
+        drop(flipped);
+        let answer = answer.flipped(vertical, horizontal);
+        logits
+            .data
+            .iter_mut()
+            .zip(&answer.data)
+            .for_each(|(a, b)| *a = 0.5 * (*a + b));
         read_tile(&logits, origin, (&mut disparity, &mut confidence));
         progress((done + 1) as f32 / tiles.len() as f32);
     }
