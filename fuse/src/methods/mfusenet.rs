@@ -215,9 +215,9 @@ pub struct MFuseNetConfig {
     /// Thin nearer parts (rods, wires, slats) that the block-summed inputs lose, recovered
     /// from per-pixel costs last (`thin_parts::ThinParts`; `{}` = its defaults, the default;
     /// `null` = none). The `thin` family (`scripts/eval-thin.sh`, never trained on): AvgErr
-    /// 1.047 → 0.691 px, Bad1 8.88 → 6.29 % (per-pixel costs averaged over cross-shaped
-    /// supports; without them 0.727 / 6.57); Middlebury and the simulated lines no worse
-    /// (docs/methods.md, "Thin parts from per-pixel costs").
+    /// 1.047 → 0.610 px, Bad1 8.88 → 5.84 % (per-pixel costs averaged over cross-shaped
+    /// supports, moves kept in patches shaped like parts); Middlebury and the simulated lines
+    /// no worse (docs/methods.md, "Thin parts from per-pixel costs").
     pub thin_parts: Option<ThinParts>,
 }
 
