@@ -205,12 +205,12 @@ pub fn recover_thin_parts(
             .zip(&candidates)
             .map(|(&keep, c)| if keep { c.0 } else { f32::NAN })
             .collect();
-        for (keep, short) in
+        for (keep, unlike) in
             supported
                 .iter_mut()
                 .zip(unlike_parts(&moved_to, w, h, config.min_length_px, config.max_width_px))
         {
-            *keep &= !short;
+            *keep &= !unlike;
         }
     }
     let mut moved = 0;
@@ -582,7 +582,7 @@ fn window_min(values: &[f32], w: usize, h: usize, radius: usize) -> Vec<f32> {
 /// times its bounding box's diagonal in pixels. A patch is connected through 8-neighbours
 /// within a pixel of each other.
 fn unlike_parts(disparity: &[f32], w: usize, h: usize, min_length: usize, max_width: f32) -> Vec<bool> {
-    let mut short = vec![false; w * h];
+    let mut unlike = vec![false; w * h];
     let mut seen = vec![false; w * h];
     let mut patch = Vec::new();
     for start in 0..w * h {
@@ -614,11 +614,11 @@ fn unlike_parts(disparity: &[f32], w: usize, h: usize, min_length: usize, max_wi
         let wide = max_width > 0.0 && patch.len() as f32 > max_width * diagonal;
         if (across < min_length && down < min_length) || wide {
             for &i in &patch {
-                short[i] = true;
+                unlike[i] = true;
             }
         }
     }
-    short
+    unlike
 }
 
 /// The disparity (slices from the range's start, with its parabola's fraction) and confidence
@@ -1018,8 +1018,8 @@ mod tests {
                 paint(x, y, 5.0 + 0.5 * (x - 50) as f32);
             }
         }
-        // Undone: a 6 × 6 blob (short both ways); a 30 × 25 patch (long, but 12 px wide on
-        // average); a column of 4 px split in two by a jump of 3 px (two short patches).
+        // Undone: a 6 × 6 blob (short both ways); a 30 × 25 patch (long, but 19 px wide on
+        // average); a column 16 px long split in two by a jump of 3 px (two patches of 8).
         for y in 8..14 {
             for x in 60..66 {
                 paint(x, y, 9.0);
