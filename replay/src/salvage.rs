@@ -9,7 +9,9 @@
 //! - a top-level record cut off ends the walk with a [`Cut`] saying where.
 //!
 //! Nothing is allocated beyond what the file's bytes can hold: a chunk's claimed size is a limit,
-//! never an allocation.
+//! never an allocation. Chunks are decompressed a few ahead of the walk (one per thread, in
+//! parallel) into buffers reused from chunk to chunk; their records are still handed out in file
+//! order.
 
 use std::io::Read;
 
@@ -196,33 +198,43 @@ fn chunk_frame(body: &[u8]) -> Option<ChunkFrame<'_>> {
     })
 }
 
-/// Decompresses as much of `records` as decodes, up to `limit` bytes. The error, if any, says
-/// why it stopped early.
-fn decompress(compression: &[u8], records: &[u8], limit: u64) -> (Vec<u8>, Option<String>) {
+/// Decompresses as much of `records` as decodes, up to `limit` bytes, into `out` (cleared
+/// first; its capacity is kept from chunk to chunk, so that a log's chunks reuse one buffer's
+/// pages instead of faulting fresh ones). The error, if any, says why it stopped early.
+fn decompress(compression: &[u8], records: &[u8], limit: u64, out: &mut Vec<u8>) -> Option<String> {
+    out.clear();
     match compression {
         b"" => {
             let take = records.len().min(usize::try_from(limit).unwrap_or(usize::MAX));
-            (records[..take].to_vec(), None)
+            out.extend_from_slice(&records[..take]);
+            None
         }
         b"zstd" => {
             // The limit is the claimed size when that is plausible: one allocation, no doubling.
-            let mut out = Vec::with_capacity(usize::try_from(limit).unwrap_or(0));
+            out.reserve(usize::try_from(limit).unwrap_or(0));
+            // A whole frame within the limit decodes in one call straight into the buffer's
+            // spare capacity (no zeroing first); anything else (a cut or corrupt stream, a
+            // frame larger than claimed) is decoded again as a stream, as far as it goes.
+            if let Ok(mut decompressor) = zstd::bulk::Decompressor::new()
+                && decompressor.decompress_to_buffer(records, out).is_ok()
+            {
+                return None;
+            }
+            out.clear();
             let decoder = match zstd::stream::read::Decoder::with_buffer(records) {
                 Ok(decoder) => decoder,
-                Err(error) => return (out, Some(error.to_string())),
+                Err(error) => return Some(error.to_string()),
             };
-            match decoder.take(limit).read_to_end(&mut out) {
-                Ok(_) => (out, None),
-                Err(error) => (out, Some(error.to_string())),
-            }
+            decoder
+                .take(limit)
+                .read_to_end(out)
+                .err()
+                .map(|error| error.to_string())
         }
-        other => (
-            Vec::new(),
-            Some(format!(
-                "compression '{}' is not supported",
-                String::from_utf8_lossy(other)
-            )),
-        ),
+        other => Some(format!(
+            "compression '{}' is not supported",
+            String::from_utf8_lossy(other)
+        )),
     }
 }
 
@@ -332,6 +344,72 @@ fn walk_inner<E>(
     Ok((count, false))
 }
 
+/// A chunk's records decompressed ahead of the walk.
+struct Decompressed {
+    /// Offset of the chunk's record in the file.
+    at: usize,
+    records: Vec<u8>,
+    /// Why the records stop early, if they do.
+    error: Option<String>,
+}
+
+/// The most a chunk's records are taken to expand to: what its header claims, within what the
+/// compressed bytes can hold.
+fn chunk_limit(frame: &ChunkFrame<'_>) -> u64 {
+    frame
+        .uncompressed_size
+        .min(MAX_CHUNK_UNCOMPRESSED_BYTES)
+        .min((frame.records.len() as u64).saturating_mul(MAX_COMPRESSION_RATIO) + (64 << 10))
+}
+
+/// Uncompressed bytes decompressed ahead at most: a bound on the memory the look-ahead holds.
+const AHEAD_BYTES: u64 = 256 << 20;
+
+/// Decompresses the chunk whose record starts at `at` and the whole chunks right after it (one
+/// per thread, within [`AHEAD_BYTES`]) in parallel, into buffers taken from `spare`. Empty when
+/// the record at `at` has no chunk header.
+fn decompress_ahead(bytes: &[u8], at: usize, spare: &mut Vec<Vec<u8>>) -> Vec<Decompressed> {
+    use rayon::prelude::*;
+    let mut batch = Vec::new();
+    let mut next = at;
+    let mut total = 0u64;
+    while batch.len() < rayon::current_num_threads().max(1) {
+        let (Some(&opcode), Some(length)) = (bytes.get(next), u64_at(bytes, next + 1)) else {
+            break;
+        };
+        let body = next + RECORD_HEADER_BYTES;
+        let available = bytes.len().saturating_sub(body);
+        let whole = length <= available as u64;
+        let data =
+            &bytes[body.min(bytes.len())..body.min(bytes.len()) + if whole { length as usize } else { available }];
+        if opcode == CHUNK_OPCODE {
+            // The first chunk always (cut or not); those after it only when whole.
+            let Some(frame) = chunk_frame(data).filter(|f| next == at || (whole && f.whole)) else {
+                break;
+            };
+            let limit = chunk_limit(&frame);
+            if next != at && total + limit > AHEAD_BYTES {
+                break;
+            }
+            total += limit;
+            batch.push((next, frame, limit, spare.pop().unwrap_or_default()));
+        } else if next == at || !whole {
+            break;
+        }
+        if !whole {
+            break;
+        }
+        next = body + length as usize;
+    }
+    batch
+        .into_par_iter()
+        .map(|(at, frame, limit, mut records)| {
+            let error = decompress(frame.compression, frame.records, limit, &mut records);
+            Decompressed { at, records, error }
+        })
+        .collect()
+}
+
 /// Walks `bytes` (a whole or damaged MCAP file), handing every record it can read to
 /// `on_record(record, trusted)`: schemas, channels, messages (chunked or not), attachments and
 /// metadata, including the summary's schemas and channels when the file was finished. Records of a bad chunk come
@@ -344,6 +422,10 @@ pub fn walk<E>(
         return Err(WalkError::NotMcap { bytes: bytes.len() });
     }
     let mut report = WalkReport::default();
+    // Chunks decompressed ahead, in parallel, each with the offset of its record; their buffers
+    // go back to `spare` once walked, so that a log's chunks reuse a few buffers' pages.
+    let mut ahead: std::collections::VecDeque<Decompressed> = std::collections::VecDeque::new();
+    let mut spare: Vec<Vec<u8>> = Vec::new();
     let file_bytes = bytes.len() as u64;
     let mut at = MCAP_MAGIC.len();
     while at < bytes.len() {
@@ -371,17 +453,23 @@ pub fn walk<E>(
                 report.cut = Some(cut("a chunk's header is cut off".into(), 0));
                 break;
             };
-            // What the header claims, within what the compressed bytes can hold.
-            let limit = frame
-                .uncompressed_size
-                .min(MAX_CHUNK_UNCOMPRESSED_BYTES)
-                .min((frame.records.len() as u64).saturating_mul(MAX_COMPRESSION_RATIO) + (64 << 10));
-            let (records, error) = decompress(frame.compression, frame.records, limit);
+            if ahead.front().is_none_or(|chunk| chunk.at != at) {
+                spare.extend(ahead.drain(..).map(|chunk| chunk.records));
+                ahead = decompress_ahead(bytes, at, &mut spare).into();
+            }
+            let Some(Decompressed {
+                records: buffer, error, ..
+            }) = ahead.pop_front()
+            else {
+                report.cut = Some(cut("a chunk's header is cut off".into(), 0));
+                break;
+            };
+            let records = &buffer[..];
             if frame.whole && whole {
-                let crc_ok = frame.uncompressed_crc == 0 || crc32fast::hash(&records) == frame.uncompressed_crc;
+                let crc_ok = frame.uncompressed_crc == 0 || crc32fast::hash(records) == frame.uncompressed_crc;
                 let complete = records.len() as u64 == frame.uncompressed_size;
                 let trusted = error.is_none() && crc_ok && complete;
-                let (count, _) = walk_inner(&records, trusted, &mut on_record).map_err(WalkError::Handler)?;
+                let (count, _) = walk_inner(records, trusted, &mut on_record).map_err(WalkError::Handler)?;
                 if trusted {
                     report.records += count;
                 } else {
@@ -399,9 +487,10 @@ pub fn walk<E>(
                         },
                     });
                 }
+                spare.push(buffer);
             } else {
                 // Cut inside the chunk: keep the complete records that decompress.
-                let (count, _) = walk_inner(&records, true, &mut on_record).map_err(WalkError::Handler)?;
+                let (count, _) = walk_inner(records, true, &mut on_record).map_err(WalkError::Handler)?;
                 report.records += count;
                 // A chunk still being written has placeholders for its times and length.
                 let times = if (frame.start_time, frame.end_time) == (0, 0) {

@@ -207,7 +207,6 @@ impl ViewSet {
     /// its subsets with more or fewer far views are measured on the same region. Compute once per
     /// set and hand it to [`Self::region_metrics_with`] when several estimates are evaluated.
     pub fn occlusion_mask(&self) -> Option<Vec<bool>> {
-        use rayon::prelude::*;
         let truth = self.ground_truth_disparity()?;
         let (w, h) = (self.width(), self.height());
         let direct: Vec<&View> = self
@@ -215,19 +214,13 @@ impl ViewSet {
             .iter()
             .filter(|n| n.offset[0].abs().max(n.offset[1].abs()) == 1)
             .collect();
-        let masks: Vec<Vec<bool>> = if direct.is_empty() {
-            self.neighbours.iter().collect::<Vec<_>>()
+        let mut occluded = vec![false; w * h];
+        for n in if direct.is_empty() {
+            self.neighbours.iter().collect()
         } else {
             direct
-        }
-        .par_iter()
-        .map(|n| crate::regions::occluded_in(&truth, w, h, n.offset))
-        .collect();
-        let mut occluded = vec![false; w * h];
-        for mask in &masks {
-            for (o, hidden) in occluded.iter_mut().zip(mask) {
-                *o |= hidden;
-            }
+        } {
+            crate::regions::mark_occluded(&truth, w, h, n.offset, &mut occluded);
         }
         Some(occluded)
     }
