@@ -258,6 +258,24 @@ impl<'a> Luma<'a> {
         Self { data, width, height }
     }
 
+    /// The sum of absolute differences between this image's block around `at` and `other`'s
+    /// around `other_at` ([`IMAGE_BLOCK_RADIUS`]), in row-major order. Both blocks lie within
+    /// the images: rows are sliced straight, without clamping each pixel.
+    fn block_sad(&self, other: &Luma<'_>, at: (i32, i32), other_at: (i32, i32)) -> f32 {
+        let side = (2 * IMAGE_BLOCK_RADIUS + 1) as usize;
+        fn row<'d>(luma: &Luma<'d>, (x, y): (i32, i32), by: i32, side: usize) -> &'d [f32] {
+            let start = ((y + by) * luma.width + x - IMAGE_BLOCK_RADIUS) as usize;
+            &luma.data[start..start + side]
+        }
+        let mut sad = 0.0f32;
+        for by in -IMAGE_BLOCK_RADIUS..=IMAGE_BLOCK_RADIUS {
+            for (a, b) in row(self, at, by, side).iter().zip(row(other, other_at, by, side)) {
+                sad += (a - b).abs();
+            }
+        }
+        sad
+    }
+
     fn pixel(&self, x: i32, y: i32) -> f32 {
         self.data[(y.clamp(0, self.height - 1) * self.width + x.clamp(0, self.width - 1)) as usize]
     }
@@ -428,13 +446,7 @@ fn image_shift(
                     {
                         continue;
                     }
-                    let mut sad = 0.0f32;
-                    for by in -IMAGE_BLOCK_RADIUS..=IMAGE_BLOCK_RADIUS {
-                        for bx in -IMAGE_BLOCK_RADIUS..=IMAGE_BLOCK_RADIUS {
-                            sad += (template.pixel(x + bx, y + by) - image.pixel(qx + bx, qy + by)).abs();
-                        }
-                    }
-                    costs[row * num_disparities + d as usize] = sad;
+                    costs[row * num_disparities + d as usize] = template.block_sad(&image, (x, y), (qx, qy));
                 }
             }
             let best_per_shift: Vec<f32> = costs

@@ -210,13 +210,24 @@ impl RankedErrors {
             !(if bits >> 31 == 1 { !bits } else { bits | 0x8000_0000 })
         };
         let ranked = || {
-            let mut keys: Vec<(u32, usize)> = self
-                .pairs
-                .iter()
-                .enumerate()
-                .map(|(i, (c, _))| (descending(*c), i))
-                .collect();
-            prefix_sums(&mut keys, kept, |(_, i)| self.pairs[*i].1, Ord::cmp)
+            if u32::try_from(count - 1).is_ok() {
+                // Confidence bits and index in one `u64`: half the bytes to move, one compare.
+                let mut keys: Vec<u64> = self
+                    .pairs
+                    .iter()
+                    .enumerate()
+                    .map(|(i, (c, _))| (u64::from(descending(*c)) << 32) | i as u64)
+                    .collect();
+                prefix_sums(&mut keys, kept, |k| self.pairs[(k & 0xffff_ffff) as usize].1, Ord::cmp)
+            } else {
+                let mut keys: Vec<(u32, usize)> = self
+                    .pairs
+                    .iter()
+                    .enumerate()
+                    .map(|(i, (c, _))| (descending(*c), i))
+                    .collect();
+                prefix_sums(&mut keys, kept, |(_, i)| self.pairs[*i].1, Ord::cmp)
+            }
         };
         // The oracle's ranking by the error itself.
         let oracle = || {
