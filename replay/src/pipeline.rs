@@ -1,7 +1,7 @@
 //! The per-set pipeline every subcommand shares (`replay LOG`, `eval`, `demo`): keep the
 //! requested neighbours, build the matching problem (rectified if asked), run each method, check
 //! the set's alignment and measure each result against the ground truth (the occlusion mask made
-//! once, when first needed).
+//! once per set, beside the problem).
 //! The summaries written as JSON are the serde types here.
 
 use std::collections::BTreeMap;
@@ -85,8 +85,9 @@ pub fn build_methods(
 pub struct PreparedSet<'a> {
     /// The set as read.
     pub set: &'a ViewSet,
-    /// The set with the requested neighbours only.
-    pub selected: ViewSet,
+    /// The set with the requested neighbours only (the set itself, not a copy, when every
+    /// neighbour is requested).
+    pub selected: std::borrow::Cow<'a, ViewSet>,
     /// The matching problem.
     pub problem: Problem,
     /// Smallest disparity searched.
@@ -96,8 +97,8 @@ pub struct PreparedSet<'a> {
     /// The alignment report of the set ([`Self::alignment`]), made when first asked for.
     alignment: OnceLock<SetCheck>,
     /// Pixels of the reference occluded in some neighbour, from the ground truth
-    /// ([`Self::occluded`]), made when first asked for.
-    occluded: OnceLock<Option<Vec<bool>>>,
+    /// ([`Self::occluded`]), made with the problem.
+    occluded: Option<Vec<bool>>,
     /// How far the alignment check's image-based shift search reaches (px).
     check_reach_px: usize,
 }
@@ -125,16 +126,25 @@ impl<'a> PreparedSet<'a> {
         // The image-based shift search must reach the disparities searched.
         let end = min_disparity.saturating_add(i32::try_from(num_disparities).unwrap_or(i32::MAX));
         let check_reach_px = min_disparity.unsigned_abs().max(end.unsigned_abs()) as usize;
-        let selected = set.with_neighbours(&options.neighbours)?;
-        let problem = selected.problem(min_disparity, num_disparities, options.rectify)?;
+        let selected = if options.neighbours.is_empty() {
+            std::borrow::Cow::Borrowed(set)
+        } else {
+            std::borrow::Cow::Owned(set.with_neighbours(&options.neighbours)?)
+        };
+        // The occlusion mask (from the ground truth, for the evaluation) beside the problem's
+        // construction, whose passes leave a thread idle, rather than after the method.
+        let (problem, occluded) = rayon::join(
+            || selected.problem(min_disparity, num_disparities, options.rectify),
+            || set.occlusion_mask(),
+        );
         Ok(Self {
             set,
+            problem: problem?,
             selected,
-            problem,
             min_disparity,
             num_disparities,
             alignment: OnceLock::new(),
-            occluded: OnceLock::new(),
+            occluded,
             check_reach_px,
         })
     }
@@ -146,9 +156,9 @@ impl<'a> PreparedSet<'a> {
     }
 
     /// Pixels of the reference occluded in some neighbour of the whole set (from the ground
-    /// truth; `None` without one), made on the first call.
+    /// truth; `None` without one).
     pub fn occluded(&self) -> Option<&[bool]> {
-        self.occluded.get_or_init(|| self.set.occlusion_mask()).as_deref()
+        self.occluded.as_deref()
     }
 
     /// Runs a method and evaluates it; `progress` gets the fraction done.
