@@ -351,6 +351,8 @@ struct Decompressed {
     records: Vec<u8>,
     /// Why the records stop early, if they do.
     error: Option<String>,
+    /// The records' CRC-32 (computed beside the decompression; 0 when the chunk has none).
+    crc: u32,
 }
 
 /// The most a chunk's records are taken to expand to: what its header claims, within what the
@@ -405,7 +407,17 @@ fn decompress_ahead(bytes: &[u8], at: usize, spare: &mut Vec<Vec<u8>>) -> Vec<De
         .into_par_iter()
         .map(|(at, frame, limit, mut records)| {
             let error = decompress(frame.compression, frame.records, limit, &mut records);
-            Decompressed { at, records, error }
+            let crc = if frame.uncompressed_crc == 0 {
+                0
+            } else {
+                crc32fast::hash(&records)
+            };
+            Decompressed {
+                at,
+                records,
+                error,
+                crc,
+            }
         })
         .collect()
 }
@@ -458,7 +470,10 @@ pub fn walk<E>(
                 ahead = decompress_ahead(bytes, at, &mut spare).into();
             }
             let Some(Decompressed {
-                records: buffer, error, ..
+                records: buffer,
+                error,
+                crc,
+                ..
             }) = ahead.pop_front()
             else {
                 report.cut = Some(cut("a chunk's header is cut off".into(), 0));
@@ -466,7 +481,7 @@ pub fn walk<E>(
             };
             let records = &buffer[..];
             if frame.whole && whole {
-                let crc_ok = frame.uncompressed_crc == 0 || crc32fast::hash(records) == frame.uncompressed_crc;
+                let crc_ok = frame.uncompressed_crc == 0 || crc == frame.uncompressed_crc;
                 let complete = records.len() as u64 == frame.uncompressed_size;
                 let trusted = error.is_none() && crc_ok && complete;
                 let (count, _) = walk_inner(records, trusted, &mut on_record).map_err(WalkError::Handler)?;
