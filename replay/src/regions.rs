@@ -361,6 +361,17 @@ pub fn region_metrics(
 mod tests {
     use super::*;
 
+    /// A linear congruential generator's high bits from `seed`: the tests' repeatable noise.
+    fn lcg(seed: u64) -> impl FnMut() -> u32 {
+        let mut state = seed;
+        move || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (state >> 33) as u32
+        }
+    }
+
     /// The z-buffer over the whole image, plainly: what [`occluded_in`] must give.
     fn occluded_plainly(disparity: &[f32], width: usize, height: usize, offset: [i32; 2]) -> Vec<bool> {
         let target = |x: usize, y: usize, d: f32| -> Option<usize> {
@@ -391,13 +402,7 @@ mod tests {
         // Blocky random disparities 0–12 px with unknown pixels, 150 columns (two tiles of
         // columns and a partial one) by 37 rows, every kind of offset.
         let (w, h) = (150, 37);
-        let mut state = 7u64;
-        let mut next = || {
-            state = state
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (state >> 33) as u32
-        };
+        let mut next = lcg(7);
         let cells: Vec<f32> = (0..64).map(|_| (next() % 1300) as f32 / 100.0).collect();
         let disparity: Vec<f32> = (0..w * h)
             .map(|p| match next() % 50 {
@@ -487,13 +492,7 @@ mod tests {
         // Many ties (confidence in 16 levels) and errors in 8 levels: the partition must pick the
         // same pixels as a stable sort by confidence, and the oracle the smallest errors.
         let n = 10_007;
-        let mut state = 12345u64;
-        let mut next = || {
-            state = state
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (state >> 33) as u32
-        };
+        let mut next = lcg(12345);
         let truth = vec![0.0f32; n];
         let estimate: Vec<f32> = (0..n).map(|_| (next() % 8) as f32 * 0.5).collect();
         let confidence: Vec<f32> = (0..n).map(|_| (next() % 16) as f32 / 16.0).collect();

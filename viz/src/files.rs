@@ -64,7 +64,7 @@ pub fn write_pfm(path: &Path, width: usize, height: usize, data: &[f32]) -> Resu
     };
     let mut out = BufWriter::new(File::create(path).map_err(io)?);
     write!(out, "Pf\n{width} {height}\n-1\n").map_err(io)?;
-    // A row's bytes at a time (a write call per value cost more than the disk at 1080p).
+    // A row's bytes at a time, not one `write_all` per value.
     let mut bytes = Vec::with_capacity(width * 4);
     for row in data.chunks_exact(width).rev() {
         bytes.clear();
