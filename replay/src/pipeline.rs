@@ -96,6 +96,8 @@ pub struct PreparedSet<'a> {
     pub num_disparities: usize,
     /// The alignment report of the set ([`Self::alignment`]), made when first asked for.
     alignment: OnceLock<SetCheck>,
+    /// The reference's ground-truth disparity ([`ViewSet::ground_truth_disparity`]), made once.
+    truth: Option<Vec<f32>>,
     /// Pixels of the reference occluded in some neighbour, from the ground truth
     /// ([`Self::occluded`]), made with the problem.
     occluded: Option<Vec<bool>>,
@@ -133,9 +135,13 @@ impl<'a> PreparedSet<'a> {
         };
         // The occlusion mask (from the ground truth, for the evaluation) beside the problem's
         // construction, whose passes leave a thread idle, rather than after the method.
-        let (problem, occluded) = rayon::join(
+        let (problem, (truth, occluded)) = rayon::join(
             || selected.problem(min_disparity, num_disparities, options.rectify),
-            || set.occlusion_mask(),
+            || {
+                let truth = set.ground_truth_disparity();
+                let occluded = truth.as_deref().map(|truth| set.occlusion_mask_of(truth));
+                (truth, occluded)
+            },
         );
         Ok(Self {
             set,
@@ -144,6 +150,7 @@ impl<'a> PreparedSet<'a> {
             min_disparity,
             num_disparities,
             alignment: OnceLock::new(),
+            truth,
             occluded,
             check_reach_px,
         })
@@ -194,18 +201,14 @@ impl<'a> PreparedSet<'a> {
     /// specular), when it has one.
     pub fn evaluate(&self, disparity: &DisparityImage) -> Option<RegionMetrics> {
         let evaluating = Instant::now();
-        let mask = self.occluded();
-        tracing::debug!(
-            "set {}: occlusion mask in {:.3} s",
-            self.set.index,
-            evaluating.elapsed().as_secs_f64()
-        );
-        let regions = mask.and_then(|mask| {
-            self.set.region_metrics_with(
+        let regions = self.truth.as_deref().zip(self.occluded()).and_then(|(truth, mask)| {
+            crate::regions::region_metrics(
                 &disparity.data,
                 disparity.confidence.as_deref(),
-                self.num_disparities as f64,
+                truth,
                 mask,
+                self.set.surface_class.as_deref(),
+                self.num_disparities as f64,
             )
         });
         tracing::debug!(

@@ -198,7 +198,15 @@ impl ViewSet {
     /// Metrics of a disparity estimate against the ground truth, overall and in the regions
     /// occluded in at least one of this set's direct neighbours and on specular surfaces.
     pub fn region_metrics(&self, estimate: &[f32], missing_error_px: f64) -> Option<crate::regions::RegionMetrics> {
-        self.region_metrics_with(estimate, None, missing_error_px, self.occlusion_mask()?.as_slice())
+        let truth = self.ground_truth_disparity()?;
+        crate::regions::region_metrics(
+            estimate,
+            None,
+            &truth,
+            &self.occlusion_mask_of(&truth),
+            self.surface_class.as_deref(),
+            missing_error_px,
+        )
     }
 
     /// Pixels occluded in at least one *direct* neighbour (one baseline away, diagonals
@@ -207,7 +215,12 @@ impl ViewSet {
     /// its subsets with more or fewer far views are measured on the same region. Compute once per
     /// set and hand it to [`Self::region_metrics_with`] when several estimates are evaluated.
     pub fn occlusion_mask(&self) -> Option<Vec<bool>> {
-        let truth = self.ground_truth_disparity()?;
+        self.ground_truth_disparity()
+            .map(|truth| self.occlusion_mask_of(&truth))
+    }
+
+    /// [`Self::occlusion_mask`] from the set's [`Self::ground_truth_disparity`], already made.
+    pub fn occlusion_mask_of(&self, truth: &[f32]) -> Vec<bool> {
         let (w, h) = (self.width(), self.height());
         let direct: Vec<&View> = self
             .neighbours
@@ -220,9 +233,9 @@ impl ViewSet {
         } else {
             direct
         } {
-            crate::regions::mark_occluded(&truth, w, h, n.offset, &mut occluded);
+            crate::regions::mark_occluded(truth, w, h, n.offset, &mut occluded);
         }
-        Some(occluded)
+        occluded
     }
 
     /// [`Self::region_metrics`] with the set's [`Self::occlusion_mask`] computed beforehand.
