@@ -139,7 +139,7 @@ impl<'a> PreparedSet<'a> {
             || selected.problem(min_disparity, num_disparities, options.rectify),
             || {
                 let truth = set.ground_truth_disparity();
-                let occluded = truth.as_deref().map(|truth| set.occlusion_mask_of(truth));
+                let occluded = truth.as_deref().map(|truth| set.occlusion_mask(truth));
                 (truth, occluded)
             },
         );

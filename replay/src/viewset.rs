@@ -203,58 +203,34 @@ impl ViewSet {
             estimate,
             None,
             &truth,
-            &self.occlusion_mask_of(&truth),
+            &self.occlusion_mask(&truth),
             self.surface_class.as_deref(),
             missing_error_px,
         )
     }
 
     /// Pixels occluded in at least one *direct* neighbour (one baseline away, diagonals
-    /// included), from the ground truth (forward warps, one per neighbour, in parallel); `None`
-    /// without ground truth. Views at a multiple of the baseline are left out so that a set and
-    /// its subsets with more or fewer far views are measured on the same region. Compute once per
-    /// set and hand it to [`Self::region_metrics_with`] when several estimates are evaluated.
-    pub fn occlusion_mask(&self) -> Option<Vec<bool>> {
-        self.ground_truth_disparity()
-            .map(|truth| self.occlusion_mask_of(&truth))
-    }
-
-    /// [`Self::occlusion_mask`] from the set's [`Self::ground_truth_disparity`], already made.
-    pub fn occlusion_mask_of(&self, truth: &[f32]) -> Vec<bool> {
+    /// included), from the set's [`Self::ground_truth_disparity`] `truth` (a forward warp per
+    /// neighbour, each in parallel). Views at a multiple of the baseline are left out so that a
+    /// set and its subsets with more or fewer far views are measured on the same region. Compute
+    /// once per set when several estimates are evaluated.
+    pub fn occlusion_mask(&self, truth: &[f32]) -> Vec<bool> {
         let (w, h) = (self.width(), self.height());
         let direct: Vec<&View> = self
             .neighbours
             .iter()
             .filter(|n| n.offset[0].abs().max(n.offset[1].abs()) == 1)
             .collect();
-        let mut occluded = vec![false; w * h];
-        for n in if direct.is_empty() {
+        let warped = if direct.is_empty() {
             self.neighbours.iter().collect()
         } else {
             direct
-        } {
+        };
+        let mut occluded = vec![false; w * h];
+        for n in warped {
             crate::regions::mark_occluded(truth, w, h, n.offset, &mut occluded);
         }
         occluded
-    }
-
-    /// [`Self::region_metrics`] with the set's [`Self::occlusion_mask`] computed beforehand.
-    pub fn region_metrics_with(
-        &self,
-        estimate: &[f32],
-        confidence: Option<&[f32]>,
-        missing_error_px: f64,
-        occluded: &[bool],
-    ) -> Option<crate::regions::RegionMetrics> {
-        let truth = self.ground_truth_disparity()?;
-        crate::regions::region_metrics(
-            estimate,
-            confidence,
-            &truth,
-            occluded,
-            self.surface_class.as_deref(),
-            missing_error_px,
-        )
     }
 
     /// Position of a neighbour's camera centre in the reference camera frame (m), from the
