@@ -15,7 +15,8 @@ freed memory back to the host, a fresh page then costs a host fault). OpenCV is 
 its objects reused across calls as an application would.
 
 OUTPUTS=LIST passes `--outputs LIST` to replay (default: every result file; a workcell that needs
-only the depth: OUTPUTS=depth).
+only the depth: OUTPUTS=depth). BM_CONFIG=JSON and SGM_CONFIG=JSON pass `--config JSON` to the
+method (e.g. BM_CONFIG='{"colour": false}': block matching on luma, as StereoBM).
 
 Usage: .venv/bin/python scripts/bench-replay.py [capture.mcap]
   (pip install -r scripts/requirements-bench.txt into the venv first)
@@ -41,6 +42,8 @@ REPLAY = os.environ.get("REPLAY", os.path.join(ROOT, "target/release/replay"))
 RSS_LIMIT_MB = 1536
 # The result files replay writes (`--outputs`).
 OUTPUTS = os.environ.get("OUTPUTS", "all")
+# Configuration overrides per method (`--config`).
+CONFIGS = {"bm-heuristic": os.environ.get("BM_CONFIG"), "sgm-heuristic": os.environ.get("SGM_CONFIG")}
 # Seconds of idle before each cold run (PAUSE_S=0 to skip the cold runs).
 PAUSE_S = float(os.environ.get("PAUSE_S", "5"))
 
@@ -84,7 +87,8 @@ def run_replay(log, method, out):
     rss_file = os.path.join(tempfile.mkdtemp(), "rss")
     subprocess.run(["/usr/bin/time", "-f", "%M", "-o", rss_file, REPLAY, log,
                     "--method", method, "--num-disparities", str(DISPARITIES), "--out", out, "-q"]
-                   + ([] if OUTPUTS == "all" else ["--outputs", OUTPUTS]), check=True)
+                   + ([] if OUTPUTS == "all" else ["--outputs", OUTPUTS])
+                   + (["--config", CONFIGS[method]] if CONFIGS.get(method) else []), check=True)
     wall = time.perf_counter() - start
     peak_kb = int(open(rss_file).read().split()[-1])
     summary = json.load(open(os.path.join(out, "summary.json")))
@@ -107,7 +111,7 @@ def main():
     opencv_bm = best_of(lambda: [bm.compute(l, r) for l, r in four])
     opencv_sgbm = best_of(lambda: sgbm.compute(four[0][0], four[0][1]))
     model = next((line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name")), "?")
-    results = {"host": f"{model}, {os.cpu_count()} vCPUs", "replay": REPLAY, "outputs": OUTPUTS, "opencv": cv2.__version__, "threads": cv2.getNumThreads(), "opencv_bm_four_pairs_s": opencv_bm,
+    results = {"host": f"{model}, {os.cpu_count()} vCPUs", "replay": REPLAY, "outputs": OUTPUTS, "configs": CONFIGS, "opencv": cv2.__version__, "threads": cv2.getNumThreads(), "opencv_bm_four_pairs_s": opencv_bm,
                "opencv_sgbm_hh_one_pair_s": opencv_sgbm}
     for method, peer, limit in [("bm-heuristic", opencv_bm, 1.0), ("sgm-heuristic", opencv_sgbm, 0.5)]:
         out = os.path.join(work, method)

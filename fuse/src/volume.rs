@@ -49,6 +49,28 @@ pub struct Problem {
 }
 
 impl Problem {
+    /// The same problem on the views' luma ([`Image::to_gray`]), the views converted in parallel.
+    pub fn to_gray(&self) -> Self {
+        let mut images: Vec<Image> = std::iter::once(&self.reference)
+            .chain(self.neighbours.iter().map(|n| &n.image))
+            .collect::<Vec<_>>()
+            .par_iter()
+            .map(|image| image.to_gray())
+            .collect();
+        let neighbours = self
+            .neighbours
+            .iter()
+            .zip(images.drain(1..))
+            .map(|(n, image)| Neighbour { image, ..n.clone() })
+            .collect();
+        Self {
+            reference: images.swap_remove(0),
+            neighbours,
+            min_disparity: self.min_disparity,
+            num_disparities: self.num_disparities,
+        }
+    }
+
     /// The neighbours as errors name them: `role [dx, dy]`, comma-separated.
     pub fn neighbour_list(&self) -> String {
         self.neighbours

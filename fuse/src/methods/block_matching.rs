@@ -42,6 +42,17 @@ pub struct BlockMatchingConfig {
     /// that side's cost: `min` (the default) or `near-capped` (see `SgmConfig::side_rule`).
     #[serde(default)]
     pub side_rule: SideRule,
+    /// Match on the views' colour (`true`, the default) or on their luma (`false`: one
+    /// channel instead of three, as OpenCV's StereoBM does). Luma is about a third faster and
+    /// less accurate (docs/benchmarks.md, "Block matching on luma"). Grey sets are matched on
+    /// their one channel either way.
+    #[serde(default = "yes")]
+    pub colour: bool,
+}
+
+/// [`BlockMatchingConfig::colour`]'s default.
+fn yes() -> bool {
+    true
 }
 
 impl super::FusedConfig for BlockMatchingConfig {
@@ -64,6 +75,7 @@ impl Default for BlockMatchingConfig {
             median: true,
             weighted_median: None,
             side_rule: SideRule::Min,
+            colour: true,
         }
     }
 }
@@ -85,6 +97,14 @@ impl Method for BlockMatching {
     super::name_and_config!();
 
     fn run(&self, problem: &Problem, progress: Progress<'_>) -> Result<DisparityImage, FuseError> {
+        // Luma: the views converted once, before the search lines are laid out.
+        let grey;
+        let problem = if self.config.colour || problem.reference.channels == 1 {
+            problem
+        } else {
+            grey = problem.to_gray();
+            &grey
+        };
         let spec = CostSpec {
             pixel: self.config.cost,
             block_radius_px: self.config.block_radius_px,
@@ -173,3 +193,76 @@ pub const ENTRIES: &[MethodEntry] = &[
         build: |o| build("bm-heuristic", Fusion::Heuristic, o),
     },
 ];
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::image::Image;
+    use crate::volume::Neighbour;
+
+    /// A fronto-parallel plane at disparity `d` seen from left and right, a colour texture on
+    /// its first 16 rows and a grey one below.
+    fn colour_plane(d: usize) -> Problem {
+        let (w, h) = (72, 24);
+        let view = |shift: i64| {
+            let data = (0..h as i64)
+                .flat_map(|y| {
+                    (0..w as i64).flat_map(move |x| {
+                        let t = ((x + shift) * 37 + y * 11) ^ ((x + shift) * y);
+                        let a = (t % 61 * 3 + 20) as u8;
+                        if y < 16 {
+                            [a, 128, ((299 * u32::from(a)) / 114).min(255) as u8]
+                        } else {
+                            [a, a, a]
+                        }
+                    })
+                })
+                .collect();
+            Image::rgb(w, h, data).unwrap_or_else(|e| panic!("{e}"))
+        };
+        let d = d as i64;
+        Problem {
+            reference: view(0),
+            neighbours: [("left", -1), ("right", 1)]
+                .into_iter()
+                .map(|(role, k)| Neighbour {
+                    role: role.into(),
+                    image: view(k * d),
+                    offset: [k as i32, 0],
+                    baseline_ratio: 1.0,
+                })
+                .collect(),
+            min_disparity: 0,
+            num_disparities: 16,
+        }
+    }
+
+    fn run(problem: &Problem, colour: bool) -> DisparityImage {
+        let config = BlockMatchingConfig {
+            colour,
+            ..BlockMatchingConfig::default()
+        };
+        BlockMatching::new("bm-heuristic", config)
+            .run(problem, &|_| {})
+            .unwrap_or_else(|e| panic!("{e}"))
+    }
+
+    #[test]
+    fn luma_matching_is_matching_on_the_grey_set_and_colour_finds_the_plane() {
+        let problem = colour_plane(5);
+        let on_luma = run(&problem, false);
+        // The same as the grey set matched: the option converts, nothing else.
+        assert_eq!(on_luma, run(&problem.to_gray(), true));
+        // Colour finds the plane away from the borders (the search reaches past them).
+        let colour = run(&problem, true);
+        let inner = |image: &DisparityImage| {
+            (4..image.height - 4)
+                .flat_map(|y| (20..image.width - 20).map(move |x| (x, y)))
+                .map(|(x, y)| image.data[y * image.width + x])
+                .collect::<Vec<f32>>()
+        };
+        let colour_off = inner(&colour).iter().filter(|d| (**d - 5.0).abs() > 0.5).count();
+        assert_eq!(colour_off, 0, "colour: {:?}", inner(&colour));
+        assert_ne!(on_luma, colour, "luma and colour gave one answer");
+    }
+}
