@@ -197,9 +197,16 @@ pub fn weighted_median_with_votes(
     let per_px = BINS_PER_PX.min(MAX_BINS / (high - low).max(1.0));
     let bins = ((high - low) * per_px) as usize + 1;
     let bin = |v: f32| (((v - low) * per_px) as usize).min(bins - 1);
+    // Each pixel's bin once (a window reads each pixel 121 times); 0 where not finite (unread).
+    let bin_of: Vec<u16> = disparity
+        .data
+        .par_iter()
+        .map(|&v| if v.is_finite() { bin(v) as u16 } else { 0 })
+        .collect();
     let mut data = disparity.data.clone();
     data.par_chunks_mut(w).enumerate().for_each(|(y, out)| {
-        let mut window: Vec<(f32, f32)> = Vec::with_capacity(side * side);
+        // The window's (value, weight, bin), in the window's order.
+        let mut window: Vec<(f32, f32, u16)> = Vec::with_capacity(side * side);
         let mut sums = vec![0.0f32; bins];
         let mut block_sums = vec![0.0f32; bins.div_ceil(BLOCK)];
         let mut chosen: Vec<(f32, f32)> = Vec::new();
@@ -207,6 +214,13 @@ pub fn weighted_median_with_votes(
         let ks = |p: usize, size: usize| (reach.min(p / step), reach.min((size - 1 - p) / step));
         let (up, down) = ks(y, h);
         let centre_row = &reference.data[y * w * c..(y + 1) * w * c];
+        let sources = Sources {
+            values: &disparity.data,
+            bins: &bin_of,
+            colours: &reference.data,
+            votes,
+            colour: &colour,
+        };
         for (x, value) in out.iter_mut().enumerate() {
             if !value.is_finite() {
                 continue;
@@ -216,19 +230,16 @@ pub fn weighted_median_with_votes(
             window.clear();
             for ky in reach - up..=reach + down {
                 let yy = y + ky * step - reach * step;
-                let x0 = x - left * step;
+                let first = yy * w + x - left * step;
                 let spaced = &space[ky * side + reach - left..=ky * side + reach + right];
-                let values = disparity.data[yy * w + x0..].iter().step_by(step);
-                let colours = reference.data[(yy * w + x0) * c..].chunks_exact(c).step_by(step);
-                let voted = votes[yy * w + x0..].iter().step_by(step);
                 match c {
-                    3 => gather::<3>(centre, colours, values, spaced, &colour, &mut window, voted),
-                    _ => gather::<1>(centre, colours, values, spaced, &colour, &mut window, voted),
+                    3 => gather::<3>(centre, &sources, first, step, spaced, &mut window),
+                    _ => gather::<1>(centre, &sources, first, step, spaced, &mut window),
                 }
             }
             let mut total = 0.0f32;
-            for &(v, weight) in &window {
-                let b = bin(v);
+            for &(_, weight, b) in &window {
+                let b = usize::from(b);
                 total += weight;
                 sums[b] += weight;
                 block_sums[b / BLOCK] += weight;
@@ -243,8 +254,8 @@ pub fn weighted_median_with_votes(
                 (first + b, below)
             });
             chosen.clear();
-            for &(v, weight) in &window {
-                let b = bin(v);
+            for &(v, weight, b) in &window {
+                let b = usize::from(b);
                 sums[b] = 0.0;
                 block_sums[b / BLOCK] = 0.0;
                 if median.is_some_and(|(m, _)| m == b) {
@@ -252,6 +263,14 @@ pub fn weighted_median_with_votes(
                 }
             }
             if let Some((_, mut sum)) = median {
+                // One value in the bin (a pixel-locked surface gives dozens of equal values):
+                // it is the median, whatever the sums.
+                if let Some(&(v, _)) = chosen.first()
+                    && chosen.iter().all(|c| c.0.to_bits() == v.to_bits())
+                {
+                    *value = v;
+                    continue;
+                }
                 chosen.sort_unstable_by(|a, b| a.0.total_cmp(&b.0));
                 for &(v, weight) in &chosen {
                     sum += weight;
@@ -284,23 +303,48 @@ fn reaching(sums: &[f32], mut below: f32, half: f32) -> (usize, f32) {
     (last, below - sums.get(last).copied().unwrap_or(0.0))
 }
 
+/// What a weighted median's window reads, per pixel: the estimates, their bins, the guide's
+/// colours, the votes; and the colour weights by summed channel difference.
+struct Sources<'a> {
+    values: &'a [f32],
+    bins: &'a [u16],
+    colours: &'a [u8],
+    votes: &'a [f32],
+    colour: &'a [f32],
+}
+
 /// Appends one window row's finite values with their weights (the colour table at the summed
-/// channel difference from `centre`, times the row's spatial weights) to `window`.
+/// channel difference from `centre`, times the row's spatial weights, times the votes) and bins
+/// to `window`: pixels `first`, `first + step`, … (one per entry of `spaced`).
 #[inline]
-fn gather<'a, const C: usize>(
+fn gather<const C: usize>(
     centre: &[u8],
-    colours: impl Iterator<Item = &'a [u8]>,
-    values: impl Iterator<Item = &'a f32>,
+    sources: &Sources<'_>,
+    first: usize,
+    step: usize,
     spaced: &[f32],
-    colour: &[f32],
-    window: &mut Vec<(f32, f32)>,
-    votes: impl Iterator<Item = &'a f32>,
+    window: &mut Vec<(f32, f32, u16)>,
 ) {
     let centre: [u8; C] = std::array::from_fn(|k| centre[k]);
-    for (((&v, pixel), &space), &vote) in values.zip(colours).zip(spaced).zip(votes) {
+    let n = spaced.len();
+    if n == 0 {
+        return;
+    }
+    let last = first + (n - 1) * step;
+    // Bounds checked once for the row, not per pixel.
+    let (values, bins, votes) = (
+        &sources.values[first..=last],
+        &sources.bins[first..=last],
+        &sources.votes[first..=last],
+    );
+    let colours = &sources.colours[first * C..(last + 1) * C];
+    for (j, &space) in spaced.iter().enumerate() {
+        let i = j * step;
+        let v = values[i];
         if v.is_finite() {
+            let pixel = &colours[i * C..i * C + C];
             let diff: usize = (0..C).map(|k| centre[k].abs_diff(pixel[k]) as usize).sum();
-            window.push((v, colour[diff] * space * vote));
+            window.push((v, sources.colour[diff] * space * votes[i], bins[i]));
         }
     }
 }
@@ -733,7 +777,7 @@ mod tests {
             state >> 8
         };
         // The clusters 17.3 px apart, or 1730 px (bins coarser than 1/64 px: at most 4096 of them).
-        for (w, h, channels, f, apart) in [
+        for case in [
             (37, 29, 3, WeightedMedian::default(), 17.3),
             (23, 31, 1, WeightedMedian::default(), 17.3),
             (29, 23, 3, WeightedMedian::default(), 1730.0),
@@ -749,21 +793,29 @@ mod tests {
                 },
                 17.3,
             ),
-        ] {
+        ]
+        .into_iter()
+        .flat_map(|case| [(case, false), (case, true)])
+        {
+            let ((w, h, channels, f, apart), locked) = case;
             let image = Image {
                 width: w,
                 height: h,
                 channels,
                 data: (0..w * h * channels).map(|_| (next() % 256) as u8).collect(),
             };
-            // Values in a few clusters (several per bin) and some invalid pixels.
+            // Values in a few clusters (several per bin) and some invalid pixels; `locked`:
+            // on quarter pixels, as a pixel-locked estimate (bins holding only equal values).
             let d = DisparityImage {
                 width: w,
                 height: h,
                 data: (0..w * h)
                     .map(|_| match next() % 10 {
                         0 => f32::INFINITY,
-                        k => (k % 3) as f32 * apart + (next() % 1000) as f32 / 997.0,
+                        k => {
+                            let v = (k % 3) as f32 * apart + (next() % 1000) as f32 / 997.0;
+                            if locked { (v * 4.0).round() / 4.0 } else { v }
+                        }
                     })
                     .collect(),
                 confidence: None,
