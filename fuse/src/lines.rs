@@ -260,8 +260,16 @@ pub fn pixel_cost_tile_lines(
                     (&lines.census[..], reference.census_planes())
                 {
                     // The 7×7 window (SGM's default): 48 bits.
+                    let from = range.start;
                     census_distances_48(
-                        [p0, p1, p2, p3, p4, p5].map(|plane| &plane[range.clone()]),
+                        [
+                            &p0[from..],
+                            &p1[from..],
+                            &p2[from..],
+                            &p3[from..],
+                            &p4[from..],
+                            &p5[from..],
+                        ],
                         [c0[at], c1[at], c2[at], c3[at], c4[at], c5[at]],
                         costs,
                     );
@@ -279,33 +287,65 @@ pub fn pixel_cost_tile_lines(
     }
 }
 
-/// Hamming distances of a 48-bit census code (six byte planes, `codes`) to the codes along a
-/// search line (`planes`), one per disparity: the six planes' differing bits summed by
-/// carry-save adders (Harley–Seal) into bits of weight 1, 2 and 4, so that three byte
-/// population counts do the work of six.
+/// Hamming distances of a 48-bit census code (six byte planes, `codes`) to the first `out.len()`
+/// codes along a search line (`planes`, each from the line's first searched sample to the end
+/// of its plane), one per disparity: the six planes' differing bits summed by carry-save
+/// adders (Harley–Seal) into bits of weight 1, 2 and 4, so that three byte population counts do
+/// the work of six.
 fn census_distances_48(planes: [&[u8]; 6], codes: [u8; 6], out: &mut [u8]) {
     let n = out.len();
-    let planes = planes.map(|plane| &plane[..n]);
+    let [p0, p1, p2, p3, p4, p5] = planes;
     let (runs, rest) = out.as_chunks_mut::<CENSUS_RUN>();
     let whole = runs.len() * CENSUS_RUN;
-    let [r0, r1, r2, r3, r4, r5] = planes.map(|plane| plane.as_chunks::<CENSUS_RUN>().0);
+    let run_at = |plane: &[u8], at: usize| -> [u8; CENSUS_RUN] {
+        // Past the plane's end (its last line's last cells): zeros.
+        match plane
+            .get(at..at + CENSUS_RUN)
+            .and_then(|run| <[u8; CENSUS_RUN]>::try_from(run).ok())
+        {
+            Some(run) => run,
+            None => {
+                let mut line = [0u8; CENSUS_RUN];
+                let tail = plane.get(at..).unwrap_or_default();
+                line[..tail.len().min(CENSUS_RUN)].copy_from_slice(&tail[..tail.len().min(CENSUS_RUN)]);
+                line
+            }
+        }
+    };
     for (r, run) in runs.iter_mut().enumerate() {
-        census_run_48([&r0[r], &r1[r], &r2[r], &r3[r], &r4[r], &r5[r]], codes, run);
+        let at = r * CENSUS_RUN;
+        census_run_48(
+            [
+                &run_at(p0, at),
+                &run_at(p1, at),
+                &run_at(p2, at),
+                &run_at(p3, at),
+                &run_at(p4, at),
+                &run_at(p5, at),
+            ],
+            codes,
+            run,
+        );
     }
-    if !rest.is_empty() {
-        // The last cells through a zero-padded run.
-        let lines = planes.map(|plane| {
-            let mut line = [0u8; CENSUS_RUN];
-            line[..rest.len()].copy_from_slice(&plane[whole..]);
-            line
-        });
+    if !rest.is_empty() && whole < n {
+        // The last cells from a whole run read on along the planes (the cells beyond `n` are
+        // computed and dropped).
         let mut run = [0u8; CENSUS_RUN];
         census_run_48(
-            [&lines[0], &lines[1], &lines[2], &lines[3], &lines[4], &lines[5]],
+            [
+                &run_at(p0, whole),
+                &run_at(p1, whole),
+                &run_at(p2, whole),
+                &run_at(p3, whole),
+                &run_at(p4, whole),
+                &run_at(p5, whole),
+            ],
             codes,
             &mut run,
         );
-        rest.copy_from_slice(&run[..rest.len()]);
+        for (o, v) in rest.iter_mut().zip(run) {
+            *o = v;
+        }
     }
 }
 
