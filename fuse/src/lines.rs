@@ -294,11 +294,27 @@ pub fn pixel_cost_tile_lines(
 /// the work of six.
 fn census_distances_48(planes: [&[u8]; 6], codes: [u8; 6], out: &mut [u8]) {
     let n = out.len();
-    let [p0, p1, p2, p3, p4, p5] = planes;
     let (runs, rest) = out.as_chunks_mut::<CENSUS_RUN>();
     let whole = runs.len() * CENSUS_RUN;
-    let run_at = |plane: &[u8], at: usize| -> [u8; CENSUS_RUN] {
-        // Past the plane's end (its last line's last cells): zeros.
+    for (r, run) in runs.iter_mut().enumerate() {
+        census_run_at(&planes, r * CENSUS_RUN, codes, run);
+    }
+    if !rest.is_empty() && whole < n {
+        // The last cells from a whole run read on along the planes (the cells beyond `n` are
+        // computed and dropped).
+        let mut run = [0u8; CENSUS_RUN];
+        census_run_at(&planes, whole, codes, &mut run);
+        for (o, v) in rest.iter_mut().zip(run) {
+            *o = v;
+        }
+    }
+}
+
+/// [`census_run_48`] over the cells `at .. at + CENSUS_RUN` of the six planes (zeros past a
+/// plane's end: its last line's last cells).
+#[inline(always)]
+fn census_run_at(planes: &[&[u8]; 6], at: usize, codes: [u8; 6], out: &mut [u8; CENSUS_RUN]) {
+    let run_at = |plane: &[u8]| -> [u8; CENSUS_RUN] {
         match plane
             .get(at..at + CENSUS_RUN)
             .and_then(|run| <[u8; CENSUS_RUN]>::try_from(run).ok())
@@ -307,46 +323,19 @@ fn census_distances_48(planes: [&[u8]; 6], codes: [u8; 6], out: &mut [u8]) {
             None => {
                 let mut line = [0u8; CENSUS_RUN];
                 let tail = plane.get(at..).unwrap_or_default();
-                line[..tail.len().min(CENSUS_RUN)].copy_from_slice(&tail[..tail.len().min(CENSUS_RUN)]);
+                let m = tail.len().min(CENSUS_RUN);
+                line[..m].copy_from_slice(&tail[..m]);
                 line
             }
         }
     };
-    for (r, run) in runs.iter_mut().enumerate() {
-        let at = r * CENSUS_RUN;
-        census_run_48(
-            [
-                &run_at(p0, at),
-                &run_at(p1, at),
-                &run_at(p2, at),
-                &run_at(p3, at),
-                &run_at(p4, at),
-                &run_at(p5, at),
-            ],
-            codes,
-            run,
-        );
-    }
-    if !rest.is_empty() && whole < n {
-        // The last cells from a whole run read on along the planes (the cells beyond `n` are
-        // computed and dropped).
-        let mut run = [0u8; CENSUS_RUN];
-        census_run_48(
-            [
-                &run_at(p0, whole),
-                &run_at(p1, whole),
-                &run_at(p2, whole),
-                &run_at(p3, whole),
-                &run_at(p4, whole),
-                &run_at(p5, whole),
-            ],
-            codes,
-            &mut run,
-        );
-        for (o, v) in rest.iter_mut().zip(run) {
-            *o = v;
-        }
-    }
+    let [p0, p1, p2, p3, p4, p5] = *planes;
+    let lines = [run_at(p0), run_at(p1), run_at(p2), run_at(p3), run_at(p4), run_at(p5)];
+    census_run_48(
+        [&lines[0], &lines[1], &lines[2], &lines[3], &lines[4], &lines[5]],
+        codes,
+        out,
+    );
 }
 
 /// Cells per run of [`census_run_48`]: one AVX2 register of bytes.

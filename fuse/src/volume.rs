@@ -34,6 +34,32 @@ pub struct Neighbour {
     pub baseline_ratio: f32,
 }
 
+/// A fronto-parallel plane at disparity `d` seen from views along x (tests): the reference
+/// `view(0)` and, per `(role, k)`, the view `k` baselines away, `view(k · d)`; disparities
+/// searched from 0.
+#[cfg(test)]
+pub(crate) fn plane_along_x(
+    view: impl Fn(i64) -> Image,
+    roles: &[(&str, i64)],
+    d: i64,
+    num_disparities: usize,
+) -> Problem {
+    Problem {
+        reference: view(0),
+        neighbours: roles
+            .iter()
+            .map(|&(role, k)| Neighbour {
+                role: role.into(),
+                image: view(k * d),
+                offset: [k as i32, 0],
+                baseline_ratio: 1.0,
+            })
+            .collect(),
+        min_disparity: 0,
+        num_disparities,
+    }
+}
+
 /// What a method gets: the reference view, its neighbours and the disparity search range.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Problem {

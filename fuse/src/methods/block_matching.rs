@@ -198,7 +198,6 @@ pub const ENTRIES: &[MethodEntry] = &[
 mod tests {
     use super::*;
     use crate::image::Image;
-    use crate::volume::Neighbour;
 
     /// A fronto-parallel plane at disparity `d` seen from left and right, a colour texture on
     /// its first 16 rows and a grey one below.
@@ -220,21 +219,7 @@ mod tests {
                 .collect();
             Image::rgb(w, h, data).unwrap_or_else(|e| panic!("{e}"))
         };
-        let d = d as i64;
-        Problem {
-            reference: view(0),
-            neighbours: [("left", -1), ("right", 1)]
-                .into_iter()
-                .map(|(role, k)| Neighbour {
-                    role: role.into(),
-                    image: view(k * d),
-                    offset: [k as i32, 0],
-                    baseline_ratio: 1.0,
-                })
-                .collect(),
-            min_disparity: 0,
-            num_disparities: 16,
-        }
+        crate::volume::plane_along_x(view, &[("left", -1), ("right", 1)], d as i64, 16)
     }
 
     fn run(problem: &Problem, colour: bool) -> DisparityImage {

@@ -239,20 +239,7 @@ mod tests {
     /// −2, −1, +1 and +2 baselines, shifted by `offset · d`.
     fn line_of_five(d: i64) -> Problem {
         let view = |shift: i64| crate::image::textured_view(64, 32, shift);
-        Problem {
-            reference: view(0),
-            neighbours: [("left2", -2), ("left", -1), ("right", 1), ("right2", 2)]
-                .into_iter()
-                .map(|(role, k)| crate::Neighbour {
-                    role: role.into(),
-                    image: view(k * d),
-                    offset: [k as i32, 0],
-                    baseline_ratio: 1.0,
-                })
-                .collect(),
-            min_disparity: 0,
-            num_disparities: 16,
-        }
+        crate::volume::plane_along_x(view, &[("left2", -2), ("left", -1), ("right", 1), ("right2", 2)], d, 16)
     }
 
     #[test]
