@@ -293,14 +293,13 @@ pub fn pixel_cost_tile_lines(
 /// adders (Harley–Seal) into bits of weight 1, 2 and 4, so that three byte population counts do
 /// the work of six.
 fn census_distances_48(planes: [&[u8]; 6], codes: [u8; 6], out: &mut [u8]) {
-    let n = out.len();
     let (runs, rest) = out.as_chunks_mut::<CENSUS_RUN>();
     let whole = runs.len() * CENSUS_RUN;
     for (r, run) in runs.iter_mut().enumerate() {
         census_run_at(&planes, r * CENSUS_RUN, codes, run);
     }
-    if !rest.is_empty() && whole < n {
-        // The last cells from a whole run read on along the planes (the cells beyond `n` are
+    if !rest.is_empty() {
+        // The last cells from a whole run read on along the planes (the cells past the searched ones are
         // computed and dropped).
         let mut run = [0u8; CENSUS_RUN];
         census_run_at(&planes, whole, codes, &mut run);

@@ -44,7 +44,7 @@ pub struct BlockMatchingConfig {
     pub side_rule: SideRule,
     /// Match on the views' colour (`true`, the default) or on their luma (`false`: one
     /// channel instead of three, as OpenCV's StereoBM does). Luma is about a third faster and
-    /// less accurate (docs/benchmarks.md, "Block matching on luma"). Grey sets are matched on
+    /// less accurate (docs/experiments.md, "block matching on luma"). Grey sets are matched on
     /// their one channel either way.
     #[serde(default = "yes")]
     pub colour: bool,
@@ -209,11 +209,7 @@ mod tests {
                     (0..w as i64).flat_map(move |x| {
                         let t = ((x + shift) * 37 + y * 11) ^ ((x + shift) * y);
                         let a = (t % 61 * 3 + 20) as u8;
-                        if y < 16 {
-                            [a, 128, ((299 * u32::from(a)) / 114).min(255) as u8]
-                        } else {
-                            [a, a, a]
-                        }
+                        if y < 16 { [a, 128, 255 - a] } else { [a, a, a] }
                     })
                 })
                 .collect();
