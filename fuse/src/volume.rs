@@ -87,7 +87,13 @@ impl Problem {
             .neighbours
             .iter()
             .zip(images.drain(1..))
-            .map(|(n, image)| Neighbour { image, ..n.clone() })
+            // Field by field: `..n.clone()` would copy the colour image only to drop it.
+            .map(|(n, image)| Neighbour {
+                role: n.role.clone(),
+                image,
+                offset: n.offset,
+                baseline_ratio: n.baseline_ratio,
+            })
             .collect();
         Self {
             reference: images.swap_remove(0),
