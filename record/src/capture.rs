@@ -610,6 +610,7 @@ impl SimulationConfig {
             SceneKind::Clutter => "clutter",
             SceneKind::Bin => "bin",
             SceneKind::Thin => "thin",
+            SceneKind::Fence => "fence",
             SceneKind::Slanted => "slanted",
         }
     }
@@ -733,6 +734,7 @@ mod tests {
             SceneKind::Clutter,
             SceneKind::Bin,
             SceneKind::Thin,
+            SceneKind::Fence,
             SceneKind::Slanted,
         ] {
             let highest = (0..200)

@@ -43,6 +43,11 @@ pub enum SceneKind {
     /// at 640 px, 20+ px of disparity in front of it, and a near board whose occluded strip is
     /// wider than a training crop; never used for training (held out, as `bin`).
     Thin,
+    /// Training's thin parts: grilles and lattices of bars 1–6 px wide with gaps of one to five
+    /// widths, rods and wires, leaves and stacks before a far floor (20+ px of disparity); the
+    /// `thin` family's kinds of parts drawn differently (several grilles, crossing bars, no
+    /// lamps or board), so that `thin` stays a check of what training never saw.
+    Fence,
     /// One matte, finely textured plane tilted 5–35° under the camera, nothing else: disparity
     /// is exactly linear in the image, every pixel at a different sub-pixel offset. The
     /// sub-pixel precision benchmark (BadPix 0.07 against exact truth); never used for training.
@@ -358,6 +363,7 @@ impl Scene {
             SceneKind::Clutter => clutter_scene(seed),
             SceneKind::Bin => bin_scene(seed),
             SceneKind::Thin => thin_scene(seed),
+            SceneKind::Fence => fence_scene(seed),
             SceneKind::Slanted => slanted_scene(seed),
         }
     }
@@ -1110,6 +1116,120 @@ fn thin_scene(seed: u64) -> Scene {
     scene
 }
 
+/// `fence`: what training needs to learn thin parts, drawn apart from the held-out `thin`
+/// family. A far floor (plain in a third of the scenes), and between it and the camera two to
+/// four grilles (rows of 4–14 parallel bars, each 1–6 px wide at 640 px, gaps of one to five
+/// widths; a third of them crossed by a second row: a lattice), rods and wires at any angle,
+/// leaves, and one to three stacks whose occluded strips on the floor are tens of pixels wide.
+fn fence_scene(seed: u64) -> Scene {
+    let mut rng = SplitMix64::new(seed ^ 0x6665_6e63);
+    let camera_height_m = camera_height(&mut rng, 0.55, 0.93);
+    let mut scene = Scene::empty(SceneKind::Fence, seed, camera_height_m);
+    let floor = far_floor(&mut rng, [0.44, 0.45, 0.47], [0.53, 0.52, 0.5]);
+    let floor = scene.add_material(floor);
+    table(&mut scene, floor);
+    scene.add_room();
+    let h = camera_height_m;
+    let c = WORK_AREA_CENTER_M;
+    // A bar's width (m) at height `z` above the floor: 1–6 px at 640 px.
+    let width_at = |rng: &mut SplitMix64, z: f64| (h - z) * rng.range(0.0018, 0.011);
+    // A place at height `z` within the 16:9 60° view.
+    let place = |rng: &mut SplitMix64, z: f64| {
+        let depth = h - z;
+        (
+            c[0] + rng.range(-0.32, 0.32) * depth,
+            c[1] + rng.range(-0.18, 0.18) * depth,
+        )
+    };
+    for grille in 0..rng.range_usize(2, 5) {
+        let material = random_material(&mut rng, &format!("grille_{grille}_material"), 5);
+        let material = scene.add_material(material);
+        let z = h * rng.range(0.2, 0.65);
+        let (x, y) = place(&mut rng, z);
+        let width = width_at(&mut rng, z);
+        let gap = width * rng.range(1.0, 5.0);
+        let length = h * rng.range(0.06, 0.2);
+        let bars = rng.range_usize(4, 15);
+        let crossed = rng.below(3) == 0;
+        let yaw = rng.range(0.0, 180.0);
+        for (layer, yaw) in [(0, yaw), (1, yaw + 90.0)] {
+            if layer == 1 && !crossed {
+                break;
+            }
+            // The crossing row lies on the first: one bar width higher.
+            let z = z + layer as f64 * width;
+            let (cos, sin) = (yaw.to_radians().cos(), yaw.to_radians().sin());
+            for index in 0..bars {
+                let offset = (index as f64 - bars as f64 / 2.0) * (width + gap);
+                scene.add(
+                    &format!("grille_{grille}_{layer}_bar_{index}"),
+                    Shape::Box {
+                        center: [x + offset * cos, y + offset * sin, z],
+                        half_extents_m: [width / 2.0, length, width / 2.0],
+                        yaw_deg: yaw,
+                        tilt_deg: 0.0,
+                    },
+                    material,
+                );
+            }
+        }
+    }
+    for index in 0..rng.range_usize(3, 9) {
+        let material = random_material(&mut rng, &format!("rod_material_{index}"), 5);
+        let material = scene.add_material(material);
+        let z = h * rng.range(0.15, 0.65);
+        let (x, y) = place(&mut rng, z);
+        let (yaw, pitch) = (rng.range(0.0, std::f64::consts::TAU), rng.range(-0.5, 0.5));
+        let radius = 0.5 * width_at(&mut rng, z);
+        scene.add(
+            &format!("rod_{index}"),
+            Shape::cylinder(
+                [x, y, z],
+                [yaw.cos() * pitch.cos(), yaw.sin() * pitch.cos(), pitch.sin()],
+                radius,
+                h * rng.range(0.1, 0.4),
+            ),
+            material,
+        );
+    }
+    for index in 0..rng.range_usize(2, 8) {
+        let material = random_material(&mut rng, &format!("leaf_material_{index}"), 10);
+        let material = scene.add_material(material);
+        let z = h * rng.range(0.15, 0.65);
+        let (x, y) = place(&mut rng, z);
+        let size = 2.0 * width_at(&mut rng, z);
+        scene.add(
+            &format!("leaf_{index}"),
+            Shape::Box {
+                center: [x, y, z],
+                half_extents_m: [size, 0.6 * size, 0.1 * size],
+                yaw_deg: rng.range(0.0, 180.0),
+                tilt_deg: rng.range(-50.0, 50.0),
+            },
+            material,
+        );
+    }
+    for index in 0..rng.range_usize(1, 4) {
+        let material = random_material(&mut rng, &format!("stack_material_{index}"), 10);
+        let material = scene.add_material(material);
+        let height = h * rng.range(0.2, 0.55);
+        let (x, y) = place(&mut rng, 0.0);
+        let width = h * rng.range(0.03, 0.1);
+        scene.add(
+            &format!("stack_{index}"),
+            Shape::upright_box(
+                [x, y, height / 2.0],
+                [width, width * rng.range(0.5, 2.0), height / 2.0],
+                rng.range(0.0, 90.0),
+            ),
+            material,
+        );
+    }
+    scene.ambient = [rng.range(0.1, 0.3); 3];
+    scene.add_lights(&mut rng);
+    scene
+}
+
 /// `bin`: bin picking. A plastic tote (floor and four walls 12–25 cm high) on a table, 10–30
 /// parts heaped in it (boxes, cylinders, balls; some of metal), the camera 0.5–0.9 m above the
 /// table: the walls hide much of the floor from one view or another. Never used for training.
@@ -1295,6 +1415,45 @@ mod tests {
             }
         }
         assert_ne!(Scene::build(SceneKind::Thin, 1), Scene::build(SceneKind::Thin, 2));
+    }
+
+    #[test]
+    fn fence_scenes_hold_grilles_of_bars_one_to_six_pixels_wide_far_above_their_floor() {
+        // fx of a 640-px-wide 60° view.
+        let fx = 320.0 / 30f64.to_radians().tan();
+        for seed in 0..10 {
+            let scene = Scene::build(SceneKind::Fence, seed);
+            let h = scene.camera_height_m;
+            let mut bars = 0;
+            for o in &scene.objects {
+                let Shape::Box {
+                    center, half_extents_m, ..
+                } = &o.shape
+                else {
+                    continue;
+                };
+                if o.name.contains("_bar_") {
+                    let width_px = fx * 2.0 * half_extents_m[0] / (h - center[2]);
+                    assert!(
+                        (0.9..=6.2).contains(&width_px),
+                        "seed {seed} {}: {width_px:.2} px",
+                        o.name
+                    );
+                    // 20+ px of disparity before the floor at a 20 mm baseline.
+                    let jump_px = fx * 0.02 * (1.0 / (h - center[2]) - 1.0 / h);
+                    assert!(jump_px >= 2.0, "seed {seed} {}: {jump_px:.1} px", o.name);
+                    bars += 1;
+                }
+            }
+            assert!(bars >= 8, "seed {seed}: {bars} bars");
+            for prefix in ["rod_", "leaf_", "stack_"] {
+                assert!(
+                    scene.objects.iter().any(|o| o.name.starts_with(prefix)),
+                    "seed {seed}: no {prefix}"
+                );
+            }
+        }
+        assert_ne!(Scene::build(SceneKind::Fence, 1), Scene::build(SceneKind::Fence, 2));
     }
 
     #[test]
