@@ -3,6 +3,8 @@
 //! the batch's (unbiased variance); in eval mode it is an affine map that
 //! [`BatchNorm::fold_into`] merges into the preceding convolution.
 
+use rayon::prelude::*;
+
 use super::Tensor;
 
 /// PyTorch's default ε.
@@ -115,22 +117,25 @@ impl BatchNorm {
     /// them fails with the running ones at inference; frozen statistics make training and
     /// inference compute the same function.
     pub fn forward_frozen(&self, x: Tensor) -> (Tensor, BatchNormCache) {
-        let n = x.channel_len();
+        let n = x.channel_len().max(1);
         let mut normalised = x;
         let mut out = Tensor::zeros(normalised.shape);
-        let mut inv_std = Vec::with_capacity(self.channels());
-        for c in 0..self.channels() {
-            let inv = 1.0 / (self.running_var[c] + EPS).sqrt();
-            let (mean, g, b) = (self.running_mean[c], self.weight[c], self.bias[c]);
-            for (v, o) in normalised.data[c * n..(c + 1) * n]
-                .iter_mut()
-                .zip(&mut out.data[c * n..(c + 1) * n])
-            {
-                *v = (*v - mean) * inv;
-                *o = *v * g + b;
-            }
-            inv_std.push(inv);
-        }
+        let inv_std: Vec<f32> = (0..self.channels())
+            .map(|c| 1.0 / (self.running_var[c] + EPS).sqrt())
+            .collect();
+        // Channels in parallel (each channel's arithmetic as it was: the same numbers).
+        normalised
+            .data
+            .par_chunks_mut(n)
+            .zip(out.data.par_chunks_mut(n))
+            .enumerate()
+            .for_each(|(c, (normalised, out))| {
+                let (mean, inv, g, b) = (self.running_mean[c], inv_std[c], self.weight[c], self.bias[c]);
+                for (v, o) in normalised.iter_mut().zip(out) {
+                    *v = (*v - mean) * inv;
+                    *o = *v * g + b;
+                }
+            });
         (out, BatchNormCache { normalised, inv_std })
     }
 
@@ -167,26 +172,31 @@ impl BatchNorm {
         &self,
         grad: &Tensor,
         cache: &BatchNormCache,
-        input: impl Fn(f64, f64, f64, f32, f32) -> f32,
+        input: impl Fn(f64, f64, f64, f32, f32) -> f32 + Sync,
     ) -> (Tensor, BatchNormGrad) {
-        let n = grad.channel_len();
+        let n = grad.channel_len().max(1);
         let mut input_grad = Tensor::zeros(grad.shape);
-        let (mut dweight, mut dbias) = (Vec::new(), Vec::new());
-        for c in 0..self.channels() {
-            let (g, xhat) = (grad.channel(c), cache.normalised.channel(c));
-            let (sum_g, sum_gx) = sums(g, xhat);
-            dweight.push(sum_gx as f32);
-            dbias.push(sum_g as f32);
-            let scale = f64::from(self.weight[c]) * f64::from(cache.inv_std[c]);
-            for ((out, gv), xv) in input_grad.data[c * n..(c + 1) * n].iter_mut().zip(g).zip(xhat) {
-                *out = input(scale, sum_g, sum_gx, *gv, *xv);
-            }
-        }
+        // Channels in parallel (each channel's sums and arithmetic as they were).
+        let sums: Vec<(f64, f64)> = input_grad
+            .data
+            .par_chunks_mut(n)
+            .zip(grad.data.par_chunks(n))
+            .zip(cache.normalised.data.par_chunks(n))
+            .enumerate()
+            .map(|(c, ((out, g), xhat))| {
+                let (sum_g, sum_gx) = sums(g, xhat);
+                let scale = f64::from(self.weight[c]) * f64::from(cache.inv_std[c]);
+                for ((out, gv), xv) in out.iter_mut().zip(g).zip(xhat) {
+                    *out = input(scale, sum_g, sum_gx, *gv, *xv);
+                }
+                (sum_g, sum_gx)
+            })
+            .collect();
         (
             input_grad,
             BatchNormGrad {
-                weight: dweight,
-                bias: dbias,
+                weight: sums.iter().map(|(_, sum_gx)| *sum_gx as f32).collect(),
+                bias: sums.iter().map(|(sum_g, _)| *sum_g as f32).collect(),
             },
         )
     }

@@ -270,11 +270,22 @@ thread_local! {
     /// zeroing was a tenth of MFuseNet's time (docs/benchmarks.md). Each is kept with the layout
     /// it held (`None`: unknown), whose border is zero.
     static SPARES: std::cell::RefCell<Vec<Spare>> = const { std::cell::RefCell::new(Vec::new()) };
+    /// At most this many spares on this thread ([`keep_spares`]).
+    static MAX_SPARES: std::cell::Cell<usize> = const { std::cell::Cell::new(DEFAULT_SPARES) };
 }
 
-/// At most this many spares per thread: a layer frees its input while its output is alive,
-/// the next one takes it; more would only hold memory.
-const MAX_SPARES: usize = 2;
+/// At most this many spares per thread by default: in inference a layer frees its input while
+/// its output is alive, the next one takes it; more would only hold memory (full-size tensors
+/// of over 100 MB each).
+const DEFAULT_SPARES: usize = 2;
+
+/// Lets this thread keep up to `count` spare buffers (default 2). Training, whose pass keeps
+/// every layer's tensors for the backward pass and frees them all at its end, reuses more of
+/// them from step to step with 8 (crops of 128 px: 1.21 → 1.14 s a step of the lite five-view
+/// network, docs/experiments.md, 2026-11-29), its tensors being a few MB each.
+pub fn keep_spares(count: usize) {
+    MAX_SPARES.with(|max| max.set(count));
+}
 /// Smaller buffers (the coarse levels', tests') are left to the allocator.
 const MIN_SPARE_FLOATS: usize = 1 << 18;
 
@@ -288,10 +299,11 @@ fn fits(capacity: usize, len: usize) -> bool {
 /// A spare buffer and the layout of the padded tiles it held (their border zero), if known.
 type Spare = (Vec<f32>, Option<Layout>);
 
-/// Keeps `data` as a spare of this thread (dropped when it has [`MAX_SPARES`]).
+/// Keeps `data` as a spare of this thread (dropped when it has as many as [`keep_spares`] allows).
 fn offer_spare(data: Vec<f32>, layout: Option<Layout>) {
+    let max = MAX_SPARES.with(std::cell::Cell::get);
     SPARES.with_borrow_mut(|spares| {
-        if spares.len() < MAX_SPARES {
+        if spares.len() < max {
             spares.push((data, layout));
         }
     });
@@ -1121,6 +1133,21 @@ pub(crate) mod tests {
             .zip(&expected.data)
             .filter(|(a, b)| a.to_bits() != b.to_bits())
             .count()
+    }
+
+    #[test]
+    fn a_thread_keeps_as_many_spares_as_it_is_allowed() {
+        // Tests run on threads of their own, so this thread's limit is this test's.
+        release_spares();
+        let offer_ten = || (0..10).for_each(|_| offer_spare(vec![0.0; MIN_SPARE_FLOATS], None));
+        offer_ten();
+        assert_eq!(SPARES.with_borrow(Vec::len), DEFAULT_SPARES);
+        release_spares();
+        keep_spares(8);
+        offer_ten();
+        assert_eq!(SPARES.with_borrow(Vec::len), 8);
+        keep_spares(DEFAULT_SPARES);
+        release_spares();
     }
 
     #[test]

@@ -198,6 +198,9 @@ impl RunFiles {
     }
 }
 
+/// Spare buffers the training thread keeps ([`fuse::nn::conv::keep_spares`]).
+const TRAINING_SPARES: usize = 8;
+
 /// Runs (or resumes) training in `dir` with the dataset cached in `dataset_dir`; writes the weights to `weights_out`. `on_dataset(done,
 /// total)` reports the dataset, `on_step` every step; `stop` ends the run early after a
 /// checkpoint (the summary says it was interrupted).
@@ -210,6 +213,8 @@ pub fn train(
     on_step: &mut dyn FnMut(&StepReport),
 ) -> Result<TrainSummary, TrainError> {
     config.validate()?;
+    // Each step's tensors, freed at its end, serve the next step's layers (a few MB each).
+    fuse::nn::conv::keep_spares(TRAINING_SPARES);
     let TrainPaths {
         dir,
         dataset: dataset_dir,
