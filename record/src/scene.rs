@@ -994,24 +994,13 @@ fn thin_scene(seed: u64) -> Scene {
         )
     };
     let rods = rng.range_usize(4, 10);
-    for index in 0..rods {
-        let material = random_material(&mut rng, &format!("rod_material_{index}"), 5);
-        let material = scene.add_material(material);
-        let z = h * rng.range(0.2, 0.65);
-        let (x, y) = place(&mut rng, z);
-        let (yaw, pitch) = (rng.range(0.0, std::f64::consts::TAU), rng.range(-0.5, 0.5));
-        let radius = radius_at(&mut rng, z);
-        scene.add(
-            &format!("rod_{index}"),
-            Shape::cylinder(
-                [x, y, z],
-                [yaw.cos() * pitch.cos(), yaw.sin() * pitch.cos(), pitch.sin()],
-                radius,
-                h * rng.range(0.15, 0.45),
-            ),
-            material,
-        );
-    }
+    let thin_rods = ThinParts {
+        count: rods,
+        heights: (0.2, 0.65),
+        place: &place,
+        size_at: &radius_at,
+    };
+    add_rods(&mut scene, &mut rng, &thin_rods, (0.15, 0.45));
     let lamps = rng.range_usize(2, 4);
     for index in 0..lamps {
         let material = random_material(&mut rng, &format!("lamp_material_{index}"), 0);
@@ -1078,23 +1067,14 @@ fn thin_scene(seed: u64) -> Scene {
         );
     }
     // Leaves: thin plates a few pixels across, tilted, floating.
-    for index in 0..rng.range_usize(4, 10) {
-        let material = random_material(&mut rng, &format!("leaf_material_{index}"), 10);
-        let material = scene.add_material(material);
-        let z = h * rng.range(0.15, 0.65);
-        let (x, y) = place(&mut rng, z);
-        let size = 4.0 * radius_at(&mut rng, z);
-        scene.add(
-            &format!("leaf_{index}"),
-            Shape::Box {
-                center: [x, y, z],
-                half_extents_m: [size, 0.5 * size, 0.1 * size],
-                yaw_deg: rng.range(0.0, 90.0),
-                tilt_deg: rng.range(-50.0, 50.0),
-            },
-            material,
-        );
-    }
+    let leaf_size = |rng: &mut SplitMix64, z: f64| 4.0 * radius_at(rng, z);
+    let leaves = ThinParts {
+        count: rng.range_usize(4, 10),
+        heights: (0.15, 0.65),
+        place: &place,
+        size_at: &leaf_size,
+    };
+    add_leaves(&mut scene, &mut rng, &leaves, 0.5, 90.0);
     // One board near the camera, matte and textured: the floor strip it hides from one side is
     // its disparity jump wide (20–40 px at 640 px).
     let texture = random_texture(&mut rng, 10);
@@ -1114,6 +1094,62 @@ fn thin_scene(seed: u64) -> Scene {
     scene.ambient = [rng.range(0.1, 0.3); 3];
     scene.add_lights(&mut rng);
     scene
+}
+
+/// How many thin parts of one kind [`add_rods`] and [`add_leaves`] place, and where: each at a
+/// height drawn as a share of the camera's (`heights`), `place(rng, z)` its centre, `size_at(rng,
+/// z)` a rod's radius or a leaf's half length (m).
+struct ThinParts<'a> {
+    count: usize,
+    heights: (f64, f64),
+    place: &'a dyn Fn(&mut SplitMix64, f64) -> (f64, f64),
+    size_at: &'a dyn Fn(&mut SplitMix64, f64) -> f64,
+}
+
+/// Rods and wires at any angle (pitch within ±0.5 rad), each of a random material, their half
+/// lengths a share of the camera's height drawn from `half_lengths`.
+fn add_rods(scene: &mut Scene, rng: &mut SplitMix64, parts: &ThinParts<'_>, half_lengths: (f64, f64)) {
+    let h = scene.camera_height_m;
+    for index in 0..parts.count {
+        let material = random_material(rng, &format!("rod_material_{index}"), 5);
+        let material = scene.add_material(material);
+        let z = h * rng.range(parts.heights.0, parts.heights.1);
+        let (x, y) = (parts.place)(rng, z);
+        let (yaw, pitch) = (rng.range(0.0, std::f64::consts::TAU), rng.range(-0.5, 0.5));
+        let radius = (parts.size_at)(rng, z);
+        scene.add(
+            &format!("rod_{index}"),
+            Shape::cylinder(
+                [x, y, z],
+                [yaw.cos() * pitch.cos(), yaw.sin() * pitch.cos(), pitch.sin()],
+                radius,
+                h * rng.range(half_lengths.0, half_lengths.1),
+            ),
+            material,
+        );
+    }
+}
+
+/// Leaves: thin plates (`aspect` as wide as long, a tenth as thick) turned up to `max_yaw_deg`
+/// and tilted up to ±50°, floating.
+fn add_leaves(scene: &mut Scene, rng: &mut SplitMix64, parts: &ThinParts<'_>, aspect: f64, max_yaw_deg: f64) {
+    for index in 0..parts.count {
+        let material = random_material(rng, &format!("leaf_material_{index}"), 10);
+        let material = scene.add_material(material);
+        let z = scene.camera_height_m * rng.range(parts.heights.0, parts.heights.1);
+        let (x, y) = (parts.place)(rng, z);
+        let size = (parts.size_at)(rng, z);
+        scene.add(
+            &format!("leaf_{index}"),
+            Shape::Box {
+                center: [x, y, z],
+                half_extents_m: [size, aspect * size, 0.1 * size],
+                yaw_deg: rng.range(0.0, max_yaw_deg),
+                tilt_deg: rng.range(-50.0, 50.0),
+            },
+            material,
+        );
+    }
 }
 
 /// `fence`: what training needs to learn thin parts, drawn apart from the held-out `thin`
@@ -1174,41 +1210,22 @@ fn fence_scene(seed: u64) -> Scene {
             }
         }
     }
-    for index in 0..rng.range_usize(3, 9) {
-        let material = random_material(&mut rng, &format!("rod_material_{index}"), 5);
-        let material = scene.add_material(material);
-        let z = h * rng.range(0.15, 0.65);
-        let (x, y) = place(&mut rng, z);
-        let (yaw, pitch) = (rng.range(0.0, std::f64::consts::TAU), rng.range(-0.5, 0.5));
-        let radius = 0.5 * width_at(&mut rng, z);
-        scene.add(
-            &format!("rod_{index}"),
-            Shape::cylinder(
-                [x, y, z],
-                [yaw.cos() * pitch.cos(), yaw.sin() * pitch.cos(), pitch.sin()],
-                radius,
-                h * rng.range(0.1, 0.4),
-            ),
-            material,
-        );
-    }
-    for index in 0..rng.range_usize(2, 8) {
-        let material = random_material(&mut rng, &format!("leaf_material_{index}"), 10);
-        let material = scene.add_material(material);
-        let z = h * rng.range(0.15, 0.65);
-        let (x, y) = place(&mut rng, z);
-        let size = 2.0 * width_at(&mut rng, z);
-        scene.add(
-            &format!("leaf_{index}"),
-            Shape::Box {
-                center: [x, y, z],
-                half_extents_m: [size, 0.6 * size, 0.1 * size],
-                yaw_deg: rng.range(0.0, 180.0),
-                tilt_deg: rng.range(-50.0, 50.0),
-            },
-            material,
-        );
-    }
+    let rod_radius = |rng: &mut SplitMix64, z: f64| 0.5 * width_at(rng, z);
+    let rods = ThinParts {
+        count: rng.range_usize(3, 9),
+        heights: (0.15, 0.65),
+        place: &place,
+        size_at: &rod_radius,
+    };
+    add_rods(&mut scene, &mut rng, &rods, (0.1, 0.4));
+    let leaf_size = |rng: &mut SplitMix64, z: f64| 2.0 * width_at(rng, z);
+    let leaves = ThinParts {
+        count: rng.range_usize(2, 8),
+        heights: (0.15, 0.65),
+        place: &place,
+        size_at: &leaf_size,
+    };
+    add_leaves(&mut scene, &mut rng, &leaves, 0.6, 180.0);
     for index in 0..rng.range_usize(1, 4) {
         let material = random_material(&mut rng, &format!("stack_material_{index}"), 10);
         let material = scene.add_material(material);
