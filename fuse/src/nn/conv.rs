@@ -279,13 +279,15 @@ thread_local! {
 /// of over 100 MB each).
 const DEFAULT_SPARES: usize = 2;
 
-/// Lets this thread keep up to `count` spare buffers (default 2). Training, whose pass keeps
-/// every layer's tensors for the backward pass and frees them all at its end, reuses more of
-/// them from step to step with 8 (crops of 128 px: 1.21 → 1.14 s a step of the lite five-view
-/// network, docs/experiments.md, 2026-11-29), its tensors being a few MB each.
-pub fn keep_spares(count: usize) {
-    MAX_SPARES.with(|max| max.set(count));
+/// Lets this thread keep up to `count` spare buffers (default 2) and returns the limit before.
+/// Training, whose pass keeps every layer's tensors for the backward pass and frees them all at
+/// its end, reuses more of them from step to step with 8 (crops of 128 px: 1.21 → 1.14 s a step
+/// of the lite five-view network, docs/experiments.md, 2026-11-29), its tensors being a few MB
+/// each.
+pub fn keep_spares(count: usize) -> usize {
+    MAX_SPARES.with(|max| max.replace(count))
 }
+
 /// Smaller buffers (the coarse levels', tests') are left to the allocator.
 const MIN_SPARE_FLOATS: usize = 1 << 18;
 
@@ -1143,10 +1145,10 @@ pub(crate) mod tests {
         offer_ten();
         assert_eq!(SPARES.with_borrow(Vec::len), DEFAULT_SPARES);
         release_spares();
-        keep_spares(8);
+        assert_eq!(keep_spares(8), DEFAULT_SPARES);
         offer_ten();
         assert_eq!(SPARES.with_borrow(Vec::len), 8);
-        keep_spares(DEFAULT_SPARES);
+        assert_eq!(keep_spares(DEFAULT_SPARES), 8);
         release_spares();
     }
 

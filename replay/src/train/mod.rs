@@ -201,6 +201,15 @@ impl RunFiles {
 /// Spare buffers the training thread keeps ([`fuse::nn::conv::keep_spares`]).
 const TRAINING_SPARES: usize = 8;
 
+/// The thread's spare-buffer limit before training, restored when training ends, however it ends.
+struct RestoreSpares(usize);
+
+impl Drop for RestoreSpares {
+    fn drop(&mut self) {
+        fuse::nn::conv::keep_spares(self.0);
+    }
+}
+
 /// Runs (or resumes) training in `dir` with the dataset cached in `dataset_dir`; writes the weights to `weights_out`. `on_dataset(done,
 /// total)` reports the dataset, `on_step` every step; `stop` ends the run early after a
 /// checkpoint (the summary says it was interrupted).
@@ -214,7 +223,7 @@ pub fn train(
 ) -> Result<TrainSummary, TrainError> {
     config.validate()?;
     // Each step's tensors, freed at its end, serve the next step's layers (a few MB each).
-    fuse::nn::conv::keep_spares(TRAINING_SPARES);
+    let _restore = RestoreSpares(fuse::nn::conv::keep_spares(TRAINING_SPARES));
     let TrainPaths {
         dir,
         dataset: dataset_dir,
