@@ -5,8 +5,10 @@
 back. It reads the run folder `replay train --dir RUN` made:
 
   RUN/checkpoint.safetensors  weights `model.<state_dict name>`, Adam's moments `adam_m.<name>` and
-                              `adam_v.<name>`, metadata `train_config`, `adam_step`,
-                              `adam_learning_rate`, `train_seconds`, `dataset_key`
+                              `adam_v.<name>`, the moving average `average.<name>` when the run
+                              keeps one (`average_decay` in `train_config`), metadata
+                              `train_config`, `adam_step`, `adam_learning_rate`, `average_decay`,
+                              `average_updates`, `train_seconds`, `dataset_key`
   RUN/curves.csv              step, loss, val_avg_err_px, val_bad1_percent
 
 and the run's dataset cache (`--dataset-dir`, the `train-NNNN-<key>.safetensors` and
@@ -15,7 +17,9 @@ trains the same network (`mfusenet_torch.Reference`) the way `replay train` does
 with at least half their pixels labelled (hopeless crops redrawn unless `keep_hopeless`), the
 disparity shift and mirror flips of the configuration, frozen BatchNorm statistics (recalibrated
 every `recalibrate_every` steps when set), smooth-L1 of the soft-argmin, gradients clipped to a
-global norm of 1, Adam with the learning rate quartered for the last quarter of the steps. One
+global norm of 1, Adam with the learning rate quartered for the last quarter of the steps, and
+the moving average of the weights updated after every step as `replay train` does (decay
+min(`average_decay`, (1 + n) / (10 + n)) after n updates), which is then what validates. One
 step here takes `--batch` crops (the loss is the mean of their per-crop losses); `replay train`
 takes one, so the checkpoint records `torch_batch` and `torch_steps`.
 
@@ -33,6 +37,7 @@ dataset exist (`replay train ... --steps 0` makes both: the dataset, and the ste
 """
 
 import argparse
+import copy
 import csv
 import json
 import math
@@ -260,11 +265,58 @@ def load_checkpoint(path, device):
             "exp_avg": m.reshape(p.shape).to(device).clone(),
             "exp_avg_sq": v.reshape(p.shape).to(device).clone(),
         }
-    return net, optimiser, step, config, metadata
+    average = None
+    if config.get("average_decay", 0) > 0:
+        # The checkpoint's average, or (switched on at this resume) one that starts here.
+        kept = "average_decay" in metadata
+        values = {}
+        for name, p in net.named_parameters():
+            a = tensors.get(f"average.{name}") if kept else p.detach()
+            if a is None or a.numel() != p.numel():
+                sys.exit(f"error: {path} lacks the moving average of {name} (or its size is not {p.numel()})")
+            values[name] = a.reshape(p.shape).to(device).clone()
+        average = {
+            "decay": float(config["average_decay"]),
+            "updates": int(metadata.get("average_updates", "0")) if kept else 0,
+            "values": values,
+        }
+    return net, optimiser, step, config, metadata, average
 
 
-def save_checkpoint(path, net, optimiser, step, metadata):
+@torch.no_grad()
+def update_average(average, net):
+    n = average["updates"]
+    d = min(average["decay"], (1 + n) / (10 + n))
+    for name, p in net.named_parameters():
+        average["values"][name].mul_(d).add_(p.detach(), alpha=1 - d)
+    average["updates"] = n + 1
+
+
+def averaged(net, average, calibration):
+    """`net` with its parameters replaced by the moving average: its BatchNorm statistics are
+    `net`'s, re-estimated on `calibration` when the run recalibrates (as `replay train` does)."""
+    if average is None:
+        return net
+    result = copy.deepcopy(net)
+    with torch.no_grad():
+        for name, p in result.named_parameters():
+            p.copy_(average["values"][name])
+    if calibration:
+        recalibrate(result, calibration)
+        result.eval()
+    return result
+
+
+def save_checkpoint(path, net, optimiser, step, metadata, average):
     tensors = {f"model.{k}": v.detach().cpu().contiguous() for k, v in net.state_dict().items()}
+    metadata = dict(metadata)
+    metadata.pop("average_decay", None)
+    metadata.pop("average_updates", None)
+    if average is not None:
+        for name, value in average["values"].items():
+            tensors[f"average.{name}"] = value.detach().flatten().cpu().contiguous()
+        metadata["average_decay"] = repr(average["decay"])
+        metadata["average_updates"] = str(average["updates"])
     for name, p in net.named_parameters():
         state = optimiser.state.get(p, {})
         zeros = torch.zeros(p.numel())
@@ -319,7 +371,7 @@ def main():
     torch.backends.cudnn.benchmark = False  # no faster here (scripts/bench-torch-train.py), and each new depth would search again
     checkpoint = os.path.join(args.dir, "checkpoint.safetensors")
     curves = os.path.join(args.dir, "curves.csv")
-    net, optimiser, step, config, metadata = load_checkpoint(checkpoint, device)
+    net, optimiser, step, config, metadata, average = load_checkpoint(checkpoint, device)
     key = metadata.get("dataset_key")
     if key is None:
         sys.exit(f"error: {checkpoint} has no `dataset_key`: remake it with this version of `replay train`")
@@ -381,6 +433,8 @@ def main():
         loss.backward()
         torch.nn.utils.clip_grad_norm_(net.parameters(), MAX_GRADIENT_NORM)
         optimiser.step()
+        if average is not None:
+            update_average(average, net)
         step += 1
         every = config.get("recalibrate_every", 0)
         if every > 0 and step % every == 0:
@@ -389,7 +443,7 @@ def main():
         recent = ([value] + recent)[:50]
         row = {"step": step, "loss": value, "val_avg_err_px": "", "val_bad1_percent": ""}
         if step % config["validate_every"] == 0 or step == total:
-            avg, bad1 = validate(net, config, val_set)
+            avg, bad1 = validate(averaged(net, average, calibration), config, val_set)
             row["val_avg_err_px"], row["val_bad1_percent"] = avg, bad1
             log(f"step {step}: validation AvgErr {avg:.3f} px / Bad1 {bad1:.2f} %")
         rows.append(row)
@@ -397,12 +451,12 @@ def main():
             rate = (time.time() - loop_started) / (step - session_start)
             log(f"step {step}/{total or '?'}: loss {sum(recent) / len(recent):.4f} (mean of the last 50), {rate:.3f} s per step")
         if step % config["checkpoint_every"] == 0 or step == total:
-            write_out(args, checkpoint, curves, net, optimiser, step, max(plan, total or step), metadata, previous_seconds, loop_started, session_start, rows)
-    write_out(args, checkpoint, curves, net, optimiser, step, max(plan, total or step), metadata, previous_seconds, loop_started, session_start, rows)
+            write_out(args, checkpoint, curves, net, optimiser, average, step, max(plan, total or step), metadata, previous_seconds, loop_started, session_start, rows)
+    write_out(args, checkpoint, curves, net, optimiser, average, step, max(plan, total or step), metadata, previous_seconds, loop_started, session_start, rows)
     log(f"done: step {step} in {time.time() - started:.0f} s; finish with `replay train <the run's options> --steps {step} --dir {args.dir}`")
 
 
-def write_out(args, checkpoint, curves, net, optimiser, step, total, metadata, previous_seconds, loop_started, session_start, rows):
+def write_out(args, checkpoint, curves, net, optimiser, average, step, total, metadata, previous_seconds, loop_started, session_start, rows):
     device = torch.device(args.device)
     metadata = dict(metadata)
     metadata["train_config"] = re.sub(r'"steps":\d+', f'"steps":{total}', metadata["train_config"], count=1)
@@ -412,7 +466,7 @@ def write_out(args, checkpoint, curves, net, optimiser, step, total, metadata, p
     metadata["torch_steps"] = str(int(metadata.get("torch_steps", "0")) + done_here)
     metadata["torch_device"] = torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"
     metadata["torch_version"] = torch.__version__
-    save_checkpoint(checkpoint, net, optimiser, step, metadata)
+    save_checkpoint(checkpoint, net, optimiser, step, metadata, average)
     write_curves(curves, rows)
 
 

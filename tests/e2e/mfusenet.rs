@@ -211,6 +211,66 @@ fn training_can_track_its_batch_norm_statistics() {
     assert!(moved > a.len() / 2, "{moved} of {} running means moved", a.len());
 }
 
+#[test]
+fn training_can_average_its_weights_and_switch_the_average_on_when_resuming() {
+    // A run without an average resumes with `--average-decay` (the average never changes a
+    // step, so it is the same run): the checkpoint then keeps the average beside the live
+    // weights, the exported file is the average (not the live weights) and says so, and a later
+    // resume continues the same average.
+    let dir = temp_dir();
+    let first = train(dir.path(), "3");
+    assert_eq!(first["steps_done"], 3, "{first}");
+    let average = ["--average-decay", "0.5"];
+    let second = train_with(dir.path(), "6", &average);
+    assert_eq!(second["resumed_at_step"], 3, "{second}");
+    assert_eq!(second["config"]["average_decay"], 0.5, "{second}");
+    assert!(first["config"].get("average_decay").is_none(), "{first}");
+    let checkpoint = dir.path().join("run/checkpoint.safetensors");
+    let header = safetensors_header(&checkpoint);
+    assert_eq!(
+        header["__metadata__"]["average_updates"], "3",
+        "{}",
+        header["__metadata__"]
+    );
+    assert_eq!(
+        header["average.classify.bias"], header["model.classify.bias"],
+        "{header}"
+    );
+    let tensor = |path: &Path, name: &str| -> Vec<u8> {
+        let bytes = std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+        let tensors = safetensors::SafeTensors::deserialize(&bytes).unwrap_or_else(|e| panic!("{e}"));
+        let view = tensors
+            .tensor(name)
+            .unwrap_or_else(|e| panic!("{name} in {}: {e}", path.display()));
+        view.data().to_vec()
+    };
+    let weights = dir.path().join("run/mfusenet-3view.safetensors");
+    assert_eq!(
+        tensor(&weights, "classify.bias"),
+        tensor(&checkpoint, "average.classify.bias"),
+        "the exported weights are the average"
+    );
+    assert_ne!(
+        tensor(&weights, "concat.0.weight"),
+        tensor(&checkpoint, "model.concat.0.weight"),
+        "the average equals the live weights"
+    );
+    let metadata = safetensors_header(&weights)["__metadata__"].clone();
+    assert_eq!(metadata["average_decay"], "0.5", "{metadata}");
+    assert!(
+        second["val_avg_err_px"].as_f64().is_some_and(f64::is_finite),
+        "{second}"
+    );
+    let third = train_with(dir.path(), "8", &average);
+    assert_eq!(third["resumed_at_step"], 6, "{third}");
+    let header = safetensors_header(&checkpoint);
+    assert_eq!(
+        header["__metadata__"]["average_updates"], "5",
+        "{}",
+        header["__metadata__"]
+    );
+}
+
 /// `--views any`: the view-count-agnostic network trains on random subsets of the neighbours of
 /// grid-cross captures (twelve kept per sample), from a fixed network's file, resumes, its
 /// weights say what they are, and `mfusenet` runs them over every view of a set (a line of five
@@ -595,14 +655,23 @@ fn a_training_run_moves_to_pytorch_and_back() {
         );
         return;
     };
+    // Once without a moving average of the weights and once with one: PyTorch updates the
+    // checkpoint's average as `replay train` does, and both validate it.
+    let plain = ["--context-below", "4", "--disparity-shift", "4", "--flips"];
+    let averaged = [&plain[..], &["--average-decay", "0.9"]].concat();
+    for options in [&plain[..], &averaged[..]] {
+        moves_to_pytorch_and_back(&python, options);
+    }
+}
+
+fn moves_to_pytorch_and_back(python: &Path, options: &[&str]) {
     let dir = temp_dir();
     let (run_dir, dataset) = (dir.path().join("run"), dir.path().join("dataset"));
-    let options = ["--context-below", "4", "--disparity-shift", "4", "--flips"];
     assert_success(
-        &tiny_training(&run_dir, &dataset, "0", &options),
+        &tiny_training(&run_dir, &dataset, "0", options),
         "replay train --steps 0",
     );
-    let output = run(Command::new(&python)
+    let output = run(Command::new(python)
         .arg(workspace_root().join("scripts/train-torch.py"))
         .args(["--dir", &run_dir.display().to_string()])
         .args(["--dataset-dir", &dataset.display().to_string()])
@@ -622,7 +691,7 @@ fn a_training_run_moves_to_pytorch_and_back() {
         serde_json::from_slice(&std::fs::read(run_dir.join("training.json")).unwrap_or_default())
             .unwrap_or_else(|e| panic!("training.json: {e}"))
     };
-    let finished = summary(tiny_training(&run_dir, &dataset, "3", &options));
+    let finished = summary(tiny_training(&run_dir, &dataset, "3", options));
     assert_eq!(finished["resumed_at_step"], 3, "{finished}");
     assert_eq!(finished["steps_done"], 3, "{finished}");
     let rust_avg = finished["val_avg_err_px"].as_f64().unwrap_or(f64::NAN);
@@ -633,8 +702,13 @@ fn a_training_run_moves_to_pytorch_and_back() {
     let metadata = safetensors_header(&run_dir.join("mfusenet-3view.safetensors"))["__metadata__"].clone();
     assert_eq!(metadata["torch_steps"], "3", "{metadata}");
     assert_eq!(metadata["torch_batch"], "2", "{metadata}");
+    if options.contains(&"--average-decay") {
+        assert_eq!(metadata["average_updates"], "3", "{metadata}");
+    } else {
+        assert!(metadata.get("average_updates").is_none(), "{metadata}");
+    }
 
-    let longer = summary(tiny_training(&run_dir, &dataset, "5", &options));
+    let longer = summary(tiny_training(&run_dir, &dataset, "5", options));
     assert_eq!(longer["resumed_at_step"], 3, "{longer}");
     assert_eq!(longer["steps_done"], 5, "{longer}");
     let curves = std::fs::read_to_string(run_dir.join("curves.csv")).unwrap_or_default();

@@ -80,6 +80,13 @@ pub struct TrainConfig {
     /// a little at a time; 0 = frozen after the start (how the shipped files were trained).
     #[serde(default, skip_serializing_if = "is_zero_f32")]
     pub statistics_momentum: f32,
+    /// Keep an exponential moving average of the weights with this decay per step
+    /// ([`fuse::mfusenet::train::Average`]; 0.999 ≈ the last thousand steps) in the checkpoint,
+    /// and validate and export it instead of the last step's weights, which single-crop steps
+    /// make swing from checkpoint to checkpoint. 0 = off. It never changes the training steps,
+    /// so a run resumes with it switched on or off (the average starts on the resumed weights).
+    #[serde(default, skip_serializing_if = "is_zero_f32")]
+    pub average_decay: f32,
     /// Context below the range, as inference gives it (`fuse::mfusenet::input::input_volumes_below`):
     /// the dataset's volumes start this many disparities under 0 (each neighbour mirrored) and
     /// the targets move up by as many, so the network trains on what it sees at inference,
@@ -158,6 +165,7 @@ impl Default for TrainConfig {
             disparity_shift: 0,
             recalibrate_every: 0,
             statistics_momentum: 0.0,
+            average_decay: 0.0,
             context_below: 0,
             flips: false,
             keep_hopeless: false,
@@ -253,6 +261,13 @@ impl TrainConfig {
                 "statistics_momentum",
                 self.statistics_momentum.to_string(),
                 "in [0, 1): 0 = frozen statistics",
+            );
+        }
+        if !(0.0..1.0).contains(&self.average_decay) {
+            return bad(
+                "average_decay",
+                self.average_decay.to_string(),
+                "in [0, 1): 0 = no average, 0.999 ≈ the last thousand steps",
             );
         }
         if self.num_disparities < 4 || !self.num_disparities.is_multiple_of(4) {

@@ -12,7 +12,9 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use fuse::mfusenet::network::BatchNormMode;
-use fuse::mfusenet::train::{Adam, Example, clip_gradients, load_checkpoint, recalibrate_batch_norm, save_checkpoint};
+use fuse::mfusenet::train::{
+    Adam, Average, Checkpoint, Example, clip_gradients, load_checkpoint, recalibrate_batch_norm, save_checkpoint,
+};
 use fuse::mfusenet::{Network, WeightsInfo, weights};
 use serde::{Deserialize, Serialize};
 
@@ -136,15 +138,36 @@ pub struct TrainSummary {
 }
 
 /// Whether a checkpoint whose configuration is `stored` (its `train_config`) belongs to the run
-/// `config` describes: the same in everything but the step budget, so that a longer (or shorter)
-/// `--steps` resumes the run instead of starting it over.
+/// `config` describes: the same in everything but the step budget and the moving average (which
+/// never changes a step), so that a longer (or shorter) `--steps`, or an average switched on,
+/// resumes the run instead of starting it over.
 fn same_run(stored: &str, config: &TrainConfig) -> bool {
     serde_json::from_str::<TrainConfig>(stored).is_ok_and(|stored| {
         TrainConfig {
             steps: config.steps,
+            average_decay: config.average_decay,
             ..stored
         } == *config
     })
+}
+
+/// The network a run validates and exports: the moving average when it keeps one (its
+/// BatchNorm statistics re-estimated on `calibration` when the run moves them, else the live
+/// network's frozen ones), else the live network.
+fn exported(
+    net: &Network,
+    average: Option<&Average>,
+    config: &TrainConfig,
+    calibration: &[Example],
+) -> Result<Network, TrainError> {
+    let Some(average) = average else {
+        return Ok(net.clone());
+    };
+    let mut averaged = average.network(net);
+    if config.recalibrate_every > 0 || config.statistics_momentum > 0.0 {
+        recalibrate_batch_norm(&mut averaged, calibration)?;
+    }
+    Ok(averaged)
 }
 
 /// A value as JSON for the weights' metadata (a failure is an error, never an empty entry).
@@ -272,9 +295,14 @@ pub fn train(
         .map(|_| random_crop(config, &train_samples, &mut calibration_rng))
         .collect();
     // Resume or start.
-    let (mut net, mut adam, mut history, mut train_seconds, continued) =
+    let (mut net, mut adam, mut average, mut history, mut train_seconds, continued) =
         match load_checkpoint(&files.checkpoint(), config.views) {
-            Ok((net, adam, info)) if info.get("train_config").is_some_and(|stored| same_run(stored, config)) => {
+            Ok(Checkpoint {
+                net,
+                adam,
+                average,
+                info,
+            }) if info.get("train_config").is_some_and(|stored| same_run(stored, config)) => {
                 let history = read_curves(&files.curves_csv(), adam.step)?;
                 let seconds = info.get("train_seconds").and_then(|s| s.parse().ok()).unwrap_or(0.0);
                 // Steps another trainer took (`scripts/train-torch.py`: `torch_batch`, `torch_steps`, …)
@@ -285,7 +313,7 @@ pub fn train(
                     .filter(|(k, _)| k.starts_with("torch_"))
                     .map(|(k, v)| (k.clone(), v.clone()))
                     .collect();
-                (net, adam, history, seconds, continued)
+                (net, adam, average, history, seconds, continued)
             }
             _ => {
                 let mut net = match &config.init_weights {
@@ -319,9 +347,28 @@ pub fn train(
                     }
                 };
                 let adam = Adam::new(&mut net, config.learning_rate);
-                (net, adam, Vec::new(), 0.0, Vec::new())
+                (net, adam, None, Vec::new(), 0.0, Vec::new())
             }
         };
+    // The average the run keeps: the checkpoint's (at this run's decay), or a new one on the
+    // weights as they are; none when switched off.
+    let mut average = match (config.average_decay > 0.0, average.take()) {
+        (false, _) => None,
+        (true, Some(kept)) => Some(Average {
+            decay: config.average_decay,
+            ..kept
+        }),
+        (true, None) => {
+            if adam.step > 0 {
+                tracing::info!(
+                    "starting a moving average of the weights (decay {}) at step {}",
+                    config.average_decay,
+                    adam.step
+                );
+            }
+            Some(Average::new(&mut net, config.average_decay))
+        }
+    };
     // The momentum is not part of the weights: set it on every (re)start.
     let batch_norm_mode = if config.statistics_momentum > 0.0 {
         for layer in net.layers_mut() {
@@ -376,6 +423,9 @@ pub fn train(
             net.loss_and_gradients_with(&example.inputs, &example.target, &example.mask, batch_norm_mode)?;
         clip_gradients(&mut gradients, MAX_GRADIENT_NORM);
         adam.update(&mut net, &gradients);
+        if let Some(average) = &mut average {
+            average.update(&mut net);
+        }
         if config.recalibrate_every > 0 && adam.step % config.recalibrate_every == 0 {
             recalibrate_batch_norm(&mut net, &calibration)?;
         }
@@ -389,9 +439,18 @@ pub fn train(
             val_bad1_percent: None,
         };
         if done % config.validate_every == 0 || done == config.steps {
-            let estimates = validate_estimates(&net, &val_examples, locking)?;
+            let estimates = validate_estimates(
+                &exported(&net, average.as_ref(), config, &calibration)?,
+                &val_examples,
+                locking,
+            )?;
             tracing::info!(
-                "step {done}: validation AvgErr {:.3} px / Bad1 {:.2} % (refined {:.3} / {:.2}), logit range {:.1} (tens is healthy, thousands saturated)",
+                "step {done}: validation{} AvgErr {:.3} px / Bad1 {:.2} % (refined {:.3} / {:.2}), logit range {:.1} (tens is healthy, thousands saturated)",
+                if average.is_some() {
+                    " of the moving average:"
+                } else {
+                    ""
+                },
                 estimates.soft_argmin.0,
                 estimates.soft_argmin.1,
                 estimates.refined.0,
@@ -415,12 +474,24 @@ pub fn train(
         });
         if done % config.checkpoint_every == 0 || done == config.steps {
             let seconds = train_seconds + elapsed;
-            save_checkpoint(&mut net, &adam, &info_for(seconds), &files.checkpoint())?;
+            save_checkpoint(
+                &mut net,
+                &adam,
+                average.as_ref(),
+                &info_for(seconds),
+                &files.checkpoint(),
+            )?;
             write_curves(&files, &history)?;
         }
     }
     train_seconds += started.elapsed().as_secs_f64();
-    save_checkpoint(&mut net, &adam, &info_for(train_seconds), &files.checkpoint())?;
+    save_checkpoint(
+        &mut net,
+        &adam,
+        average.as_ref(),
+        &info_for(train_seconds),
+        &files.checkpoint(),
+    )?;
     write_curves(&files, &history)?;
     let mut info = info_for(train_seconds);
     info.set("format", "mfusenet-weights/1");
@@ -467,6 +538,12 @@ pub fn train(
     info.set("context_below", context.to_string());
     info.set("made_by", command);
     info.set("steps", adam.step.to_string());
+    if let Some(average) = &average {
+        // The exported weights are the average of the last ≈ 1 / (1 − decay) steps' weights.
+        info.set("average_decay", average.decay.to_string());
+        info.set("average_updates", average.updates.to_string());
+    }
+    let net = exported(&net, average.as_ref(), config, &calibration)?;
     // The final network's validation (the last step's when it validated; else made now, e.g.
     // after an interruption or for a run another trainer finished), and from it how inference
     // should read this network: whichever estimate validates better.

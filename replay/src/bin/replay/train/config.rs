@@ -51,6 +51,7 @@ impl TrainArgs {
             disparity_shift: self.disparity_shift,
             recalibrate_every: self.recalibrate_every,
             statistics_momentum: self.statistics_momentum,
+            average_decay: self.average_decay,
             context_below: self.context_below,
             flips: self.flips,
             keep_hopeless: self.keep_hopeless,

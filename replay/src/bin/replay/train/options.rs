@@ -89,6 +89,13 @@ pub struct TrainArgs {
     /// MFuseNet, Training (6)).
     #[arg(long, value_name = "M", default_value_t = 0.0)]
     pub(crate) statistics_momentum: f32,
+    /// Keep a moving average of the weights (decay D per step: 0.999 ≈ the last thousand
+    /// steps) in the checkpoint, and validate and export it instead of the last step's weights,
+    /// which batch-1 steps make swing from checkpoint to checkpoint. Recommended for runs of
+    /// thousands of steps; a run resumes with it switched on or off (the average starts on the
+    /// resumed weights). 0 = off.
+    #[arg(long, value_name = "D", default_value_t = 0.0)]
+    pub(crate) average_decay: f32,
     /// Train with N disparities of context below the range, as inference gives it (costs under
     /// 0 from each neighbour mirrored; the dataset is made anew): the network learns those
     /// slices are never the answer, at the image borders too, where a neighbour's only finite
