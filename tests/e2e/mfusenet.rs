@@ -269,6 +269,26 @@ fn training_can_average_its_weights_and_switch_the_average_on_when_resuming() {
         "{}",
         header["__metadata__"]
     );
+    // Other options in the same folder are another run: refused, naming what differs, and the
+    // run's checkpoint is left as it was (it used to be started over and overwritten).
+    let before = std::fs::read(&checkpoint).unwrap_or_default();
+    let output = tiny_training(
+        &dir.path().join("run"),
+        &dir.path().join("dataset"),
+        "10",
+        &["--learning-rate", "0.01"],
+    );
+    assert_eq!(output.status.code(), Some(1), "{output:?}");
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        stderr.contains("another run") && stderr.contains("learning_rate: 0.0005 → 0.01"),
+        "{stderr}"
+    );
+    assert_eq!(
+        std::fs::read(&checkpoint).unwrap_or_default(),
+        before,
+        "the checkpoint changed"
+    );
 }
 
 /// `--views any`: the view-count-agnostic network trains on random subsets of the neighbours of

@@ -83,6 +83,17 @@ pub enum TrainError {
         /// What is allowed.
         reason: &'static str,
     },
+    /// The run folder holds the checkpoint of another run: nothing is trained, nothing is
+    /// overwritten.
+    #[error(
+        "'{path}' is the checkpoint of another run (its configuration differs in: {fields}); resume it with its own options (training.json beside it has them), train in another --dir, or delete it to start over"
+    )]
+    OtherRun {
+        /// The checkpoint.
+        path: PathBuf,
+        /// The fields that differ (`field: stored → given`), or why its configuration cannot be read.
+        fields: String,
+    },
     /// A value of the weights' metadata does not serialise.
     #[error("metadata {key} cannot be written: {reason}")]
     Metadata {
@@ -137,17 +148,65 @@ pub struct TrainSummary {
     pub weights: PathBuf,
 }
 
-/// Whether a checkpoint whose configuration is `stored` (its `train_config`) belongs to the run
-/// `config` describes: the same in everything but the step budget and the moving average (which
-/// never changes a step), so that a longer (or shorter) `--steps`, or an average switched on,
-/// resumes the run instead of starting it over.
-fn same_run(stored: &str, config: &TrainConfig) -> bool {
-    serde_json::from_str::<TrainConfig>(stored).is_ok_and(|stored| {
-        TrainConfig {
+/// The fields in which the run configuration `stored` (a checkpoint's `train_config`) differs
+/// from `config`, each `field: stored → given`, or why `stored` cannot be read; empty when it is
+/// the same run. The step budget, the moving average and how often the run saves and validates
+/// never count (none changes a step), so that a longer (or shorter) `--steps`, or an average
+/// switched on, resumes the run.
+fn run_differences(stored: Option<&str>, config: &TrainConfig) -> Vec<String> {
+    let Some(stored) = stored else {
+        return vec!["train_config (missing: not a checkpoint of `replay train`)".to_owned()];
+    };
+    let stored = match serde_json::from_str::<TrainConfig>(stored) {
+        Ok(stored) => TrainConfig {
             steps: config.steps,
             average_decay: config.average_decay,
+            checkpoint_every: config.checkpoint_every,
+            validate_every: config.validate_every,
             ..stored
-        } == *config
+        },
+        Err(e) => return vec![format!("train_config (unreadable: {e})")],
+    };
+    // Through text, so that an `f32` reads as written (0.001, not 0.0010000000474974513).
+    let object = |c: &TrainConfig| match serde_json::to_string(c).and_then(|text| serde_json::from_str(&text)) {
+        Ok(serde_json::Value::Object(map)) => map,
+        _ => serde_json::Map::new(),
+    };
+    let (stored, given) = (object(&stored), object(config));
+    let mut keys: Vec<&String> = stored.keys().chain(given.keys()).collect();
+    keys.sort();
+    keys.dedup();
+    let shown = |v: Option<&serde_json::Value>| v.map_or_else(|| "(unset)".to_owned(), ToString::to_string);
+    keys.into_iter()
+        .filter(|k| stored.get(*k) != given.get(*k))
+        .map(|k| format!("{k}: {} → {}", shown(stored.get(k)), shown(given.get(k))))
+        .collect()
+}
+
+/// Refuses a run folder whose checkpoint belongs to another run (or cannot be read), before
+/// anything is made or overwritten: training there would replace that run's checkpoint.
+fn check_run_folder(files: &RunFiles, config: &TrainConfig) -> Result<(), TrainError> {
+    let path = files.checkpoint();
+    if !path.exists() {
+        return Ok(());
+    }
+    let bytes = std::fs::read(&path).map_err(|e| file_error(&path, e.to_string()))?;
+    let fields = match safetensors::SafeTensors::read_metadata(&bytes) {
+        Ok((_, metadata)) => {
+            let stored = metadata
+                .metadata()
+                .as_ref()
+                .and_then(|m| m.get("train_config").cloned());
+            run_differences(stored.as_deref(), config)
+        }
+        Err(e) => vec![format!("everything (not a safetensors file: {e})")],
+    };
+    if fields.is_empty() {
+        return Ok(());
+    }
+    Err(TrainError::OtherRun {
+        path,
+        fields: fields.join(", "),
     })
 }
 
@@ -253,6 +312,7 @@ pub fn train(
         weights: weights_out,
     } = *paths;
     let files = RunFiles { dir: dir.to_path_buf() };
+    check_run_folder(&files, config)?;
     std::fs::create_dir_all(dir).map_err(|e| file_error(dir, e.to_string()))?;
     let dataset_started = Instant::now();
     let total = config.train_sets + config.val_sets;
@@ -294,62 +354,66 @@ pub fn train(
     let calibration: Vec<Example> = (0..CALIBRATION_CROPS)
         .map(|_| random_crop(config, &train_samples, &mut calibration_rng))
         .collect();
-    // Resume or start.
-    let (mut net, mut adam, mut average, mut history, mut train_seconds, continued) =
-        match load_checkpoint(&files.checkpoint(), config.views) {
-            Ok(Checkpoint {
-                net,
-                adam,
-                average,
-                info,
-            }) if info.get("train_config").is_some_and(|stored| same_run(stored, config)) => {
-                let history = read_curves(&files.curves_csv(), adam.step)?;
-                let seconds = info.get("train_seconds").and_then(|s| s.parse().ok()).unwrap_or(0.0);
-                // Steps another trainer took (`scripts/train-torch.py`: `torch_batch`, `torch_steps`, …)
-                // stay on record in every later checkpoint and in the weights.
-                let continued: Vec<(String, String)> = info
-                    .entries
-                    .iter()
-                    .filter(|(k, _)| k.starts_with("torch_"))
-                    .map(|(k, v)| (k.clone(), v.clone()))
-                    .collect();
-                (net, adam, average, history, seconds, continued)
-            }
-            _ => {
-                let mut net = match &config.init_weights {
-                    Some(path) => {
-                        // The view-count-agnostic network starts from any fixed one.
-                        let mut net = if config.views == 0 {
-                            Network::pooled_from(&weights::load(path, None)?.0)
-                        } else {
-                            weights::load(path, Some(config.views))?.0
-                        };
-                        if net.architecture != config.architecture {
-                            return Err(TrainError::Config {
-                                field: "architecture",
-                                value: config.architecture.name().to_owned(),
-                                reason: if net.architecture == fuse::mfusenet::Architecture::Lite {
-                                    "the --init-weights file is a lite network (--architecture lite)"
-                                } else {
-                                    "the --init-weights file is the paper's network (--architecture paper)"
-                                },
-                            });
-                        }
-                        if config.recalibrate_every > 0 {
-                            recalibrate_batch_norm(&mut net, &calibration)?;
-                        }
-                        net
+    // Resume (the folder's checkpoint is this run's: `check_run_folder`) or start.
+    let resumed = if files.checkpoint().exists() {
+        Some(load_checkpoint(&files.checkpoint(), config.views)?)
+    } else {
+        None
+    };
+    let (mut net, mut adam, mut average, mut history, mut train_seconds, continued) = match resumed {
+        Some(Checkpoint {
+            net,
+            adam,
+            average,
+            info,
+        }) => {
+            let history = read_curves(&files.curves_csv(), adam.step)?;
+            let seconds = info.get("train_seconds").and_then(|s| s.parse().ok()).unwrap_or(0.0);
+            // Steps another trainer took (`scripts/train-torch.py`: `torch_batch`, `torch_steps`, …)
+            // stay on record in every later checkpoint and in the weights.
+            let continued: Vec<(String, String)> = info
+                .entries
+                .iter()
+                .filter(|(k, _)| k.starts_with("torch_"))
+                .map(|(k, v)| (k.clone(), v.clone()))
+                .collect();
+            (net, adam, average, history, seconds, continued)
+        }
+        None => {
+            let mut net = match &config.init_weights {
+                Some(path) => {
+                    // The view-count-agnostic network starts from any fixed one.
+                    let mut net = if config.views == 0 {
+                        Network::pooled_from(&weights::load(path, None)?.0)
+                    } else {
+                        weights::load(path, Some(config.views))?.0
+                    };
+                    if net.architecture != config.architecture {
+                        return Err(TrainError::Config {
+                            field: "architecture",
+                            value: config.architecture.name().to_owned(),
+                            reason: if net.architecture == fuse::mfusenet::Architecture::Lite {
+                                "the --init-weights file is a lite network (--architecture lite)"
+                            } else {
+                                "the --init-weights file is the paper's network (--architecture paper)"
+                            },
+                        });
                     }
-                    None => {
-                        let mut net = Network::init_with(config.views, config.architecture, config.seed);
+                    if config.recalibrate_every > 0 {
                         recalibrate_batch_norm(&mut net, &calibration)?;
-                        net
                     }
-                };
-                let adam = Adam::new(&mut net, config.learning_rate);
-                (net, adam, None, Vec::new(), 0.0, Vec::new())
-            }
-        };
+                    net
+                }
+                None => {
+                    let mut net = Network::init_with(config.views, config.architecture, config.seed);
+                    recalibrate_batch_norm(&mut net, &calibration)?;
+                    net
+                }
+            };
+            let adam = Adam::new(&mut net, config.learning_rate);
+            (net, adam, None, Vec::new(), 0.0, Vec::new())
+        }
+    };
     // The average the run keeps: the checkpoint's (at this run's decay), or a new one on the
     // weights as they are; none when switched off.
     let mut average = match (config.average_decay > 0.0, average.take()) {
@@ -767,6 +831,54 @@ mod tests {
             ),
             None
         );
+    }
+
+    #[test]
+    fn a_folder_holding_another_runs_checkpoint_is_refused_and_left_as_it_was() {
+        let config = TrainConfig::default();
+        let json = |c: &TrainConfig| serde_json::to_string(c).unwrap_or_else(|e| panic!("{e}"));
+        // Another budget or average is the same run; another learning rate is not.
+        let longer = TrainConfig {
+            steps: 10,
+            average_decay: 0.9,
+            checkpoint_every: 7,
+            ..config.clone()
+        };
+        assert!(run_differences(Some(&json(&longer)), &config).is_empty());
+        let other = TrainConfig {
+            learning_rate: 1e-3,
+            flips: true,
+            ..longer
+        };
+        assert_eq!(
+            run_differences(Some(&json(&other)), &config),
+            ["flips: true → (unset)", "learning_rate: 0.001 → 0.0005"]
+        );
+        assert_eq!(run_differences(None, &config).len(), 1);
+        assert!(run_differences(Some("{"), &config)[0].starts_with("train_config (unreadable"));
+
+        let dir = std::env::temp_dir().join(format!("replay-other-run-{}", std::process::id()));
+        let _ = std::fs::create_dir_all(&dir);
+        let files = RunFiles { dir: dir.clone() };
+        assert!(
+            check_run_folder(&files, &config).is_ok(),
+            "an empty folder starts a run"
+        );
+        let mut net = Network::init(2, 1);
+        let adam = Adam::new(&mut net, 1e-3);
+        let mut info = WeightsInfo::default();
+        info.set("train_config", json(&other));
+        let saved = save_checkpoint(&mut net, &adam, None, &info, &files.checkpoint());
+        assert!(saved.is_ok(), "{saved:?}");
+        let before = std::fs::read(files.checkpoint()).unwrap_or_default();
+        let error = check_run_folder(&files, &config).err();
+        assert!(
+            matches!(&error, Some(TrainError::OtherRun { fields, .. }) if fields.contains("learning_rate")),
+            "{error:?}"
+        );
+        assert!(check_run_folder(&files, &other).is_ok(), "its own run resumes");
+        assert_eq!(std::fs::read(files.checkpoint()).unwrap_or_default(), before);
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     #[test]

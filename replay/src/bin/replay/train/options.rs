@@ -21,8 +21,10 @@ pub struct TrainArgs {
     /// tensor names); a lite file records it in its metadata and `mfusenet` runs it as it is.
     #[arg(long, default_value = "paper", value_parser = ["paper", "lite"])]
     pub(crate) architecture: String,
-    /// Run folder: dataset cache, checkpoint, curves.csv, curves.rrd, training.json
-    /// (default: train/<variant>; a run in it resumes).
+    /// Run folder: checkpoint, curves.csv, curves.rrd, training.json (default:
+    /// train/<variant>). The run whose checkpoint it holds resumes (any --steps,
+    /// --average-decay, --checkpoint-every, --validate-every); other options are another run,
+    /// refused with the options that differ, its checkpoint left as it was.
     #[arg(long)]
     pub(crate) dir: Option<PathBuf>,
     /// Cache of the simulated captures' input volumes, shared by runs (default: train/dataset).
