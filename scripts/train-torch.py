@@ -150,12 +150,23 @@ def hopeless(inputs, target, mask):
     return (errors > HOPELESS_ERROR_PX).sum().item() > HOPELESS_FRACTION * errors.numel()
 
 
-def random_crop(config, dataset, generator, slices, count=None):
-    """`replay::train::schedule::random_crop` for one crop of a step whose shift is `slices`. For
+def crop_px_at(config, step):
+    """`TrainConfig::crop_px_at`: the crop side of step `step` (0-based) under `crop_stages`."""
+    side = config["crop_px"]
+    for stage in config.get("crop_stages", []):
+        if stage["from_step"] <= step:
+            side = stage["crop_px"]
+    return side
+
+
+def random_crop(config, dataset, generator, slices, count=None, side=None):
+    """`replay::train::schedule::random_crop` for one crop `side` px square (default
+    `crop_px`) of a step whose shift is `slices`. For
     the view-count-agnostic network (views 0) the crop takes `count` of the sample's neighbours
     (drawn 1..min(K, 6) when None), chosen and ordered at random (`Sample::for_views_drawn`): the crops of one
     batch share the count so that they stack."""
-    side, views = config["crop_px"], config["views"]
+    side = config["crop_px"] if side is None else side
+    views = config["views"]
     example = None
     for _ in range(8):
         index = int(torch.randint(len(dataset), (1,), generator=generator))
@@ -424,7 +435,8 @@ def main():
         # The view-count-agnostic network: one count of views per batch (1..min(K, 6)), each crop its own.
         drawable = min(KEPT[config.get("rig", "five-view")], MAX_DRAWN_VIEWS)
         count = int(torch.randint(1, drawable + 1, (1,), generator=generator)) if config["views"] == 0 else None
-        batch = [random_crop(config, train_set, generator, slices, count) for _ in range(args.batch)]
+        side = crop_px_at(config, step)
+        batch = [random_crop(config, train_set, generator, slices, count, side) for _ in range(args.batch)]
         inputs = torch.stack([b[0] for b in batch])  # [B, V, D, H, W]
         target = torch.stack([b[1] for b in batch])  # [B, H, W]
         mask = torch.stack([b[2] for b in batch])

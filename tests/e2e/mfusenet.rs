@@ -170,6 +170,64 @@ fn train_with(dir: &Path, steps: &str, extra: &[&str]) -> serde_json::Value {
 }
 
 #[test]
+fn training_grows_its_crops_on_schedule() {
+    // `--crop-px-from STEP:PX` trains the steps from STEP on with crops of PX. A stage that has
+    // not begun changes nothing (the same weights, byte for byte, as a run without it); a stage
+    // added when a run resumes is the same run, and its larger crops give other weights; a stage
+    // that does not parse or fit is a usage error.
+    let dir = temp_dir();
+    let dataset = dir.path().join("dataset");
+    let weights =
+        |name: &str| std::fs::read(dir.path().join(name).join("mfusenet-3view.safetensors")).unwrap_or_default();
+    let trained = |name: &str, steps: &str, extra: &[&str]| -> serde_json::Value {
+        let run = dir.path().join(name);
+        assert_success(&tiny_training(&run, &dataset, steps, extra), "replay train");
+        serde_json::from_slice(&std::fs::read(run.join("training.json")).unwrap_or_default())
+            .unwrap_or_else(|e| panic!("training.json: {e}"))
+    };
+    let plain = trained("plain", "4", &[]);
+    let later = trained("later", "4", &["--crop-px-from", "10:64"]);
+    assert_eq!(later["config"]["crop_stages"][0]["crop_px"], 64, "{later}");
+    assert!(plain["config"].get("crop_stages").is_none(), "{plain}");
+    // The weights' metadata names the run's configuration, which differs: compare the tensors.
+    let tensors = |bytes: &[u8]| -> Vec<Vec<u8>> {
+        let file = safetensors::SafeTensors::deserialize(bytes).unwrap_or_else(|e| panic!("{e}"));
+        let mut names: Vec<String> = file.names().into_iter().map(str::to_owned).collect();
+        names.sort();
+        names
+            .iter()
+            .map(|n| file.tensor(n).map(|t| t.data().to_vec()).unwrap_or_default())
+            .collect()
+    };
+    let (plain_weights, later_weights) = (weights("plain"), weights("later"));
+    assert!(
+        !plain_weights.is_empty() && tensors(&plain_weights) == tensors(&later_weights),
+        "a stage not begun changed the weights"
+    );
+
+    trained("grown", "2", &[]);
+    let grown = trained("grown", "4", &["--crop-px-from", "2:64"]);
+    assert_eq!(grown["resumed_at_step"], 2, "{grown}");
+    assert_eq!(grown["steps_done"], 4, "{grown}");
+    assert!(
+        tensors(&weights("grown")) != tensors(&plain_weights),
+        "64 px crops from step 2 trained as 32 px ones"
+    );
+
+    for (stage, says) in [("2-64", "expected STEP:PX"), ("2:66", "crop_stages"), ("2:64", "")] {
+        let extra = ["--crop-px-from", "1:48", "--crop-px-from", stage];
+        let output = tiny_training(&dir.path().join("bad"), &dataset, "0", &extra);
+        let stderr = String::from_utf8_lossy(&output.stderr);
+        if says.is_empty() {
+            assert_success(&output, "replay train with two stages");
+        } else {
+            assert_eq!(output.status.code(), Some(2), "{stage}: {stderr}");
+            assert!(stderr.contains(says), "{stage}: {stderr}");
+        }
+    }
+}
+
+#[test]
 fn training_can_keep_its_batch_norm_statistics_up_to_date() {
     // `--recalibrate-every N` re-estimates the statistics every N steps: the option reaches the
     // run's configuration, and runs with it (at the start and at steps 2 and 4) finish with a

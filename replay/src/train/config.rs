@@ -25,6 +25,15 @@ pub struct TrainConfig {
     /// Side of the square training crops (px, a multiple of 4).
     #[serde(alias = "crop")]
     pub crop_px: usize,
+    /// Larger (or smaller) crops from a step on, a multi-scale schedule: each stage's crops from
+    /// its `from_step` until the next stage's, [`TrainConfig::crop_px`] before the first. More
+    /// of a large crop lies farther than the network's reach from the crop's zero-padded
+    /// border, and occlusions and depth jumps wider than a small crop fit in it, at about
+    /// (side / `crop_px`)² the time a step. Validation and the BatchNorm calibration keep their
+    /// crops. Like `steps`, stages may be added or changed when a run resumes: the steps taken
+    /// stand as they were trained.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub crop_stages: Vec<CropStage>,
     /// Disparities of the training volumes (a multiple of 4).
     #[serde(alias = "disparities")]
     pub num_disparities: usize,
@@ -154,6 +163,7 @@ impl Default for TrainConfig {
             views: 2,
             steps: 3000,
             crop_px: 64,
+            crop_stages: Vec::new(),
             num_disparities: 32,
             learning_rate: 5e-4,
             seed: 1,
@@ -187,6 +197,16 @@ impl Default for TrainConfig {
     }
 }
 
+/// A stage of [`TrainConfig::crop_stages`]: crops of `crop_px` from step `from_step` (0-based:
+/// the step that makes checkpoint step `from_step + 1`) on.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct CropStage {
+    /// The first step (0-based) of the stage.
+    pub from_step: u64,
+    /// Side of the stage's square crops (px, a multiple of 4).
+    pub crop_px: usize,
+}
+
 /// How the baselines of the training captures are drawn.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "kebab-case")]
@@ -206,14 +226,33 @@ impl TrainConfig {
         if !matches!(self.views, 0 | 1 | 2 | 4) {
             return bad("views", self.views.to_string(), "1, 2, 4 or 0 (any)");
         }
-        if self.crop_px < 16
-            || !self.crop_px.is_multiple_of(4)
-            || self.crop_px as u32 > self.resolution[0].min(self.resolution[1])
-        {
+        let fits = |side: usize| {
+            side >= 16 && side.is_multiple_of(4) && side as u32 <= self.resolution[0].min(self.resolution[1])
+        };
+        if !fits(self.crop_px) {
             return bad(
                 "crop_px",
                 self.crop_px.to_string(),
                 "a multiple of 4, ≥ 16, within the resolution",
+            );
+        }
+        if let Some(stage) = self.crop_stages.iter().find(|s| !fits(s.crop_px)) {
+            return bad(
+                "crop_stages",
+                format!("{}:{}", stage.from_step, stage.crop_px),
+                "each stage's crops a multiple of 4, ≥ 16, within the resolution",
+            );
+        }
+        if self.crop_stages.windows(2).any(|w| w[1].from_step <= w[0].from_step) {
+            let stages: Vec<String> = self
+                .crop_stages
+                .iter()
+                .map(|s| format!("{}:{}", s.from_step, s.crop_px))
+                .collect();
+            return bad(
+                "crop_stages",
+                stages.join(","),
+                "stages in order of their first steps, one stage per step",
             );
         }
         if !self.disparity_shift.is_multiple_of(4) || self.disparity_shift + 8 > self.num_disparities {
@@ -284,6 +323,16 @@ impl TrainConfig {
             return bad("baseline_mm", format!("{:?}", self.baseline_mm), "0 < low ≤ high");
         }
         Ok(())
+    }
+
+    /// Side of the training crops of step `step` (0-based): the last of
+    /// [`TrainConfig::crop_stages`] begun by then, else [`TrainConfig::crop_px`].
+    pub fn crop_px_at(&self, step: u64) -> usize {
+        self.crop_stages
+            .iter()
+            .rev()
+            .find(|s| s.from_step <= step)
+            .map_or(self.crop_px, |s| s.crop_px)
     }
 
     /// Disparity slices of the dataset's volumes and of every crop_px: the range plus the context

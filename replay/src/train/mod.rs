@@ -160,6 +160,7 @@ fn run_differences(stored: Option<&str>, config: &TrainConfig) -> Vec<String> {
     let stored = match serde_json::from_str::<TrainConfig>(stored) {
         Ok(stored) => TrainConfig {
             steps: config.steps,
+            crop_stages: config.crop_stages.clone(),
             average_decay: config.average_decay,
             checkpoint_every: config.checkpoint_every,
             validate_every: config.validate_every,
@@ -352,7 +353,7 @@ pub fn train(
     // with), recalibrated every `recalibrate_every` steps, or tracked (`statistics_momentum`).
     let mut calibration_rng = SplitMix64::new(config.seed ^ 0x5EED_CA1B);
     let calibration: Vec<Example> = (0..CALIBRATION_CROPS)
-        .map(|_| random_crop(config, &train_samples, &mut calibration_rng))
+        .map(|_| random_crop(config, &train_samples, config.crop_px, &mut calibration_rng))
         .collect();
     // Resume (the folder's checkpoint is this run's: `check_run_folder`) or start.
     let resumed = if files.checkpoint().exists() {
@@ -482,7 +483,7 @@ pub fn train(
         let mut rng = SplitMix64::new(
             (config.seed ^ 0x9E37_79B9_7F4A_7C15).wrapping_add(step.wrapping_mul(0xD1B5_4A32_D192_ED03)),
         );
-        let example = random_crop(config, &train_samples, &mut rng);
+        let example = random_crop(config, &train_samples, config.crop_px_at(step), &mut rng);
         let (loss, _, mut gradients) =
             net.loss_and_gradients_with(&example.inputs, &example.target, &example.mask, batch_norm_mode)?;
         clip_gradients(&mut gradients, MAX_GRADIENT_NORM);
@@ -842,6 +843,10 @@ mod tests {
             steps: 10,
             average_decay: 0.9,
             checkpoint_every: 7,
+            crop_stages: vec![CropStage {
+                from_step: 5,
+                crop_px: 128,
+            }],
             ..config.clone()
         };
         assert!(run_differences(Some(&json(&longer)), &config).is_empty());
@@ -879,6 +884,63 @@ mod tests {
         assert!(check_run_folder(&files, &other).is_ok(), "its own run resumes");
         assert_eq!(std::fs::read(files.checkpoint()).unwrap_or_default(), before);
         let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn crops_follow_their_stages_and_bad_stages_are_refused() {
+        let stage = |from_step, crop_px| CropStage { from_step, crop_px };
+        let config = TrainConfig {
+            crop_px: 32,
+            crop_stages: vec![stage(10, 64), stage(20, 16)],
+            ..TrainConfig::default()
+        };
+        assert!(config.validate().is_ok(), "{:?}", config.validate());
+        let sides: Vec<usize> = [0, 9, 10, 19, 20, 1000].map(|s| config.crop_px_at(s)).to_vec();
+        assert_eq!(sides, [32, 32, 64, 64, 16, 16]);
+        assert_eq!(TrainConfig::default().crop_px_at(5), TrainConfig::default().crop_px);
+        // The stage's side is what a step draws: a sample of 80 × 72 px, 8 slices.
+        let (w, h, nd) = (80, 72, 8);
+        let volume = CostVolume {
+            width: w,
+            height: h,
+            min_disparity: 0,
+            num_disparities: nd,
+            data: vec![7u8; w * h * nd],
+            max_cost: 255,
+            source: VolumeSource::Fused(fuse::fusion::Fusion::Mean),
+        };
+        let sample = Sample {
+            volumes: vec![volume.clone(), volume],
+            truth: vec![3.0; w * h],
+        };
+        let small = TrainConfig {
+            num_disparities: nd,
+            keep_hopeless: true,
+            ..config.clone()
+        };
+        for step in [0, 10, 20] {
+            let side = small.crop_px_at(step);
+            let mut rng = SplitMix64::new(step);
+            let example = random_crop(&small, std::slice::from_ref(&sample), side, &mut rng);
+            assert_eq!(example.target.len(), side * side, "step {step}");
+            assert_eq!(example.inputs[0].shape, [1, nd, side, side], "step {step}");
+        }
+        for (stages, why) in [
+            (vec![stage(10, 64), stage(10, 128)], "one stage per step"),
+            (vec![stage(10, 64), stage(5, 128)], "in order"),
+            (vec![stage(10, 66)], "a multiple of 4"),
+            (vec![stage(10, 512)], "within the resolution"),
+        ] {
+            let bad = TrainConfig {
+                crop_stages: stages,
+                ..config.clone()
+            };
+            let error = bad.validate().err();
+            assert!(
+                matches!(&error, Some(TrainError::Config { field: "crop_stages", reason, .. }) if reason.contains(why)),
+                "{error:?}"
+            );
+        }
     }
 
     #[test]

@@ -16,25 +16,19 @@ pub(super) const CALIBRATION_CROPS: usize = 32;
 /// Largest global gradient norm (larger ones are scaled down).
 pub(super) const MAX_GRADIENT_NORM: f32 = 1.0;
 
-/// A random training crop with ground truth on at least half its pixels (the last of a few
-/// tries otherwise).
-pub(super) fn random_crop(config: &TrainConfig, samples: &[Sample], rng: &mut SplitMix64) -> Example {
+/// A random training crop `side` px square with ground truth on at least half its pixels (the
+/// last of a few tries otherwise).
+pub(super) fn random_crop(config: &TrainConfig, samples: &[Sample], side: usize, rng: &mut SplitMix64) -> Example {
     let mut example = None;
     for _ in 0..8 {
         let s = &samples[rng.range_usize(0, samples.len())];
         let (w, h) = (s.volumes[0].width, s.volumes[0].height);
         let (y0, x0) = (
-            rng.range_usize(0, h - config.crop_px + 1),
-            rng.range_usize(0, w - config.crop_px + 1),
+            rng.range_usize(0, h.saturating_sub(side) + 1),
+            rng.range_usize(0, w.saturating_sub(side) + 1),
         );
         let volumes = s.for_views_drawn(config.views, rng);
-        let mut e = crop(
-            &volumes,
-            &s.truth,
-            (y0, x0),
-            (config.crop_px, config.crop_px),
-            config.depth(),
-        );
+        let mut e = crop(&volumes, &s.truth, (y0, x0), (side, side), config.depth());
         if config.disparity_shift > 0 {
             e = shifted(
                 e,

@@ -4,7 +4,7 @@
 use anyhow::Result;
 use cli::UsageError;
 use fuse::mfusenet::input::InputSpec;
-use replay::train::TrainConfig;
+use replay::train::{CropStage, TrainConfig};
 
 use super::options::TrainArgs;
 
@@ -27,6 +27,21 @@ impl TrainArgs {
                     self.baseline_mm
                 ))
             })?;
+        let crop_stages = self
+            .crop_px_from
+            .iter()
+            .map(|stage| {
+                stage
+                    .split_once(':')
+                    .and_then(|(step, px)| {
+                        Some(CropStage {
+                            from_step: step.trim().parse().ok()?,
+                            crop_px: px.trim().parse().ok()?,
+                        })
+                    })
+                    .ok_or_else(|| usage(format!("--crop-px-from {stage}: expected STEP:PX, e.g. 15000:256")))
+            })
+            .collect::<Result<Vec<_>>>()?;
         let config = TrainConfig {
             views: if self.views == "any" {
                 0
@@ -35,6 +50,7 @@ impl TrainArgs {
             },
             steps: self.steps,
             crop_px: self.crop_px,
+            crop_stages,
             num_disparities: self.num_disparities,
             learning_rate: self.learning_rate,
             seed: self.seed,

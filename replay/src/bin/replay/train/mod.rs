@@ -33,8 +33,13 @@ pub fn run(args: &TrainArgs, quiet: bool) -> Result<Outcome> {
         "aborted",
     );
     let command = std::env::args().collect::<Vec<_>>().join(" ");
+    let stages: String = config
+        .crop_stages
+        .iter()
+        .map(|s| format!(", {0}×{0} from step {1}", s.crop_px, s.from_step))
+        .collect();
     info!(
-        "training {variant} ({} steps, {}×{} crops, {} disparities) in {}",
+        "training {variant} ({} steps, {}×{} crops{stages}, {} disparities) in {}",
         config.steps,
         config.crop_px,
         config.crop_px,

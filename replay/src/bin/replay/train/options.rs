@@ -39,6 +39,13 @@ pub struct TrainArgs {
     /// Side of the square training crops (px, a multiple of 4).
     #[arg(long = "crop-px", alias = "crop", value_name = "PX", default_value_t = TrainConfig::default().crop_px)]
     pub(crate) crop_px: usize,
+    /// A multi-scale schedule: crops of PX from step STEP (0-based) on, e.g. `--crop-px 128
+    /// --crop-px-from 15000:256` (repeat for more stages, in order). A large crop holds wider
+    /// occlusions and depth jumps, and less of it lies within the network's reach of its
+    /// zero-padded border, for about (PX / --crop-px)² the time a step. Validation keeps
+    /// --crop-px. May be added or changed when a run resumes, like --steps.
+    #[arg(long = "crop-px-from", value_name = "STEP:PX")]
+    pub(crate) crop_px_from: Vec<String>,
     /// Disparities of the training volumes (a multiple of 4).
     #[arg(long, alias = "disparities", value_name = "N", default_value_t = TrainConfig::default().num_disparities)]
     pub(crate) num_disparities: usize,
