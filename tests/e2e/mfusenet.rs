@@ -733,10 +733,11 @@ fn a_training_run_moves_to_pytorch_and_back() {
         );
         return;
     };
-    // Once without a moving average of the weights and once with one: PyTorch updates the
-    // checkpoint's average as `replay train` does, and both validate it.
+    // Once without a moving average of the weights and once with one (and larger crops from
+    // step 1, which PyTorch's steps take too): PyTorch updates the checkpoint's average as
+    // `replay train` does, and both validate it.
     let plain = ["--context-below", "4", "--disparity-shift", "4", "--flips"];
-    let averaged = [&plain[..], &["--average-decay", "0.9"]].concat();
+    let averaged = [&plain[..], &["--average-decay", "0.9", "--crop-px-from", "1:48"]].concat();
     for options in [&plain[..], &averaged[..]] {
         moves_to_pytorch_and_back(&python, options);
     }
