@@ -27,23 +27,29 @@ class Reference(nn.Module):
 
     `views = 0` is the view-count-agnostic variant (`fuse::nn::pool`, weights files marked
     `view_fusion = mean-max`): any number of volumes, their features' mean and maximum (8 channels,
-    the mean's first) instead of the features side by side."""
+    the mean's first) instead of the features side by side.
+
+    `sharp = True` (`fuse::mfusenet::Network::sharp`, read from `concat.0.weight`'s 5·N input
+    channels): each view also brings a sharp volume (per-pixel costs) straight into `concat`,
+    after its four feature channels; `logits` then takes the N views' volumes and after them
+    their N sharp volumes."""
 
     # Kernel sizes: feature.0, .2, .4, .6; concat, dconv21, uconv2, distill1 (the rest are 3).
     # `lite` (`fuse::mfusenet::Architecture::Lite`, metadata `architecture = lite`): about a
     # fifth of the paper's work per voxel, the same channels and `state_dict` names.
     KERNELS = {"paper": ((7, 5, 5, 3), (7, 7, 7, 5)), "lite": ((5, 3, 3, 3), (3, 7, 3, 3))}
 
-    def __init__(self, views, architecture="paper"):
+    def __init__(self, views, architecture="paper", sharp=False):
         super().__init__()
         self.views = views
+        self.sharp = sharp and views > 0
         self.architecture = architecture
         (f0, f2, f4, f6), (kc, k21, ku2, kd1) = self.KERNELS[architecture]
         relu = lambda: nn.ReLU(True)  # noqa: E731
         self.feature = nn.Sequential(
             conv_bn(1, 4, f0), relu(), conv_bn(4, 4, f2), relu(), conv_bn(4, 4, f4), relu(), conv_bn(4, 4, f6), relu()
         )
-        self.concat = conv_bn(8 if views == 0 else 4 * views, 4, kc)
+        self.concat = conv_bn(8 if views == 0 else (5 if self.sharp else 4) * views, 4, kc)
         self.down1 = conv_bn(4, 4, 3, stride=2)
         self.dconv1 = conv_bn(4, 4, 3)
         self.down2 = conv_bn(4, 4, 3, stride=2)
@@ -57,9 +63,14 @@ class Reference(nn.Module):
         self.classify = nn.Conv3d(4, 1, 3, padding=1)
 
     def logits(self, volumes):
-        # volumes: `views` tensors [B, D, H, W] -> logits [B, D, H, W]
+        # volumes: `views` tensors [B, D, H, W] (and as many sharp ones) -> logits [B, D, H, W]
+        sharp = volumes[self.views:] if self.sharp else []
+        volumes = volumes[: self.views] if self.sharp else volumes
         features = [self.feature(v.unsqueeze(1)) for v in volumes]  # N x [B, 4, D, H, W]
-        if self.views == 0:
+        if self.sharp:
+            # Each view's features, then its sharp volume: [B, 5N, D, H, W].
+            c = torch.cat([t for f, s in zip(features, sharp) for t in (f, s.unsqueeze(1))], 1)
+        elif self.views == 0:
             stacked = torch.stack(features)  # [N, B, 4, D, H, W]
             c = torch.cat((stacked.mean(0), stacked.amax(0)), 1)  # [B, 8, D, H, W]
         else:

@@ -370,6 +370,11 @@ pub struct Network {
     pub views: usize,
     /// The layers' kernel sizes.
     pub architecture: Architecture,
+    /// Each view also brings a sharp volume (its per-pixel costs, no block sums, no SGM: what
+    /// keeps 1–6 px parts and the gaps between them) straight into `concat`, beside its four
+    /// feature channels: inputs `N + i` beside the views' `i`, five `concat` channels a view.
+    /// Fixed networks only; [`Network::sharpened`] makes one from a fixed network.
+    pub sharp: bool,
     /// `feature.0`, `feature.2`, `feature.4`, `feature.6` (shared by the views).
     pub feature: Vec<ConvBn>,
     /// `concat`, `down1`, `dconv1`, `down2`, `dconv21`, `dconv22`, `up1`, `uconv1`, `up2`,
@@ -379,10 +384,18 @@ pub struct Network {
     pub classify: Classify,
 }
 
-/// Input channels of `concat`: four per view, or the pooled mean and maximum (views = 0).
-fn concat_channels(views: usize) -> usize {
-    if views == 0 { 8 } else { 4 * views }
+/// Input channels of `concat`: four per view (five with a sharp volume), or the pooled mean and
+/// maximum (views = 0).
+fn concat_channels(views: usize, sharp: bool) -> usize {
+    match (views, sharp) {
+        (0, _) => 8,
+        (_, false) => 4 * views,
+        (_, true) => 5 * views,
+    }
 }
+
+/// Feature channels a view gives `concat` (its sharp volume's channel follows them).
+const VIEW_FEATURES: usize = 4;
 
 /// Indices into [`Network::fuse`].
 const CONCAT: usize = 0;
@@ -435,7 +448,7 @@ impl Network {
             ConvBn::new("feature.6", 4, 4, f6, Same),
         ];
         let fuse = vec![
-            ConvBn::new("concat", concat_channels(views), 4, concat, Same),
+            ConvBn::new("concat", concat_channels(views, false), 4, concat, Same),
             ConvBn::new("down1", 4, 4, 3, Down),
             ConvBn::new("dconv1", 4, 4, 3, Same),
             ConvBn::new("down2", 4, 4, 3, Down),
@@ -450,6 +463,7 @@ impl Network {
         Self {
             views,
             architecture,
+            sharp: false,
             feature,
             fuse,
             classify: Classify {
@@ -477,7 +491,13 @@ impl Network {
         }
         let source = &fixed.fuse[CONCAT];
         let k3 = source.k * source.k * source.k;
-        let mut concat = ConvBn::new("concat", concat_channels(0), source.cout, source.k, ConvKind::Same);
+        let mut concat = ConvBn::new(
+            "concat",
+            concat_channels(0, false),
+            source.cout,
+            source.k,
+            ConvKind::Same,
+        );
         concat.bn = source.bn.clone();
         for o in 0..source.cout {
             for v in 0..fixed.views {
@@ -492,6 +512,40 @@ impl Network {
         }
         net.fuse[CONCAT] = concat;
         net
+    }
+
+    /// A fixed network (N views) that also takes each view's sharp volume ([`Network::sharp`]):
+    /// every layer copied, `concat` widened to five channels a view with zero weights for the
+    /// sharp ones, so that it computes what the fixed network computes whatever the sharp
+    /// volumes hold (a start for fine-tuning). `None` for a pooled network; a sharp one is
+    /// returned as it is.
+    pub fn sharpened(&self) -> Option<Self> {
+        if self.views == 0 {
+            return None;
+        }
+        let mut net = self.clone();
+        if self.sharp {
+            return Some(net);
+        }
+        net.sharp = true;
+        let source = &self.fuse[CONCAT];
+        let k3 = source.k * source.k * source.k;
+        let cin = concat_channels(self.views, true);
+        let mut concat = ConvBn::new("concat", cin, source.cout, source.k, ConvKind::Same);
+        concat.bn = source.bn.clone();
+        for o in 0..source.cout {
+            for v in 0..self.views {
+                let from = &source.weight[(o * source.cin + v * VIEW_FEATURES) * k3..][..VIEW_FEATURES * k3];
+                concat.weight[(o * cin + v * (VIEW_FEATURES + 1)) * k3..][..VIEW_FEATURES * k3].copy_from_slice(from);
+            }
+        }
+        net.fuse[CONCAT] = concat;
+        Some(net)
+    }
+
+    /// Inputs a pass takes: the views' volumes, and as many sharp volumes after them.
+    pub fn input_count(&self) -> usize {
+        if self.sharp { 2 * self.views } else { self.views }
     }
 
     /// PyTorch's default initialisation (`kaiming_uniform_(a=√5)`: U(±1/√fan_in) for weights and
@@ -564,11 +618,11 @@ impl Network {
         let count_ok = if self.views == 0 {
             (1..=crate::nn::pool::MAX_VIEWS).contains(&count)
         } else {
-            count == self.views
+            count == self.input_count()
         };
         if !count_ok {
             return Err(Error::InputCount {
-                expected: self.views,
+                expected: self.input_count(),
                 got: count,
             });
         }
@@ -653,19 +707,29 @@ impl Network {
             // each view's features convolved with its channels of the kernel and added in, then
             // freed, so that the concatenation never exists (16 channels with four views, and
             // their padded copy: the network's peak memory before). The BatchNorm's bias goes in
-            // with the first view, the ReLU after the last.
+            // with the first view, the ReLU after the last. A sharp network adds each view's
+            // sharp volume after its features, with the fifth of its channels.
             let layer = &self.fuse[CONCAT];
             let (weight, bias) = layer.bn.fold_into(&layer.conv_weight());
-            let [cout, cin, k] = [layer.cout, 4 * self.views, layer.k];
+            let [cout, cin, k] = [layer.cout, layer.cin, layer.k];
+            let per_view = if self.sharp { VIEW_FEATURES + 1 } else { VIEW_FEATURES };
             let mut c: Option<Tensor> = None;
-            let last = inputs.count() - 1;
-            for i in 0..inputs.count() {
-                let own = input_channels(&weight, cout, cin, k, 4 * i..4 * (i + 1));
+            let last = self.views - 1;
+            for i in 0..self.views {
+                let first = per_view * i;
+                let own = input_channels(&weight, cout, cin, k, first..first + VIEW_FEATURES);
                 let features = ConvInput::Padded(tower(inputs.get(i)?.as_ref()));
-                let relu = i == last;
-                c = Some(match c {
+                let relu = i == last && !self.sharp;
+                let sum = match c {
                     None => conv3d_input(features, &own, cout, k, Some(&bias), Epilogue { stride: 1, relu }),
                     Some(sum) => conv3d_accumulate_input(features, &own, k, sum, relu),
+                };
+                c = Some(if self.sharp {
+                    let sharp = inputs.get(self.views + i)?;
+                    let own = input_channels(&weight, cout, cin, k, first + VIEW_FEATURES..first + per_view);
+                    conv3d_accumulate_input(ConvInput::Borrowed(sharp.as_ref()), &own, k, sum, i == last)
+                } else {
+                    sum
                 });
             }
             // (`check_inputs` holds at least one input.)
@@ -729,7 +793,9 @@ impl Network {
         self.check_inputs(inputs)?;
         let mut feature_caches = Vec::new();
         let mut features = Vec::new();
-        for x in inputs {
+        // A sharp network's sharp volumes (the inputs after the views') skip the tower.
+        let towered = if self.sharp { self.views } else { inputs.len() };
+        for x in &inputs[..towered] {
             let mut caches = Vec::new();
             let mut y = x.clone();
             for layer in &mut self.feature {
@@ -749,6 +815,13 @@ impl Network {
         let (fused, argmax) = if self.views == 0 {
             let (pooled, argmax) = crate::nn::pool::mean_max_train(&features);
             (pooled, Some(argmax))
+        } else if self.sharp {
+            let parts: Vec<&Tensor> = features
+                .iter()
+                .zip(&inputs[towered..])
+                .flat_map(|(f, s)| [f, s])
+                .collect();
+            (Tensor::concat(&parts), None)
         } else {
             (Tensor::concat(&features.iter().collect::<Vec<_>>()), None)
         };
@@ -812,7 +885,12 @@ impl Network {
         let g_fused = back(CONCAT, &g_c);
         let g_features = match &tape.argmax {
             Some(argmax) => crate::nn::pool::mean_max_backward(&g_fused, argmax, tape.feature.len()),
-            None => g_fused.split(&vec![4; self.views]),
+            None if self.sharp => g_fused
+                .split(&[VIEW_FEATURES, 1].repeat(self.views))
+                .into_iter()
+                .step_by(2)
+                .collect(),
+            None => g_fused.split(&vec![VIEW_FEATURES; self.views]),
         };
 
         let mut feature_grads: Vec<Option<ConvBnGrad>> = vec![None; self.feature.len()];
@@ -1127,6 +1205,133 @@ mod pooled_tests {
                 close(g_p, g_s, 1e-3, name);
             }
         }
+    }
+
+    #[test]
+    fn a_sharpened_network_computes_the_fixed_one_until_its_sharp_weights_move() {
+        // Zero weights for the sharp channels: the fixed network's logits (to the bit: each
+        // sharp volume adds exact zeros) and, in training, its loss and every gradient but the
+        // new channels' own.
+        let fixed = Network::init_with(2, Architecture::Lite, 23);
+        let sharp = fixed.sharpened().unwrap_or_else(|| panic!("a fixed network sharpens"));
+        assert!(sharp.sharp && !fixed.sharp);
+        assert_eq!(sharp.fuse[CONCAT].cin, 10);
+        assert_eq!(
+            sharp.parameter_count(),
+            fixed.parameter_count() + 4 * 2 * 27,
+            "one kernel per view and output channel more"
+        );
+        assert!(
+            Network::init(0, 1).sharpened().is_none(),
+            "a pooled network has no sharp inputs"
+        );
+        let views: Vec<Tensor> = (0..2).map(|v| random([1, 8, 8, 8], 40 + v)).collect();
+        let sharp_volumes: Vec<Tensor> = (0..2).map(|v| random([1, 8, 8, 8], 50 + v)).collect();
+        let both: Vec<Tensor> = views.iter().chain(&sharp_volumes).cloned().collect();
+        let want = fixed.logits(&views).unwrap_or_else(|e| panic!("{e}"));
+        let got = sharp.logits(&both).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(got.data, want.data, "logits");
+        assert!(matches!(
+            sharp.logits(&views),
+            Err(Error::InputCount { expected: 4, got: 2 })
+        ));
+
+        let target: Vec<f32> = (0..64).map(|i| (i % 7) as f32).collect();
+        let mask = vec![true; 64];
+        let run = |net: &Network, inputs: &[Tensor]| {
+            net.clone()
+                .loss_and_gradients_with(inputs, &target, &mask, BatchNormMode::Frozen)
+                .unwrap_or_else(|e| panic!("{e}"))
+        };
+        let ((loss_f, _, grads_f), (loss_s, _, grads_s)) = (run(&fixed, &views), run(&sharp, &both));
+        assert!(
+            (loss_f - loss_s).abs() <= 1e-5 * loss_f.abs().max(1.0),
+            "{loss_f} vs {loss_s}"
+        );
+        let k3 = 27;
+        for ((name, g_f), (name_s, g_s)) in grads_f.tensors.iter().zip(&grads_s.tensors) {
+            assert_eq!(name, name_s);
+            if name == "concat.0.weight" {
+                for o in 0..4 {
+                    for v in 0..2 {
+                        let features = &g_s[(o * 10 + v * 5) * k3..][..4 * k3];
+                        close(
+                            features,
+                            &g_f[(o * 8 + v * 4) * k3..][..4 * k3],
+                            1e-4,
+                            "concat, features",
+                        );
+                    }
+                }
+            } else {
+                close(g_s, g_f, 1e-4, name);
+            }
+        }
+    }
+
+    #[test]
+    fn a_sharp_network_reads_its_sharp_volumes_alike_in_eval_and_training() {
+        // Non-zero sharp weights: the eval pass (each view's features and sharp volume added into
+        // `concat` in turn) gives the training pass's disparity, the sharp volumes change it, and
+        // the gradient of a sharp weight is the loss's finite difference.
+        let mut net = Network::init_with(2, Architecture::Lite, 29)
+            .sharpened()
+            .unwrap_or_else(|| panic!("a fixed network sharpens"));
+        let k3 = 27;
+        for o in 0..4 {
+            for v in 0..2 {
+                for t in 0..k3 {
+                    net.fuse[CONCAT].weight[(o * 10 + v * 5 + 4) * k3 + t] = 0.05 * (((o + v + t) % 5) as f32 - 2.0);
+                }
+            }
+        }
+        let inputs: Vec<Tensor> = (0..4).map(|v| random([1, 8, 8, 8], 60 + v)).collect();
+        let logits = net.logits(&inputs).unwrap_or_else(|e| panic!("{e}"));
+        let (eval, _) = soft_argmin(&logits);
+        let tape = net
+            .clone()
+            .forward_train_with(&inputs, BatchNormMode::Frozen)
+            .unwrap_or_else(|e| panic!("{e}"));
+        close(&tape.disparity, &eval, 1e-4, "disparity, eval against training");
+        let mut other = inputs.clone();
+        other[3] = random([1, 8, 8, 8], 99);
+        let moved = net.logits(&other).unwrap_or_else(|e| panic!("{e}"));
+        assert_ne!(moved.data, logits.data, "the sharp volumes reach the logits");
+
+        let target: Vec<f32> = (0..64).map(|i| (i % 5) as f32 + 0.5).collect();
+        let mask = vec![true; 64];
+        let loss = |net: &Network| {
+            net.clone()
+                .loss_and_gradients_with(&inputs, &target, &mask, BatchNormMode::Frozen)
+                .unwrap_or_else(|e| panic!("{e}"))
+        };
+        let (_, _, grads) = loss(&net);
+        let concat = grads
+            .tensors
+            .iter()
+            .find(|(name, _)| name == "concat.0.weight")
+            .map(|(_, g)| g.clone())
+            .unwrap_or_default();
+        // Along the sharp channels' own gradient (a direction the loss moves in measurably):
+        // the directional derivative is the squared norm of that part of the gradient.
+        let sharp_taps: Vec<usize> = (0..4)
+            .flat_map(|o| (0..2).flat_map(move |v| (o * 10 + v * 5 + 4) * k3..(o * 10 + v * 5 + 5) * k3))
+            .collect();
+        let norm = sharp_taps.iter().map(|&i| concat[i] * concat[i]).sum::<f32>().sqrt();
+        assert!(norm > 0.0, "the sharp weights have a gradient");
+        let h = 1e-2;
+        let moved = |sign: f32| {
+            let mut net = net.clone();
+            for &i in &sharp_taps {
+                net.fuse[CONCAT].weight[i] += sign * h * concat[i] / norm;
+            }
+            loss(&net).0
+        };
+        let difference = (moved(1.0) - moved(-1.0)) / (2.0 * h);
+        assert!(
+            (difference - norm).abs() <= 0.05 * norm,
+            "∂L along the sharp weights' gradient: finite difference {difference}, backward {norm}"
+        );
     }
 
     #[test]

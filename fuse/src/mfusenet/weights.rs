@@ -126,7 +126,11 @@ pub fn state_dict_shapes(views: usize) -> Vec<(String, Vec<usize>)> {
 
 /// [`state_dict_shapes`] of an architecture.
 pub fn state_dict_shapes_with(views: usize, architecture: Architecture) -> Vec<(String, Vec<usize>)> {
-    let net = Network::zeros_with(views, architecture);
+    state_dict_shapes_of(&Network::zeros_with(views, architecture))
+}
+
+/// Every tensor of `net`'s `state_dict`, with its shape, in the reference's order.
+fn state_dict_shapes_of(net: &Network) -> Vec<(String, Vec<usize>)> {
     let mut out = Vec::new();
     for layer in net.layers() {
         let c = layer.cout;
@@ -221,15 +225,23 @@ pub fn from_bytes(
             got: concat.shape().to_vec(),
         });
     }
-    let found_views = if pooled { 0 } else { channels / 4 };
-    if !pooled && !matches!(found_views, 1 | 2 | 4) {
-        return Err(Error::TensorShape {
-            file: file.to_owned(),
-            tensor: "concat.0.weight".to_owned(),
-            expected: format!("[4, 4·N, {concat_k}, {concat_k}, {concat_k}] with N = 1, 2 or 4"),
-            got: concat.shape().to_vec(),
-        });
-    }
+    // Four channels a view, or five with its sharp volume (`Network::sharp`): the two never
+    // share a count for N = 1, 2, 4.
+    let (found_views, sharp) = match channels {
+        _ if pooled => (0, false),
+        4 | 8 | 16 => (channels / 4, false),
+        5 | 10 | 20 => (channels / 5, true),
+        _ => {
+            return Err(Error::TensorShape {
+                file: file.to_owned(),
+                tensor: "concat.0.weight".to_owned(),
+                expected: format!(
+                    "[4, 4·N or 5·N (with sharp volumes), {concat_k}, {concat_k}, {concat_k}] with N = 1, 2 or 4"
+                ),
+                got: concat.shape().to_vec(),
+            });
+        }
+    };
     if let Some(expected) = views
         && expected != found_views
     {
@@ -241,7 +253,13 @@ pub fn from_bytes(
     }
     let mut values: HashMap<String, Vec<f32>> = HashMap::new();
     let mut batches: HashMap<String, i64> = HashMap::new();
-    let expected = state_dict_shapes_with(found_views, architecture);
+    let template = Network::zeros_with(found_views, architecture);
+    let template = if sharp {
+        template.sharpened().unwrap_or(template)
+    } else {
+        template
+    };
+    let expected = state_dict_shapes_of(&template);
     for (name, shape) in &expected {
         let full = format!("{prefix}{name}");
         let tracked = name.ends_with("num_batches_tracked");
@@ -314,7 +332,7 @@ pub fn from_bytes(
             tensor,
         });
     }
-    let mut net = Network::zeros_with(found_views, architecture);
+    let mut net = template;
     let mut take = |name: String| values.remove(&name).unwrap_or_default();
     for layer in net.feature.iter_mut().chain(net.fuse.iter_mut()) {
         let n = layer.name.clone();
@@ -464,6 +482,39 @@ mod tests {
             })
             .collect();
         safetensors::serialize(views, None).unwrap_or_else(|e| panic!("{e}"))
+    }
+
+    #[test]
+    fn a_sharp_network_is_read_back_by_its_concat_shape() {
+        for (views, architecture) in [
+            (1, Architecture::Paper),
+            (2, Architecture::Lite),
+            (4, Architecture::Lite),
+        ] {
+            let mut net = Network::init_with(views, architecture, 3)
+                .sharpened()
+                .unwrap_or_else(|| panic!("a fixed network sharpens"));
+            // Non-zero sharp weights, so that their places are checked.
+            for (i, w) in net.fuse[0].weight.iter_mut().enumerate() {
+                *w += 1e-3 * (i % 11) as f32;
+            }
+            let bytes = saved(&net);
+            let (again, _) = from_bytes(&bytes, "w", "", Some(views)).unwrap_or_else(|e| panic!("{e}"));
+            assert!(again.sharp, "N = {views}");
+            assert_eq!(again, net, "N = {views}");
+        }
+        // Five channels a view, one view too many: an error naming the shapes it takes.
+        let fixed = saved(&Network::init_with(2, Architecture::Lite, 3));
+        let wrong = edited(
+            &fixed,
+            "concat.0.weight",
+            Some((Dtype::F32, vec![4, 15, 3, 3, 3], vec![0u8; 4 * 15 * 27 * 4])),
+        );
+        let error = from_bytes(&wrong, "w", "", None).err();
+        assert!(
+            matches!(&error, Some(Error::TensorShape { tensor, expected, .. }) if tensor == "concat.0.weight" && expected.contains("5·N")),
+            "{error:?}"
+        );
     }
 
     #[test]
