@@ -365,6 +365,78 @@ pub fn input_volumes_of_sides_below(
     Ok((volumes, i64::from(extended.min_disparity)))
 }
 
+/// How the sharp volumes of a network with [`crate::mfusenet::Network::sharp`] are made: each
+/// side's per-pixel costs (no block sums, no SGM: what still shows a 1–6 px part, or the gap
+/// between two), normalised per pixel like the inputs.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SharpSpec {
+    /// Per-pixel cost.
+    pub cost: PixelCost,
+    /// Cost units of one network unit: a voxel holds `(C − min_d C) / unit` in steps of
+    /// 1/[`STEPS_PER_UNIT`], capped at 255 steps (two units).
+    pub unit: f32,
+}
+
+impl Default for SharpSpec {
+    /// Birchfield–Tomasi on colour (what graph cuts and the thin-part recovery read), 32 grey
+    /// levels a unit: differences up to 64 levels are kept.
+    fn default() -> Self {
+        Self {
+            cost: PixelCost::BirchfieldTomasi,
+            unit: 32.0,
+        }
+    }
+}
+
+/// The sharp volumes of `sides` (one per side, each its views' per-pixel costs made one by
+/// `rule`) over the range of [`input_volumes_of_sides_below`] with `below` disparities of
+/// context, the same shape and first disparity as its volumes: `(C − min_d C) / spec.unit` per
+/// pixel in steps of 1/[`STEPS_PER_UNIT`], capped at 255 steps; correspondences that leave a
+/// neighbour's image cost the most.
+pub fn sharp_volumes_of_sides_below(
+    problem: &Problem,
+    sides: &[Vec<&Neighbour>],
+    rule: SideRule,
+    spec: SharpSpec,
+    below: usize,
+) -> Result<(Vec<CostVolume<u8>>, i64), FuseError> {
+    use rayon::prelude::*;
+    let extended = with_context_below(problem, below);
+    let cost = CostSpec {
+        pixel: spec.cost,
+        block_radius_px: 0,
+    };
+    let shift = quantisation_shift(cost.max_cost());
+    let scale = STEPS_PER_UNIT * (1u32 << shift) as f32 / spec.unit.max(f32::MIN_POSITIVE);
+    let mut out = Vec::with_capacity(sides.len());
+    for side in sides {
+        let Some(n) = side.first() else { continue };
+        let single = Problem {
+            reference: extended.reference.clone(),
+            neighbours: side.iter().map(|m| (*m).clone()).collect(),
+            min_disparity: extended.min_disparity,
+            num_disparities: extended.num_disparities,
+        };
+        let prepared = PreparedProblem::new(&single, cost, Fusion::Heuristic)?.with_side_rule(rule);
+        let mut volume = prepared.fused_volume(shift, &|| {});
+        let nd = volume.num_disparities.max(1);
+        volume.data.par_chunks_mut(nd).for_each(|pixel| {
+            let min = pixel.iter().copied().min().unwrap_or(0);
+            for c in pixel.iter_mut() {
+                *c = (f32::from(*c - min) * scale).round().min(255.0) as u8;
+            }
+        });
+        volume.max_cost = 255;
+        volume.source = VolumeSource::Neighbour {
+            role: n.role.clone(),
+            offset: n.offset,
+        };
+        out.push(volume);
+    }
+    Ok((out, i64::from(extended.min_disparity)))
+}
+
 /// `(S − min_d S) / (8 · P2)` in steps of 1/[`STEPS_PER_UNIT`], capped at 255 steps.
 pub fn normalise(sums: &CostVolume<u16>, p2: u16) -> CostVolume<u8> {
     let mut data = vec![0u8; sums.data.len()];
@@ -761,6 +833,34 @@ mod tests {
         // The side of two is not the near view alone.
         let alone = volumes_below(&problem, 4).0;
         assert!(volumes[1] != alone[1]);
+    }
+
+    #[test]
+    fn sharp_volumes_lie_beside_the_inputs_with_their_minimum_at_the_plane() {
+        // The same shape and first slice as the inputs, each neighbour's own; every pixel's
+        // minimum is 0, and a textured plane's lies at its disparity.
+        let problem = plane(3, 0, 12);
+        let neighbours: Vec<&Neighbour> = problem.neighbours.iter().collect();
+        let sides: Vec<Vec<&Neighbour>> = neighbours.iter().map(|n| vec![*n]).collect();
+        let (inputs, first) = volumes_below(&problem, 4);
+        let (sharp, sharp_first) =
+            sharp_volumes_of_sides_below(&problem, &sides, SideRule::Min, SharpSpec::default(), 4)
+                .unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(sharp_first, first);
+        for (s, i) in sharp.iter().zip(&inputs) {
+            assert_eq!((s.shape(), &s.source), (i.shape(), &i.source));
+            // The plane at 3, four slices of context: slice 7.
+            let (mut right, mut total) = (0, 0);
+            for y in 2..s.height - 2 {
+                for x in 12..s.width - 12 {
+                    let costs = s.costs(x, y);
+                    assert_eq!(costs.iter().min(), Some(&0));
+                    right += usize::from(costs[7] == 0);
+                    total += 1;
+                }
+            }
+            assert!(right * 100 >= total * 95, "{:?}: {right} of {total}", s.source);
+        }
     }
 
     #[test]
