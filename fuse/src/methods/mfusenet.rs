@@ -26,8 +26,8 @@ use crate::mfusenet::infer::{
     infer_with_confidence,
 };
 use crate::mfusenet::input::{
-    InputSpec, ViewGroup, input_volumes_of_sides_below, ordered_neighbours, pooled_neighbours, sides_of, summed,
-    summed_input_volume_below, view_groups, views_for,
+    InputSpec, SharpSpec, ViewGroup, input_volumes_of_sides_below, ordered_neighbours, pooled_neighbours,
+    sharp_volumes_of_sides_below, sides_of, summed, summed_input_volume_below, view_groups, views_for,
 };
 use crate::mfusenet::pyramid::{
     Band, DEFAULT_MAX_DIRECT_DISPARITIES, band_minimum, downsampled, pyramid_factor, reduced_range,
@@ -269,6 +269,8 @@ struct Loaded {
     context_below: usize,
     /// Metadata `input_spec`.
     input: InputSpec,
+    /// Metadata `sharp_spec` (a sharp network's sharp volumes).
+    sharp: SharpSpec,
     /// Metadata `locking_curve`.
     locking: Option<LockingCurve>,
     /// Metadata `train_config` names the `grid-cross` rig: trained on far and diagonal
@@ -283,6 +285,7 @@ impl Loaded {
             refine: weights::refine_recommended(info, file)?,
             context_below: weights::context_below_recommended(info, file)?,
             input: weights::input_spec_recommended(info, file)?,
+            sharp: weights::sharp_spec_recommended(info, file)?,
             locking: weights::locking_recommended(info, file)?,
             far_views: info
                 .get("train_config")
@@ -671,7 +674,7 @@ impl MFuseNet {
         // The nearest group's volumes come first; the post-processing reads only theirs.
         let nearest = ordered_neighbours(problem, net.views)?.len();
         // Cost volumes: about a tenth of the work; the network the rest.
-        let (volumes, first, origin) = self.input_volumes(problem, &neighbours, loaded)?;
+        let (volumes, first, origin) = self.input_volumes(problem, &neighbours, loaded, net.sharp)?;
         progress(0.1);
         let (data, confidence) = infer_with_confidence(
             net,
@@ -699,16 +702,18 @@ impl MFuseNet {
 
     /// The input volumes of `neighbours` as `loaded`'s network asks for them (its input spec,
     /// its context below the range), the disparity of their first slice, and the shift from
-    /// the volumes' slices to disparities.
+    /// the volumes' slices to disparities. With `sharp`, the same neighbours' sharp volumes
+    /// follow them (`loaded`'s sharp spec), as a sharp network takes them.
     fn input_volumes(
         &self,
         problem: &Problem,
         neighbours: &[&Neighbour],
         loaded: &Loaded,
+        sharp: bool,
     ) -> Result<(Vec<CostVolume<u8>>, i64, f32), FuseError> {
         let room_below = self.config.room_below.unwrap_or(loaded.context_below);
         let sides = self.sides(problem, neighbours, loaded);
-        let (volumes, first) = input_volumes_of_sides_below(
+        let (mut volumes, first) = input_volumes_of_sides_below(
             problem,
             &sides,
             self.config.side_rule,
@@ -716,6 +721,11 @@ impl MFuseNet {
             room_below,
             &|| {},
         )?;
+        if sharp {
+            let (sharp, _) =
+                sharp_volumes_of_sides_below(problem, &sides, self.config.side_rule, loaded.sharp, room_below)?;
+            volumes.extend(sharp);
+        }
         let origin = first as f32 - volumes.first().map_or(0, |v| v.min_disparity) as f32;
         Ok((volumes, first, origin))
     }
@@ -786,7 +796,10 @@ impl MFuseNet {
             starts.push(neighbours.len());
             neighbours.extend(group.neighbours.iter().copied());
         }
-        let (volumes, first, origin) = self.input_volumes(problem, &neighbours, primary)?;
+        // Every group's sharp volumes after every group's own, when a network takes them.
+        let sharp = groups.iter().any(|(_, loaded)| loaded.net.sharp);
+        let (volumes, first, origin) = self.input_volumes(problem, &neighbours, primary, sharp)?;
+        let total = neighbours.len();
         let size = (problem.reference.width, problem.reference.height);
         let axis = volumes.first().map_or((0, 0), |v| (v.min_disparity, v.num_disparities));
         for (g, ((group, loaded), start)) in groups.iter().zip(&starts).enumerate() {
@@ -807,9 +820,11 @@ impl MFuseNet {
                 .max()
                 .unwrap_or(1)
                 .max(1);
+            let own = *start..start + group.neighbours.len();
+            let sharp_inputs = own.clone().map(|i| total + i).filter(|_| loaded.net.sharp);
             members.push(Member {
                 net: &loaded.net,
-                inputs: (*start..start + group.neighbours.len()).collect(),
+                inputs: own.clone().chain(sharp_inputs).collect(),
                 reach,
                 vote: self
                     .config
@@ -820,7 +835,7 @@ impl MFuseNet {
         // The estimate is refined and filtered with the nearest group's costs: the farther
         // views' costs, summed in or taken side by side, raised AvgErr on the toy line of five
         // and on Middlebury's lines (docs/experiments.md).
-        let costs = summed_or_error(&volumes[..members.first().map_or(0, |m| m.inputs.len())])?;
+        let costs = summed_or_error(&volumes[..groups.first().map_or(0, |(group, _)| group.neighbours.len())])?;
         progress(0.1);
         let (data, confidence) = infer_fused(
             &members,
@@ -1120,6 +1135,45 @@ mod tests {
         // The stereo method keeps its one neighbour.
         let stereo = crate::methods::build("mfusenet-stereo", None).unwrap_or_else(|e| panic!("{e}"));
         assert!(stereo.details(&problem)["side_inputs"].is_null());
+    }
+
+    #[test]
+    fn a_sharpened_file_answers_as_its_fixed_one_until_its_sharp_weights_move() {
+        // The shipped lite five-view file widened with zero weights for the sharp volumes
+        // (`Network::sharpened`): `mfusenet` makes the sharp volumes and feeds them, and the
+        // answer is the file's to the bit, test-time flips included; with sharp weights the
+        // answer moves.
+        let bytes = include_bytes!("../../weights/mfusenet-5view-lite.safetensors");
+        let (net, info) = weights::from_bytes(bytes, "lite", "", Some(4)).unwrap_or_else(|e| panic!("{e}"));
+        let dir = std::env::temp_dir().join(format!("fuse-sharp-{}", std::process::id()));
+        let _ = std::fs::create_dir_all(&dir);
+        let sharp_file = dir.join("sharp.safetensors");
+        let mut sharp = net.sharpened().unwrap_or_else(|| panic!("a fixed network sharpens"));
+        let saved = weights::save(&sharp, &info, &sharp_file);
+        assert!(saved.is_ok(), "{saved:?}");
+        let problem = plane_sized(&[[-1, 0], [1, 0], [0, -1], [0, 1]], 6, (0, 24), (96, 64));
+        let run = |config: serde_json::Value| {
+            let method = crate::methods::build("mfusenet", Some(&config)).unwrap_or_else(|e| panic!("{e}"));
+            method.run(&problem, &|_| {}).unwrap_or_else(|e| panic!("{e}"))
+        };
+        let file = sharp_file.display().to_string();
+        for flips in [false, true] {
+            let fixed = run(serde_json::json!({ "flips": flips }));
+            let widened = run(serde_json::json!({ "weights": file, "flips": flips }));
+            assert_eq!(widened.data, fixed.data, "flips {flips}");
+        }
+        for (i, w) in sharp.fuse[0].weight.iter_mut().enumerate() {
+            if i / 27 % 5 == 4 {
+                *w = 0.02;
+            }
+        }
+        let saved = weights::save(&sharp, &info, &sharp_file);
+        assert!(saved.is_ok(), "{saved:?}");
+        let moved = run(serde_json::json!({ "weights": file }));
+        let fixed = run(serde_json::json!({}));
+        assert_ne!(moved.data, fixed.data, "the sharp volumes reach the answer");
+        assert!(moved.data.iter().all(|d| d.is_finite()));
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     #[test]

@@ -142,13 +142,16 @@ pub fn infer_with_confidence(
         });
     };
     let (w, h, nd) = (first.width, first.height, first.num_disparities);
-    // The view-count-agnostic network (views = 0) takes any number.
-    if net.views != 0 && volumes.len() != net.views {
+    // The view-count-agnostic network (views = 0) takes any number; a sharp one its views'
+    // volumes and then as many sharp volumes.
+    if net.views != 0 && volumes.len() != net.input_count() {
         return Err(Error::InputCount {
-            expected: net.views,
+            expected: net.input_count(),
             got: volumes.len(),
         });
     }
+    let views = if net.views == 0 { volumes.len() } else { net.views };
+    let (view_volumes, sharp_volumes) = volumes.split_at(views);
     check_shapes(volumes, (w, h, nd))?;
     let skip = estimate.context_below;
     if skip >= nd {
@@ -158,7 +161,7 @@ pub fn infer_with_confidence(
         });
     }
     // Test-time flips: the mirror that maps this set's neighbours onto themselves.
-    let offsets = super::input::neighbour_offsets(volumes).unwrap_or_default();
+    let offsets = super::input::neighbour_offsets(view_volumes).unwrap_or_default();
     let no_mirror = || Error::NoMirror {
         offsets: offsets.clone(),
     };
@@ -194,7 +197,7 @@ pub fn infer_with_confidence(
                         let column = |d: usize| logits.data[d * plane + at];
                         let mut value = expected_disparity_from(column, nd, skip, estimate.window);
                         if estimate.refine {
-                            let cost = |d: usize| volumes.iter().map(|v| f64::from(v.costs(x, y)[d])).sum::<f64>();
+                            let cost = |d: usize| view_volumes.iter().map(|v| f64::from(v.costs(x, y)[d])).sum::<f64>();
                             value = refined(value, cost, nd, estimate.refine_reach, estimate.fit, estimate.locking);
                         }
                         disparity[y * w + x] = (first.min_disparity as f64 + value) as f32;
@@ -217,7 +220,13 @@ pub fn infer_with_confidence(
         let flipped = if pooled {
             inputs.iter().map(|t| t.flipped(vertical, horizontal)).collect()
         } else {
-            mirrored(&inputs, &offsets, vertical, horizontal).ok_or_else(no_mirror)?
+            // The sharp volumes (after the views') move with their views.
+            let (own, sharp) = inputs.split_at(views);
+            let mut flipped = mirrored(own, &offsets, vertical, horizontal).ok_or_else(no_mirror)?;
+            if !sharp_volumes.is_empty() {
+                flipped.extend(mirrored(sharp, &offsets, vertical, horizontal).ok_or_else(no_mirror)?);
+            }
+            flipped
         };
         drop(inputs);
         // The core mirrored: its margin, mirrored back, is the same rows and columns.
@@ -323,9 +332,9 @@ pub fn infer_fused(
     }
     check_shapes(volumes, (w, h, nd))?;
     for m in members {
-        if m.inputs.len() != m.net.views || m.inputs.iter().any(|i| *i >= volumes.len()) {
+        if m.inputs.len() != m.net.input_count() || m.inputs.iter().any(|i| *i >= volumes.len()) {
             return Err(Error::InputCount {
-                expected: m.net.views,
+                expected: m.net.input_count(),
                 got: m.inputs.iter().filter(|i| **i < volumes.len()).count(),
             });
         }

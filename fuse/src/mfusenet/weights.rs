@@ -103,6 +103,21 @@ pub fn input_spec_recommended(info: &WeightsInfo, file: &str) -> Result<super::i
     })
 }
 
+/// How a sharp network's sharp volumes are made (metadata `sharp_spec`, the JSON of
+/// [`super::input::SharpSpec`], as `replay train` writes it); no entry = the default. A value
+/// that does not parse is an error naming the file.
+pub fn sharp_spec_recommended(info: &WeightsInfo, file: &str) -> Result<super::input::SharpSpec, Error> {
+    let Some(value) = info.get("sharp_spec") else {
+        return Ok(super::input::SharpSpec::default());
+    };
+    serde_json::from_str(value).map_err(|_| Error::Metadata {
+        file: file.to_owned(),
+        key: "sharp_spec",
+        value: value.to_owned(),
+        expected: "a sharp spec: {\"cost\": …, \"unit\": …}",
+    })
+}
+
 /// Metadata key and value that mark a view-count-agnostic network (`Network::views` = 0): its
 /// `concat.0.weight` reads the pooled mean and maximum, 8 channels, the shape of the three-view
 /// network's, so the shape alone cannot tell them apart.
@@ -187,6 +202,7 @@ pub fn from_bytes(
     refine_recommended(&info, file)?;
     context_below_recommended(&info, file)?;
     input_spec_recommended(&info, file)?;
+    sharp_spec_recommended(&info, file)?;
     locking_recommended(&info, file)?;
     let concat_name = format!("{prefix}concat.0.weight");
     let concat = tensors.tensor(&concat_name).map_err(|_| Error::MissingTensor {
