@@ -262,6 +262,11 @@ def load_checkpoint(path, device):
     # Older files spell some keys the short way (`crop`, `disparities`).
     config.setdefault("crop_px", config.get("crop"))
     config.setdefault("num_disparities", config.get("disparities"))
+    if config.get("sharp"):
+        sys.exit(
+            f"error: {path} is a sharp run (`replay train --sharp`): this script does not make its crops' "
+            "sharp volumes yet; continue it with `replay train`"
+        )
     net = Reference(config["views"], metadata.get("architecture", config.get("architecture", "paper"))).to(device)
     state = {k[len("model.") :]: v for k, v in tensors.items() if k.startswith("model.")}
     net.load_state_dict(state, strict=True)

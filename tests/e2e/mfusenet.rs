@@ -491,6 +491,50 @@ fn training_resumes_and_its_weights_run() {
     replay_three_view_with(dir.path(), &weights);
 }
 
+#[test]
+fn a_sharp_network_trains_resumes_and_runs() {
+    // `--sharp`: the dataset keeps each neighbour's sharp volume (its own cache key), the network
+    // takes them beside its input volumes (`concat` reads five channels a view), the run resumes,
+    // its weights say how the sharp volumes are made, and `mfusenet` makes them to run the file.
+    // Another run in the same folder without `--sharp` is refused.
+    let dir = temp_dir();
+    let first = train_with(dir.path(), "2", &["--sharp"]);
+    assert!(first["config"]["sharp"].is_object(), "{first}");
+    let second = train_with(dir.path(), "4", &["--sharp"]);
+    assert_eq!(second["resumed_at_step"], 2, "{second}");
+    assert_eq!(second["steps_done"], 4, "{second}");
+    assert!(
+        second["val_avg_err_px"].as_f64().is_some_and(f64::is_finite),
+        "{second}"
+    );
+    let weights = dir.path().join("run/mfusenet-3view.safetensors");
+    let header = safetensors_header(&weights);
+    assert_eq!(
+        header["concat.0.weight"]["shape"][1], 10,
+        "two views, five channels each"
+    );
+    assert!(header["__metadata__"]["sharp_spec"].is_string(), "{header}");
+    let files: Vec<String> = std::fs::read_dir(dir.path().join("dataset"))
+        .map(|entries| {
+            entries
+                .filter_map(Result::ok)
+                .map(|e| e.file_name().to_string_lossy().into_owned())
+                .collect()
+        })
+        .unwrap_or_default();
+    assert!(files.iter().any(|f| f.starts_with("train-0000-")), "{files:?}");
+    let plain = tiny_training(&dir.path().join("run"), &dir.path().join("dataset"), "4", &[]);
+    assert_eq!(
+        plain.status.code(),
+        Some(1),
+        "{}",
+        String::from_utf8_lossy(&plain.stderr)
+    );
+    assert!(String::from_utf8_lossy(&plain.stderr).contains("sharp"));
+    let out = replay_three_view_with(dir.path(), &weights);
+    assert!(out.join("summary.json").is_file());
+}
+
 /// Records a tiny three-view capture into `dir` and replays it with `mfusenet` and `weights`
 /// (which must run); returns the results folder.
 fn replay_three_view_with(dir: &Path, weights: &Path) -> std::path::PathBuf {

@@ -151,7 +151,7 @@ pub fn infer_with_confidence(
         });
     }
     let views = if net.views == 0 { volumes.len() } else { net.views };
-    let (view_volumes, sharp_volumes) = volumes.split_at(views);
+    let view_volumes = &volumes[..views];
     check_shapes(volumes, (w, h, nd))?;
     let skip = estimate.context_below;
     if skip >= nd {
@@ -220,13 +220,8 @@ pub fn infer_with_confidence(
         let flipped = if pooled {
             inputs.iter().map(|t| t.flipped(vertical, horizontal)).collect()
         } else {
-            // The sharp volumes (after the views') move with their views.
-            let (own, sharp) = inputs.split_at(views);
-            let mut flipped = mirrored(own, &offsets, vertical, horizontal).ok_or_else(no_mirror)?;
-            if !sharp_volumes.is_empty() {
-                flipped.extend(mirrored(sharp, &offsets, vertical, horizontal).ok_or_else(no_mirror)?);
-            }
-            flipped
+            // (The sharp volumes, after the views', move with their views.)
+            mirrored(&inputs, &offsets, vertical, horizontal).ok_or_else(no_mirror)?
         };
         drop(inputs);
         // The core mirrored: its margin, mirrored back, is the same rows and columns.

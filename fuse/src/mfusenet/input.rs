@@ -212,13 +212,20 @@ pub fn flip_axes(offsets: &[[i32; 2]]) -> Option<(bool, bool)> {
 /// image of the set: each volume flipped (rows if `vertical`, columns if `horizontal`) and moved
 /// to the slot of its mirrored neighbour ([`mirror_order`]: a mirrored neighbour's matches move
 /// the other way, so a mirrored left volume is a right one). `None` when the set has no such
-/// mirror. Mirroring twice gives the inputs back.
+/// mirror. Mirroring twice gives the inputs back. A sharp network's inputs (the views' volumes,
+/// then as many sharp volumes: twice `offsets`) move each half alike.
 pub fn mirrored(inputs: &[Tensor], offsets: &[[i32; 2]], vertical: bool, horizontal: bool) -> Option<Vec<Tensor>> {
-    if inputs.len() != offsets.len() {
+    let n = offsets.len();
+    if n == 0 || (inputs.len() != n && inputs.len() != 2 * n) {
         return None;
     }
     let order = mirror_order(offsets, vertical, horizontal)?;
-    Some(order.iter().map(|&i| inputs[i].flipped(vertical, horizontal)).collect())
+    Some(
+        inputs
+            .chunks(n)
+            .flat_map(|half| order.iter().map(|&i| half[i].flipped(vertical, horizontal)))
+            .collect(),
+    )
 }
 
 /// The number of inputs `mfusenet` uses for a problem: 4 with a full cross of neighbours, 2

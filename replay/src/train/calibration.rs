@@ -159,9 +159,14 @@ pub fn validate_estimates(
                 .map(|z| logits.data[z * plane + pixel])
                 .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), v| (lo.min(v), hi.max(v)));
             range_sum += f64::from(hi - lo);
+            // The views' volumes (a sharp network's sharp ones follow them), as inference reads.
+            let views = if net.sharp {
+                example.inputs.len() / 2
+            } else {
+                example.inputs.len()
+            };
             let cost = |z: usize| {
-                example
-                    .inputs
+                example.inputs[..views]
                     .iter()
                     .map(|v| f64::from(v.data[z * plane + pixel]))
                     .sum::<f64>()

@@ -5,7 +5,7 @@
 use std::path::PathBuf;
 
 use fuse::mfusenet::Architecture;
-use fuse::mfusenet::input::InputSpec;
+use fuse::mfusenet::input::{InputSpec, SharpSpec};
 use fuse::mfusenet::weights;
 use record::capture::SimulationConfig;
 use record::rig::RigKind;
@@ -127,6 +127,12 @@ pub struct TrainConfig {
     /// networks take the cross at one baseline from either.
     #[serde(default = "five_view", skip_serializing_if = "is_five_view")]
     pub rig: RigKind,
+    /// Train a sharp network (`fuse::mfusenet::Network::sharp`): each view's per-pixel costs
+    /// beside its input volume, straight into `concat` (the dataset keeps them too; the network,
+    /// from `init_weights` or a random start, is widened with zero weights for them). Fixed
+    /// networks only; `None` = off (every shipped file).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sharp: Option<SharpSpec>,
 }
 
 fn five_view() -> RigKind {
@@ -181,6 +187,7 @@ impl Default for TrainConfig {
             keep_hopeless: false,
             exposure_jitter: 0.0,
             rig: RigKind::FiveView,
+            sharp: None,
             scenes: vec![
                 SceneKind::Random,
                 SceneKind::Random,
@@ -272,6 +279,13 @@ impl TrainConfig {
                 "scenes",
                 format!("{:?}", self.scenes),
                 "one or more families, never `bin`, `thin` or `slanted` (the held-out families, for checking generalisation)",
+            );
+        }
+        if self.sharp.is_some() && self.views == 0 {
+            return bad(
+                "sharp",
+                "on".to_owned(),
+                "sharp volumes are for the fixed networks (--views 1, 2 or 4)",
             );
         }
         if !matches!(self.rig, RigKind::FiveView | RigKind::GridCross) {
@@ -366,6 +380,9 @@ impl TrainConfig {
         }
         if self.rig != RigKind::FiveView {
             key["rig"] = self.rig.name().into();
+        }
+        if let Some(sharp) = &self.sharp {
+            key["sharp"] = serde_json::json!(sharp);
         }
         let key = key.to_string();
         // FNV-1a.

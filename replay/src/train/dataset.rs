@@ -5,7 +5,8 @@
 use std::path::Path;
 use std::sync::atomic::AtomicBool;
 
-use fuse::mfusenet::input::input_volumes_below;
+use fuse::fusion::SideRule;
+use fuse::mfusenet::input::{input_volumes_below, sharp_volumes_of_sides_below};
 use fuse::mfusenet::train::{Example, crop};
 use fuse::volume::{CostVolume, VolumeSource};
 use record::capture::Simulation;
@@ -54,6 +55,9 @@ pub struct Sample {
     pub volumes: Vec<CostVolume<u8>>,
     /// `[y][x]` px, 0 = unknown.
     pub truth: Vec<f32>,
+    /// A sharp run's ([`TrainConfig::sharp`]): each neighbour's sharp volume, in the order of
+    /// `volumes`; empty otherwise.
+    pub sharp: Vec<CostVolume<u8>>,
 }
 
 impl Sample {
@@ -66,6 +70,21 @@ impl Sample {
             _ => &[0, 1, 2, 3],
         };
         indices.iter().map(|i| &self.volumes[*i]).collect()
+    }
+
+    /// What a network of `views` inputs reads: [`Sample::for_views`], then (a sharp network) the
+    /// same neighbours' sharp volumes.
+    pub fn inputs(&self, views: usize, sharp: bool) -> Vec<&CostVolume<u8>> {
+        let mut inputs = self.for_views(views);
+        if sharp {
+            let indices: &[usize] = match views {
+                1 => &[1],
+                2 => &[0, 1],
+                _ => &[0, 1, 2, 3],
+            };
+            inputs.extend(indices.iter().filter_map(|i| self.sharp.get(*i)));
+        }
+        inputs
     }
 
     /// [`Sample::for_views`] for a training crop: the view-count-agnostic network (`views` = 0)
@@ -97,7 +116,7 @@ pub fn sample(config: &TrainConfig, index: usize, validation: bool, cache_dir: &
     let path = cache_dir.join(name);
     let kept = neighbours_kept(config.rig);
     if let Ok(bytes) = std::fs::read(&path)
-        && let Some(sample) = read_sample(&bytes, config.depth(), kept)
+        && let Some(sample) = read_sample(&bytes, config.depth(), kept, config.sharp.is_some())
     {
         return Ok(sample);
     }
@@ -139,6 +158,18 @@ pub fn sample(config: &TrainConfig, index: usize, validation: bool, cache_dir: &
         .into_iter()
         .map(|v| CostVolume { min_disparity: 0, ..v })
         .collect();
+    let sharp = match config.sharp {
+        Some(spec) => {
+            let sides: Vec<Vec<&fuse::volume::Neighbour>> = neighbours.iter().map(|n| vec![*n]).collect();
+            sharp_volumes_of_sides_below(&problem, &sides, SideRule::Min, spec, config.context_below)
+                .map_err(|source| TrainError::Fuse { index, source })?
+                .0
+                .into_iter()
+                .map(|v| CostVolume { min_disparity: 0, ..v })
+                .collect()
+        }
+        None => Vec::new(),
+    };
     let below = config.context_below as f32;
     let truth = view_set
         .ground_truth_disparity()
@@ -146,7 +177,7 @@ pub fn sample(config: &TrainConfig, index: usize, validation: bool, cache_dir: &
         .into_iter()
         .map(|t| if t.is_finite() && t > 0.0 { t + below } else { 0.0 })
         .collect();
-    let sample = Sample { volumes, truth };
+    let sample = Sample { volumes, truth, sharp };
     write_sample(&sample, &path)?;
     Ok(sample)
 }
@@ -155,10 +186,22 @@ fn write_sample(sample: &Sample, path: &Path) -> Result<(), TrainError> {
     let v = &sample.volumes[0];
     let truth: Vec<u8> = sample.truth.iter().flat_map(|t| t.to_le_bytes()).collect();
     let mut views = Vec::new();
-    for (i, volume) in sample.volumes.iter().enumerate() {
+    let named = sample
+        .volumes
+        .iter()
+        .enumerate()
+        .map(|(i, volume)| (format!("volume.{i}"), volume))
+        .chain(
+            sample
+                .sharp
+                .iter()
+                .enumerate()
+                .map(|(i, volume)| (format!("sharp.{i}"), volume)),
+        );
+    for (name, volume) in named {
         let view = TensorView::new(Dtype::U8, vec![v.height, v.width, v.num_disparities], &volume.data)
             .map_err(|e| file_error(path, e.to_string()))?;
-        views.push((format!("volume.{i}"), view));
+        views.push((name, view));
     }
     views.push((
         "truth".to_owned(),
@@ -173,7 +216,7 @@ fn write_sample(sample: &Sample, path: &Path) -> Result<(), TrainError> {
     std::fs::rename(&temporary, path).map_err(|e| file_error(path, e.to_string()))
 }
 
-fn read_sample(bytes: &[u8], num_disparities: usize, kept: usize) -> Option<Sample> {
+fn read_sample(bytes: &[u8], num_disparities: usize, kept: usize, sharp: bool) -> Option<Sample> {
     let tensors = SafeTensors::deserialize(bytes).ok()?;
     let truth_view = tensors.tensor("truth").ok()?;
     let (height, width) = (*truth_view.shape().first()?, *truth_view.shape().get(1)?);
@@ -182,38 +225,42 @@ fn read_sample(bytes: &[u8], num_disparities: usize, kept: usize) -> Option<Samp
         .chunks_exact(4)
         .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
         .collect();
-    let mut volumes = Vec::new();
-    for (i, (role, offset)) in NEIGHBOURS[..kept].iter().enumerate() {
-        let view = tensors.tensor(&format!("volume.{i}")).ok()?;
-        if view.shape() != [height, width, num_disparities] {
-            return None;
-        }
-        volumes.push(CostVolume {
-            width,
-            height,
-            min_disparity: 0,
-            num_disparities,
-            data: view.data().to_vec(),
-            max_cost: 255,
-            source: VolumeSource::Neighbour {
-                role: (*role).to_owned(),
-                offset: *offset,
-            },
-        });
-    }
-    Some(Sample { volumes, truth })
+    let read = |kind: &str| -> Option<Vec<CostVolume<u8>>> {
+        NEIGHBOURS[..kept]
+            .iter()
+            .enumerate()
+            .map(|(i, (role, offset))| {
+                let view = tensors.tensor(&format!("{kind}.{i}")).ok()?;
+                (view.shape() == [height, width, num_disparities]).then(|| CostVolume {
+                    width,
+                    height,
+                    min_disparity: 0,
+                    num_disparities,
+                    data: view.data().to_vec(),
+                    max_cost: 255,
+                    source: VolumeSource::Neighbour {
+                        role: (*role).to_owned(),
+                        offset: *offset,
+                    },
+                })
+            })
+            .collect()
+    };
+    let volumes = read("volume")?;
+    let sharp = if sharp { read("sharp")? } else { Vec::new() };
+    Some(Sample { volumes, truth, sharp })
 }
 
 /// Validation crops: the centre `side × side` (largest multiple of 4 that fits, at most 160)
 /// of every validation sample.
-pub fn validation_examples(samples: &[Sample], views: usize, num_disparities: usize) -> Vec<Example> {
+pub fn validation_examples(samples: &[Sample], views: usize, sharp: bool, num_disparities: usize) -> Vec<Example> {
     samples
         .iter()
         .map(|s| {
             let (w, h) = (s.volumes[0].width, s.volumes[0].height);
             let side = (w.min(h).min(160)) / 4 * 4;
             crop(
-                &s.for_views(views),
+                &s.inputs(views, sharp),
                 &s.truth,
                 ((h - side) / 2, (w - side) / 2),
                 (side, side),
@@ -224,9 +271,15 @@ pub fn validation_examples(samples: &[Sample], views: usize, num_disparities: us
 }
 
 /// The errors (px) over the masked pixels of the winner-take-all of the mean input volume (with
-/// parabola refinement): what the network's inputs say on their own.
-pub fn winner_take_all_errors(example: &Example) -> Vec<f32> {
-    let Some(first) = example.inputs.first() else {
+/// parabola refinement): what the network's inputs say on their own. A sharp example's sharp
+/// volumes (its second half) are not counted.
+pub fn winner_take_all_errors(example: &Example, sharp: bool) -> Vec<f32> {
+    let views = &example.inputs[..if sharp {
+        example.inputs.len() / 2
+    } else {
+        example.inputs.len()
+    }];
+    let Some(first) = views.first() else {
         return Vec::new();
     };
     let [_, d, h, w] = first.shape;
@@ -234,7 +287,7 @@ pub fn winner_take_all_errors(example: &Example) -> Vec<f32> {
     (0..plane)
         .filter(|pixel| example.mask[*pixel])
         .map(|pixel| {
-            let cost = |z: usize| example.inputs.iter().map(|t| t.data[z * plane + pixel]).sum::<f32>();
+            let cost = |z: usize| views.iter().map(|t| t.data[z * plane + pixel]).sum::<f32>();
             let best = (0..d).min_by(|a, b| cost(*a).total_cmp(&cost(*b))).unwrap_or(0);
             let mut estimate = best as f32;
             if best > 0 && best + 1 < d {
@@ -250,9 +303,9 @@ pub fn winner_take_all_errors(example: &Example) -> Vec<f32> {
 }
 
 /// AvgErr (px) and Bad1 (%) of [`winner_take_all_errors`] over the examples.
-pub fn winner_take_all_reference(examples: &[Example]) -> (f64, f64) {
+pub fn winner_take_all_reference(examples: &[Example], sharp: bool) -> (f64, f64) {
     let (mut sum, mut bad, mut count) = (0f64, 0usize, 0usize);
-    for error in examples.iter().flat_map(winner_take_all_errors) {
+    for error in examples.iter().flat_map(|e| winner_take_all_errors(e, sharp)) {
         sum += f64::from(error);
         bad += usize::from(error > 1.0);
         count += 1;
@@ -270,8 +323,8 @@ pub const HOPELESS_ERROR_PX: f32 = 3.0;
 /// See [`HOPELESS_ERROR_PX`].
 pub const HOPELESS_FRACTION: f32 = 0.4;
 
-pub(super) fn hopeless(example: &Example) -> bool {
-    let errors = winner_take_all_errors(example);
+pub(super) fn hopeless(example: &Example, sharp: bool) -> bool {
+    let errors = winner_take_all_errors(example, sharp);
     let wrong = errors.iter().filter(|e| **e > HOPELESS_ERROR_PX).count();
     wrong as f32 > HOPELESS_FRACTION * errors.len() as f32
 }
@@ -296,6 +349,7 @@ mod tests {
         let sample = Sample {
             volumes: vec![volume; 4],
             truth: vec![0.0],
+            sharp: Vec::new(),
         };
         let index = |v: &CostVolume<u8>| sample.volumes.iter().position(|s| std::ptr::eq(s, v));
         let mut rng = SplitMix64::new(1);
@@ -319,6 +373,7 @@ mod tests {
         let wide = Sample {
             volumes: vec![sample.volumes[0].clone(); NEIGHBOURS.len()],
             truth: vec![0.0],
+            sharp: Vec::new(),
         };
         let mut seen = [0usize; NEIGHBOURS.len()];
         let mut sizes = [0usize; MAX_DRAWN_VIEWS + 1];

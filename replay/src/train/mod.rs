@@ -341,8 +341,9 @@ pub fn train(
             reason: "interrupted before the dataset was complete (the captures made so far are cached)",
         });
     }
-    let val_examples = validation_examples(&val_samples, config.views, config.depth());
-    let (wta_avg, wta_bad1) = winner_take_all_reference(&val_examples);
+    let sharp = config.sharp.is_some();
+    let val_examples = validation_examples(&val_samples, config.views, sharp, config.depth());
+    let (wta_avg, wta_bad1) = winner_take_all_reference(&val_examples, sharp);
     let locking = fit_locking(&train_samples, config.views);
     tracing::info!(
         "validation crops: winner-take-all of the mean input volume gives AvgErr {wta_avg:.3} px, Bad1 {wta_bad1:.2} % (the network must do better)"
@@ -407,10 +408,18 @@ pub fn train(
                 }
                 None => {
                     let mut net = Network::init_with(config.views, config.architecture, config.seed);
+                    if config.sharp.is_some() {
+                        net = net.sharpened().unwrap_or(net);
+                    }
                     recalibrate_batch_norm(&mut net, &calibration)?;
                     net
                 }
             };
+            // A sharp run widens its start with zero weights for the sharp volumes: it begins
+            // by computing what that network computes.
+            if config.sharp.is_some() {
+                net = net.sharpened().unwrap_or(net);
+            }
             let adam = Adam::new(&mut net, config.learning_rate);
             (net, adam, None, Vec::new(), 0.0, Vec::new())
         }
@@ -587,6 +596,9 @@ pub fn train(
         "per neighbour: census 7x7 block-summed, SGM 8 paths; (S - min_d S) / (8 P2), steps of 1/128, max 255 steps; tensor = byte / 128",
     );
     info.set("input_spec", to_json("input_spec", &config.input)?);
+    if let Some(sharp) = &config.sharp {
+        info.set("sharp_spec", to_json("sharp_spec", sharp)?);
+    }
     info.set(
         "input_steps_per_unit",
         fuse::mfusenet::input::STEPS_PER_UNIT.to_string(),
@@ -763,13 +775,13 @@ mod tests {
     #[test]
     fn inputs_that_agree_with_the_truth_are_not_hopeless() {
         let right = example(|_| 6.0, 6.0);
-        assert!(winner_take_all_errors(&right).iter().all(|e| *e < 1e-6));
-        assert!(!hopeless(&right));
+        assert!(winner_take_all_errors(&right, false).iter().all(|e| *e < 1e-6));
+        assert!(!hopeless(&right, false));
         // Off by 5 px on 12 of 20 pixels (60 %): hopeless; on 4 of 20 (20 %): kept.
         let mostly_wrong = example(|p| if p < 12 { 11.0 } else { 6.0 }, 6.0);
-        assert!(hopeless(&mostly_wrong));
+        assert!(hopeless(&mostly_wrong, false));
         let partly_wrong = example(|p| if p < 4 { 11.0 } else { 6.0 }, 6.0);
-        assert!(!hopeless(&partly_wrong));
+        assert!(!hopeless(&partly_wrong, false));
         // Training redraws the hopeless crop unless told to keep it; a crop mostly without
         // ground truth is redrawn either way.
         let keep = TrainConfig {
@@ -782,7 +794,7 @@ mod tests {
         let mut unlabelled = right.clone();
         unlabelled.mask.iter_mut().take(10).for_each(|m| *m = false);
         assert!(!acceptable(&keep, &unlabelled));
-        let (avg, bad1) = winner_take_all_reference(&[partly_wrong]);
+        let (avg, bad1) = winner_take_all_reference(&[partly_wrong], false);
         assert!((avg - 1.0).abs() < 1e-6 && (bad1 - 20.0).abs() < 1e-6, "{avg} {bad1}");
     }
 
@@ -809,6 +821,7 @@ mod tests {
             Sample {
                 volumes: vec![volume; 4],
                 truth: truth.clone(),
+                sharp: Vec::new(),
             }
         };
         let v = fit_locking(&[sample(1)], 2).unwrap_or_else(|| panic!("no curve"));
@@ -912,6 +925,7 @@ mod tests {
         let sample = Sample {
             volumes: vec![volume.clone(), volume],
             truth: vec![3.0; w * h],
+            sharp: Vec::new(),
         };
         let small = TrainConfig {
             num_disparities: nd,
@@ -969,7 +983,7 @@ mod tests {
         assert_eq!(shifted.inputs[1].data, original.inputs[1].data[4 * 20..]);
         assert!(shifted.target[..10].iter().all(|t| (*t - 2.0).abs() < 1e-6));
         assert!(shifted.mask[..10].iter().all(|m| *m) && shifted.mask[10..].iter().all(|m| !*m));
-        let errors = winner_take_all_errors(&shifted);
+        let errors = winner_take_all_errors(&shifted, false);
         assert!(errors.iter().all(|e| *e < 1e-6), "{errors:?}");
         assert_eq!(super::shifted(original.clone(), 0, 0), original);
         // The first 10 pixels' truth lands on slice 2 after the shift: just above 2 slices of

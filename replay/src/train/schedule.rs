@@ -27,7 +27,12 @@ pub(super) fn random_crop(config: &TrainConfig, samples: &[Sample], side: usize,
             rng.range_usize(0, h.saturating_sub(side) + 1),
             rng.range_usize(0, w.saturating_sub(side) + 1),
         );
-        let volumes = s.for_views_drawn(config.views, rng);
+        let sharp = config.sharp.is_some();
+        let volumes = if sharp {
+            s.inputs(config.views, true)
+        } else {
+            s.for_views_drawn(config.views, rng)
+        };
         let mut e = crop(&volumes, &s.truth, (y0, x0), (side, side), config.depth());
         if config.disparity_shift > 0 {
             e = shifted(
@@ -43,7 +48,9 @@ pub(super) fn random_crop(config: &TrainConfig, samples: &[Sample], side: usize,
                 // mirror exists.
                 e = flipped_unordered(&e, vertical, horizontal);
             } else {
-                let offsets = neighbour_offsets(volumes.iter().copied()).unwrap_or_default();
+                // The views' offsets (a sharp crop's sharp volumes follow their views).
+                let views = if sharp { volumes.len() / 2 } else { volumes.len() };
+                let offsets = neighbour_offsets(volumes[..views].iter().copied()).unwrap_or_default();
                 // A flip the rig has no mirror for (a single right neighbour, left to right) is
                 // not made.
                 let possible = |v: bool, h: bool| mirror_order(&offsets, v, h).is_some();
@@ -69,7 +76,8 @@ pub(super) fn random_crop(config: &TrainConfig, samples: &[Sample], side: usize,
 /// Whether training takes this crop: ground truth on more than half its pixels, and inputs
 /// that are not hopeless unless the configuration keeps those.
 pub(super) fn acceptable(config: &TrainConfig, example: &Example) -> bool {
-    example.mask.iter().filter(|m| **m).count() * 2 > example.mask.len() && (config.keep_hopeless || !hopeless(example))
+    example.mask.iter().filter(|m| **m).count() * 2 > example.mask.len()
+        && (config.keep_hopeless || !hopeless(example, config.sharp.is_some()))
 }
 
 /// `example` without its first `slices` disparity slices: targets move down by as many, and

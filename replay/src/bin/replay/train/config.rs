@@ -74,6 +74,7 @@ impl TrainArgs {
             scenes: self.scenes.clone(),
             exposure_jitter: self.exposure_jitter,
             rig: self.rig,
+            sharp: self.sharp.then(fuse::mfusenet::input::SharpSpec::default),
             input: InputSpec {
                 block_radius_px: self.input_block_radius_px,
                 ..InputSpec::default()

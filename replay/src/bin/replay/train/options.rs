@@ -46,6 +46,14 @@ pub struct TrainArgs {
     /// --crop-px. May be added or changed when a run resumes, like --steps.
     #[arg(long = "crop-px-from", value_name = "STEP:PX")]
     pub(crate) crop_px_from: Vec<String>,
+    /// Train a sharp network: each view's per-pixel costs (Birchfield–Tomasi on colour, no
+    /// block sums, no SGM: what still shows 1–6 px parts and the gaps between them) beside its
+    /// input volume, straight into `concat`. The start (--init-weights or a random one) is
+    /// widened with zero weights for them; the dataset keeps them (its own cache key); the
+    /// weights record how they are made (metadata `sharp_spec`) and `mfusenet` makes them.
+    /// Fixed networks only (--views 1, 2 or 4).
+    #[arg(long)]
+    pub(crate) sharp: bool,
     /// Disparities of the training volumes (a multiple of 4).
     #[arg(long, alias = "disparities", value_name = "N", default_value_t = TrainConfig::default().num_disparities)]
     pub(crate) num_disparities: usize,
