@@ -90,16 +90,20 @@ def mirror_order(offsets, vertical, horizontal):
 
 
 class Dataset:
-    """The cached samples on `device`: volumes `[K, D, H, W]` u8 (K = `kept`) and truth `[H, W]` (slices, 0 = unknown)."""
+    """The cached samples on `device`: volumes `[K, D, H, W]` u8 (K = `kept`; a sharp run's
+    `[2K, D, H, W]`, each neighbour's sharp volume after the K input volumes) and truth `[H, W]`
+    (slices, 0 = unknown)."""
 
-    def __init__(self, directory, key, count, prefix, depth, device, kept=4):
+    def __init__(self, directory, key, count, prefix, depth, device, kept=4, sharp=False):
         self.volumes, self.truth = [], []
+        self.kept, self.sharp = kept, sharp
         for index in range(count):
             path = os.path.join(directory, f"{prefix}-{index:04d}-{key}.safetensors")
             if not os.path.exists(path):
                 sys.exit(f"error: {path} is missing: make the dataset with `replay train ... --steps 0` first")
             with safe_open(path, "pt") as f:
-                volumes = torch.stack([f.get_tensor(f"volume.{i}") for i in range(kept)])  # [K, H, W, D]
+                names = [f"volume.{i}" for i in range(kept)] + ([f"sharp.{i}" for i in range(kept)] if sharp else [])
+                volumes = torch.stack([f.get_tensor(name) for name in names])  # [K or 2K, H, W, D]
                 truth = f.get_tensor("truth")  # [H, W]
             if volumes.shape[-1] != depth:
                 sys.exit(f"error: {path} has {volumes.shape[-1]} slices, the run's configuration {depth}")
@@ -113,6 +117,9 @@ class Dataset:
 def crop(dataset, index, views, y0, x0, side, indices=None):
     """`fuse::mfusenet::train::crop`: inputs `[V, D, side, side]` (cost units), target and mask `[side, side]`."""
     indices = VIEW_INDICES[views] if indices is None else indices
+    if dataset.sharp:
+        # The views' volumes, then their sharp volumes (`Sample::inputs`).
+        indices = list(indices) + [dataset.kept + i for i in indices]
     v = dataset.volumes[index][indices, :, y0 : y0 + side, x0 : x0 + side].float() / STEPS_PER_UNIT
     t = dataset.truth[index][y0 : y0 + side, x0 : x0 + side]
     depth = v.shape[1]
@@ -194,11 +201,14 @@ def random_crop(config, dataset, generator, slices, count=None, side=None):
             order = mirror_order(offsets, vertical, horizontal)
             dims = [d for d, flip in ((-2, vertical), (-1, horizontal)) if flip]
             if order is not None and dims:
+                if dataset.sharp:
+                    order = order + [len(order) + i for i in order]
                 inputs = inputs[order].flip(dims)
                 target, mask = target.flip(dims), mask.flip(dims)
         example = (inputs, target, mask)
         enough = int(mask.sum()) * 2 > mask.numel()
-        if enough and (config.get("keep_hopeless", False) or not hopeless(inputs, target, mask)):
+        views_only = inputs[: inputs.shape[0] // 2] if dataset.sharp else inputs
+        if enough and (config.get("keep_hopeless", False) or not hopeless(views_only, target, mask)):
             break
     return example
 
@@ -262,12 +272,8 @@ def load_checkpoint(path, device):
     # Older files spell some keys the short way (`crop`, `disparities`).
     config.setdefault("crop_px", config.get("crop"))
     config.setdefault("num_disparities", config.get("disparities"))
-    if config.get("sharp"):
-        sys.exit(
-            f"error: {path} is a sharp run (`replay train --sharp`): this script does not make its crops' "
-            "sharp volumes yet; continue it with `replay train`"
-        )
-    net = Reference(config["views"], metadata.get("architecture", config.get("architecture", "paper"))).to(device)
+    architecture = metadata.get("architecture", config.get("architecture", "paper"))
+    net = Reference(config["views"], architecture, sharp=bool(config.get("sharp"))).to(device)
     state = {k[len("model.") :]: v for k, v in tensors.items() if k.startswith("model.")}
     net.load_state_dict(state, strict=True)
     step = int(metadata.get("adam_step", "0"))
@@ -393,8 +399,9 @@ def main():
         sys.exit(f"error: {checkpoint} has no `dataset_key`: remake it with this version of `replay train`")
     depth = config["num_disparities"] + config.get("context_below", 0)
     kept = KEPT[config.get("rig", "five-view")]
-    train_set = Dataset(args.dataset_dir, key, config["train_sets"], "train", depth, device, kept)
-    val_set = Dataset(args.dataset_dir, key, config["val_sets"], "val", depth, device, kept)
+    sharp = bool(config.get("sharp"))
+    train_set = Dataset(args.dataset_dir, key, config["train_sets"], "train", depth, device, kept, sharp)
+    val_set = Dataset(args.dataset_dir, key, config["val_sets"], "val", depth, device, kept, sharp)
     log(
         f"{config['views'] or 'any'} views, {len(train_set)} + {len(val_set)} captures on {device} "
         f"({torch.cuda.get_device_name(device) if device.type == 'cuda' else 'CPU'}), loaded in {time.time() - started:.1f} s; "

@@ -782,7 +782,9 @@ fn a_training_run_moves_to_pytorch_and_back() {
     // `replay train` does, and both validate it.
     let plain = ["--context-below", "4", "--disparity-shift", "4", "--flips"];
     let averaged = [&plain[..], &["--average-decay", "0.9", "--crop-px-from", "1:48"]].concat();
-    for options in [&plain[..], &averaged[..]] {
+    // And a sharp network, whose crops carry each view's sharp volume after the views'.
+    let sharp = [&plain[..], &["--sharp"]].concat();
+    for options in [&plain[..], &averaged[..], &sharp[..]] {
         moves_to_pytorch_and_back(&python, options);
     }
 }
