@@ -312,14 +312,9 @@ fn for_each_aggregated(
     let mut buffer = Vec::new();
     for side in sides {
         let Some(n) = side.first() else { continue };
-        let single = Problem {
-            reference: problem.reference.clone(),
-            neighbours: side.iter().map(|m| (*m).clone()).collect(),
-            min_disparity: problem.min_disparity,
-            num_disparities: problem.num_disparities,
-        };
         // The heuristic over one side is its side rule.
-        let prepared = PreparedProblem::new(&single, cost, Fusion::Heuristic)?.with_side_rule(rule);
+        let prepared =
+            PreparedProblem::new(&side_problem(problem, side), cost, Fusion::Heuristic)?.with_side_rule(rule);
         let mut sums = aggregate_prepared(&prepared, shift, (p1, p2), buffer, on_band);
         sums.source = VolumeSource::Neighbour {
             role: n.role.clone(),
@@ -329,6 +324,16 @@ fn for_each_aggregated(
         buffer = sums.data;
     }
     Ok(())
+}
+
+/// `problem` with `side`'s views as its only neighbours: one input's costs.
+fn side_problem(problem: &Problem, side: &[&Neighbour]) -> Problem {
+    Problem {
+        reference: problem.reference.clone(),
+        neighbours: side.iter().map(|m| (*m).clone()).collect(),
+        min_disparity: problem.min_disparity,
+        num_disparities: problem.num_disparities,
+    }
 }
 
 /// `problem` with its range started `below` disparities lower.
@@ -419,13 +424,8 @@ pub fn sharp_volumes_of_sides_below(
     let mut out = Vec::with_capacity(sides.len());
     for side in sides {
         let Some(n) = side.first() else { continue };
-        let single = Problem {
-            reference: extended.reference.clone(),
-            neighbours: side.iter().map(|m| (*m).clone()).collect(),
-            min_disparity: extended.min_disparity,
-            num_disparities: extended.num_disparities,
-        };
-        let prepared = PreparedProblem::new(&single, cost, Fusion::Heuristic)?.with_side_rule(rule);
+        let prepared =
+            PreparedProblem::new(&side_problem(&extended, side), cost, Fusion::Heuristic)?.with_side_rule(rule);
         let mut volume = prepared.fused_volume(shift, &|| {});
         let nd = volume.num_disparities.max(1);
         volume.data.par_chunks_mut(nd).for_each(|pixel| {
