@@ -61,15 +61,20 @@ pub struct Sample {
 }
 
 impl Sample {
-    /// The volumes a network of `views` inputs takes (see `fuse::mfusenet::input`); the cross at
-    /// one baseline for the view-count-agnostic network (`views` = 0), as its validation reads it.
-    pub fn for_views(&self, views: usize) -> Vec<&CostVolume<u8>> {
-        let indices: &[usize] = match views {
+    /// The neighbours (indices into `volumes`) a network of `views` inputs takes, in its order
+    /// (see `fuse::mfusenet::input`); the cross at one baseline for the view-count-agnostic
+    /// network (`views` = 0), as its validation reads it.
+    fn view_indices(views: usize) -> &'static [usize] {
+        match views {
             1 => &[1],
             2 => &[0, 1],
             _ => &[0, 1, 2, 3],
-        };
-        indices.iter().map(|i| &self.volumes[*i]).collect()
+        }
+    }
+
+    /// The volumes a network of `views` inputs takes ([`Sample::view_indices`]).
+    pub fn for_views(&self, views: usize) -> Vec<&CostVolume<u8>> {
+        Self::view_indices(views).iter().map(|i| &self.volumes[*i]).collect()
     }
 
     /// What a network of `views` inputs reads: [`Sample::for_views`], then (a sharp network) the
@@ -77,12 +82,7 @@ impl Sample {
     pub fn inputs(&self, views: usize, sharp: bool) -> Vec<&CostVolume<u8>> {
         let mut inputs = self.for_views(views);
         if sharp {
-            let indices: &[usize] = match views {
-                1 => &[1],
-                2 => &[0, 1],
-                _ => &[0, 1, 2, 3],
-            };
-            inputs.extend(indices.iter().filter_map(|i| self.sharp.get(*i)));
+            inputs.extend(Self::view_indices(views).iter().filter_map(|i| self.sharp.get(*i)));
         }
         inputs
     }
