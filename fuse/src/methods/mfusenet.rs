@@ -821,10 +821,13 @@ impl MFuseNet {
                 .unwrap_or(1)
                 .max(1);
             let own = *start..start + group.neighbours.len();
-            let sharp_inputs = own.clone().map(|i| total + i).filter(|_| loaded.net.sharp);
+            let mut inputs: Vec<usize> = own.clone().collect();
+            if loaded.net.sharp {
+                inputs.extend(own.map(|i| total + i));
+            }
             members.push(Member {
                 net: &loaded.net,
-                inputs: own.clone().chain(sharp_inputs).collect(),
+                inputs,
                 reach,
                 vote: self
                     .config

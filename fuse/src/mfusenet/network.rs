@@ -543,7 +543,8 @@ impl Network {
         Some(net)
     }
 
-    /// Inputs a pass takes: the views' volumes, and as many sharp volumes after them.
+    /// Inputs a pass of a fixed network takes: the views' volumes, and as many sharp volumes
+    /// after them (0 for the pooled network, which takes any number).
     pub fn input_count(&self) -> usize {
         if self.sharp { 2 * self.views } else { self.views }
     }
