@@ -6,6 +6,7 @@
 family_logs() {
     local scene=$1 prefix=$2 count=$3 resolution=$4 seed log
     logs=()
+    mkdir -p "$(dirname "$prefix")"
     for seed in $(seq 1 "$count"); do
         log="$prefix-$seed.mcap"
         [ -f "$log" ] || target/release/record --scene "$scene" --seed "$seed" --rig five-view \
