@@ -231,6 +231,37 @@ fn winners(c: &mut Criterion) {
     group.finish();
 }
 
+/// The pixel costs of one reference row against a neighbour's search lines (1920 columns, 128
+/// disparities, the hot loop of block matching at 1080p): Birchfield–Tomasi on colour (the
+/// channels' halves summed in bytes) against absolute differences on colour (the channels' exact
+/// mean, in 16-bit lanes, the Birchfield–Tomasi colour cost's arithmetic before) and census 7×7.
+fn pixel_costs(c: &mut Criterion) {
+    use fuse::cost::{PixelCost, PreparedView};
+    use fuse::lines::{SearchLines, pixel_cost_tile_lines};
+    let (width, nd) = (1920, 128);
+    let problem = problem(width, 16, nd);
+    let neighbour = &problem.neighbours[1];
+    let mut out = vec![0u8; width * nd];
+    let mut group = c.benchmark_group("pixel_costs_1920x128");
+    for (name, cost) in [
+        ("birchfield_tomasi_colour", PixelCost::BirchfieldTomasi),
+        ("absolute_difference_colour", PixelCost::AbsoluteDifference),
+        ("census_7x7", PixelCost::Census { radius: 3 }),
+    ] {
+        let reference = PreparedView::new(problem.reference.clone(), cost);
+        let Some(lines) = SearchLines::new(&neighbour.image, cost, neighbour.offset, 0..nd as i32) else {
+            panic!("an axis neighbour has search lines");
+        };
+        group.bench_function(name, |b| {
+            b.iter(|| {
+                pixel_cost_tile_lines(cost, &reference, &lines, 8, 0..width as isize, 0, nd, &mut out);
+                black_box(&out);
+            })
+        });
+    }
+    group.finish();
+}
+
 /// MFuseNet's last step: the thin-part recovery on each pixel's own costs and over cross-shaped
 /// supports (the default), from a flat estimate (every pixel is tested).
 fn thin_parts(c: &mut Criterion) {
@@ -259,5 +290,5 @@ fn thin_parts(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, methods, mfusenet, graph_cuts, winners, thin_parts);
+criterion_group!(benches, methods, mfusenet, graph_cuts, winners, pixel_costs, thin_parts);
 criterion_main!(benches);

@@ -10,8 +10,8 @@
 use std::ops::Range;
 
 use crate::cost::{
-    MAX_CENSUS_RADIUS, PixelCost, PreparedView, birchfield_tomasi_row, census_plane_count, census_row, mean_of_three,
-    padded_gray,
+    MAX_CENSUS_RADIUS, PixelCost, PreparedView, birchfield_tomasi_row, census_plane_count, census_row,
+    colour_birchfield_tomasi, mean_of_three, padded_gray,
 };
 use crate::image::Image;
 
@@ -248,10 +248,7 @@ pub fn pixel_cost_tile_lines(
                 let (l2, h2) = (&planes[4][range.clone()][..n], &planes[5][range][..n]);
                 for (d, o) in costs.iter_mut().enumerate() {
                     let bt = |c: u8, l: u8, h: u8| c.saturating_sub(h).max(l.saturating_sub(c));
-                    let sum = u16::from(bt(c0, l0[d], h0[d]))
-                        + u16::from(bt(c1, l1[d], h1[d]))
-                        + u16::from(bt(c2, l2[d], h2[d]));
-                    *o = mean_of_three(sum);
+                    *o = colour_birchfield_tomasi(bt(c0, l0[d], h0[d]), bt(c1, l1[d], h1[d]), bt(c2, l2[d], h2[d]));
                 }
             }
             (PixelCost::Census { .. }, _) => {

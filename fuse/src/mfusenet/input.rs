@@ -391,8 +391,9 @@ pub struct SharpSpec {
 }
 
 impl Default for SharpSpec {
-    /// Birchfield–Tomasi on colour (what graph cuts and the thin-part recovery read), 32 grey
-    /// levels a unit: differences up to 64 levels are kept.
+    /// Birchfield–Tomasi on colour (what graph cuts and the thin-part recovery read), 32 cost
+    /// levels a unit (the colour cost sums the channels' halves: about 21 grey levels of their
+    /// mean): differences up to 64 cost levels are kept.
     fn default() -> Self {
         Self {
             cost: PixelCost::BirchfieldTomasi,
