@@ -47,8 +47,9 @@ pub struct ThinParts {
     pub ratio: f32,
     /// … and at most this share of the lowest cost farther than ±1 from the new disparity.
     pub uniqueness: f32,
-    /// … and lower than the cost at the estimate by at least this much (grey levels: flat
-    /// regions, where every cost is noise, never move).
+    /// … and lower than the cost at the estimate by at least this much (cost levels, for colour
+    /// views the channels' halves summed, about 1.5 grey levels of their mean: flat regions,
+    /// where every cost is noise, never move).
     pub min_margin: f32,
     /// How many of the 8 neighbours must move to within 1 px of the pixel's new disparity.
     pub min_support: usize,
