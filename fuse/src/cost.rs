@@ -304,9 +304,9 @@ pub fn pixel_cost_tile(
 /// (rounded down) and the halves summed, saturating at 255: 1.5 × the channels' mean up to a
 /// mean of 170 levels, clipped above. In byte lanes only (32 to an AVX2 register; the exact mean
 /// needs 16-bit lanes), so the colour cost loop runs in about half the instructions; and the
-/// clip, a truncated cost, matched better than the mean on every set measured (dev scenes
-/// `bm-heuristic` AvgErr 0.696 → 0.675 px, slanted planes' BadPix 0.07 16.6 → 14.9 %;
-/// docs/experiments.md, "The colour cost in bytes").
+/// clip, a truncated cost, matched as well as the mean or better on nearly every set measured
+/// (dev scenes `bm-heuristic` AvgErr 0.696 → 0.675 px, slanted planes' BadPix 0.07 16.6 →
+/// 14.9 %; the `thin` family +0.5 %; docs/experiments.md, "The colour cost in bytes").
 #[inline]
 pub(crate) fn colour_birchfield_tomasi(r: u8, g: u8, b: u8) -> u8 {
     (r >> 1).saturating_add(g >> 1).saturating_add(b >> 1)
