@@ -16,93 +16,157 @@ pub fn occluded_in(disparity: &[f32], width: usize, height: usize, offset: [i32;
     hidden
 }
 
-/// Columns a tile of a vertical neighbour's z-buffer spans: 1080 rows of 64 columns stay in L2.
+/// Columns a tile of the vertical neighbours' z-buffers spans: the tile's 1080 rows of 64
+/// columns, transposed, stay in L2.
 const COLUMN_TILE: usize = 64;
+/// Rows per task of the horizontal neighbours' z-buffers.
+const ROW_BAND: usize = 16;
 
 /// Sets `hidden` where [`occluded_in`] is `true` (leaves the other pixels as they are), for
-/// `height` rows of `width` pixels. A neighbour along a row (or a column) moves pixels only
-/// within their row (column), so its z-buffer is one row (a tile of columns), reused and
-/// cache-resident, and rows (tiles) run in parallel; a diagonal neighbour gets a whole-image
-/// z-buffer.
+/// `height` rows of `width` pixels ([`mark_occluded_all`] with one offset).
 pub fn mark_occluded(disparity: &[f32], width: usize, height: usize, offset: [i32; 2], hidden: &mut [bool]) {
+    mark_occluded_all(disparity, width, height, &[offset], hidden);
+}
+
+/// Sets `hidden` where the reference pixel is hidden in the neighbour at any of `offsets`
+/// (grid units; [`occluded_in`] of each, or-ed), leaving the other pixels as they are. A
+/// neighbour along a row (or a column) moves pixels only within their row (column), so its
+/// z-buffer is one line, reused and cache-resident: bands of rows run in parallel for the
+/// horizontal neighbours, tiles of columns (transposed, so that a column is a line) for the
+/// vertical ones, every neighbour of a kind in the same pass over the pixels. A diagonal
+/// neighbour gets a whole-image z-buffer.
+pub fn mark_occluded_all(disparity: &[f32], width: usize, height: usize, offsets: &[[i32; 2]], hidden: &mut [bool]) {
     use rayon::prelude::*;
     let pixels = (width * height).min(disparity.len()).min(hidden.len());
-    let (disparity, hidden) = (&disparity[..pixels], &mut hidden[..pixels]);
     if width == 0 || pixels == 0 {
         return;
     }
-    let (ox, oy) = (offset[0] as f32, offset[1] as f32);
-    // Along an axis the offset does not move, the target stays (`round(y − 0·d) = y`): one
-    // rounding a pixel for the direct neighbours instead of two.
-    let shift = |p: usize, o: f32, d: f32| if o == 0.0 { p as f32 } else { (p as f32 - o * d).round() };
-    let inside = |q: f32, n: usize| q >= 0.0 && (q as usize) < n;
-    if oy == 0.0 {
-        disparity
-            .par_chunks(width)
-            .zip(hidden.par_chunks_mut(width))
-            .for_each_init(
-                || vec![f32::NEG_INFINITY; width],
-                |front, (row, out)| {
-                    front.fill(f32::NEG_INFINITY);
-                    for (x, &d) in row.iter().enumerate() {
-                        let q = shift(x, ox, d);
-                        if d.is_finite() && inside(q, row.len()) {
-                            front[q as usize] = front[q as usize].max(d);
-                        }
-                    }
-                    for (x, (&d, out)) in row.iter().zip(out).enumerate() {
-                        let q = shift(x, ox, d);
-                        if d.is_finite() && (!inside(q, row.len()) || front[q as usize] > d + OCCLUSION_MARGIN_PX) {
-                            *out = true;
-                        }
-                    }
-                },
-            );
-        return;
-    }
     let rows = pixels / width;
-    if ox == 0.0 {
-        // Each tile of columns: its hidden pixels (row-major within the tile), merged after.
-        let tiles: Vec<(usize, usize, Vec<bool>)> = (0..width.div_ceil(COLUMN_TILE))
+    let (disparity, hidden) = (&disparity[..rows * width], &mut hidden[..rows * width]);
+    let along = |pick: fn(&[i32; 2]) -> (i32, i32)| -> Vec<f32> {
+        offsets
+            .iter()
+            .map(pick)
+            .filter(|(other, o)| *other == 0 && *o != 0)
+            .map(|(_, o)| o as f32)
+            .collect()
+    };
+    let horizontal = along(|o| (o[1], o[0]));
+    let vertical = along(|o| (o[0], o[1]));
+    if !horizontal.is_empty() {
+        disparity
+            .par_chunks(ROW_BAND * width)
+            .zip(hidden.par_chunks_mut(ROW_BAND * width))
+            .for_each_init(LineScratch::default, |scratch, (band, out)| {
+                for (line, out) in band.chunks_exact(width).zip(out.chunks_exact_mut(width)) {
+                    for &o in &horizontal {
+                        mark_line(line, o, out, scratch);
+                    }
+                }
+            });
+    }
+    if !vertical.is_empty() {
+        // Each tile's hidden pixels, transposed (`[x][y]`), merged by bands of rows after.
+        let tiles: Vec<Vec<bool>> = (0..width.div_ceil(COLUMN_TILE))
             .into_par_iter()
-            .map(|tile| {
-                let x0 = tile * COLUMN_TILE;
-                let span = COLUMN_TILE.min(width - x0);
-                let mut front = vec![f32::NEG_INFINITY; span * rows];
-                for y in 0..rows {
-                    for (x, &d) in disparity[y * width + x0..y * width + x0 + span].iter().enumerate() {
-                        let q = shift(y, oy, d);
-                        if d.is_finite() && inside(q, rows) {
-                            let at = q as usize * span + x;
-                            front[at] = front[at].max(d);
+            .map_init(
+                || (LineScratch::default(), Vec::new()),
+                |(scratch, columns), tile| {
+                    let x0 = tile * COLUMN_TILE;
+                    let span = COLUMN_TILE.min(width - x0);
+                    columns.clear();
+                    columns.resize(span * rows, 0.0f32);
+                    for (y, row) in disparity.chunks_exact(width).enumerate() {
+                        for (x, &d) in row[x0..x0 + span].iter().enumerate() {
+                            columns[x * rows + y] = d;
+                        }
+                    }
+                    let mut out = vec![false; span * rows];
+                    for (line, out) in columns.chunks_exact(rows).zip(out.chunks_exact_mut(rows)) {
+                        for &o in &vertical {
+                            mark_line(line, o, out, scratch);
+                        }
+                    }
+                    out
+                },
+            )
+            .collect();
+        hidden
+            .par_chunks_mut(ROW_BAND * width)
+            .enumerate()
+            .for_each(|(band, out)| {
+                for (k, row) in out.chunks_exact_mut(width).enumerate() {
+                    let y = band * ROW_BAND + k;
+                    for (tile, transposed) in tiles.iter().enumerate() {
+                        let x0 = tile * COLUMN_TILE;
+                        for (x, h) in row[x0..(x0 + COLUMN_TILE).min(width)].iter_mut().enumerate() {
+                            *h |= transposed[x * rows + y];
                         }
                     }
                 }
-                let mut out = vec![false; span * rows];
-                for y in 0..rows {
-                    for (x, &d) in disparity[y * width + x0..y * width + x0 + span].iter().enumerate() {
-                        let q = shift(y, oy, d);
-                        out[y * span + x] = d.is_finite()
-                            && (!inside(q, rows) || front[q as usize * span + x] > d + OCCLUSION_MARGIN_PX);
-                    }
-                }
-                (x0, span, out)
-            })
-            .collect();
-        for (x0, span, out) in tiles {
-            for (row, tile_row) in hidden.chunks_exact_mut(width).zip(out.chunks_exact(span)) {
-                for (h, o) in row[x0..x0 + span].iter_mut().zip(tile_row) {
-                    *h |= o;
-                }
-            }
-        }
-        return;
+            });
     }
+    for &offset in offsets.iter().filter(|o| o[0] != 0 && o[1] != 0) {
+        mark_diagonal(disparity, width, rows, offset, hidden);
+    }
+}
+
+/// A line's z-buffer and its pixels' targets, reused from line to line.
+#[derive(Default)]
+struct LineScratch {
+    /// Per pixel, where it lands along the line; [`OUTSIDE`] off the line, [`UNKNOWN`] without a
+    /// finite disparity.
+    targets: Vec<i32>,
+    front: Vec<f32>,
+}
+
+/// A target of [`LineScratch`]: the pixel lands outside the line (hidden).
+const OUTSIDE: i32 = -1;
+/// A target of [`LineScratch`]: no finite disparity (never hidden).
+const UNKNOWN: i32 = -2;
+
+/// Sets `out` where a pixel of `line` (disparities along a row or a column) is hidden in the
+/// neighbour `o` baselines along it: it lands at `round(p − o·d)`, outside the line or where a
+/// pixel of larger disparity (by more than [`OCCLUSION_MARGIN_PX`]) lands too.
+fn mark_line(line: &[f32], o: f32, out: &mut [bool], scratch: &mut LineScratch) {
+    let n = line.len();
+    let LineScratch { targets, front } = scratch;
+    targets.clear();
+    // Branch-free, so that it vectorises: the same rounding as the plain definition.
+    let end = n as f32;
+    targets.extend(line.iter().enumerate().map(|(p, &d)| {
+        let q = (p as f32 - o * d).round();
+        let inside = q >= 0.0 && q < end;
+        // Clamped first (NaN becomes −1), so that the conversion needs no saturation.
+        let at = q.max(-1.0).min(end) as i32;
+        let target = if inside { at } else { OUTSIDE };
+        if d.is_finite() { target } else { UNKNOWN }
+    }));
+    front.clear();
+    front.resize(n, f32::NEG_INFINITY);
+    for (&q, &d) in targets.iter().zip(line) {
+        if let Some(cell) = usize::try_from(q).ok().and_then(|q| front.get_mut(q)) {
+            *cell = cell.max(d);
+        }
+    }
+    for ((&q, &d), out) in targets.iter().zip(line).zip(out.iter_mut()) {
+        let hidden = match usize::try_from(q) {
+            Ok(q) => front.get(q).is_some_and(|f| *f > d + OCCLUSION_MARGIN_PX),
+            Err(_) => q == OUTSIDE,
+        };
+        *out |= hidden;
+    }
+}
+
+/// [`mark_occluded`] for a neighbour off both axes: a whole-image z-buffer.
+fn mark_diagonal(disparity: &[f32], width: usize, rows: usize, offset: [i32; 2], hidden: &mut [bool]) {
+    let (ox, oy) = (offset[0] as f32, offset[1] as f32);
+    let inside = |q: f32, n: usize| q >= 0.0 && (q as usize) < n;
     let target = |x: usize, y: usize, d: f32| -> Option<usize> {
-        let (qx, qy) = (shift(x, ox, d), shift(y, oy, d));
+        let (qx, qy) = ((x as f32 - ox * d).round(), (y as f32 - oy * d).round());
         (inside(qx, width) && inside(qy, rows)).then(|| qy as usize * width + qx as usize)
     };
-    let mut front = vec![f32::NEG_INFINITY; pixels];
+    let mut front = vec![f32::NEG_INFINITY; width * rows];
     for (y, row) in disparity.chunks_exact(width).enumerate() {
         for (x, &d) in row.iter().enumerate() {
             if d.is_finite()
@@ -309,9 +373,7 @@ impl Sparsification {
 pub fn hidden_from_axis_views(width: usize, truth: &[f32]) -> Vec<bool> {
     let height = truth.len() / width.max(1);
     let mut hidden = vec![false; truth.len()];
-    for offset in [[1, 0], [-1, 0], [0, 1], [0, -1]] {
-        mark_occluded(truth, width, height, offset, &mut hidden);
-    }
+    mark_occluded_all(truth, width, height, &[[1, 0], [-1, 0], [0, 1], [0, -1]], &mut hidden);
     hidden
 }
 
@@ -419,6 +481,36 @@ mod tests {
             hidden_anywhere += want.iter().filter(|o| **o).count();
         }
         assert!(hidden_anywhere > 800, "the case hides pixels: {hidden_anywhere}");
+    }
+
+    #[test]
+    fn every_neighbour_in_one_pass_hides_what_each_hides() {
+        // The five-view cross and a 3×3 grid's direct neighbours at once, against each
+        // neighbour's plain z-buffer or-ed: 150 columns (a partial tile), 37 rows (a partial band).
+        let (w, h) = (150, 37);
+        let mut next = lcg(19);
+        let cells: Vec<f32> = (0..64).map(|_| (next() % 1300) as f32 / 100.0).collect();
+        let disparity: Vec<f32> = (0..w * h)
+            .map(|p| match next() % 40 {
+                0 => f32::NAN,
+                1 => f32::INFINITY,
+                _ => cells[(p % w) / 20 + 8 * ((p / w) / 5)],
+            })
+            .collect();
+        let cross = [[1, 0], [-1, 0], [0, 1], [0, -1]];
+        let grid = [[1, 0], [-1, 0], [0, 1], [0, -1], [1, 1], [-1, -1], [1, -1], [-1, 1]];
+        for offsets in [&cross[..], &grid[..]] {
+            let mut want = vec![false; w * h];
+            for offset in offsets {
+                for (want, plain) in want.iter_mut().zip(occluded_plainly(&disparity, w, h, *offset)) {
+                    *want |= plain;
+                }
+            }
+            let mut got = vec![false; w * h];
+            mark_occluded_all(&disparity, w, h, offsets, &mut got);
+            assert_eq!(got, want, "offsets {offsets:?}");
+            assert!(want.iter().filter(|o| **o).count() > 300);
+        }
     }
 
     #[test]

@@ -226,10 +226,9 @@ impl ViewSet {
         } else {
             direct
         };
+        let offsets: Vec<[i32; 2]> = warped.iter().map(|n| n.offset).collect();
         let mut occluded = vec![false; w * h];
-        for n in warped {
-            crate::regions::mark_occluded(truth, w, h, n.offset, &mut occluded);
-        }
+        crate::regions::mark_occluded_all(truth, w, h, &offsets, &mut occluded);
         occluded
     }
 
