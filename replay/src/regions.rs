@@ -459,21 +459,27 @@ mod tests {
             .collect()
     }
 
+    /// Blocks of 20 × 5 px at random disparities 0–13 px, one pixel in `one_in` unknown (NaN),
+    /// one more infinite and, with `strays`, one more at a random disparity of its own.
+    fn blocky_disparities(seed: u64, (w, h): (usize, usize), one_in: u32, strays: bool) -> Vec<f32> {
+        let mut next = lcg(seed);
+        let cells: Vec<f32> = (0..64).map(|_| (next() % 1300) as f32 / 100.0).collect();
+        (0..w * h)
+            .map(|p| match next() % one_in {
+                0 => f32::NAN,
+                1 => f32::INFINITY,
+                2 if strays => (next() % 1200) as f32 / 100.0,
+                _ => cells[(p % w) / 20 + 8 * ((p / w) / 5)],
+            })
+            .collect()
+    }
+
     #[test]
     fn row_and_column_z_buffers_hide_what_the_whole_image_one_hides() {
         // Blocky random disparities 0–12 px with unknown pixels, 150 columns (two tiles of
         // columns and a partial one) by 37 rows, every kind of offset.
         let (w, h) = (150, 37);
-        let mut next = lcg(7);
-        let cells: Vec<f32> = (0..64).map(|_| (next() % 1300) as f32 / 100.0).collect();
-        let disparity: Vec<f32> = (0..w * h)
-            .map(|p| match next() % 50 {
-                0 => f32::NAN,
-                1 => f32::INFINITY,
-                2 => (next() % 1200) as f32 / 100.0,
-                _ => cells[(p % w) / 20 + 8 * ((p / w) / 5)],
-            })
-            .collect();
+        let disparity = blocky_disparities(7, (w, h), 50, true);
         let mut hidden_anywhere = 0;
         for offset in [[1, 0], [-1, 0], [0, 1], [0, -1], [2, 0], [0, -2], [1, 1], [-1, 2]] {
             let want = occluded_plainly(&disparity, w, h, offset);
@@ -488,15 +494,7 @@ mod tests {
         // The five-view cross and a 3×3 grid's direct neighbours at once, against each
         // neighbour's plain z-buffer or-ed: 150 columns (a partial tile), 37 rows (a partial band).
         let (w, h) = (150, 37);
-        let mut next = lcg(19);
-        let cells: Vec<f32> = (0..64).map(|_| (next() % 1300) as f32 / 100.0).collect();
-        let disparity: Vec<f32> = (0..w * h)
-            .map(|p| match next() % 40 {
-                0 => f32::NAN,
-                1 => f32::INFINITY,
-                _ => cells[(p % w) / 20 + 8 * ((p / w) / 5)],
-            })
-            .collect();
+        let disparity = blocky_disparities(19, (w, h), 40, false);
         let cross = [[1, 0], [-1, 0], [0, 1], [0, -1]];
         let grid = [[1, 0], [-1, 0], [0, 1], [0, -1], [1, 1], [-1, -1], [1, -1], [-1, 1]];
         for offsets in [&cross[..], &grid[..]] {
