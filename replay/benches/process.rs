@@ -8,30 +8,21 @@
 use std::hint::black_box;
 
 use criterion::{Criterion, criterion_group, criterion_main};
+use fuse::rng::SplitMix64;
 
 const WIDTH: usize = 1920;
 const HEIGHT: usize = 1080;
 
-/// A small deterministic generator (no dependency for a bench).
-fn lcg(seed: u64) -> impl FnMut() -> u32 {
-    let mut state = seed;
-    move || {
-        state = state
-            .wrapping_mul(6_364_136_223_846_793_005)
-            .wrapping_add(1_442_695_040_888_963_407);
-        (state >> 33) as u32
-    }
-}
-
 /// A floor at 20 px with 200 boxes at 30–120 px in front of it (steps that hide strips in every
 /// neighbour), a strip of unknown truth along the top.
 fn truth() -> Vec<f32> {
-    let mut next = lcg(7);
+    let mut rng = SplitMix64::new(7);
+    let mut below = |n: usize| rng.below(n as u64) as usize;
     let mut disparity = vec![20.0f32; WIDTH * HEIGHT];
     for _ in 0..200 {
-        let (x0, y0) = (next() as usize % WIDTH, next() as usize % HEIGHT);
-        let (w, h) = (20 + next() as usize % 200, 20 + next() as usize % 200);
-        let d = 30.0 + (next() % 9000) as f32 / 100.0;
+        let (x0, y0) = (below(WIDTH), below(HEIGHT));
+        let (w, h) = (20 + below(200), 20 + below(200));
+        let d = 30.0 + below(9000) as f32 / 100.0;
         for y in y0..(y0 + h).min(HEIGHT) {
             for value in &mut disparity[y * WIDTH + x0..y * WIDTH + (x0 + w).min(WIDTH)] {
                 *value = value.max(d);
@@ -42,7 +33,7 @@ fn truth() -> Vec<f32> {
     disparity
 }
 
-fn occlusion(c: &mut Criterion) {
+fn process(c: &mut Criterion) {
     let truth = truth();
     let mut group = c.benchmark_group("process_1920x1080");
     group.sample_size(20);
@@ -66,18 +57,19 @@ fn occlusion(c: &mut Criterion) {
         });
     }
     let hidden = replay::regions::hidden_from_axis_views(WIDTH, &truth);
-    let mut next = lcg(11);
+    let mut rng = SplitMix64::new(11);
+    let mut below = |n: u64| rng.below(n);
     let estimate: Vec<f32> = truth
         .iter()
         .map(|t| {
-            if next().is_multiple_of(50) {
+            if below(50) == 0 {
                 f32::INFINITY
             } else {
-                t + (next() % 400) as f32 / 100.0 - 2.0
+                t + below(400) as f32 / 100.0 - 2.0
             }
         })
         .collect();
-    let confidence: Vec<f32> = (0..estimate.len()).map(|_| (next() % 1000) as f32 / 1000.0).collect();
+    let confidence: Vec<f32> = (0..estimate.len()).map(|_| below(1000) as f32 / 1000.0).collect();
     group.bench_function("region_metrics_with_confidence", |b| {
         b.iter(|| {
             black_box(replay::regions::region_metrics(
@@ -125,5 +117,5 @@ fn occlusion(c: &mut Criterion) {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-criterion_group!(benches, occlusion);
+criterion_group!(benches, process);
 criterion_main!(benches);

@@ -132,15 +132,16 @@ fn mark_line(line: &[f32], o: f32, out: &mut [bool], scratch: &mut LineScratch) 
     let n = line.len();
     let LineScratch { targets, front } = scratch;
     targets.clear();
-    // Branch-free, so that it vectorises: the same rounding as the plain definition.
-    let end = n as f32;
+    // The same rounding as the plain definition; the targets first, in a loop of their own.
     targets.extend(line.iter().enumerate().map(|(p, &d)| {
         let q = (p as f32 - o * d).round();
-        let inside = q >= 0.0 && q < end;
-        // Clamped first (NaN becomes −1), so that the conversion needs no saturation.
-        let at = q.max(-1.0).min(end) as i32;
-        let target = if inside { at } else { OUTSIDE };
-        if d.is_finite() { target } else { UNKNOWN }
+        if !d.is_finite() {
+            UNKNOWN
+        } else if q >= 0.0 && q < n as f32 {
+            q as i32
+        } else {
+            OUTSIDE
+        }
     }));
     front.clear();
     front.resize(n, f32::NEG_INFINITY);
