@@ -92,6 +92,7 @@ fn process(c: &mut Criterion) {
                 &path,
                 (WIDTH, HEIGHT),
                 &estimate,
+                0.0,
                 &rgb,
                 [1400.0, 1400.0, 960.0, 540.0],
                 0.02,

@@ -881,7 +881,7 @@ pub fn read_logs_in(files: &[&[u8]], range: &TimeRange, options: &ReadOptions) -
             incomplete_sets.push((index, format!("{} of {expected} views logged", events.len())));
             continue;
         }
-        match assemble_set(index, &events, &payloads) {
+        match assemble_set(index, &events, &mut payloads) {
             Ok(set) => sets.push(set),
             Err(error) if damaged => incomplete_sets.push((index, error.to_string())),
             Err(error) => return Err(error),
@@ -1057,12 +1057,41 @@ fn payload<'a>(
         })
 }
 
-pub(crate) fn decode_rgb(set: u32, topic: &str, data: &[u8]) -> Result<(u32, u32, Vec<u8>), ReplayError> {
+/// Takes the payload of `topic` at the event's capture time out of `payloads` (it is read once),
+/// as [`bytes::Bytes`] over the same buffer.
+fn take_payload(
+    payloads: &mut HashMap<(String, u64), Vec<u8>>,
+    set: u32,
+    event: &CaptureEvent,
+    topic: &str,
+) -> Result<bytes::Bytes, ReplayError> {
+    payloads
+        .remove(&(topic.to_owned(), event.capture_time_nanos))
+        .map(bytes::Bytes::from)
+        .ok_or_else(|| ReplayError::MissingMessage {
+            set,
+            role: event.role.clone(),
+            topic: topic.to_owned(),
+            log_time: event.capture_time_nanos,
+        })
+}
+
+/// Decodes an image message (`foxglove.RawImage` or a PNG `foxglove.CompressedImage`) into
+/// packed RGB. From [`bytes::Bytes`] a tight `rgb8` image costs no copy of its pixels: prost
+/// slices the payload's buffer, and the buffer, once the message is dropped, becomes the result
+/// (its pixels moved to the front in place); from a `&[u8]` they are copied once.
+pub(crate) fn decode_rgb(
+    set: u32,
+    topic: &str,
+    data: impl bytes::Buf + Clone,
+) -> Result<(u32, u32, Vec<u8>), ReplayError> {
     // A CompressedImage has `format` (field 3) and no `width`; try RawImage first by its fields.
-    if let Ok(raw) = <RawImage as prost::Message>::decode(data)
+    if let Ok(raw) = <RawImage as prost::Message>::decode(data.clone())
         && raw.width > 0
         && !raw.encoding.is_empty()
     {
+        // The payload let go first, so that the pixels' buffer has one owner.
+        drop(data);
         let (width, height) = (raw.width, raw.height);
         return raw_to_rgb(set, topic, raw).map(|rgb| (width, height, rgb));
     }
@@ -1142,7 +1171,8 @@ fn raw_to_rgb(set: u32, topic: &str, raw: RawImage) -> Result<Vec<u8>, ReplayErr
     }
     let bgr = raw.encoding.starts_with("bgr") || raw.encoding == "8UC3";
     if channels == 3 && !bgr && step == row_bytes {
-        // (The decoded payload is uniquely owned: `Vec::from` takes its buffer.)
+        // (The decoded pixels are uniquely owned: `Vec::from` takes their buffer, moving them to
+        // its front when the message's header came first.)
         let mut rgb = Vec::from(raw.data);
         rgb.truncate(row_bytes * h);
         return Ok(rgb);
@@ -1160,7 +1190,7 @@ fn raw_to_rgb(set: u32, topic: &str, raw: RawImage) -> Result<Vec<u8>, ReplayErr
     Ok(rgb)
 }
 
-fn decode_depth(set: u32, topic: &str, data: &[u8], size: (u32, u32)) -> Result<Vec<f32>, ReplayError> {
+fn decode_depth(set: u32, topic: &str, data: impl bytes::Buf, size: (u32, u32)) -> Result<Vec<f32>, ReplayError> {
     let raw: RawImage = prost::Message::decode(data).map_err(decode_error(set, topic, "foxglove.RawImage"))?;
     if raw.encoding != record::log::DEPTH_ENCODING {
         return Err(ReplayError::UnknownEncoding {
@@ -1215,7 +1245,7 @@ fn decode_depth(set: u32, topic: &str, data: &[u8], size: (u32, u32)) -> Result<
 fn assemble_set(
     index: u32,
     events: &[CaptureEvent],
-    payloads: &HashMap<(String, u64), Vec<u8>>,
+    payloads: &mut HashMap<(String, u64), Vec<u8>>,
 ) -> Result<ViewSet, ReplayError> {
     let mut views = Vec::with_capacity(events.len());
     let mut ground_truth = None;
@@ -1235,22 +1265,26 @@ fn assemble_set(
             value: reference_event.baseline_m.to_string(),
         });
     }
+    // Each view's image payload is taken out of the map (a set's messages belong to it alone),
+    // so that its buffer becomes the view's pixels without another copy.
+    let images = events
+        .iter()
+        .map(|event| take_payload(payloads, index, event, &event.image_topic))
+        .collect::<Result<Vec<_>, _>>()?;
     // The views' images decoded at once (the largest part of assembling a 1080p set).
     let decoded = {
         use rayon::prelude::*;
         events
             .par_iter()
-            .map(|event| {
-                decode_rgb(
-                    index,
-                    &event.image_topic,
-                    payload(payloads, index, event, &event.image_topic)?,
-                )
+            .zip(images)
+            .map(|(event, image)| {
+                let frame_id = crate::foreign::image_frame_id(&image);
+                decode_rgb(index, &event.image_topic, image).map(|decoded| (decoded, frame_id))
             })
             .collect::<Vec<_>>()
     };
     for (event, decoded) in events.iter().zip(decoded) {
-        let (width, height, rgb) = decoded?;
+        let ((width, height, rgb), frame_id) = decoded?;
         let calibration: CameraCalibration =
             prost::Message::decode(payload(payloads, index, event, &event.calibration_topic)?).map_err(
                 decode_error(index, &event.calibration_topic, "foxglove.CameraCalibration"),
@@ -1276,17 +1310,17 @@ fn assemble_set(
                 ground_truth = Some(decode_depth(
                     index,
                     topic,
-                    payload(payloads, index, event, topic)?,
+                    take_payload(payloads, index, event, topic)?,
                     (width, height),
                 )?);
             }
             if let Some(topic) = &event.surface_topic {
-                let raw: RawImage = prost::Message::decode(payload(payloads, index, event, topic)?)
+                let raw: RawImage = prost::Message::decode(take_payload(payloads, index, event, topic)?)
                     .map_err(decode_error(index, topic, "foxglove.RawImage"))?;
                 // Surface classes are optional evaluation data: a mask of another size is
                 // left out rather than misread.
                 if raw.data.len() == (width as usize).saturating_mul(height as usize) {
-                    surface = Some(raw.data.to_vec());
+                    surface = Some(Vec::from(raw.data));
                 }
             }
         }
@@ -1299,8 +1333,7 @@ fn assemble_set(
             true_world_from_camera: event.true_world_from_camera.as_ref().map(PoseJson::to_isometry),
             capture_time_nanos: event.capture_time_nanos,
             joints: event.joint_positions_rad,
-            frame_id: crate::foreign::image_frame_id(payload(payloads, index, event, &event.image_topic)?)
-                .unwrap_or_else(|| record::log::view_frame(&event.role)),
+            frame_id: frame_id.unwrap_or_else(|| record::log::view_frame(&event.role)),
         });
     }
     let reference_position = views.iter().position(|v| v.role == REFERENCE_ROLE).unwrap_or(0);
@@ -1379,6 +1412,32 @@ mod tests {
                 assert_eq!(rgb, expected, "{encoding}, step {step}");
             }
         }
+    }
+
+    #[test]
+    fn a_tight_rgb8_payload_becomes_the_pixels_without_a_copy() {
+        let pixels: Vec<u8> = (0..64 * 48 * 3).map(|i| (i % 251) as u8).collect();
+        let raw = RawImage {
+            width: 64,
+            height: 48,
+            encoding: "rgb8".into(),
+            step: 64 * 3,
+            frame_id: "center_camera".into(),
+            data: pixels.clone().into(),
+            ..Default::default()
+        };
+        let payload = prost::Message::encode_to_vec(&raw);
+        let buffer = payload.as_ptr();
+        let (width, height, rgb) =
+            decode_rgb(0, "/camera/center/image", bytes::Bytes::from(payload)).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!((width, height), (64, 48));
+        assert_eq!(rgb, pixels);
+        assert_eq!(rgb.as_ptr(), buffer, "the payload's buffer holds the pixels");
+        // From a borrowed slice the same pixels come out, in a buffer of their own.
+        let borrowed = prost::Message::encode_to_vec(&raw);
+        let (_, _, copied) =
+            decode_rgb(0, "/camera/center/image", borrowed.as_slice()).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(copied, pixels);
     }
 
     fn set(index: u32) -> CapturedSet {

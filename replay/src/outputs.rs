@@ -120,17 +120,22 @@ pub fn write_set_outputs(
     disparity: &DisparityImage,
     metrics: Option<RegionMetrics>,
 ) -> Result<SetOutputs, viz::files::FileError> {
-    write_set_outputs_evaluating(dir, set, method, disparity, ResultFiles::ALL, || metrics)
+    let truth = set.ground_truth_disparity();
+    write_set_outputs_evaluating(dir, set, method, disparity, truth.as_deref(), ResultFiles::ALL, || {
+        metrics
+    })
 }
 
 /// [`write_set_outputs`] with the metrics computed by `evaluate` while the files are written
 /// (the evaluation's sorts and the files' compression take turns on the cores instead of
-/// following each other).
+/// following each other), and the set's ground-truth disparity (for the error map) as made
+/// once by the caller.
 pub fn write_set_outputs_evaluating(
     dir: &Path,
     set: &ViewSet,
     method: &str,
     disparity: &DisparityImage,
+    truth: Option<&[f32]>,
     wanted: ResultFiles,
     evaluate: impl FnOnce() -> Option<RegionMetrics> + Send,
 ) -> Result<SetOutputs, viz::files::FileError> {
@@ -187,13 +192,12 @@ pub fn write_set_outputs_evaluating(
     if wanted.points {
         writers.push(Box::new(move || {
             let ply = set_dir.join(format!("{method}_points.ply"));
-            // The PLY writer takes z = f·b/d: hand it d + doffs (0 unless the set's calibration has one).
-            let doffs = set.disparity_offset_px() as f32;
-            let shifted: Vec<f32> = disparity.data.iter().map(|d| d + doffs).collect();
+            // z = f·b / (d + doffs), doffs 0 unless the set's calibration has one.
             viz::files::write_ply_points(
                 &ply,
                 (w, h),
-                &shifted,
+                &disparity.data,
+                set.disparity_offset_px() as f32,
                 &set.reference.rgb,
                 [
                     set.reference.camera.fx,
@@ -208,14 +212,14 @@ pub fn write_set_outputs_evaluating(
     }
     if wanted.error {
         writers.push(Box::new(move || {
-            let Some(truth) = set.ground_truth_disparity() else {
+            let Some(truth) = truth else {
                 return Ok(Vec::new());
             };
             // |estimate − truth| where the truth is known (no estimate counts as the largest error).
             let error: Vec<f32> = disparity
                 .data
                 .iter()
-                .zip(&truth)
+                .zip(truth)
                 .map(|(d, t)| match (t.is_finite(), d.is_finite()) {
                     (true, true) => (d - t).abs(),
                     (true, false) => ERROR_MAP_RANGE_PX.1,

@@ -162,6 +162,12 @@ impl<'a> PreparedSet<'a> {
             .get_or_init(|| check_set(self.set, self.check_reach_px, crate::check::PixelLimits::default()))
     }
 
+    /// The reference's ground-truth disparity ([`ViewSet::ground_truth_disparity`], made once;
+    /// `None` without ground truth).
+    pub fn truth(&self) -> Option<&[f32]> {
+        self.truth.as_deref()
+    }
+
     /// Pixels of the reference occluded in some neighbour of the whole set (from the ground
     /// truth; `None` without one).
     pub fn occluded(&self) -> Option<&[bool]> {

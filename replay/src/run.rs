@@ -304,9 +304,15 @@ pub fn replay_log(
             // says how far to trust a result, so it need not delay the first.
             let (outputs, alignment) = rayon::join(
                 || {
-                    write_set_outputs_evaluating(out, set, name, &result.disparity, request.outputs, || {
-                        prepared.evaluate(&result.disparity)
-                    })
+                    write_set_outputs_evaluating(
+                        out,
+                        set,
+                        name,
+                        &result.disparity,
+                        prepared.truth(),
+                        request.outputs,
+                        || prepared.evaluate(&result.disparity),
+                    )
                 },
                 || prepared.alignment(),
             );
