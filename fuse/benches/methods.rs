@@ -75,7 +75,10 @@ fn methods(c: &mut Criterion) {
         ("fused_costs_heuristic", fuse::cost::PixelCost::BirchfieldTomasi, 4),
         (
             "fused_costs_census_heuristic",
-            fuse::cost::PixelCost::Census { radius: 3 },
+            fuse::cost::PixelCost::Census {
+                radius: 3,
+                symmetric: false,
+            },
             3,
         ),
     ] {
@@ -246,7 +249,13 @@ fn pixel_costs(c: &mut Criterion) {
     for (name, cost) in [
         ("birchfield_tomasi_colour", PixelCost::BirchfieldTomasi),
         ("absolute_difference_colour", PixelCost::AbsoluteDifference),
-        ("census_7x7", PixelCost::Census { radius: 3 }),
+        (
+            "census_7x7",
+            PixelCost::Census {
+                radius: 3,
+                symmetric: false,
+            },
+        ),
     ] {
         let reference = PreparedView::new(problem.reference.clone(), cost);
         let Some(lines) = SearchLines::new(&neighbour.image, cost, neighbour.offset, 0..nd as i32) else {

@@ -34,7 +34,19 @@ pub enum PixelCost {
     Census {
         /// Window radius (1..=3).
         radius: usize,
+        /// The centre-symmetric census (Spangenberg et al. 2013): each bit compares a window
+        /// position with its mirror through the centre instead of with the centre, so the code
+        /// has half the bits (24 for 7×7) and the distance half the work; each differing bit
+        /// counts twice, so that costs keep the full census's scale (and SGM its penalties).
+        #[serde(default, skip_serializing_if = "is_false")]
+        symmetric: bool,
     },
+}
+
+/// `skip_serializing_if` of a default-false flag (the configuration written stays as it was).
+#[allow(clippy::trivially_copy_pass_by_ref)]
+fn is_false(value: &bool) -> bool {
+    !*value
 }
 
 /// A view prepared for one pixel cost: its pixels plus what the cost needs.
@@ -57,8 +69,8 @@ impl PreparedView {
         match cost {
             PixelCost::AbsoluteDifference => {}
             PixelCost::BirchfieldTomasi => (bt_min, bt_max) = birchfield_tomasi_bounds(&image),
-            PixelCost::Census { radius } => {
-                census = census_planes(&image.to_gray(), radius.clamp(1, MAX_CENSUS_RADIUS));
+            PixelCost::Census { radius, symmetric } => {
+                census = census_planes(&image.to_gray(), radius.clamp(1, MAX_CENSUS_RADIUS), symmetric);
             }
         }
         Self {
@@ -155,66 +167,81 @@ pub(crate) fn padded_gray(gray: &Image, r: usize) -> (Vec<u8>, usize) {
 /// Census codes of a grey image as byte planes: plane `b` holds bits `8b .. 8b + 8` of
 /// [`census_transform`]'s codes. Each byte is built from eight comparisons on 32 byte lanes,
 /// eight times less work than shifting whole 64-bit codes.
-pub fn census_planes(gray: &Image, radius: usize) -> Vec<Vec<u8>> {
+pub fn census_planes(gray: &Image, radius: usize, symmetric: bool) -> Vec<Vec<u8>> {
     let (w, h, r) = (gray.width, gray.height, radius);
     let (padded, padded_w) = padded_gray(gray, r);
-    (0..census_plane_count(r))
+    (0..census_plane_count(r, symmetric))
         .map(|b| {
             let mut plane = vec![0u8; w * h];
             plane.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
-                census_row((&padded, padded_w), r, y, b, row);
+                census_row((&padded, padded_w), (r, symmetric), y, b, row);
             });
             plane
         })
         .collect()
 }
 
+/// Bits of a census code over a `(2r+1)²` window: every position but the centre, or (the
+/// centre-symmetric census) the positions before the centre, each paired with its mirror.
+pub(crate) fn census_bits(r: usize, symmetric: bool) -> usize {
+    let positions = (2 * r + 1).pow(2) - 1;
+    if symmetric { positions / 2 } else { positions }
+}
+
 /// Byte planes of a census code over a `(2r+1)²` window.
-pub(crate) fn census_plane_count(r: usize) -> usize {
-    ((2 * r + 1).pow(2) - 1).div_ceil(8)
+pub(crate) fn census_plane_count(r: usize, symmetric: bool) -> usize {
+    census_bits(r, symmetric).div_ceil(8)
 }
 
 /// Plane `b` of [`census_planes`] for row `y` into `row` (its `width` bytes, all overwritten), from
 /// the padded grey image ([`padded_gray`] with radius `r`).
-pub(crate) fn census_row((padded, padded_w): (&[u8], usize), r: usize, y: usize, b: usize, row: &mut [u8]) {
+pub(crate) fn census_row(
+    (padded, padded_w): (&[u8], usize),
+    (r, symmetric): (usize, bool),
+    y: usize,
+    b: usize,
+    row: &mut [u8],
+) {
     let w = row.len();
     let side = 2 * r + 1;
-    let bits = side * side - 1;
+    let bits = census_bits(r, symmetric);
     row.fill(0);
-    let centre = &padded[(y + r) * padded_w + r..][..w];
     for j in 0..8 {
         let Some(i) = (bits - 1).checked_sub(8 * b + j) else {
             break;
         };
         // The i-th window position in code order (row-major, the centre skipped) sits at bit
-        // `bits − 1 − i`.
-        let i = if i >= side * r + r { i + 1 } else { i };
+        // `bits − 1 − i`; it is compared with the centre, or with its mirror through the centre
+        // (the symmetric census, whose positions all come before the centre).
+        let i = if !symmetric && i >= side * r + r { i + 1 } else { i };
         let (dx, dy) = (i % side, i / side);
+        let (ox, oy) = if symmetric { (2 * r - dx, 2 * r - dy) } else { (r, r) };
         let source = &padded[(y + dy) * padded_w + dx..][..w];
-        for ((value, s), c) in row.iter_mut().zip(source).zip(centre) {
+        let other = &padded[(y + oy) * padded_w + ox..][..w];
+        for ((value, s), c) in row.iter_mut().zip(source).zip(other) {
             *value |= u8::from(s < c) << j;
         }
     }
 }
 
 /// Census codes of a grey image over a `(2r+1)²` window, border replicated: bit set where the
-/// neighbour is darker than the centre, row-major over the window without the centre. Works on a
-/// padded copy so that the inner loops index without clamping.
-pub fn census_transform(gray: &Image, radius: usize) -> Vec<u64> {
+/// neighbour is darker than the centre, row-major over the window without the centre (the
+/// centre-symmetric census: where a position before the centre is darker than its mirror
+/// through it). Works on a padded copy so that the inner loops index without clamping.
+pub fn census_transform(gray: &Image, radius: usize, symmetric: bool) -> Vec<u64> {
     let (w, h, r) = (gray.width, gray.height, radius);
     let (padded, padded_w) = padded_gray(gray, r);
     let mut codes = vec![0u64; w * h];
+    let bits = census_bits(r, symmetric);
     codes.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
-        for dy in 0..=2 * r {
-            for dx in 0..=2 * r {
-                if dx == r && dy == r {
-                    continue;
-                }
-                let source = &padded[(y + dy) * padded_w + dx..][..w];
-                let centre = &padded[(y + r) * padded_w + r..][..w];
-                for ((code, s), c) in row.iter_mut().zip(source).zip(centre) {
-                    *code = (*code << 1) | u64::from(s < c);
-                }
+        let positions = (0..(2 * r + 1).pow(2)).filter(|i| *i != (2 * r + 1) * r + r);
+        for i in positions.take(bits) {
+            let (dx, dy) = (i % (2 * r + 1), i / (2 * r + 1));
+            let (ox, oy) = if symmetric { (2 * r - dx, 2 * r - dy) } else { (r, r) };
+            let source = &padded[(y + dy) * padded_w + dx..][..w];
+            let other = &padded[(y + oy) * padded_w + ox..][..w];
+            for ((code, s), c) in row.iter_mut().zip(source).zip(other) {
+                *code = (*code << 1) | u64::from(s < c);
             }
         }
     });
@@ -284,16 +311,17 @@ pub fn pixel_cost_tile(
                     };
                 }
             }
-            (PixelCost::Census { .. }, _) => {
+            (PixelCost::Census { symmetric, .. }, _) => {
                 let p = y * width + x;
                 for (d, out) in costs.iter_mut().enumerate() {
                     let q = pixel(d);
-                    *out = reference
+                    let distance: u8 = reference
                         .census
                         .iter()
                         .zip(&neighbour.census)
                         .map(|(a, b)| (a[p] ^ b[q]).count_ones() as u8)
                         .sum();
+                    *out = distance << u8::from(symmetric);
                 }
             }
         }
@@ -555,7 +583,10 @@ mod tests {
         for cost in [
             PixelCost::AbsoluteDifference,
             PixelCost::BirchfieldTomasi,
-            PixelCost::Census { radius: 1 },
+            PixelCost::Census {
+                radius: 1,
+                symmetric: false,
+            },
         ] {
             let a = PreparedView::new(reference.clone(), cost);
             let b = PreparedView::new(shifted.clone(), cost);
@@ -628,8 +659,8 @@ mod tests {
         let (w, h) = (9, 7);
         let image =
             Image::gray(w, h, (0..w * h).map(|i| ((i * 71) % 253) as u8).collect()).unwrap_or_else(|e| panic!("{e}"));
-        let codes = census_transform(&image, 2);
-        let planes = census_planes(&image, 2);
+        let codes = census_transform(&image, 2, false);
+        let planes = census_planes(&image, 2, false);
         assert_eq!(planes.len(), 3);
         for (p, code) in codes.iter().enumerate() {
             let from_planes = planes
@@ -650,6 +681,43 @@ mod tests {
                     }
                 }
                 assert_eq!(codes[(y as usize) * w + x as usize], code);
+            }
+        }
+    }
+
+    #[test]
+    fn symmetric_census_compares_each_position_with_its_mirror() {
+        let (w, h) = (9, 7);
+        let image =
+            Image::gray(w, h, (0..w * h).map(|i| ((i * 71) % 253) as u8).collect()).unwrap_or_else(|e| panic!("{e}"));
+        for r in 1..=MAX_CENSUS_RADIUS {
+            let codes = census_transform(&image, r, true);
+            let planes = census_planes(&image, r, true);
+            let pairs = ((2 * r + 1).pow(2) - 1) / 2;
+            assert_eq!(planes.len(), pairs.div_ceil(8), "radius {r}");
+            for (p, code) in codes.iter().enumerate() {
+                let from_planes = planes
+                    .iter()
+                    .enumerate()
+                    .fold(0u64, |a, (b, plane)| a | (u64::from(plane[p]) << (8 * b)));
+                assert_eq!(from_planes, *code, "radius {r}, pixel {p}");
+            }
+            let r = r as isize;
+            for y in 0..h as isize {
+                for x in 0..w as isize {
+                    // Row-major positions before the centre, each against its mirror.
+                    let mut code = 0u64;
+                    for dy in -r..=0 {
+                        for dx in -r..=r {
+                            if dy == 0 && dx >= 0 {
+                                break;
+                            }
+                            let (a, b) = (image.clamped(x + dx, y + dy, 0), image.clamped(x - dx, y - dy, 0));
+                            code = (code << 1) | u64::from(a < b);
+                        }
+                    }
+                    assert_eq!(codes[(y as usize) * w + x as usize], code, "radius {r} at ({x}, {y})");
+                }
             }
         }
     }

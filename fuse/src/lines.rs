@@ -65,12 +65,12 @@ impl SearchLines {
                     deinterleave(&hi, channels, rows, (1, 2));
                 });
             }
-            PixelCost::Census { radius } => {
+            PixelCost::Census { radius, symmetric } => {
                 let r = radius.clamp(1, MAX_CENSUS_RADIUS);
                 let (padded, padded_w) = padded_gray(&image.to_gray(), r);
-                census = lay_out(layout, census_plane_count(r), |y, rows| {
+                census = lay_out(layout, census_plane_count(r, symmetric), |y, rows| {
                     for (b, row) in rows.iter_mut().enumerate() {
-                        census_row((&padded, padded_w), r, y, b, row);
+                        census_row((&padded, padded_w), (r, symmetric), y, b, row);
                     }
                 });
             }
@@ -251,9 +251,19 @@ pub fn pixel_cost_tile_lines(
                     *o = colour_birchfield_tomasi(bt(c0, l0[d], h0[d]), bt(c1, l1[d], h1[d]), bt(c2, l2[d], h2[d]));
                 }
             }
-            (PixelCost::Census { .. }, _) => {
+            (PixelCost::Census { symmetric, .. }, _) => {
                 let at = y * width + x;
-                if let ([p0, p1, p2, p3, p4, p5], [c0, c1, c2, c3, c4, c5]) =
+                if let ([p0, p1, p2], [c0, c1, c2]) = (&lines.census[..], reference.census_planes()) {
+                    // 24 bits (the symmetric census over 7×7, or the full one over 5×5).
+                    let from = range.start;
+                    let planes = [&p0[from..], &p1[from..], &p2[from..]];
+                    let codes = [c0[at], c1[at], c2[at]];
+                    if symmetric {
+                        census_distances_24::<true>(planes, codes, costs);
+                    } else {
+                        census_distances_24::<false>(planes, codes, costs);
+                    }
+                } else if let ([p0, p1, p2, p3, p4, p5], [c0, c1, c2, c3, c4, c5]) =
                     (&lines.census[..], reference.census_planes())
                 {
                     // The 7×7 window (SGM's default): 48 bits.
@@ -275,11 +285,63 @@ pub fn pixel_cost_tile_lines(
                     for (plane, codes) in lines.census.iter().zip(reference.census_planes()) {
                         let c = codes[at];
                         for (o, v) in costs.iter_mut().zip(&plane[range.clone()]) {
-                            *o += (c ^ v).count_ones() as u8;
+                            *o += ((c ^ v).count_ones() as u8) << u8::from(symmetric);
                         }
                     }
                 }
             }
+        }
+    }
+}
+
+/// Hamming distances of a 24-bit census code (three byte planes, `codes`) to the first
+/// `out.len()` codes along a search line (`planes`, each from the line's first searched sample
+/// to the end of its plane), doubled for the symmetric census (`DOUBLED`: its bits count twice):
+/// the three planes' differing bits summed by one carry-save adder into bits of weight 1 and 2,
+/// two byte population counts for three.
+fn census_distances_24<const DOUBLED: bool>(planes: [&[u8]; 3], codes: [u8; 3], out: &mut [u8]) {
+    let (runs, rest) = out.as_chunks_mut::<CENSUS_RUN>();
+    let whole = runs.len() * CENSUS_RUN;
+    for (r, run) in runs.iter_mut().enumerate() {
+        census_run_24::<DOUBLED>(planes.map(|p| run_of(p, r * CENSUS_RUN)), codes, run);
+    }
+    if !rest.is_empty() {
+        // As in `census_distances_48`: the last cells from a whole run, the extra ones dropped.
+        let mut run = [0u8; CENSUS_RUN];
+        census_run_24::<DOUBLED>(planes.map(|p| run_of(p, whole)), codes, &mut run);
+        let m = rest.len();
+        rest.copy_from_slice(&run[..m]);
+    }
+}
+
+/// [`census_distances_24`] over one run of cells.
+#[inline(always)]
+fn census_run_24<const DOUBLED: bool>(lines: [[u8; CENSUS_RUN]; 3], codes: [u8; 3], out: &mut [u8; CENSUS_RUN]) {
+    let [l0, l1, l2] = lines;
+    let [c0, c1, c2] = codes;
+    for d in 0..CENSUS_RUN {
+        let (x0, x1, x2) = (l0[d] ^ c0, l1[d] ^ c1, l2[d] ^ c2);
+        let u = x0 ^ x1;
+        let (ones, twos) = (u ^ x2, (x0 & x1) | (u & x2));
+        let distance = ones.count_ones() as u8 + 2 * twos.count_ones() as u8;
+        out[d] = if DOUBLED { 2 * distance } else { distance };
+    }
+}
+
+/// The cells `at .. at + CENSUS_RUN` of a plane (zeros past its end: its last line's last cells).
+#[inline(always)]
+fn run_of(plane: &[u8], at: usize) -> [u8; CENSUS_RUN] {
+    match plane
+        .get(at..at + CENSUS_RUN)
+        .and_then(|run| <[u8; CENSUS_RUN]>::try_from(run).ok())
+    {
+        Some(run) => run,
+        None => {
+            let mut line = [0u8; CENSUS_RUN];
+            let tail = plane.get(at..).unwrap_or_default();
+            let m = tail.len().min(CENSUS_RUN);
+            line[..m].copy_from_slice(&tail[..m]);
+            line
         }
     }
 }
@@ -310,21 +372,7 @@ fn census_distances_48(planes: [&[u8]; 6], codes: [u8; 6], out: &mut [u8]) {
 /// plane's end: its last line's last cells).
 #[inline(always)]
 fn census_run_at(planes: &[&[u8]; 6], at: usize, codes: [u8; 6], out: &mut [u8; CENSUS_RUN]) {
-    let run_at = |plane: &[u8]| -> [u8; CENSUS_RUN] {
-        match plane
-            .get(at..at + CENSUS_RUN)
-            .and_then(|run| <[u8; CENSUS_RUN]>::try_from(run).ok())
-        {
-            Some(run) => run,
-            None => {
-                let mut line = [0u8; CENSUS_RUN];
-                let tail = plane.get(at..).unwrap_or_default();
-                let m = tail.len().min(CENSUS_RUN);
-                line[..m].copy_from_slice(&tail[..m]);
-                line
-            }
-        }
-    };
+    let run_at = |plane: &[u8]| run_of(plane, at);
     let [p0, p1, p2, p3, p4, p5] = *planes;
     let lines = [run_at(p0), run_at(p1), run_at(p2), run_at(p3), run_at(p4), run_at(p5)];
     census_run_48(
@@ -372,8 +420,26 @@ mod tests {
         for cost in [
             PixelCost::AbsoluteDifference,
             PixelCost::BirchfieldTomasi,
-            PixelCost::Census { radius: 2 },
-            PixelCost::Census { radius: 3 },
+            PixelCost::Census {
+                radius: 2,
+                symmetric: false,
+            },
+            PixelCost::Census {
+                radius: 3,
+                symmetric: false,
+            },
+            PixelCost::Census {
+                radius: 1,
+                symmetric: true,
+            },
+            PixelCost::Census {
+                radius: 2,
+                symmetric: true,
+            },
+            PixelCost::Census {
+                radius: 3,
+                symmetric: true,
+            },
         ] {
             for channels in [1, 3] {
                 let make = |data: &[u8]| {

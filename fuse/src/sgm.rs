@@ -1234,7 +1234,10 @@ mod tests {
             num_disparities: 20,
         };
         let spec = CostSpec {
-            pixel: PixelCost::Census { radius: 3 },
+            pixel: PixelCost::Census {
+                radius: 3,
+                symmetric: false,
+            },
             block_radius_px: 3,
         };
         let prepared = PreparedProblem::new(&problem, spec, Fusion::Heuristic).unwrap_or_else(|e| panic!("{e}"));

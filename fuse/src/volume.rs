@@ -397,7 +397,7 @@ impl CostSpec {
                 reason: "must be ≤ 7 (costs are u16)",
             });
         }
-        if let PixelCost::Census { radius } = self.pixel
+        if let PixelCost::Census { radius, .. } = self.pixel
             && !(1..=MAX_CENSUS_RADIUS).contains(&radius)
         {
             return Err(FuseError::Config {
@@ -413,7 +413,8 @@ impl CostSpec {
     pub fn max_cost(&self) -> u32 {
         let per_pixel = match self.pixel {
             PixelCost::AbsoluteDifference | PixelCost::BirchfieldTomasi => 255,
-            PixelCost::Census { radius } => ((2 * radius + 1) * (2 * radius + 1) - 1) as u32,
+            // The symmetric census counts each of its half as many bits twice: the same range.
+            PixelCost::Census { radius, .. } => ((2 * radius + 1) * (2 * radius + 1) - 1) as u32,
         };
         let side = 2 * self.block_radius_px as u32 + 1;
         per_pixel * side * side
@@ -987,7 +988,10 @@ mod tests {
                 ),
                 (
                     CostSpec {
-                        pixel: PixelCost::Census { radius: 1 },
+                        pixel: PixelCost::Census {
+                            radius: 1,
+                            symmetric: false,
+                        },
                         block_radius_px: 1,
                     },
                     Fusion::Mean,

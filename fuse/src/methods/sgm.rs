@@ -73,7 +73,10 @@ impl Default for SgmConfig {
     fn default() -> Self {
         Self {
             fusion: Fusion::Heuristic,
-            cost: PixelCost::Census { radius: 3 },
+            cost: PixelCost::Census {
+                radius: 3,
+                symmetric: false,
+            },
             block_radius_px: 3,
             p1: 300,
             p2: 3000,

@@ -52,7 +52,10 @@ impl Default for InputSpec {
     /// Our SGM's defaults (census 7×7 summed over 7×7, P1 300, P2 3000).
     fn default() -> Self {
         Self {
-            cost: PixelCost::Census { radius: 3 },
+            cost: PixelCost::Census {
+                radius: 3,
+                symmetric: false,
+            },
             block_radius_px: 3,
             p1: 300,
             p2: 3000,
