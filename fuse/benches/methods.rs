@@ -237,7 +237,8 @@ fn winners(c: &mut Criterion) {
 /// The pixel costs of one reference row against a neighbour's search lines (1920 columns, 128
 /// disparities, the hot loop of block matching at 1080p): Birchfield–Tomasi on colour (the
 /// channels' halves summed in bytes) against absolute differences on colour (the channels' exact
-/// mean, in 16-bit lanes, the Birchfield–Tomasi colour cost's arithmetic before) and census 7×7.
+/// mean, in 16-bit lanes, the Birchfield–Tomasi colour cost's arithmetic before), census 7×7 (48
+/// bits), its centre-symmetric form and census 5×5 (24 bits each).
 fn pixel_costs(c: &mut Criterion) {
     use fuse::cost::{PixelCost, PreparedView};
     use fuse::lines::{SearchLines, pixel_cost_tile_lines};
@@ -253,6 +254,20 @@ fn pixel_costs(c: &mut Criterion) {
             "census_7x7",
             PixelCost::Census {
                 radius: 3,
+                symmetric: false,
+            },
+        ),
+        (
+            "census_7x7_symmetric",
+            PixelCost::Census {
+                radius: 3,
+                symmetric: true,
+            },
+        ),
+        (
+            "census_5x5",
+            PixelCost::Census {
+                radius: 2,
                 symmetric: false,
             },
         ),
