@@ -1049,12 +1049,7 @@ fn payload<'a>(
     payloads
         .get(&(topic.to_owned(), event.capture_time_nanos))
         .map(Vec::as_slice)
-        .ok_or_else(|| ReplayError::MissingMessage {
-            set,
-            role: event.role.clone(),
-            topic: topic.to_owned(),
-            log_time: event.capture_time_nanos,
-        })
+        .ok_or_else(|| missing_message(set, event, topic))
 }
 
 /// Takes the payload of `topic` at the event's capture time out of `payloads` (it is read once),
@@ -1068,12 +1063,17 @@ fn take_payload(
     payloads
         .remove(&(topic.to_owned(), event.capture_time_nanos))
         .map(bytes::Bytes::from)
-        .ok_or_else(|| ReplayError::MissingMessage {
-            set,
-            role: event.role.clone(),
-            topic: topic.to_owned(),
-            log_time: event.capture_time_nanos,
-        })
+        .ok_or_else(|| missing_message(set, event, topic))
+}
+
+/// The error of a payload the event names that the log does not hold.
+fn missing_message(set: u32, event: &CaptureEvent, topic: &str) -> ReplayError {
+    ReplayError::MissingMessage {
+        set,
+        role: event.role.clone(),
+        topic: topic.to_owned(),
+        log_time: event.capture_time_nanos,
+    }
 }
 
 /// Decodes an image message (`foxglove.RawImage` or a PNG `foxglove.CompressedImage`) into
