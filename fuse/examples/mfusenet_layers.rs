@@ -7,7 +7,8 @@
 //! `MIMALLOC_PURGE_DELAY=-1 cargo run --release -p fuse --example mfusenet_layers [D H W [N]]`
 //! (default 36 136 240 4: the demo's 36 slices on a quarter of its 960 × 540 image, the
 //! five-view network's four volumes; N = 2 is the three-view network; `lite` anywhere among the
-//! arguments: the lite architecture's kernels). The figures are in
+//! arguments: the lite architecture's kernels; `narrow`: the 256-bit paths only, on a host with
+//! AVX-512F, whose 512-bit kernel the layers otherwise take). The figures are in
 //! docs/benchmarks.md ("MFuseNet per layer").
 
 use std::hint::black_box;
@@ -79,6 +80,9 @@ fn main() {
         [d, h, w] => ([*d, *h, *w], 4),
         _ => ([36, 136, 240], 4),
     };
+    if std::env::args().any(|a| a == "narrow") {
+        fuse::nn::wide_kernel::set_enabled(false);
+    }
     let peak = fma_peak();
     println!(
         "host FMA peak: {:.1} GFLOP/s on {} threads (f32, 8 lanes)",
@@ -90,6 +94,10 @@ fn main() {
     } else {
         Architecture::Paper
     };
+    println!(
+        "convolutions on {}-bit vectors",
+        if fuse::nn::wide_kernel::available() { 512 } else { 256 }
+    );
     let net = Network::init_with(views, architecture, 1);
     let voxels = d * h * w;
     println!(

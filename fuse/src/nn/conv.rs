@@ -5,7 +5,8 @@
 //! blocks of 24 columns with the four output channels' accumulators held in registers (12 AVX
 //! vectors): per kernel tap, three unaligned loads feed twelve fused multiply-adds (for kernels 3
 //! and 5 written out in assembly, [`super::fma_kernel`], where LLVM's loop spilled the
-//! accumulators). Work is split over (channel group, depth plane) pairs with rayon, each writing
+//! accumulators; on a host with AVX-512F both blocks of a tile at once on 512-bit vectors,
+//! [`super::wide_kernel`], for every kernel size, with the same bits). Work is split over (channel group, depth plane) pairs with rayon, each writing
 //! its output planes in place.
 //!
 //! Measured on 2 AMD EPYC vCPUs (`cargo run --release -p fuse --example conv_speed`), k7 with
@@ -33,6 +34,7 @@ use wide::f32x8;
 
 use super::Tensor;
 use super::fma_kernel::{self, ACCUMULATORS};
+use super::wide_kernel;
 
 /// Lanes of one vector.
 const LANES: usize = 8;
@@ -44,6 +46,8 @@ const BLOCK: usize = LANES * VECTORS;
 const GROUP: usize = 4;
 /// Blocks per column tile of one job (48 columns).
 const TILE_BLOCKS: usize = 2;
+// A tile is one block of the 512-bit kernel.
+const _: () = assert!(TILE_BLOCKS * BLOCK == wide_kernel::COLUMNS);
 
 /// A zero-padded copy of a tensor cut into column tiles: `[tile][d + 2p][h + 2p][c][row]`, the
 /// value of `(c, z, y, x)` at `(x / step, z + p, y + p, c, x % step + p)` and, within `K − 1`
@@ -688,6 +692,7 @@ fn conv_k<const K: usize>(
     // and whole-width rows (1.75 KB apart at 428 columns) spread them over as many pages and ran
     // at half the speed (81 against 137 GFLOP/s on 2 AMD EPYC vCPUs).
     let tiles = blocks.div_ceil(TILE_BLOCKS);
+    let wide = wide_kernel::available();
     let plane = oh * ow;
     let (into, padded_for) = match output {
         Output::Tensor(into) => (into, None),
@@ -765,13 +770,33 @@ fn conv_k<const K: usize>(
         let weights = &packed[g * cin * taps * GROUP..(g + 1) * cin * taps * GROUP];
         for t in 0..tiles {
             let c0 = t * TILE_BLOCKS * BLOCK;
+            let tile_blocks = t * TILE_BLOCKS..((t + 1) * TILE_BLOCKS).min(blocks);
             for y in (0..h).step_by(stride) {
-                for b in t * TILE_BLOCKS..((t + 1) * TILE_BLOCKS).min(blocks) {
+                // A whole tile's two blocks at once on 512-bit vectors, where the host has them.
+                let mut pair = [[0f32; ACCUMULATORS]; TILE_BLOCKS];
+                let paired = wide
+                    && tile_blocks.len() == TILE_BLOCKS
+                    && wide_kernel::rows::<K>(
+                        &padded.data,
+                        padded.tile_row_start(t, 0, z, y),
+                        &rows,
+                        weights,
+                        &mut pair,
+                    );
+                for b in tile_blocks.clone() {
                     let x0 = b * BLOCK;
                     let mut acc = [[f32x8::ZERO; VECTORS]; GROUP];
                     let mut flat = [0f32; ACCUMULATORS];
                     let base = padded.tile_row_start(t, 0, z, y) + x0 - c0;
-                    if (K == 3 || K == 5) && fma_kernel::rows::<K>(&padded.data, base, &rows, weights, &mut flat) {
+                    if paired {
+                        let sums = &pair[b - t * TILE_BLOCKS];
+                        for (o, acc_o) in acc.iter_mut().enumerate() {
+                            for (j, a) in acc_o.iter_mut().enumerate() {
+                                *a = load(&sums[(o * VECTORS + j) * LANES..]);
+                            }
+                        }
+                    } else if (K == 3 || K == 5) && fma_kernel::rows::<K>(&padded.data, base, &rows, weights, &mut flat)
+                    {
                         for (o, acc_o) in acc.iter_mut().enumerate() {
                             for (j, a) in acc_o.iter_mut().enumerate() {
                                 *a = load(&flat[(o * VECTORS + j) * LANES..]);
@@ -1029,6 +1054,44 @@ pub(crate) mod tests {
         assert_eq!(got.shape, expected.shape);
         assert_close(&got.data, &expected.data, 1e-4, "accumulated");
         assert!(got.data.contains(&0.0) && got.data.iter().any(|v| *v > 0.0));
+    }
+
+    #[test]
+    fn the_wide_kernel_gives_the_256_bit_paths_bits() {
+        if !wide_kernel::available() {
+            println!("skipped: this host has no AVX-512F (only the 256-bit paths run)");
+            return;
+        }
+        // Whole tiles, a partial last tile, one narrower than a tile; every kernel size, a
+        // ReLU and a stride-2 epilogue, with a bias.
+        let cases = [
+            ([2, 3, 4, 96], 4, 3, 1),
+            ([4, 3, 5, 101], 4, 5, 1),
+            ([8, 2, 3, 144], 4, 7, 1),
+            ([3, 4, 6, 53], 6, 3, 2),
+            ([1, 2, 2, 40], 4, 7, 1),
+        ];
+        for (seed, (shape, cout, k, stride)) in cases.into_iter().enumerate() {
+            let x = random(shape, 400 + seed as u64);
+            let weight = random_values(cout * shape[0] * k * k * k, 500 + seed as u64);
+            let bias = random_values(cout, 600 + seed as u64);
+            let epilogue = Epilogue { relu: true, stride };
+            let wide = conv3d_with(&x, &weight, cout, k, Some(&bias), epilogue);
+            wide_kernel::set_enabled(false);
+            let narrow = conv3d_with(&x, &weight, cout, k, Some(&bias), epilogue);
+            wide_kernel::set_enabled(true);
+            assert_eq!(wide.shape, narrow.shape);
+            let differing = wide
+                .data
+                .iter()
+                .zip(&narrow.data)
+                .filter(|(a, b)| a.to_bits() != b.to_bits())
+                .count();
+            assert_eq!(
+                differing, 0,
+                "{shape:?} k{k} stride {stride}: {differing} values differ"
+            );
+        }
     }
 
     #[test]

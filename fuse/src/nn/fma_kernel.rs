@@ -26,6 +26,16 @@ impl RowTable {
         let max = offsets.iter().copied().max().unwrap_or(0);
         Self { offsets, max }
     }
+
+    /// The offsets, in the order of the weights' rows.
+    pub(super) fn offsets(&self) -> &[usize] {
+        &self.offsets
+    }
+
+    /// The largest offset.
+    pub(super) fn max(&self) -> usize {
+        self.max
+    }
 }
 
 /// `acc[o][j][l] += Σ_r Σ_tw weights[r][tw][o] · data[base + rows[r] + tw + 8j + l]` for

@@ -5,6 +5,8 @@
 //! - [`conv`]: the "same" stride-1 3D convolution (forward, input and weight gradients) as direct
 //!   convolutions vectorised along the image rows with four output channels in registers; the
 //!   stride-2 convolution and the stride-2 transposed convolution are expressed through it.
+//!   Their inner loop runs on 512-bit vectors where the host has AVX-512F ([`wide_kernel`],
+//!   detected at run time), with the same sums bit for bit.
 //! - [`batch_norm`]: BatchNorm3d in train mode (batch statistics, running-statistics update,
 //!   backward) and eval mode (folded into the preceding convolution).
 //! - [`regression`]: softmax over disparity, soft-argmin and the smooth-L1 loss.
@@ -20,6 +22,7 @@ mod fma_kernel;
 pub mod pool;
 pub mod reference;
 pub mod regression;
+pub mod wide_kernel;
 
 /// A volume of `channels × depth × height × width` values, width fastest (PyTorch's `[C, D, H,
 /// W]` for batch 1).

@@ -1,0 +1,201 @@
+//! The convolutions' inner loop on 512-bit vectors, where the host has AVX-512F (detected at
+//! run time; the workspace builds for x86-64-v3, so these functions are compiled for AVX-512
+//! on their own). One output block of 4 channels × 48 columns — a whole column tile of
+//! [`super::conv`], two of its 24-column blocks — is held in 12 of the 32 `zmm` registers: per
+//! kernel tap, three loads feed twelve fused multiply-adds, the weight broadcast from memory.
+//! Twice the columns per instruction of the AVX2 kernels ([`super::fma_kernel`] and LLVM's
+//! loop) for every kernel size; the products are summed in the same order, so the outputs are
+//! bit for bit those of the 256-bit paths.
+//!
+//! [`available`] answers whether the host has it and it is not switched off
+//! ([`set_enabled`]: `false` makes every layer take the 256-bit paths, for comparisons).
+
+use std::sync::atomic::{AtomicBool, Ordering};
+
+use super::fma_kernel::{ACCUMULATORS, RowTable};
+
+/// Output columns of one wide block: two of the 256-bit paths' blocks.
+pub(super) const COLUMNS: usize = 48;
+
+/// Whether [`available`] may answer `true` (see [`set_enabled`]).
+static ENABLED: AtomicBool = AtomicBool::new(true);
+
+/// Lets the convolutions use 512-bit vectors where the host has them (`true`, the default) or
+/// keeps them on the 256-bit paths (`false`). The outputs are the same either way; only the
+/// speed differs (`examples/mfusenet_layers.rs` compares the two).
+pub fn set_enabled(enabled: bool) {
+    ENABLED.store(enabled, Ordering::Relaxed);
+}
+
+/// Whether the wide kernel runs here: the host has AVX-512F and [`set_enabled`] has not
+/// switched it off.
+pub fn available() -> bool {
+    ENABLED.load(Ordering::Relaxed) && host_has_it()
+}
+
+#[cfg(target_arch = "x86_64")]
+fn host_has_it() -> bool {
+    std::arch::is_x86_feature_detected!("avx512f")
+}
+
+#[cfg(not(target_arch = "x86_64"))]
+fn host_has_it() -> bool {
+    false
+}
+
+/// `acc[b][o][c] = Σ_r Σ_tw weights[r][tw][o] · data[base + rows[r] + tw + 24b + c]` for the
+/// two 24-column blocks `b` of one wide block, in [`super::fma_kernel::rows`]'s accumulator
+/// layout (`[o][column]` per block). Answers `false`, doing nothing, where the host lacks
+/// AVX-512F (or it is switched off), or where a read would leave `data` or `weights`; the
+/// caller then runs the 256-bit paths.
+#[allow(unsafe_code)]
+pub(super) fn rows<const K: usize>(
+    data: &[f32],
+    base: usize,
+    rows: &RowTable,
+    weights: &[f32],
+    acc: &mut [[f32; ACCUMULATORS]; 2],
+) -> bool {
+    // The last float read from a row is column (K − 1) + 47.
+    let end = base
+        .checked_add(rows.max())
+        .and_then(|a| a.checked_add(K - 1 + COLUMNS));
+    if end.is_none_or(|end| end > data.len()) || weights.len() < rows.offsets().len() * K * 4 || !available() {
+        return false;
+    }
+    #[cfg(target_arch = "x86_64")]
+    {
+        let mut wide = [0f32; 4 * COLUMNS];
+        // SAFETY: the host has AVX-512F (`available`). Every row read is `data[base + r ..
+        // base + r + K − 1 + 48]` with `r` at most the table's largest entry, inside `data`
+        // (checked above); the weights read are `weights[.. rows · K · 4]` (checked above).
+        unsafe { sums::<K>(data.as_ptr().add(base), rows.offsets(), weights.as_ptr(), &mut wide) };
+        for (o, channel) in wide.chunks_exact(COLUMNS).enumerate() {
+            for (b, block) in acc.iter_mut().enumerate() {
+                let at = o * (COLUMNS / 2);
+                for (a, v) in block[at..at + COLUMNS / 2]
+                    .iter_mut()
+                    .zip(&channel[b * COLUMNS / 2..(b + 1) * COLUMNS / 2])
+                {
+                    *a = *v;
+                }
+            }
+        }
+        true
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        let _ = acc;
+        false
+    }
+}
+
+/// The sums of one wide block, `[o][column]`, started from zero. Per row, per tap: three
+/// 16-lane loads at the tap's column, then per output channel the weight broadcast into three
+/// multiply-adds (the order of the 256-bit kernels, lane by lane).
+///
+/// # Safety
+/// The host has AVX-512F; `data + offset + K − 1 + 48` stays inside the caller's slice for
+/// every offset in `rows`; `weights` holds `rows.len() · K · 4` floats.
+#[cfg(target_arch = "x86_64")]
+#[allow(unsafe_code)]
+#[target_feature(enable = "avx512f")]
+unsafe fn sums<const K: usize>(data: *const f32, rows: &[usize], weights: *const f32, out: &mut [f32; 4 * COLUMNS]) {
+    use std::arch::x86_64::{
+        __m512, _mm512_fmadd_ps, _mm512_loadu_ps, _mm512_set1_ps, _mm512_setzero_ps, _mm512_storeu_ps,
+    };
+    let mut acc: [[__m512; 3]; 4] = [[_mm512_setzero_ps(); 3]; 4];
+    for (r, &offset) in rows.iter().enumerate() {
+        // SAFETY: inside the caller's slices (this function's contract).
+        unsafe {
+            let row = data.add(offset);
+            let w = weights.add(r * K * 4);
+            for tw in 0..K {
+                let x = [
+                    _mm512_loadu_ps(row.add(tw)),
+                    _mm512_loadu_ps(row.add(tw + 16)),
+                    _mm512_loadu_ps(row.add(tw + 32)),
+                ];
+                for (o, acc_o) in acc.iter_mut().enumerate() {
+                    let wv = _mm512_set1_ps(*w.add(tw * 4 + o));
+                    for (a, xv) in acc_o.iter_mut().zip(&x) {
+                        *a = _mm512_fmadd_ps(*xv, wv, *a);
+                    }
+                }
+            }
+        }
+    }
+    for (o, acc_o) in acc.iter().enumerate() {
+        for (j, a) in acc_o.iter().enumerate() {
+            // SAFETY: `out` holds 4 · 48 floats; this writes 16 of them at `o · 48 + 16j`.
+            unsafe { _mm512_storeu_ps(out.as_mut_ptr().add(o * COLUMNS + 16 * j), *a) };
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The sums of [`rows`] by plain loops, in its accumulator layout.
+    fn plain<const K: usize>(data: &[f32], base: usize, offsets: &[usize], weights: &[f32]) -> [Vec<f32>; 2] {
+        std::array::from_fn(|b| {
+            let mut acc = vec![0f32; ACCUMULATORS];
+            for (r, &offset) in offsets.iter().enumerate() {
+                for tw in 0..K {
+                    for o in 0..4 {
+                        for c in 0..24 {
+                            acc[o * 24 + c] += weights[(r * K + tw) * 4 + o] * data[base + offset + tw + 24 * b + c];
+                        }
+                    }
+                }
+            }
+            acc
+        })
+    }
+
+    fn check<const K: usize>() {
+        let data: Vec<f32> = (0..4000).map(|i| ((i * 37 % 101) as f32 - 50.0) / 25.0).collect();
+        let offsets = vec![0, 50, 100, 1200, 1250, 3000, 7, 2900];
+        let weights: Vec<f32> = (0..offsets.len() * K * 4)
+            .map(|i| ((i * 13 % 29) as f32 - 14.0) / 7.0)
+            .collect();
+        let table = RowTable::new(offsets.clone());
+        let base = 40;
+        let mut acc = [[0f32; ACCUMULATORS]; 2];
+        let ran = rows::<K>(&data, base, &table, &weights, &mut acc);
+        assert_eq!(
+            ran,
+            available(),
+            "K = {K}: the kernel runs exactly where the host has AVX-512F"
+        );
+        if !ran {
+            println!("skipped: this host has no AVX-512F (the 256-bit paths run)");
+            return;
+        }
+        let expected = plain::<K>(&data, base, &offsets, &weights);
+        for (b, (got, want)) in acc.iter().zip(&expected).enumerate() {
+            for (i, (got, want)) in got.iter().zip(want).enumerate() {
+                assert!(
+                    (got - want).abs() <= 1e-4 * (1.0 + want.abs()),
+                    "K = {K}, block {b}, accumulator {i}: {got} against {want}"
+                );
+            }
+        }
+        // A table reaching past the data is refused and leaves the accumulators alone.
+        let mut untouched = [[1f32; ACCUMULATORS]; 2];
+        let far = RowTable::new(vec![0, data.len() - base - (K - 1 + COLUMNS) + 1]);
+        assert!(!rows::<K>(&data, base, &far, &weights, &mut untouched));
+        assert!(untouched.iter().flatten().all(|&v| v == 1.0));
+        // Too few weights for the rows: refused.
+        let short = &weights[..weights.len() - 1];
+        assert!(!rows::<K>(&data, base, &table, short, &mut untouched));
+    }
+
+    #[test]
+    fn the_wide_kernel_equals_plain_loops_and_refuses_reads_outside() {
+        check::<3>();
+        check::<5>();
+        check::<7>();
+    }
+}
