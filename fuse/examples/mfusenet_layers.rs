@@ -81,7 +81,7 @@ fn main() {
         _ => ([36, 136, 240], 4),
     };
     if std::env::args().any(|a| a == "narrow") {
-        fuse::nn::wide_kernel::set_enabled(false);
+        fuse::wide::set_enabled(false);
     }
     let peak = fma_peak();
     println!(

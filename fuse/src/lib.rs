@@ -38,6 +38,7 @@ pub mod sgm;
 pub mod subpixel;
 pub mod thin_parts;
 pub mod volume;
+pub mod wide;
 pub mod wta;
 
 pub use image::{DisparityImage, Image};

@@ -1077,9 +1077,9 @@ pub(crate) mod tests {
             let bias = random_values(cout, 600 + seed as u64);
             let epilogue = Epilogue { relu: true, stride };
             let wide = conv3d_with(&x, &weight, cout, k, Some(&bias), epilogue);
-            wide_kernel::set_enabled(false);
+            crate::wide::set_enabled(false);
             let narrow = conv3d_with(&x, &weight, cout, k, Some(&bias), epilogue);
-            wide_kernel::set_enabled(true);
+            crate::wide::set_enabled(true);
             assert_eq!(wide.shape, narrow.shape);
             let differing = wide
                 .data

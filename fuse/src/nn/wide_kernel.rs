@@ -8,39 +8,17 @@
 //! bit for bit those of the 256-bit paths.
 //!
 //! [`available`] answers whether the host has it and it is not switched off
-//! ([`set_enabled`]: `false` makes every layer take the 256-bit paths, for comparisons).
-
-use std::sync::atomic::{AtomicBool, Ordering};
+//! ([`crate::wide::set_enabled`]: `false` makes every layer take the 256-bit paths).
 
 use super::fma_kernel::{ACCUMULATORS, RowTable};
 
 /// Output columns of one wide block: two of the 256-bit paths' blocks.
 pub(super) const COLUMNS: usize = 48;
 
-/// Whether [`available`] may answer `true` (see [`set_enabled`]).
-static ENABLED: AtomicBool = AtomicBool::new(true);
-
-/// Lets the convolutions use 512-bit vectors where the host has them (`true`, the default) or
-/// keeps them on the 256-bit paths (`false`). The outputs are the same either way; only the
-/// speed differs (`examples/mfusenet_layers.rs` compares the two).
-pub fn set_enabled(enabled: bool) {
-    ENABLED.store(enabled, Ordering::Relaxed);
-}
-
-/// Whether the wide kernel runs here: the host has AVX-512F and [`set_enabled`] has not
-/// switched it off.
+/// Whether the wide kernel runs here: the host has AVX-512F and [`crate::wide::set_enabled`]
+/// has not switched it off.
 pub fn available() -> bool {
-    ENABLED.load(Ordering::Relaxed) && host_has_it()
-}
-
-#[cfg(target_arch = "x86_64")]
-fn host_has_it() -> bool {
-    std::arch::is_x86_feature_detected!("avx512f")
-}
-
-#[cfg(not(target_arch = "x86_64"))]
-fn host_has_it() -> bool {
-    false
+    crate::wide::avx512f()
 }
 
 /// `acc[b][o][c] = Σ_r Σ_tw weights[r][tw][o] · data[base + rows[r] + tw + 24b + c]` for the

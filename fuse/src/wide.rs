@@ -1,0 +1,34 @@
+//! Whether the hot loops may run on 512-bit vectors: where the host has AVX-512 (detected at run
+//! time; the workspace builds for x86-64-v3) and [`set_enabled`] has not switched them off.
+//! The convolutions' kernel (`nn::wide_kernel`) asks here; its outputs are the same bits
+//! either way, only the speed differs.
+
+use std::sync::atomic::{AtomicBool, Ordering};
+
+/// Whether the 512-bit paths may run (see [`set_enabled`]).
+static ENABLED: AtomicBool = AtomicBool::new(true);
+
+/// Lets the hot loops use 512-bit vectors where the host has them (`true`, the default) or keeps
+/// them on the 256-bit paths (`false`: for comparisons, as `examples/mfusenet_layers.rs narrow`).
+pub fn set_enabled(enabled: bool) {
+    ENABLED.store(enabled, Ordering::Relaxed);
+}
+
+/// AVX-512F (32-bit lanes: the convolutions), enabled.
+pub fn avx512f() -> bool {
+    ENABLED.load(Ordering::Relaxed) && detected::avx512f()
+}
+
+#[cfg(target_arch = "x86_64")]
+mod detected {
+    pub(super) fn avx512f() -> bool {
+        std::arch::is_x86_feature_detected!("avx512f")
+    }
+}
+
+#[cfg(not(target_arch = "x86_64"))]
+mod detected {
+    pub(super) fn avx512f() -> bool {
+        false
+    }
+}
