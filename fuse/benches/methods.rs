@@ -134,6 +134,27 @@ fn mfusenet(c: &mut Criterion) {
     group.bench_function("conv_k7_8to4_forward", |b| {
         b.iter(|| black_box(conv3d_same(&x, &weight, 4, 7, None)))
     });
+    // The same on the 256-bit paths, where the host would take the 512-bit kernel
+    // (`fuse::wide`; the same bits either way).
+    group.bench_function("conv_k7_8to4_forward_256_bit", |b| {
+        fuse::wide::set_enabled(false);
+        b.iter(|| black_box(conv3d_same(&x, &weight, 4, 7, None)));
+        fuse::wide::set_enabled(true);
+    });
+    // The lite network's commonest layer: 3³, 4 → 4 channels.
+    let x4 = Tensor {
+        shape: [4, shape[1], shape[2], shape[3]],
+        data: x.data[..x.data.len() / 2].to_vec(),
+    };
+    let weight3: Vec<f32> = (0..4 * 4 * 27).map(|i| ((i * 31) % 17) as f32 / 170.0 - 0.05).collect();
+    group.bench_function("conv_k3_4to4_forward", |b| {
+        b.iter(|| black_box(conv3d_same(&x4, &weight3, 4, 3, None)))
+    });
+    group.bench_function("conv_k3_4to4_forward_256_bit", |b| {
+        fuse::wide::set_enabled(false);
+        b.iter(|| black_box(conv3d_same(&x4, &weight3, 4, 3, None)));
+        fuse::wide::set_enabled(true);
+    });
     group.bench_function("conv_k7_8to4_input_grad", |b| {
         b.iter(|| black_box(conv3d_same_input_grad(&grad, &weight, 8, 7)))
     });
