@@ -27,14 +27,16 @@ impl RowTable {
         Self { offsets, max }
     }
 
+    /// Whether a block `columns` wide at `base` with `k` taps reads inside `data_len` floats
+    /// from every row of the table, and `weights_len` floats hold the rows' `k · 4` weights.
+    pub(super) fn fits(&self, base: usize, (k, columns): (usize, usize), data_len: usize, weights_len: usize) -> bool {
+        let end = base.checked_add(self.max).and_then(|a| a.checked_add(k - 1 + columns));
+        end.is_some_and(|end| end <= data_len) && weights_len >= self.offsets.len() * k * 4
+    }
+
     /// The offsets, in the order of the weights' rows.
     pub(super) fn offsets(&self) -> &[usize] {
         &self.offsets
-    }
-
-    /// The largest offset.
-    pub(super) fn max(&self) -> usize {
-        self.max
     }
 }
 
@@ -51,8 +53,7 @@ pub(super) fn rows<const K: usize>(
     acc: &mut [f32; ACCUMULATORS],
 ) -> bool {
     // The last float read from a row is column (K − 1) + 23.
-    let end = base.checked_add(rows.max).and_then(|a| a.checked_add(K - 1 + 24));
-    if end.is_none_or(|end| end > data.len()) || weights.len() < rows.offsets.len() * K * 4 {
+    if !rows.fits(base, (K, 24), data.len(), weights.len()) {
         return false;
     }
     let rows = &rows.offsets;
@@ -207,11 +208,16 @@ kernel!(k3, "add {w}, 48", [tap!(0), tap!(1), tap!(2)]);
 kernel!(k5, "add {w}, 80", [tap!(0), tap!(1), tap!(2), tap!(3), tap!(4)]);
 
 #[cfg(test)]
-mod tests {
+pub(super) mod tests {
     use super::*;
 
-    /// The sums of [`rows`] by plain loops.
-    fn plain<const K: usize>(data: &[f32], base: usize, offsets: &[usize], weights: &[f32]) -> Vec<f32> {
+    /// The sums of [`rows`] by plain loops (also the wide kernel's reference, a block at a time).
+    pub(in crate::nn) fn plain<const K: usize>(
+        data: &[f32],
+        base: usize,
+        offsets: &[usize],
+        weights: &[f32],
+    ) -> Vec<f32> {
         let mut acc = vec![0f32; ACCUMULATORS];
         for (r, &offset) in offsets.iter().enumerate() {
             for tw in 0..K {
@@ -225,12 +231,19 @@ mod tests {
         acc
     }
 
-    fn check<const K: usize>() {
+    /// Data, scattered row offsets and their weights for one kernel size (shared with the wide
+    /// kernel's tests).
+    pub(in crate::nn) fn case<const K: usize>() -> (Vec<f32>, Vec<usize>, Vec<f32>) {
         let data: Vec<f32> = (0..4000).map(|i| ((i * 37 % 101) as f32 - 50.0) / 25.0).collect();
         let offsets = vec![0, 50, 100, 1200, 1250, 3000, 7, 2900];
         let weights: Vec<f32> = (0..offsets.len() * K * 4)
             .map(|i| ((i * 13 % 29) as f32 - 14.0) / 7.0)
             .collect();
+        (data, offsets, weights)
+    }
+
+    fn check<const K: usize>() {
+        let (data, offsets, weights) = case::<K>();
         let table = RowTable::new(offsets.clone());
         let base = 40;
         let mut acc = [0f32; ACCUMULATORS];

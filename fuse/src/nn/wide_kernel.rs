@@ -35,10 +35,7 @@ pub(super) fn rows<const K: usize>(
     acc: &mut [[f32; ACCUMULATORS]; 2],
 ) -> bool {
     // The last float read from a row is column (K − 1) + 47.
-    let end = base
-        .checked_add(rows.max())
-        .and_then(|a| a.checked_add(K - 1 + COLUMNS));
-    if end.is_none_or(|end| end > data.len()) || weights.len() < rows.offsets().len() * K * 4 || !available() {
+    if !rows.fits(base, (K, COLUMNS), data.len(), weights.len()) || !available() {
         return false;
     }
     #[cfg(target_arch = "x86_64")]
@@ -115,29 +112,10 @@ unsafe fn sums<const K: usize>(data: *const f32, rows: &[usize], weights: *const
 mod tests {
     use super::*;
 
-    /// The sums of [`rows`] by plain loops, in its accumulator layout.
-    fn plain<const K: usize>(data: &[f32], base: usize, offsets: &[usize], weights: &[f32]) -> [Vec<f32>; 2] {
-        std::array::from_fn(|b| {
-            let mut acc = vec![0f32; ACCUMULATORS];
-            for (r, &offset) in offsets.iter().enumerate() {
-                for tw in 0..K {
-                    for o in 0..4 {
-                        for c in 0..24 {
-                            acc[o * 24 + c] += weights[(r * K + tw) * 4 + o] * data[base + offset + tw + 24 * b + c];
-                        }
-                    }
-                }
-            }
-            acc
-        })
-    }
+    use crate::nn::fma_kernel::tests::{case, plain};
 
     fn check<const K: usize>() {
-        let data: Vec<f32> = (0..4000).map(|i| ((i * 37 % 101) as f32 - 50.0) / 25.0).collect();
-        let offsets = vec![0, 50, 100, 1200, 1250, 3000, 7, 2900];
-        let weights: Vec<f32> = (0..offsets.len() * K * 4)
-            .map(|i| ((i * 13 % 29) as f32 - 14.0) / 7.0)
-            .collect();
+        let (data, offsets, weights) = case::<K>();
         let table = RowTable::new(offsets.clone());
         let base = 40;
         let mut acc = [[0f32; ACCUMULATORS]; 2];
@@ -151,7 +129,8 @@ mod tests {
             println!("skipped: this host has no AVX-512F (the 256-bit paths run)");
             return;
         }
-        let expected = plain::<K>(&data, base, &offsets, &weights);
+        // Each 24-column block as the 256-bit kernel's reference sums it, 24 columns on.
+        let expected = [0, 1].map(|b| plain::<K>(&data, base + 24 * b, &offsets, &weights));
         for (b, (got, want)) in acc.iter().zip(&expected).enumerate() {
             for (i, (got, want)) in got.iter().zip(want).enumerate() {
                 assert!(
