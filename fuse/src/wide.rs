@@ -19,6 +19,12 @@ pub fn avx512f() -> bool {
     ENABLED.load(Ordering::Relaxed) && detected::avx512f()
 }
 
+/// Whether the host has AVX-512F, whatever [`set_enabled`] says: what a 512-bit kernel needs
+/// to run safely (the switch is its caller's choice).
+pub fn host_has_avx512f() -> bool {
+    detected::avx512f()
+}
+
 #[cfg(target_arch = "x86_64")]
 mod detected {
     pub(super) fn avx512f() -> bool {

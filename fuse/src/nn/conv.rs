@@ -6,8 +6,8 @@
 //! vectors): per kernel tap, three unaligned loads feed twelve fused multiply-adds (for kernels 3
 //! and 5 written out in assembly, [`super::fma_kernel`], where LLVM's loop spilled the
 //! accumulators; on a host with AVX-512F both blocks of a tile at once on 512-bit vectors,
-//! [`super::wide_kernel`], for every kernel size, with the same bits). Work is split over (channel group, depth plane) pairs with rayon, each writing
-//! its output planes in place.
+//! [`super::wide_kernel`], for every kernel size, with the same bits). Work is split over
+//! (channel group, depth plane) pairs with rayon, each writing its output planes in place.
 //!
 //! Measured on 2 AMD EPYC vCPUs (`cargo run --release -p fuse --example conv_speed`), k7 with
 //! 8 → 4 channels on 32 × 372 × 428: 81 GFLOP/s with whole-width rows (an output block's 392

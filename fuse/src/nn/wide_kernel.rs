@@ -24,7 +24,7 @@ pub fn available() -> bool {
 /// `acc[b][o][c] = Σ_r Σ_tw weights[r][tw][o] · data[base + rows[r] + tw + 24b + c]` for the
 /// two 24-column blocks `b` of one wide block, in [`super::fma_kernel::rows`]'s accumulator
 /// layout (`[o][column]` per block). Answers `false`, doing nothing, where the host lacks
-/// AVX-512F (or it is switched off), or where a read would leave `data` or `weights`; the
+/// AVX-512F, or where a read would leave `data` or `weights`; the
 /// caller then runs the 256-bit paths.
 #[allow(unsafe_code)]
 pub(super) fn rows<const K: usize>(
@@ -35,13 +35,15 @@ pub(super) fn rows<const K: usize>(
     acc: &mut [[f32; ACCUMULATORS]; 2],
 ) -> bool {
     // The last float read from a row is column (K − 1) + 47.
-    if !rows.fits(base, (K, COLUMNS), data.len(), weights.len()) || !available() {
+    // The host's feature, not the switch: the caller checks [`available`] once per layer, and
+    // a switch flipped by another thread meanwhile must not change what this call answers.
+    if !rows.fits(base, (K, COLUMNS), data.len(), weights.len()) || !crate::wide::host_has_avx512f() {
         return false;
     }
     #[cfg(target_arch = "x86_64")]
     {
         let mut wide = [0f32; 4 * COLUMNS];
-        // SAFETY: the host has AVX-512F (`available`). Every row read is `data[base + r ..
+        // SAFETY: the host has AVX-512F (`host_has_avx512f`). Every row read is `data[base + r ..
         // base + r + K − 1 + 48]` with `r` at most the table's largest entry, inside `data`
         // (checked above); the weights read are `weights[.. rows · K · 4]` (checked above).
         unsafe { sums::<K>(data.as_ptr().add(base), rows.offsets(), weights.as_ptr(), &mut wide) };
@@ -122,7 +124,7 @@ mod tests {
         let ran = rows::<K>(&data, base, &table, &weights, &mut acc);
         assert_eq!(
             ran,
-            available(),
+            crate::wide::host_has_avx512f(),
             "K = {K}: the kernel runs exactly where the host has AVX-512F"
         );
         if !ran {
