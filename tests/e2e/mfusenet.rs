@@ -33,7 +33,7 @@ fn shipped_weights_have_the_reference_state_dict_names_and_shapes() {
         "33441 trainable",
         "38929 trainable",
         "49905 trainable",
-        "13993 trainable parameters, variant mfusenet-5view-lite, architecture lite",
+        "14425 trainable parameters, variant mfusenet-5view-lite, architecture lite, sharp volumes",
     ] {
         assert!(text.contains(count), "{count} not in {text}");
     }

@@ -4,7 +4,8 @@ here independently of our Rust code from the architecture (weihaosky/MFuseNet, n
 convbn3d = Sequential(Conv3d(bias=False), BatchNorm3d), convTbn3d likewise with ConvTranspose3d
 (weight [in, out, k, k, k]), classify = Conv3d(4, 1, 3) with bias. A file whose metadata says
 `architecture = lite` is checked against the lite kernels (feature 5, 3, 3, 3; concat 3; uconv2 3;
-distill1 3; the rest as the paper's).
+distill1 3; the rest as the paper's). A file whose metadata has a `sharp_spec` takes each view's
+sharp volume into `concat` beside its four features (`concat.0.weight` with 5·N input channels).
 
 Usage: check_weights.py VIEWS FILE [VIEWS FILE ...]; prints one line per file, exits 1 on a
 mismatch."""
@@ -24,14 +25,14 @@ KERNELS = {
 }
 
 
-def state_dict(n_views, architecture="paper"):
+def state_dict(n_views, architecture="paper", sharp=False):
     f0, f2, f4, f6, kc, k21, ku2, kd1 = KERNELS[architecture]
     layers = [
         ("feature.0", "conv", 1, 4, f0),
         ("feature.2", "conv", 4, 4, f2),
         ("feature.4", "conv", 4, 4, f4),
         ("feature.6", "conv", 4, 4, f6),
-        ("concat", "conv", 4 * n_views, 4, kc),
+        ("concat", "conv", (5 if sharp else 4) * n_views, 4, kc),
         ("down1", "conv", 4, 4, 3),
         ("dconv1", "conv", 4, 4, 3),
         ("down2", "conv", 4, 4, 3),
@@ -70,7 +71,8 @@ def check(n_views, path):
     if architecture not in KERNELS:
         print(f"FAIL {path}: metadata architecture = {architecture!r}, expected one of {sorted(KERNELS)}")
         return False
-    expected = state_dict(n_views, architecture)
+    sharp = "sharp_spec" in metadata
+    expected = state_dict(n_views, architecture, sharp)
     tensors = load_file(path)
     problems = []
     for name in sorted(set(expected) | set(tensors)):
@@ -98,7 +100,7 @@ def check(n_views, path):
     if problems:
         print(f"FAIL {path}: " + "; ".join(problems))
         return False
-    print(f"ok {path}: {len(tensors)} tensors, {parameters} trainable parameters, variant {metadata['variant']}, architecture {architecture}")
+    print(f"ok {path}: {len(tensors)} tensors, {parameters} trainable parameters, variant {metadata['variant']}, architecture {architecture}{', sharp volumes' if sharp else ''}")
     return True
 
 

@@ -1142,14 +1142,20 @@ mod tests {
 
     #[test]
     fn a_sharpened_file_answers_as_its_fixed_one_until_its_sharp_weights_move() {
-        // The shipped lite five-view file widened with zero weights for the sharp volumes
+        // A fixed lite five-view network (seeded weights, the shipped lite file's metadata; the
+        // shipped file itself is sharp) widened with zero weights for the sharp volumes
         // (`Network::sharpened`): `mfusenet` makes the sharp volumes and feeds them, and the
-        // answer is the file's to the bit, test-time flips included; with sharp weights the
-        // answer moves.
+        // answer is the fixed file's to the bit, test-time flips included; with sharp weights
+        // the answer moves.
         let bytes = include_bytes!("../../weights/mfusenet-5view-lite.safetensors");
-        let (net, info) = weights::from_bytes(bytes, "lite", "", Some(4)).unwrap_or_else(|e| panic!("{e}"));
+        let (shipped, info) = weights::from_bytes(bytes, "lite", "", Some(4)).unwrap_or_else(|e| panic!("{e}"));
+        assert!(shipped.sharp, "the shipped lite five-view file takes sharp volumes");
+        let net = Network::init_with(4, Architecture::Lite, 11);
         let dir = std::env::temp_dir().join(format!("fuse-sharp-{}", std::process::id()));
         let _ = std::fs::create_dir_all(&dir);
+        let fixed_file = dir.join("fixed.safetensors");
+        let saved = weights::save(&net, &info, &fixed_file);
+        assert!(saved.is_ok(), "{saved:?}");
         let sharp_file = dir.join("sharp.safetensors");
         let mut sharp = net.sharpened().unwrap_or_else(|| panic!("a fixed network sharpens"));
         let saved = weights::save(&sharp, &info, &sharp_file);
@@ -1159,21 +1165,22 @@ mod tests {
             let method = crate::methods::build("mfusenet", Some(&config)).unwrap_or_else(|e| panic!("{e}"));
             method.run(&problem, &|_| {}).unwrap_or_else(|e| panic!("{e}"))
         };
-        let file = sharp_file.display().to_string();
+        let (fixed_name, file) = (fixed_file.display().to_string(), sharp_file.display().to_string());
         for flips in [false, true] {
-            let fixed = run(serde_json::json!({ "flips": flips }));
+            let fixed = run(serde_json::json!({ "weights": fixed_name, "flips": flips }));
             let widened = run(serde_json::json!({ "weights": file, "flips": flips }));
             assert_eq!(widened.data, fixed.data, "flips {flips}");
         }
+        let k3 = sharp.fuse[0].k.pow(3);
         for (i, w) in sharp.fuse[0].weight.iter_mut().enumerate() {
-            if i / 27 % 5 == 4 {
+            if i / k3 % 5 == 4 {
                 *w = 0.02;
             }
         }
         let saved = weights::save(&sharp, &info, &sharp_file);
         assert!(saved.is_ok(), "{saved:?}");
         let moved = run(serde_json::json!({ "weights": file }));
-        let fixed = run(serde_json::json!({}));
+        let fixed = run(serde_json::json!({ "weights": fixed_name }));
         assert_ne!(moved.data, fixed.data, "the sharp volumes reach the answer");
         assert!(moved.data.iter().all(|d| d.is_finite()));
         let _ = std::fs::remove_dir_all(&dir);
