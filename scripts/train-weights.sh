@@ -7,7 +7,13 @@
 #
 #   scripts/train-weights.sh            # all three
 #   scripts/train-weights.sh 2          # only the three-view network
-#   scripts/train-weights.sh 4-lite     # the lite five-view network (`--architecture lite`)
+#   scripts/train-weights.sh 4-lite     # the lite five-view network's stage 1 (`--architecture lite`)
+#
+# The shipped lite five-view file is that stage 1 fine-tuned with sharp volumes for 6,074 steps
+# of a 21,000-step schedule (its learning rate falls only in the last quarter): the run in
+# fuse/weights/runs/mfusenet-5view-lite-sharp3, whose README has its options, its start (stage 1's
+# file as shipped before 2026-12-02: `git show 269da01:fuse/weights/mfusenet-5view-lite.safetensors`)
+# and how its average was written at that step. This script does not run it.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 cargo build --release -q -p replay
@@ -64,6 +70,7 @@ for views in ${*:-2 1 4}; do
             # so its metadata's `context_below` was set to 8 afterwards (fuse/weights/README.md).
             first 4 mfusenet-5view-lite 2100 96 --architecture lite
             ship mfusenet-5view-lite mfusenet-5view-lite
+            echo "mfusenet-5view-lite: stage 1 only; the shipped file is its sharp fine-tuning (fuse/weights/runs/mfusenet-5view-lite-sharp3/README.md)"
             ;;
         *) echo "unknown variant $views (1, 2, 4 or 4-lite)" >&2; exit 2 ;;
     esac
