@@ -731,6 +731,12 @@ fn a_wide_range_goes_coarse_to_fine_and_the_summary_says_what_the_network_saw() 
     assert_eq!(details["scale"], "1/2", "{summary}");
     assert_eq!(details["network_width"], 160, "{summary}");
     assert_eq!(details["full_size_band_px"], 2, "{summary}");
+    // A fixed network names the neighbours it took, in its input order.
+    assert_eq!(
+        details["views"],
+        serde_json::json!(["left", "right", "top", "bottom"]),
+        "{summary}"
+    );
     // SGM has nothing to add.
     assert!(sets[1].get("details").is_none(), "{summary}");
     let avg = |set: &serde_json::Value| {

@@ -468,11 +468,12 @@ impl Method for MFuseNet {
             "network_min_disparity": i64::from(min_disparity) - room_below as i64,
             "network_num_disparities": num_disparities + room_below,
             "full_size_band_px": (factor > 1).then_some(factor),
-            "views": (loaded.views == 0).then(|| {
-                self.network_neighbours(problem, loaded)
-                    .map(|used| used.iter().map(|n| n.role.clone()).collect::<Vec<_>>())
-                    .unwrap_or_default()
-            }),
+            // The neighbours the network took, in its input order (a fixed network's nearest
+            // group; with side inputs each is its side's first view, `side_inputs` lists the rest).
+            "views": self
+                .network_neighbours(problem, loaded)
+                .map(|used| used.iter().map(|n| n.role.clone()).collect::<Vec<_>>())
+                .unwrap_or_default(),
             "side_inputs": side_inputs,
             "side_rule": side_inputs.is_some().then_some(self.config.side_rule),
         })

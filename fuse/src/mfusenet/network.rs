@@ -698,11 +698,42 @@ impl Network {
             y
         };
         let c = if self.views == 0 {
-            let features = (0..inputs.count())
-                .map(|i| Ok(tower(inputs.get(i)?.as_ref()).to_tensor()))
-                .collect::<Result<Vec<_>, Error>>()?;
-            let features = crate::nn::pool::mean_max(&features);
-            self.fuse[CONCAT].forward_eval_owned(features)
+            // The views' mean and maximum pooled as each view's features come out of the tower,
+            // in `concat`'s padded tiles (the zero border stays zero), then `concat` over the
+            // two halves, the mean's channels first ([`crate::nn::pool::mean_max`]'s order, the
+            // same arithmetic value by value): one view's features held at a time, no unpadded
+            // copies.
+            let count = inputs.count();
+            let mut pooled: Option<(PaddedTensor, PaddedTensor)> = None;
+            for i in 0..count.min(crate::nn::pool::MAX_VIEWS) {
+                let features = tower(inputs.get(i)?.as_ref());
+                match pooled.as_mut() {
+                    None => pooled = Some((features.duplicate(), features)),
+                    Some((sum, max)) => {
+                        if !(sum.combine(&features, |s, x| s + x) && max.combine(&features, f32::max)) {
+                            return Err(Error::InputShape {
+                                shape: features.shape(),
+                            });
+                        }
+                    }
+                }
+            }
+            let Some((mut mean, max)) = pooled else {
+                return Err(Error::InputCount {
+                    expected: self.input_count(),
+                    got: count,
+                });
+            };
+            mean.scale(1.0 / count.min(crate::nn::pool::MAX_VIEWS) as f32);
+            let layer = &self.fuse[CONCAT];
+            let (weight, bias) = layer.bn.fold_into(&layer.conv_weight());
+            let [cout, cin, k] = [layer.cout, layer.cin, layer.k];
+            let half = cin / 2;
+            let of_mean = input_channels(&weight, cout, cin, k, 0..half);
+            let of_max = input_channels(&weight, cout, cin, k, half..cin);
+            let plain = Epilogue { stride: 1, relu: false };
+            let sum = conv3d_input(ConvInput::Padded(mean), &of_mean, cout, k, Some(&bias), plain);
+            conv3d_accumulate_input(ConvInput::Padded(max), &of_max, k, sum, true)
         } else {
             // The widest layer, `concat` over the views' 4·N feature channels, a view at a time:
             // each view's features convolved with its channels of the kernel and added in, then
@@ -1266,6 +1297,36 @@ mod pooled_tests {
                 }
             } else {
                 close(g_s, g_f, 1e-4, name);
+            }
+        }
+    }
+
+    #[test]
+    fn a_pooled_network_pools_in_its_padded_tiles_as_the_plain_pooling_does() {
+        // The eval pass pools each view's features as they come out of the tower, in `concat`'s
+        // padded tiles (several tiles across: 100 columns, 48 a tile), and runs `concat` over the
+        // two halves; the training pass pools plain tensors ([`crate::nn::pool::mean_max`]) and
+        // runs one 8-channel `concat`. Both architectures, 1 to 5 views.
+        for architecture in Architecture::ALL {
+            let mut net = Network::pooled_from(&Network::init_with(4, architecture, 31));
+            // Max weights of their own, so that the maximum's half counts.
+            for (i, w) in net.fuse[CONCAT].weight.iter_mut().enumerate() {
+                *w += 0.01 * ((i % 7) as f32 - 3.0);
+            }
+            for count in [1, 2, 3, 5] {
+                let inputs: Vec<Tensor> = (0..count).map(|v| random([1, 8, 8, 100], 70 + v)).collect();
+                let logits = net.logits(&inputs).unwrap_or_else(|e| panic!("{e}"));
+                let (eval, _) = soft_argmin(&logits);
+                let tape = net
+                    .clone()
+                    .forward_train_with(&inputs, BatchNormMode::Frozen)
+                    .unwrap_or_else(|e| panic!("{e}"));
+                close(
+                    &tape.disparity,
+                    &eval,
+                    1e-4,
+                    &format!("{architecture:?}, {count} views"),
+                );
             }
         }
     }

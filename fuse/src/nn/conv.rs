@@ -502,7 +502,65 @@ impl PaddedTensor {
     pub fn to_tensor(&self) -> Tensor {
         self.0.to_tensor()
     }
+
+    /// Whether `other` lies in the same padded tiles (shape, border, tile step and row): then
+    /// value-by-value operations on the two buffers are operations on the tensors, the zero
+    /// border staying zero under a sum, a maximum and a scaling.
+    pub fn same_layout(&self, other: &Self) -> bool {
+        let (a, b) = (&self.0, &other.0);
+        (a.shape, a.p, a.step, a.row, a.data.len()) == (b.shape, b.p, b.step, b.row, b.data.len())
+    }
+
+    /// A copy in the same layout (a spare buffer when one is kept).
+    pub fn duplicate(&self) -> Self {
+        let layout = Layout {
+            shape: self.0.shape,
+            p: self.0.p,
+            step: self.0.step,
+            row: self.0.row,
+        };
+        let (mut data, _) = spare_buffer(self.0.data.len(), layout);
+        data.par_chunks_mut(PARALLEL_CHUNK)
+            .zip(self.0.data.par_chunks(PARALLEL_CHUNK))
+            .for_each(|(to, from)| to.copy_from_slice(from));
+        let a = &self.0;
+        PaddedTensor(Padded {
+            data,
+            channels: a.channels,
+            depth: a.depth,
+            height: a.height,
+            row: a.row,
+            shape: a.shape,
+            p: a.p,
+            step: a.step,
+        })
+    }
+
+    /// Every value replaced by `op(value, other's value)`; `false` (and nothing changed) when
+    /// `other` is not in the same layout ([`PaddedTensor::same_layout`]).
+    pub fn combine(&mut self, other: &Self, op: impl Fn(f32, f32) -> f32 + Sync) -> bool {
+        if !self.same_layout(other) {
+            return false;
+        }
+        self.0
+            .data
+            .par_chunks_mut(PARALLEL_CHUNK)
+            .zip(other.0.data.par_chunks(PARALLEL_CHUNK))
+            .for_each(|(to, from)| to.iter_mut().zip(from).for_each(|(t, f)| *t = op(*t, *f)));
+        true
+    }
+
+    /// Every value multiplied by `factor`.
+    pub fn scale(&mut self, factor: f32) {
+        self.0
+            .data
+            .par_chunks_mut(PARALLEL_CHUNK)
+            .for_each(|chunk| chunk.iter_mut().for_each(|v| *v *= factor));
+    }
 }
+
+/// Values per task of the padded tensors' value-by-value operations (256 KB).
+const PARALLEL_CHUNK: usize = 1 << 16;
 
 impl ConvInput<'_> {
     fn shape(&self) -> [usize; 4] {
