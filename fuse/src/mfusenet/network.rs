@@ -1315,20 +1315,22 @@ mod pooled_tests {
             }
             for count in [1, 2, 3, 5] {
                 let inputs: Vec<Tensor> = (0..count).map(|v| random([1, 8, 8, 100], 70 + v)).collect();
-                let logits = net.logits(&inputs).unwrap_or_else(|e| panic!("{e}"));
-                let (eval, _) = soft_argmin(&logits);
-                let tape = net
-                    .clone()
-                    .forward_train_with(&inputs, BatchNormMode::Frozen)
-                    .unwrap_or_else(|e| panic!("{e}"));
-                close(
-                    &tape.disparity,
-                    &eval,
-                    1e-4,
-                    &format!("{architecture:?}, {count} views"),
-                );
+                eval_is_training(&net, &inputs, &format!("{architecture:?}, {count} views"));
             }
         }
+    }
+
+    /// The eval pass's soft-argmin disparity against the training pass's with frozen statistics;
+    /// the eval logits.
+    fn eval_is_training(net: &Network, inputs: &[Tensor], what: &str) -> Tensor {
+        let logits = net.logits(inputs).unwrap_or_else(|e| panic!("{e}"));
+        let (eval, _) = soft_argmin(&logits);
+        let tape = net
+            .clone()
+            .forward_train_with(inputs, BatchNormMode::Frozen)
+            .unwrap_or_else(|e| panic!("{e}"));
+        close(&tape.disparity, &eval, 1e-4, what);
+        logits
     }
 
     #[test]
@@ -1348,13 +1350,7 @@ mod pooled_tests {
             }
         }
         let inputs: Vec<Tensor> = (0..4).map(|v| random([1, 8, 8, 8], 60 + v)).collect();
-        let logits = net.logits(&inputs).unwrap_or_else(|e| panic!("{e}"));
-        let (eval, _) = soft_argmin(&logits);
-        let tape = net
-            .clone()
-            .forward_train_with(&inputs, BatchNormMode::Frozen)
-            .unwrap_or_else(|e| panic!("{e}"));
-        close(&tape.disparity, &eval, 1e-4, "disparity, eval against training");
+        let logits = eval_is_training(&net, &inputs, "disparity, eval against training");
         let mut other = inputs.clone();
         other[3] = random([1, 8, 8, 8], 99);
         let moved = net.logits(&other).unwrap_or_else(|e| panic!("{e}"));
