@@ -103,27 +103,48 @@ impl Padded {
         let tiles = w.div_ceil(step).max(1);
         let layout = Layout { shape, p, step, row };
         let (mut data, dirty) = spare_buffer(tiles * c * depth * height * row, layout);
-        // One (tile, padded plane) block per task.
-        data.par_chunks_mut((height * c * row).max(1))
-            .enumerate()
-            .for_each(|(block, dst)| {
-                let (t, zz) = (block / depth.max(1), block % depth.max(1));
-                if dirty {
+        // One padded plane per task, written in every tile: each source row is read once, from
+        // its start to its end, and its columns copied into each tile that holds them (one task
+        // per (tile, plane) read each row once per tile, a short run per row a plane apart, and
+        // that read, waiting on memory, was about a tenth of MFuseNet's time on the demo's
+        // capture).
+        let block_len = (height * c * row).max(1);
+        let mut blocks: Vec<Option<&mut [f32]>> = data.chunks_mut(block_len).map(Some).collect();
+        let planes: Vec<(usize, Vec<&mut [f32]>)> = (0..depth)
+            .map(|zz| {
+                let in_tiles = (0..tiles)
+                    .filter_map(|t| blocks.get_mut(t * depth + zz).and_then(Option::take))
+                    .collect();
+                (zz, in_tiles)
+            })
+            .collect();
+        let spans: Vec<(usize, usize, usize)> = (0..tiles).map(|t| layout.columns(t)).collect();
+        planes.into_par_iter().for_each(|(zz, mut in_tiles)| {
+            if dirty {
+                for (t, dst) in in_tiles.iter_mut().enumerate() {
                     layout.zero_border(dst, t, zz);
                 }
-                let (from_col, to_col, offset) = layout.columns(t);
-                if from_col >= to_col || zz < p || zz >= d + p {
-                    return;
-                }
-                let z = zz - p;
-                for y in 0..h {
-                    for cc in 0..c {
-                        let from = x.index(cc, z, y0 + y, x0 + from_col);
-                        let to = ((y + p) * c + cc) * row + offset;
-                        dst[to..to + to_col - from_col].copy_from_slice(&x.data[from..from + to_col - from_col]);
+            }
+            if zz < p || zz >= d + p {
+                return;
+            }
+            let z = zz - p;
+            for y in 0..h {
+                for cc in 0..c {
+                    let from = x.index(cc, z, y0 + y, x0);
+                    let source = &x.data[from..from + w];
+                    let to = ((y + p) * c + cc) * row;
+                    for (dst, &(from_col, to_col, offset)) in in_tiles.iter_mut().zip(&spans) {
+                        if from_col < to_col {
+                            copy_run(
+                                &mut dst[to + offset..to + offset + to_col - from_col],
+                                &source[from_col..to_col],
+                            );
+                        }
                     }
                 }
-            });
+            }
+        });
         Self {
             data,
             channels: c,
@@ -708,6 +729,21 @@ fn copy_short(dst: &mut [f32], src: &[f32]) {
     }
 }
 
+/// `dst.copy_from_slice(src)` for a tile's row of an input (a few dozen floats), inlined: 16
+/// floats at a time, then [`copy_short`]. As `copy_from_slice` each row was a call into libc's
+/// `memcpy`, about 6 % of MFuseNet's time on the demo's capture.
+#[inline(always)]
+fn copy_run(dst: &mut [f32], src: &[f32]) {
+    let n = dst.len().min(src.len());
+    let whole = n / 16 * 16;
+    for (d, s) in dst[..whole].chunks_exact_mut(16).zip(src[..whole].chunks_exact(16)) {
+        if let (Ok(d), Ok(s)) = (<&mut [f32; 16]>::try_from(d), <&[f32; 16]>::try_from(s)) {
+            *d = *s;
+        }
+    }
+    copy_short(&mut dst[whole..n], &src[whole..n]);
+}
+
 fn conv_k<const K: usize>(
     source: ConvInput<'_>,
     weight: &[f32],
@@ -826,12 +862,14 @@ fn conv_k<const K: usize>(
         .collect();
     jobs.into_par_iter().for_each(|(g, z, mut dst)| {
         let weights = &packed[g * cin * taps * GROUP..(g + 1) * cin * taps * GROUP];
+        // A whole tile's sums on 512-bit vectors, `[o][column]`, every value written by each
+        // call (no zeroing or copying per row).
+        let mut pair = [0f32; GROUP * TILE_BLOCKS * BLOCK];
         for t in 0..tiles {
             let c0 = t * TILE_BLOCKS * BLOCK;
             let tile_blocks = t * TILE_BLOCKS..((t + 1) * TILE_BLOCKS).min(blocks);
             for y in (0..h).step_by(stride) {
                 // A whole tile's two blocks at once on 512-bit vectors, where the host has them.
-                let mut pair = [[0f32; ACCUMULATORS]; TILE_BLOCKS];
                 let paired = wide
                     && tile_blocks.len() == TILE_BLOCKS
                     && wide_kernel::rows::<K>(
@@ -844,42 +882,28 @@ fn conv_k<const K: usize>(
                 for b in tile_blocks.clone() {
                     let x0 = b * BLOCK;
                     let mut acc = [[f32x8::ZERO; VECTORS]; GROUP];
-                    let mut flat = [0f32; ACCUMULATORS];
                     let base = padded.tile_row_start(t, 0, z, y) + x0 - c0;
                     if paired {
-                        let sums = &pair[b - t * TILE_BLOCKS];
+                        let at = (b - t * TILE_BLOCKS) * BLOCK;
                         for (o, acc_o) in acc.iter_mut().enumerate() {
+                            let row = &pair[o * TILE_BLOCKS * BLOCK + at..];
                             for (j, a) in acc_o.iter_mut().enumerate() {
-                                *a = load(&sums[(o * VECTORS + j) * LANES..]);
+                                *a = load(&row[j * LANES..]);
                             }
                         }
-                    } else if (K == 3 || K == 5) && fma_kernel::rows::<K>(&padded.data, base, &rows, weights, &mut flat)
-                    {
-                        for (o, acc_o) in acc.iter_mut().enumerate() {
-                            for (j, a) in acc_o.iter_mut().enumerate() {
-                                *a = load(&flat[(o * VECTORS + j) * LANES..]);
-                            }
-                        }
-                    } else {
-                        for i in 0..cin {
-                            for td in 0..K {
-                                for th in 0..K {
-                                    let row = &padded.tile_row(t, i, z + td, y + th)[x0 - c0..x0 - c0 + BLOCK + K - 1];
-                                    let tap = ((i * K + td) * K + th) * K * GROUP;
-                                    let wk = &weights[tap..tap + K * GROUP];
-                                    for tw in 0..K {
-                                        let xs: [f32x8; VECTORS] =
-                                            std::array::from_fn(|j| load(&row[tw + LANES * j..]));
-                                        for (o, acc_o) in acc.iter_mut().enumerate() {
-                                            let wv = f32x8::splat(wk[tw * GROUP + o]);
-                                            for (a, xv) in acc_o.iter_mut().zip(&xs) {
-                                                *a = xv.mul_add(wv, *a);
-                                            }
-                                        }
-                                    }
+                    } else if K == 3 || K == 5 {
+                        let mut flat = [0f32; ACCUMULATORS];
+                        if fma_kernel::rows::<K>(&padded.data, base, &rows, weights, &mut flat) {
+                            for (o, acc_o) in acc.iter_mut().enumerate() {
+                                for (j, a) in acc_o.iter_mut().enumerate() {
+                                    *a = load(&flat[(o * VECTORS + j) * LANES..]);
                                 }
                             }
+                        } else {
+                            portable_block::<K>(&padded, (t, z, y), x0 - c0, cin, weights, &mut acc);
                         }
+                    } else {
+                        portable_block::<K>(&padded, (t, z, y), x0 - c0, cin, weights, &mut acc);
                     }
                     let columns = BLOCK.min(w - x0);
                     match &mut dst {
@@ -938,6 +962,37 @@ fn conv_k<const K: usize>(
         }
     });
     written
+}
+
+/// One output block's sums by the portable loop: every input row (i, td, th) of tile `t` at
+/// output plane `z` and row `y`, from column `x` of the tile, `K` taps × 4 channels each.
+#[inline(always)]
+fn portable_block<const K: usize>(
+    padded: &Padded,
+    (t, z, y): (usize, usize, usize),
+    x: usize,
+    cin: usize,
+    weights: &[f32],
+    acc: &mut [[f32x8; VECTORS]; GROUP],
+) {
+    for i in 0..cin {
+        for td in 0..K {
+            for th in 0..K {
+                let row = &padded.tile_row(t, i, z + td, y + th)[x..x + BLOCK + K - 1];
+                let tap = ((i * K + td) * K + th) * K * GROUP;
+                let wk = &weights[tap..tap + K * GROUP];
+                for tw in 0..K {
+                    let xs: [f32x8; VECTORS] = std::array::from_fn(|j| load(&row[tw + LANES * j..]));
+                    for (o, acc_o) in acc.iter_mut().enumerate() {
+                        let wv = f32x8::splat(wk[tw * GROUP + o]);
+                        for (a, xv) in acc_o.iter_mut().zip(&xs) {
+                            *a = xv.mul_add(wv, *a);
+                        }
+                    }
+                }
+            }
+        }
+    }
 }
 
 /// The kernel of the input gradient: `[cin][cout][k³]` with every tap flipped, so that the

@@ -10,7 +10,7 @@
 //! [`available`] answers whether the host has it and it is not switched off
 //! ([`crate::wide::set_enabled`]: `false` makes every layer take the 256-bit paths).
 
-use super::fma_kernel::{ACCUMULATORS, RowTable};
+use super::fma_kernel::RowTable;
 
 /// Output columns of one wide block: two of the 256-bit paths' blocks.
 pub(super) const COLUMNS: usize = 48;
@@ -21,18 +21,18 @@ pub fn available() -> bool {
     crate::wide::avx512f()
 }
 
-/// `acc[b][o][c] = Σ_r Σ_tw weights[r][tw][o] · data[base + rows[r] + tw + 24b + c]` for the
-/// two 24-column blocks `b` of one wide block, in [`super::fma_kernel::rows`]'s accumulator
-/// layout (`[o][column]` per block). Answers `false`, doing nothing, where the host lacks
-/// AVX-512F, or where a read would leave `data` or `weights`; the
-/// caller then runs the 256-bit paths.
+/// `out[o][c] = Σ_r Σ_tw weights[r][tw][o] · data[base + rows[r] + tw + c]` for the 48 columns
+/// `c` of one wide block (the two 24-column blocks of the 256-bit paths side by side in each
+/// channel's row), every value written. Answers `false`, doing nothing, where the host lacks
+/// AVX-512F, or where a read would leave `data` or `weights`; the caller then runs the 256-bit
+/// paths.
 #[allow(unsafe_code)]
 pub(super) fn rows<const K: usize>(
     data: &[f32],
     base: usize,
     rows: &RowTable,
     weights: &[f32],
-    acc: &mut [[f32; ACCUMULATORS]; 2],
+    out: &mut [f32; 4 * COLUMNS],
 ) -> bool {
     // The last float read from a row is column (K − 1) + 47.
     // The host's feature, not the switch: the caller checks [`available`] once per layer, and
@@ -42,27 +42,15 @@ pub(super) fn rows<const K: usize>(
     }
     #[cfg(target_arch = "x86_64")]
     {
-        let mut wide = [0f32; 4 * COLUMNS];
         // SAFETY: the host has AVX-512F (`host_has_avx512f`). Every row read is `data[base + r ..
         // base + r + K − 1 + 48]` with `r` at most the table's largest entry, inside `data`
         // (checked above); the weights read are `weights[.. rows · K · 4]` (checked above).
-        unsafe { sums::<K>(data.as_ptr().add(base), rows.offsets(), weights.as_ptr(), &mut wide) };
-        for (o, channel) in wide.chunks_exact(COLUMNS).enumerate() {
-            for (b, block) in acc.iter_mut().enumerate() {
-                let at = o * (COLUMNS / 2);
-                for (a, v) in block[at..at + COLUMNS / 2]
-                    .iter_mut()
-                    .zip(&channel[b * COLUMNS / 2..(b + 1) * COLUMNS / 2])
-                {
-                    *a = *v;
-                }
-            }
-        }
+        unsafe { sums::<K>(data.as_ptr().add(base), rows.offsets(), weights.as_ptr(), out) };
         true
     }
     #[cfg(not(target_arch = "x86_64"))]
     {
-        let _ = acc;
+        let _ = out;
         false
     }
 }
@@ -120,8 +108,8 @@ mod tests {
         let (data, offsets, weights) = case::<K>();
         let table = RowTable::new(offsets.clone());
         let base = 40;
-        let mut acc = [[0f32; ACCUMULATORS]; 2];
-        let ran = rows::<K>(&data, base, &table, &weights, &mut acc);
+        let mut out = [f32::NAN; 4 * COLUMNS];
+        let ran = rows::<K>(&data, base, &table, &weights, &mut out);
         assert_eq!(
             ran,
             crate::wide::host_has_avx512f(),
@@ -131,21 +119,25 @@ mod tests {
             println!("skipped: this host has no AVX-512F (the 256-bit paths run)");
             return;
         }
-        // Each 24-column block as the 256-bit kernel's reference sums it, 24 columns on.
+        // Each 24-column block as the 256-bit kernel's reference sums it (`[o][j][lane]`), 24
+        // columns on; every value written (the buffer started as NaN).
         let expected = [0, 1].map(|b| plain::<K>(&data, base + 24 * b, &offsets, &weights));
-        for (b, (got, want)) in acc.iter().zip(&expected).enumerate() {
-            for (i, (got, want)) in got.iter().zip(want).enumerate() {
-                assert!(
-                    (got - want).abs() <= 1e-4 * (1.0 + want.abs()),
-                    "K = {K}, block {b}, accumulator {i}: {got} against {want}"
-                );
+        for (b, want) in expected.iter().enumerate() {
+            for o in 0..4 {
+                for c in 0..24 {
+                    let (got, want) = (out[o * COLUMNS + 24 * b + c], want[o * 24 + c]);
+                    assert!(
+                        (got - want).abs() <= 1e-4 * (1.0 + want.abs()),
+                        "K = {K}, block {b}, channel {o}, column {c}: {got} against {want}"
+                    );
+                }
             }
         }
         // A table reaching past the data is refused and leaves the accumulators alone.
-        let mut untouched = [[1f32; ACCUMULATORS]; 2];
+        let mut untouched = [1f32; 4 * COLUMNS];
         let far = RowTable::new(vec![0, data.len() - base - (K - 1 + COLUMNS) + 1]);
         assert!(!rows::<K>(&data, base, &far, &weights, &mut untouched));
-        assert!(untouched.iter().flatten().all(|&v| v == 1.0));
+        assert!(untouched.iter().all(|&v| v == 1.0));
         // Too few weights for the rows: refused.
         let short = &weights[..weights.len() - 1];
         assert!(!rows::<K>(&data, base, &table, short, &mut untouched));
