@@ -879,19 +879,53 @@ fn conv_k<const K: usize>(
                         weights,
                         &mut pair,
                     );
+                if paired {
+                    // The whole tile's row at once, straight from the wide sums: bias, ReLU (and the
+                    // tensor's value where accumulating) in place, then one write per channel
+                    // (against two blocks, each reloaded into registers and copied twice).
+                    let columns = (TILE_BLOCKS * BLOCK).min(w - c0);
+                    let add_of = |o: usize| bias.map_or(0.0, |bias| bias[g * GROUP + o]);
+                    match &mut dst {
+                        Destination::Tiles(tiles) => {
+                            for o in 0..cout.min(GROUP) {
+                                let row = &mut pair[o * TILE_BLOCKS * BLOCK..(o + 1) * TILE_BLOCKS * BLOCK];
+                                finish_row(row, None, add_of(o), relu);
+                                write_tiles(tiles, o, &row[..columns], c0, y, tile_plane);
+                            }
+                        }
+                        Destination::Planes(planes) => {
+                            for (o, plane_o) in planes.iter_mut().enumerate() {
+                                let row = &mut pair[o * TILE_BLOCKS * BLOCK..(o + 1) * TILE_BLOCKS * BLOCK];
+                                let out = &mut plane_o[y / stride * ow..(y / stride + 1) * ow];
+                                if stride == 1 {
+                                    let out = &mut out[c0..c0 + columns];
+                                    if columns == TILE_BLOCKS * BLOCK {
+                                        finish_row(row, accumulate.then_some(&*out), add_of(o), relu);
+                                        out.copy_from_slice(row);
+                                    } else {
+                                        // The blocks' order of the sums: prior + sum + bias.
+                                        let add = add_of(o);
+                                        for (v, sum) in out.iter_mut().zip(row.iter()) {
+                                            *v = activate(if accumulate { *v + sum + add } else { sum + add }, relu);
+                                        }
+                                    }
+                                } else {
+                                    // c0 is a multiple of the stride (the tile is, for the strides 1 and 2).
+                                    let add = add_of(o);
+                                    for c in (0..columns).step_by(stride) {
+                                        out[(c0 + c) / stride] = activate(row[c] + add, relu);
+                                    }
+                                }
+                            }
+                        }
+                    }
+                    continue;
+                }
                 for b in tile_blocks.clone() {
                     let x0 = b * BLOCK;
                     let mut acc = [[f32x8::ZERO; VECTORS]; GROUP];
                     let base = padded.tile_row_start(t, 0, z, y) + x0 - c0;
-                    if paired {
-                        let at = (b - t * TILE_BLOCKS) * BLOCK;
-                        for (o, acc_o) in acc.iter_mut().enumerate() {
-                            let row = &pair[o * TILE_BLOCKS * BLOCK + at..];
-                            for (j, a) in acc_o.iter_mut().enumerate() {
-                                *a = load(&row[j * LANES..]);
-                            }
-                        }
-                    } else if K == 3 || K == 5 {
+                    if K == 3 || K == 5 {
                         let mut flat = [0f32; ACCUMULATORS];
                         if fma_kernel::rows::<K>(&padded.data, base, &rows, weights, &mut flat) {
                             for (o, acc_o) in acc.iter_mut().enumerate() {
@@ -962,6 +996,24 @@ fn conv_k<const K: usize>(
         }
     });
     written
+}
+
+/// A row of sums made outputs in place, 8 lanes at a time (the arithmetic of the blocks'
+/// epilogue, lane for lane): `sum + add`, plus `prior`'s value where accumulating, then the
+/// ReLU. `row` holds a multiple of 8 values.
+#[inline(always)]
+fn finish_row(row: &mut [f32], prior: Option<&[f32]>, add: f32, relu: bool) {
+    let add = f32x8::splat(add);
+    for (i, chunk) in row.chunks_exact_mut(LANES).enumerate() {
+        let mut value = load(chunk) + add;
+        if let Some(prior) = prior {
+            value += load(&prior[i * LANES..]);
+        }
+        if relu {
+            value = value.max(f32x8::ZERO);
+        }
+        chunk.copy_from_slice(&value.to_array());
+    }
 }
 
 /// One output block's sums by the portable loop: every input row (i, td, th) of tile `t` at
