@@ -899,15 +899,17 @@ fn conv_k<const K: usize>(
                                 let out = &mut plane_o[y / stride * ow..(y / stride + 1) * ow];
                                 if stride == 1 {
                                     let out = &mut out[c0..c0 + columns];
-                                    if columns == TILE_BLOCKS * BLOCK {
-                                        finish_row(row, accumulate.then_some(&*out), add_of(o), relu);
-                                        out.copy_from_slice(row);
-                                    } else {
-                                        // The blocks' order of the sums: prior + sum + bias.
-                                        let add = add_of(o);
-                                        for (v, sum) in out.iter_mut().zip(row.iter()) {
-                                            *v = activate(if accumulate { *v + sum + add } else { sum + add }, relu);
-                                        }
+                                    // Whole blocks as the blocks' vector epilogue computes them
+                                    // (sum + bias + prior), a partial last one as its scalar loop
+                                    // does (prior + sum + bias).
+                                    let whole = columns / BLOCK * BLOCK;
+                                    let (row_whole, row_rest) = row.split_at_mut(whole);
+                                    let (out_whole, out_rest) = out.split_at_mut(whole);
+                                    finish_row(row_whole, accumulate.then_some(&*out_whole), add_of(o), relu);
+                                    out_whole.copy_from_slice(row_whole);
+                                    let add = add_of(o);
+                                    for (v, sum) in out_rest.iter_mut().zip(row_rest.iter()) {
+                                        *v = activate(if accumulate { *v + sum + add } else { sum + add }, relu);
                                     }
                                 } else {
                                     // c0 is a multiple of the stride (the tile is, for the strides 1 and 2).
@@ -1227,15 +1229,29 @@ pub(crate) mod tests {
             println!("skipped: this host has no AVX-512F (only the 256-bit paths run)");
             return;
         }
-        // Whole tiles, a partial last tile, one narrower than a tile; every kernel size, a
-        // ReLU and a stride-2 epilogue, with a bias.
+        // Whole tiles, a partial last tile (with one whole block and a partial one: 77, 75), one
+        // narrower than a tile; every kernel size, a ReLU and a stride-2 epilogue, with a bias;
+        // two channel groups.
         let cases = [
             ([2, 3, 4, 96], 4, 3, 1),
             ([4, 3, 5, 101], 4, 5, 1),
             ([8, 2, 3, 144], 4, 7, 1),
             ([3, 4, 6, 53], 6, 3, 2),
             ([1, 2, 2, 40], 4, 7, 1),
+            ([2, 3, 4, 77], 4, 3, 1),
+            ([3, 2, 5, 75], 6, 5, 2),
+            ([4, 2, 3, 120], 4, 7, 1),
         ];
+        let same_bits = |wide: &Tensor, narrow: &Tensor, what: &str| {
+            assert_eq!(wide.shape, narrow.shape, "{what}");
+            let differing = wide
+                .data
+                .iter()
+                .zip(&narrow.data)
+                .filter(|(a, b)| a.to_bits() != b.to_bits())
+                .count();
+            assert_eq!(differing, 0, "{what}: {differing} values differ");
+        };
         for (seed, (shape, cout, k, stride)) in cases.into_iter().enumerate() {
             let x = random(shape, 400 + seed as u64);
             let weight = random_values(cout * shape[0] * k * k * k, 500 + seed as u64);
@@ -1245,17 +1261,27 @@ pub(crate) mod tests {
             crate::wide::set_enabled(false);
             let narrow = conv3d_with(&x, &weight, cout, k, Some(&bias), epilogue);
             crate::wide::set_enabled(true);
-            assert_eq!(wide.shape, narrow.shape);
-            let differing = wide
-                .data
-                .iter()
-                .zip(&narrow.data)
-                .filter(|(a, b)| a.to_bits() != b.to_bits())
-                .count();
-            assert_eq!(
-                differing, 0,
-                "{shape:?} k{k} stride {stride}: {differing} values differ"
-            );
+            same_bits(&wide, &narrow, &format!("{shape:?} k{k} stride {stride}"));
+        }
+        // Written into the next layer's padded tiles, and added into a tensor, at widths with a
+        // partial last tile.
+        for (seed, shape) in [[3, 2, 4, 47], [4, 3, 3, 77]].into_iter().enumerate() {
+            let (cout, k) = (4, 3);
+            let x = random(shape, 700 + seed as u64);
+            let weight = random_values(cout * shape[0] * k * k * k, 710 + seed as u64);
+            let bias = random_values(cout, 720 + seed as u64);
+            let prior = random([cout, shape[1], shape[2], shape[3]], 730 + seed as u64);
+            let run = || {
+                let padded = conv3d_padded(ConvInput::Borrowed(&x), &weight, cout, k, Some(&bias), true, 5).to_tensor();
+                let added = conv3d_accumulate_input(ConvInput::Borrowed(&x), &weight, k, prior.clone(), true);
+                (padded, added)
+            };
+            let (padded, added) = run();
+            crate::wide::set_enabled(false);
+            let (padded_narrow, added_narrow) = run();
+            crate::wide::set_enabled(true);
+            same_bits(&padded, &padded_narrow, &format!("{shape:?} into padded tiles"));
+            same_bits(&added, &added_narrow, &format!("{shape:?} added into a tensor"));
         }
     }
 
