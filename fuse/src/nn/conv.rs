@@ -895,6 +895,7 @@ fn conv_k<const K: usize>(
                         }
                         Destination::Planes(planes) => {
                             for (o, plane_o) in planes.iter_mut().enumerate() {
+                                let add = add_of(o);
                                 let row = &mut pair[o * TILE_BLOCKS * BLOCK..(o + 1) * TILE_BLOCKS * BLOCK];
                                 let out = &mut plane_o[y / stride * ow..(y / stride + 1) * ow];
                                 if stride == 1 {
@@ -905,15 +906,13 @@ fn conv_k<const K: usize>(
                                     let whole = columns / BLOCK * BLOCK;
                                     let (row_whole, row_rest) = row.split_at_mut(whole);
                                     let (out_whole, out_rest) = out.split_at_mut(whole);
-                                    finish_row(row_whole, accumulate.then_some(&*out_whole), add_of(o), relu);
+                                    finish_row(row_whole, accumulate.then_some(&*out_whole), add, relu);
                                     out_whole.copy_from_slice(row_whole);
-                                    let add = add_of(o);
                                     for (v, sum) in out_rest.iter_mut().zip(row_rest.iter()) {
                                         *v = activate(if accumulate { *v + sum + add } else { sum + add }, relu);
                                     }
                                 } else {
                                     // c0 is a multiple of the stride (the tile is, for the strides 1 and 2).
-                                    let add = add_of(o);
                                     for c in (0..columns).step_by(stride) {
                                         out[(c0 + c) / stride] = activate(row[c] + add, relu);
                                     }
@@ -927,16 +926,12 @@ fn conv_k<const K: usize>(
                     let x0 = b * BLOCK;
                     let mut acc = [[f32x8::ZERO; VECTORS]; GROUP];
                     let base = padded.tile_row_start(t, 0, z, y) + x0 - c0;
-                    if K == 3 || K == 5 {
-                        let mut flat = [0f32; ACCUMULATORS];
-                        if fma_kernel::rows::<K>(&padded.data, base, &rows, weights, &mut flat) {
-                            for (o, acc_o) in acc.iter_mut().enumerate() {
-                                for (j, a) in acc_o.iter_mut().enumerate() {
-                                    *a = load(&flat[(o * VECTORS + j) * LANES..]);
-                                }
+                    let mut flat = [0f32; ACCUMULATORS];
+                    if (K == 3 || K == 5) && fma_kernel::rows::<K>(&padded.data, base, &rows, weights, &mut flat) {
+                        for (o, acc_o) in acc.iter_mut().enumerate() {
+                            for (j, a) in acc_o.iter_mut().enumerate() {
+                                *a = load(&flat[(o * VECTORS + j) * LANES..]);
                             }
-                        } else {
-                            portable_block::<K>(&padded, (t, z, y), x0 - c0, cin, weights, &mut acc);
                         }
                     } else {
                         portable_block::<K>(&padded, (t, z, y), x0 - c0, cin, weights, &mut acc);
