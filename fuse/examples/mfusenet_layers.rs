@@ -8,7 +8,8 @@
 //! (default 36 136 240 4: the demo's 36 slices on a quarter of its 960 × 540 image, the
 //! five-view network's four volumes; N = 2 is the three-view network; `lite` anywhere among the
 //! arguments: the lite architecture's kernels; `narrow`: the 256-bit paths only, on a host with
-//! AVX-512F, whose 512-bit kernel the layers otherwise take). The figures are in
+//! AVX-512F, whose 512-bit kernel the layers otherwise take; `bf16`: the 3³–7³ layers in
+//! bfloat16 products where the host has AVX512-BF16, `fuse::nn::conv::Precision`). The figures are in
 //! docs/benchmarks.md ("MFuseNet per layer").
 
 use std::hint::black_box;
@@ -83,6 +84,15 @@ fn main() {
     if std::env::args().any(|a| a == "narrow") {
         fuse::wide::set_enabled(false);
     }
+    let precision = if std::env::args().any(|a| a == "bf16") {
+        fuse::nn::conv::Precision::Bf16
+    } else {
+        fuse::nn::conv::Precision::F32
+    };
+    fuse::nn::conv::with_precision(precision, || run([d, h, w], views));
+}
+
+fn run([d, h, w]: [usize; 3], views: usize) {
     let peak = fma_peak();
     println!(
         "host FMA peak: {:.1} GFLOP/s on {} threads (f32, 8 lanes)",
@@ -95,8 +105,9 @@ fn main() {
         Architecture::Paper
     };
     println!(
-        "convolutions on {}-bit vectors",
-        if fuse::nn::wide_kernel::available() { 512 } else { 256 }
+        "convolutions on {}-bit vectors, {:?} products in the 3³ layers",
+        if fuse::nn::wide_kernel::available() { 512 } else { 256 },
+        fuse::nn::conv::effective_precision(3)
     );
     let net = Network::init_with(views, architecture, 1);
     let voxels = d * h * w;

@@ -25,16 +25,31 @@ pub fn host_has_avx512f() -> bool {
     detected::avx512f()
 }
 
+/// Whether the host has AVX-512F and AVX512-BF16 (`vdpbf16ps`: pairs of bfloat16 products summed
+/// into 32-bit lanes), whatever [`set_enabled`] says: what the convolutions' bfloat16 kernel
+/// needs to run safely. Intel Xeon from Cooper Lake, AMD from Zen 4.
+pub fn host_has_avx512bf16() -> bool {
+    detected::avx512bf16()
+}
+
 #[cfg(target_arch = "x86_64")]
 mod detected {
     pub(super) fn avx512f() -> bool {
         std::arch::is_x86_feature_detected!("avx512f")
+    }
+
+    pub(super) fn avx512bf16() -> bool {
+        std::arch::is_x86_feature_detected!("avx512f") && std::arch::is_x86_feature_detected!("avx512bf16")
     }
 }
 
 #[cfg(not(target_arch = "x86_64"))]
 mod detected {
     pub(super) fn avx512f() -> bool {
+        false
+    }
+
+    pub(super) fn avx512bf16() -> bool {
         false
     }
 }

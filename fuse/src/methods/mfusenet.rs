@@ -33,6 +33,7 @@ use crate::mfusenet::pyramid::{
     Band, DEFAULT_MAX_DIRECT_DISPARITIES, band_minimum, downsampled, pyramid_factor, reduced_range,
 };
 use crate::mfusenet::{Architecture, Network, weights};
+use crate::nn::conv::{self, Precision};
 use crate::postprocess::{WeightedMedian, median3x3, scale_by_local_consistency, weighted_median_with_votes};
 use crate::subpixel::{BlockSubpixel, refine_with_block_costs};
 use crate::thin_parts::{ThinParts, recover_thin_parts};
@@ -219,6 +220,11 @@ pub struct MFuseNetConfig {
     /// supports, moves kept in patches shaped like parts); Middlebury and the simulated lines
     /// no worse (docs/methods.md, "Thin parts from per-pixel costs").
     pub thin_parts: Option<ThinParts>,
+    /// The convolutions' products: `"f32"` (the default) or `"bf16"` (inputs and weights rounded
+    /// to bfloat16, sums in f32, where the host has AVX512-BF16: Intel from Cooper Lake, AMD
+    /// from Zen 4; f32 elsewhere). The run's details say which ran.
+    #[serde(default)]
+    pub precision: Precision,
 }
 
 impl Default for MFuseNetConfig {
@@ -247,6 +253,7 @@ impl Default for MFuseNetConfig {
             side_rule: SideRule::NearCapped,
             block_subpixel: Some(BlockSubpixel::default()),
             thin_parts: Some(ThinParts::default()),
+            precision: Precision::F32,
         }
     }
 }
@@ -367,6 +374,24 @@ impl Method for MFuseNet {
     super::name_and_config!();
 
     fn run(&self, problem: &Problem, progress: Progress<'_>) -> Result<DisparityImage, FuseError> {
+        conv::with_precision(self.config.precision, || self.run_in_precision(problem, progress))
+    }
+
+    fn details(&self, problem: &Problem) -> serde_json::Value {
+        let mut details = self.details_of(problem);
+        if let serde_json::Value::Object(map) = &mut details {
+            // What the convolutions ran in here (bfloat16 asked for runs in f32 without the
+            // instructions).
+            let precision = conv::with_precision(self.config.precision, || conv::effective_precision(3));
+            map.insert("precision".into(), serde_json::json!(precision));
+        }
+        details
+    }
+}
+
+impl MFuseNet {
+    /// [`Method::run`] with the convolutions' precision set.
+    fn run_in_precision(&self, problem: &Problem, progress: Progress<'_>) -> Result<DisparityImage, FuseError> {
         problem.validate()?;
         self.validate_config()?;
         let factor = pyramid_factor(problem.num_disparities, self.config.max_direct_disparities);
@@ -416,7 +441,8 @@ impl Method for MFuseNet {
         )
     }
 
-    fn details(&self, problem: &Problem) -> serde_json::Value {
+    /// [`Method::details`] but the precision.
+    fn details_of(&self, problem: &Problem) -> serde_json::Value {
         let factor = pyramid_factor(problem.num_disparities, self.config.max_direct_disparities);
         // The level's size and range, without making it.
         let (width, height) = (
@@ -1111,6 +1137,33 @@ mod tests {
         // Within the direct limit, the network runs at full size and says so.
         let narrow = plane(&offsets, 10, 0);
         assert_eq!(method.details(&narrow)["scale"], "1/1");
+    }
+
+    #[test]
+    fn bfloat16_products_find_the_plane_as_f32_does_and_the_details_say_which_ran() {
+        let problem = plane_sized(&[[-1, 0], [1, 0], [0, -1], [0, 1]], 7, (0, 32), (144, 72));
+        let run = |precision: &str| {
+            let config = serde_json::json!({ "precision": precision });
+            let method = crate::methods::build("mfusenet", Some(&config)).unwrap_or_else(|e| panic!("{e}"));
+            let out = method.run(&problem, &|_| {}).unwrap_or_else(|e| panic!("{e}"));
+            (method.details(&problem)["precision"].clone(), out)
+        };
+        let (f32_ran, exact) = run("f32");
+        assert_eq!(f32_ran, "f32");
+        let (bf16_ran, rounded) = run("bf16");
+        let host = if crate::nn::bf16_kernel::available() { "bf16" } else { "f32" };
+        assert_eq!(bf16_ran, host, "bfloat16 runs where the host has it, f32 elsewhere");
+        let mean = |out: &DisparityImage| {
+            let errors = interior_errors(out, 8, 7.0);
+            errors.iter().sum::<f32>() / errors.len() as f32
+        };
+        let (a, b) = (mean(&exact), mean(&rounded));
+        assert!(a < 0.25 && b < 0.25 && (a - b).abs() < 0.02, "AvgErr f32 {a:.4}, bf16 {b:.4} px");
+        let worst = exact.data.iter().zip(&rounded.data).map(|(x, y)| (x - y).abs()).fold(0f32, f32::max);
+        assert!(worst < 0.5, "a pixel moved by {worst} px in bfloat16");
+        // Unknown precisions are refused by name.
+        let bad = serde_json::json!({ "precision": "fp8" });
+        assert!(crate::methods::build("mfusenet", Some(&bad)).is_err());
     }
 
     #[test]

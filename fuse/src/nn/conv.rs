@@ -33,6 +33,7 @@ use rayon::prelude::*;
 use wide::f32x8;
 
 use super::Tensor;
+use super::bf16_kernel;
 use super::fma_kernel::{self, ACCUMULATORS};
 use super::wide_kernel;
 
@@ -70,6 +71,9 @@ struct Padded {
     p: usize,
     /// Columns per tile.
     step: usize,
+    /// Rewritten as bfloat16 shifted pairs for [`super::bf16_kernel`]: no longer the tensor's
+    /// values, and the border no longer zero (a zero beside a value pairs with it).
+    pairs: bool,
 }
 
 impl Padded {
@@ -154,6 +158,7 @@ impl Padded {
             shape,
             p,
             step,
+            pairs: false,
         }
     }
 
@@ -180,6 +185,7 @@ impl Padded {
             shape,
             p,
             step,
+            pairs: false,
         }
     }
 
@@ -234,7 +240,8 @@ impl Drop for Padded {
                 step: self.step,
                 row: self.row,
             };
-            offer_spare(data, Some(layout));
+            // Shifted pairs leave values in the border: its next user zeroes it.
+            offer_spare(data, (!self.pairs).then_some(layout));
         }
     }
 }
@@ -374,6 +381,53 @@ fn scratch_buffer(len: usize) -> Vec<f32> {
 /// memory through what follows).
 pub fn release_spares() {
     SPARES.with_borrow_mut(Vec::clear);
+}
+
+/// The arithmetic of the convolutions' products in inference.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Precision {
+    /// Inputs and weights in f32 (the default; training always).
+    #[default]
+    F32,
+    /// Inputs and weights rounded to bfloat16, the sums in f32 ([`super::bf16_kernel`]), for the
+    /// 3³, 5³ and 7³ layers where the host has AVX512-BF16; elsewhere (and for 1³ layers) f32.
+    Bf16,
+}
+
+thread_local! {
+    /// The precision of the convolutions this thread starts ([`with_precision`]).
+    static PRECISION: std::cell::Cell<Precision> = const { std::cell::Cell::new(Precision::F32) };
+}
+
+/// Runs `f` with the convolutions that this thread starts in `precision`, then restores the
+/// precision before (also when `f` panics). Per thread, so that a test or a method in
+/// bfloat16 does not change another thread's convolutions; a convolution's own worker threads
+/// follow the thread that started it.
+pub fn with_precision<R>(precision: Precision, f: impl FnOnce() -> R) -> R {
+    struct Restore(Precision);
+    impl Drop for Restore {
+        fn drop(&mut self) {
+            PRECISION.with(|p| p.set(self.0));
+        }
+    }
+    let _restore = Restore(PRECISION.with(|p| p.replace(precision)));
+    f()
+}
+
+/// The precision of the convolutions this thread starts.
+pub fn precision() -> Precision {
+    PRECISION.with(std::cell::Cell::get)
+}
+
+/// The precision a layer with kernel `k` runs in here: bfloat16 where asked, the kernel has
+/// pairs of taps to share (3, 5, 7) and the host has the instructions.
+pub fn effective_precision(k: usize) -> Precision {
+    if precision() == Precision::Bf16 && k >= 3 && k % 2 == 1 && bf16_kernel::available() {
+        Precision::Bf16
+    } else {
+        Precision::F32
+    }
 }
 
 #[inline]
@@ -554,6 +608,7 @@ impl PaddedTensor {
             shape: a.shape,
             p: a.p,
             step: a.step,
+            pairs: a.pairs,
         })
     }
 
@@ -761,7 +816,14 @@ fn conv_k<const K: usize>(
     let blocks = w.div_ceil(BLOCK);
     let step = TILE_BLOCKS * BLOCK;
     // Only the padded tiles are read from here on (a handed-over input freed once copied).
-    let padded = source.into_padded(p, step, step + K - 1);
+    let mut padded = source.into_padded(p, step, step + K - 1);
+    // In bfloat16, the padded tiles become shifted pairs in place (same size) and every tile,
+    // a partial last one included, goes through the bfloat16 kernel.
+    let bf16 = effective_precision(K) == Precision::Bf16;
+    if bf16 {
+        bf16_kernel::to_shifted_pairs(&mut padded.data);
+        padded.pairs = true;
+    }
     let groups = cout.div_ceil(GROUP);
     // Weights per group as [i][td][th][tw][4] (missing channels zero).
     let taps = K * K * K;
@@ -773,6 +835,13 @@ fn conv_k<const K: usize>(
             }
         }
     }
+    // The same weights as bfloat16 pairs of taps, `[g][i][td][th][pair][4]`.
+    let pair_weights = if bf16 {
+        bf16_kernel::pack_weights::<K>(&packed)
+    } else {
+        Vec::new()
+    };
+    let pair_weights_per_group = cin * K * K * bf16_kernel::pairs_per_row(K) * GROUP;
     // Each input row (i, td, th) a block reads, as an offset from row (0, z, y) of its tile, in
     // the packed weights' order (for the assembly kernels, `fma_kernel`).
     let rows = fma_kernel::RowTable::new(
@@ -869,16 +938,20 @@ fn conv_k<const K: usize>(
             let c0 = t * TILE_BLOCKS * BLOCK;
             let tile_blocks = t * TILE_BLOCKS..((t + 1) * TILE_BLOCKS).min(blocks);
             for y in (0..h).step_by(stride) {
-                // A whole tile's two blocks at once on 512-bit vectors, where the host has them.
-                let paired = wide
-                    && tile_blocks.len() == TILE_BLOCKS
-                    && wide_kernel::rows::<K>(
-                        &padded.data,
-                        padded.tile_row_start(t, 0, z, y),
-                        &rows,
-                        weights,
-                        &mut pair,
-                    );
+                // A whole tile's two blocks at once on 512-bit vectors, where the host has them;
+                // in bfloat16 every tile (a partial one's columns past the tensor are computed and
+                // dropped), the portable loop over the pairs where the kernel declines.
+                let base = padded.tile_row_start(t, 0, z, y);
+                let paired = if bf16 {
+                    let pair_weights = &pair_weights[g * pair_weights_per_group..(g + 1) * pair_weights_per_group];
+                    if !bf16_kernel::rows::<K>(&padded.data, base, &rows, pair_weights, &mut pair) {
+                        bf16_kernel::rows_portable::<K>(&padded.data, base, &rows, pair_weights, &mut pair);
+                    }
+                    true
+                } else {
+                    wide && tile_blocks.len() == TILE_BLOCKS
+                        && wide_kernel::rows::<K>(&padded.data, base, &rows, weights, &mut pair)
+                };
                 if paired {
                     // The whole tile's row at once, straight from the wide sums: bias, ReLU (and the
                     // tensor's value where accumulating) in place, then one write per channel
@@ -1399,6 +1472,123 @@ pub(crate) mod tests {
         assert_eq!(SPARES.with_borrow(Vec::len), 8);
         assert_eq!(keep_spares(DEFAULT_SPARES), 8);
         release_spares();
+    }
+
+    /// `|Σ w·x|` bounds: the convolution of `|x|` with `|w|` (no bias), the scale a bfloat16
+    /// rounding error of the products is relative to.
+    fn magnitude(x: &Tensor, weight: &[f32], cout: usize, k: usize, stride: usize) -> Tensor {
+        let abs = Tensor {
+            shape: x.shape,
+            data: x.data.iter().map(|v| v.abs()).collect(),
+        };
+        let weight: Vec<f32> = weight.iter().map(|v| v.abs()).collect();
+        conv3d_with(&abs, &weight, cout, k, None, Epilogue { stride, relu: false })
+    }
+
+    #[test]
+    fn bfloat16_convolutions_stay_within_the_rounding_of_their_products() {
+        if effective_precision(3) != Precision::F32 {
+            panic!("this thread starts in f32");
+        }
+        if with_precision(Precision::Bf16, || effective_precision(3)) != Precision::Bf16 {
+            println!("skipped: this host has no AVX512-BF16 (bfloat16 asked for runs in f32)");
+            return;
+        }
+        // Widths around the 48-column tile (a partial last tile of a few columns), every kernel
+        // size, both strides, the ReLU, a sum into a tensor and a chain through padded tiles.
+        for (seed, &[d, h, w]) in [[3usize, 4, 101], [2, 3, 49], [4, 2, 47], [2, 5, 9]].iter().enumerate() {
+            let seed = seed as u64 * 10;
+            let x = random([3, d, h, w], seed);
+            for k in [3, 5, 7] {
+                let weight = random_values(5 * 3 * k * k * k, seed + k as u64);
+                let bias = random_values(5, seed + 2);
+                for stride in [1, 2] {
+                    for relu in [false, true] {
+                        let epilogue = Epilogue { stride, relu };
+                        let exact = conv3d_with(&x, &weight, 5, k, Some(&bias), epilogue);
+                        let got = with_precision(Precision::Bf16, || {
+                            conv3d_with(&x, &weight, 5, k, Some(&bias), epilogue)
+                        });
+                        let scale = magnitude(&x, &weight, 5, k, stride);
+                        assert_eq!(got.shape, exact.shape);
+                        for ((g, e), m) in got.data.iter().zip(&exact.data).zip(&scale.data) {
+                            // Two roundings of 2⁻⁹ each per product, at worst all one way.
+                            assert!(
+                                (g - e).abs() <= 2.0 * m / 256.0 + 1e-6,
+                                "k {k}, stride {stride}, relu {relu}, {d}x{h}x{w}: {g} against {e} (scale {m})"
+                            );
+                        }
+                        // Not f32 under another name: some outputs differ.
+                        if !relu && stride == 1 {
+                            assert!(bits_differing(&got, &exact) > 0, "k {k}: bfloat16 gave f32's bits");
+                        }
+                    }
+                }
+                // Summed into a tensor.
+                let prior = random([5, d, h, w], seed + 7);
+                let exact = conv3d_accumulate_input(ConvInput::Borrowed(&x), &weight, k, prior.clone(), true);
+                let got = with_precision(Precision::Bf16, || {
+                    conv3d_accumulate_input(ConvInput::Borrowed(&x), &weight, k, prior.clone(), true)
+                });
+                let scale = magnitude(&x, &weight, 5, k, 1);
+                for ((g, e), m) in got.data.iter().zip(&exact.data).zip(&scale.data) {
+                    assert!((g - e).abs() <= 2.0 * m / 256.0 + 1e-6, "k {k} summed: {g} against {e}");
+                }
+            }
+            // A chain through padded tiles: a paired input is not read again as values.
+            let w1 = random_values(4 * 3 * 125, seed + 20);
+            let w2 = random_values(2 * 4 * 27, seed + 21);
+            let relu = Epilogue { stride: 1, relu: true };
+            let exact = conv3d_with(&conv3d_with(&x, &w1, 4, 5, None, relu), &w2, 2, 3, None, relu);
+            let got = with_precision(Precision::Bf16, || {
+                let first = conv3d_padded(ConvInput::Borrowed(&x), &w1, 4, 5, None, true, 3);
+                conv3d_input(ConvInput::Padded(first), &w2, 2, 3, None, relu)
+            });
+            let worst = got
+                .data
+                .iter()
+                .zip(&exact.data)
+                .map(|(g, e)| (g - e).abs())
+                .fold(0f32, f32::max);
+            let largest = exact.data.iter().map(|v| v.abs()).fold(0f32, f32::max);
+            assert!(
+                worst <= 0.02 * largest.max(1.0),
+                "chain {d}x{h}x{w}: off by {worst} of {largest}"
+            );
+        }
+        assert_eq!(
+            effective_precision(3),
+            Precision::F32,
+            "the precision before is restored"
+        );
+    }
+
+    #[test]
+    fn a_spare_left_by_a_bfloat16_layer_has_its_border_zeroed_again() {
+        if with_precision(Precision::Bf16, || effective_precision(3)) != Precision::Bf16 {
+            println!("skipped: this host has no AVX512-BF16");
+            return;
+        }
+        // Large enough to be kept as a spare (`MIN_SPARE_FLOATS`): the bfloat16 layer's padded
+        // input (shifted pairs, a zero beside a value no longer zero) is offered without its
+        // layout, and the next f32 layer of that layout zeroes its border before use.
+        let x = random([4, 8, 60, 100], 31);
+        let weight = random_values(4 * 4 * 27, 32);
+        let relu = Epilogue { stride: 1, relu: true };
+        release_spares();
+        let expected = std::thread::scope(|s| {
+            s.spawn(|| conv3d_with(&x, &weight, 4, 3, None, relu))
+                .join()
+                .unwrap_or_else(|_| panic!("the reference thread panicked"))
+        });
+        with_precision(Precision::Bf16, || conv3d_with(&x, &weight, 4, 3, None, relu));
+        assert!(
+            SPARES.with_borrow(|s| s.iter().any(|(_, layout)| layout.is_none())),
+            "the paired input is kept without its layout"
+        );
+        let got = conv3d_with(&x, &weight, 4, 3, None, relu);
+        release_spares();
+        assert_eq!(bits_differing(&got, &expected), 0);
     }
 
     #[test]

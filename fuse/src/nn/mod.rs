@@ -6,7 +6,9 @@
 //!   convolutions vectorised along the image rows with four output channels in registers; the
 //!   stride-2 convolution and the stride-2 transposed convolution are expressed through it.
 //!   Their inner loop runs on 512-bit vectors where the host has AVX-512F ([`wide_kernel`],
-//!   detected at run time), with the same sums bit for bit.
+//!   detected at run time), with the same sums bit for bit; in inference, where asked
+//!   ([`conv::set_precision`]), on bfloat16 pairs of taps where the host has AVX512-BF16
+//!   ([`bf16_kernel`]).
 //! - [`batch_norm`]: BatchNorm3d in train mode (batch statistics, running-statistics update,
 //!   backward) and eval mode (folded into the preceding convolution).
 //! - [`regression`]: softmax over disparity, soft-argmin and the smooth-L1 loss.
@@ -17,6 +19,7 @@
 //! Every layer has its forward and backward here; the network (`crate::mfusenet`) wires them.
 
 pub mod batch_norm;
+pub mod bf16_kernel;
 pub mod conv;
 mod fma_kernel;
 pub mod pool;
