@@ -1151,15 +1151,27 @@ mod tests {
         let (f32_ran, exact) = run("f32");
         assert_eq!(f32_ran, "f32");
         let (bf16_ran, rounded) = run("bf16");
-        let host = if crate::nn::bf16_kernel::available() { "bf16" } else { "f32" };
+        let host = if crate::nn::bf16_kernel::available() {
+            "bf16"
+        } else {
+            "f32"
+        };
         assert_eq!(bf16_ran, host, "bfloat16 runs where the host has it, f32 elsewhere");
         let mean = |out: &DisparityImage| {
             let errors = interior_errors(out, 8, 7.0);
             errors.iter().sum::<f32>() / errors.len() as f32
         };
         let (a, b) = (mean(&exact), mean(&rounded));
-        assert!(a < 0.25 && b < 0.25 && (a - b).abs() < 0.02, "AvgErr f32 {a:.4}, bf16 {b:.4} px");
-        let worst = exact.data.iter().zip(&rounded.data).map(|(x, y)| (x - y).abs()).fold(0f32, f32::max);
+        assert!(
+            a < 0.25 && b < 0.25 && (a - b).abs() < 0.02,
+            "AvgErr f32 {a:.4}, bf16 {b:.4} px"
+        );
+        let worst = exact
+            .data
+            .iter()
+            .zip(&rounded.data)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0f32, f32::max);
         assert!(worst < 0.5, "a pixel moved by {worst} px in bfloat16");
         // Unknown precisions are refused by name.
         let bad = serde_json::json!({ "precision": "fp8" });
