@@ -6,7 +6,9 @@
 #   - the demo's 960x540 capture (`replay demo`'s, default range);
 #   - Middlebury Aloe, three views (the paper's 7³ network).
 # Our figure is the method's seconds from `replay`'s summary (cost volumes and post-processing
-# included); PyTorch's the network's forward alone (best of 2), 2 threads.
+# included); PyTorch's the network's forward alone (best of 2), 2 threads. PyTorch's lite network
+# loads the lite file as it was before its sharp fine-tuning (the reference code has no sharp
+# volumes; the cost per voxel is the same but for the sharp volumes' channels in `concat`).
 #
 #   TORCH_PYTHON=.venv-torch/bin/python [ROUNDS=3] scripts/bench-precision.sh
 source "$(dirname "$0")/bench-common.sh"

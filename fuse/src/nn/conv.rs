@@ -1487,9 +1487,7 @@ pub(crate) mod tests {
 
     #[test]
     fn bfloat16_convolutions_stay_within_the_rounding_of_their_products() {
-        if effective_precision(3) != Precision::F32 {
-            panic!("this thread starts in f32");
-        }
+        assert_eq!(effective_precision(3), Precision::F32, "this thread starts in f32");
         if with_precision(Precision::Bf16, || effective_precision(3)) != Precision::Bf16 {
             println!("skipped: this host has no AVX512-BF16 (bfloat16 asked for runs in f32)");
             return;
