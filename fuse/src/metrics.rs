@@ -43,48 +43,77 @@ pub fn evaluate(
     mask: Option<&[bool]>,
     missing_error_px: f64,
 ) -> Option<Metrics> {
-    let mut n = 0usize;
-    let mut missing = 0usize;
-    let (mut sum_abs, mut sum_sq) = (0.0f64, 0.0f64);
-    let mut bad = [0usize; 4];
-    let (mut sum_inlier, mut inliers) = (0.0f64, 0usize);
+    let mut sums = MetricSums::default();
     for (i, (&e, &g)) in estimate.iter().zip(ground_truth).enumerate() {
         if !g.is_finite() || mask.is_some_and(|m| !m[i]) {
             continue;
         }
+        sums.add(e, g, missing_error_px);
+    }
+    sums.metrics()
+}
+
+/// The running sums behind [`Metrics`], one pixel at a time: several regions of one image are
+/// measured in a single pass, each region's sums fed the same pixels in the same order as
+/// [`evaluate`] over its mask (the same bits).
+#[derive(Debug, Clone, Copy, Default)]
+pub struct MetricSums {
+    n: usize,
+    missing: usize,
+    sum_abs: f64,
+    sum_sq: f64,
+    bad: [usize; 4],
+    sum_inlier: f64,
+    inliers: usize,
+}
+
+impl MetricSums {
+    /// Adds one pixel whose ground truth `g` is known (finite); a non-finite `e` is a missing
+    /// estimate, an error of `missing_error_px`.
+    #[inline]
+    pub fn add(&mut self, e: f32, g: f32, missing_error_px: f64) {
         let error = if e.is_finite() {
             f64::from((e - g).abs())
         } else {
-            missing += 1;
+            self.missing += 1;
             missing_error_px
         };
         if error <= 2.0 {
-            sum_inlier += f64::from(e - g);
-            inliers += 1;
+            self.sum_inlier += f64::from(e - g);
+            self.inliers += 1;
         }
-        n += 1;
-        sum_abs += error;
-        sum_sq += error * error;
-        for (count, threshold) in bad.iter_mut().zip([0.5, 1.0, 2.0, 0.07]) {
+        self.n += 1;
+        self.sum_abs += error;
+        self.sum_sq += error * error;
+        for (count, threshold) in self.bad.iter_mut().zip([0.5, 1.0, 2.0, 0.07]) {
             if error > threshold {
                 *count += 1;
             }
         }
     }
-    (n > 0).then(|| {
-        let percent = |c: usize| 100.0 * c as f64 / n as f64;
-        Metrics {
-            rms: (sum_sq / n as f64).sqrt(),
-            avg_err_px: sum_abs / n as f64,
-            bad_0_5: percent(bad[0]),
-            bad_1: percent(bad[1]),
-            bad_2: percent(bad[2]),
-            bad_0_07: percent(bad[3]),
-            pixels: n,
-            missing,
-            bias: if inliers > 0 { sum_inlier / inliers as f64 } else { 0.0 },
-        }
-    })
+
+    /// The metrics of the pixels added; `None` without any.
+    pub fn metrics(&self) -> Option<Metrics> {
+        let n = self.n;
+        (n > 0).then(|| {
+            let percent = |c: usize| 100.0 * c as f64 / n as f64;
+            Metrics {
+                rms: (self.sum_sq / n as f64).sqrt(),
+                avg_err_px: self.sum_abs / n as f64,
+                bad_0_5: percent(self.bad[0]),
+                bad_1: percent(self.bad[1]),
+                bad_2: percent(self.bad[2]),
+                bad_0_07: percent(self.bad[3]),
+                pixels: n,
+                missing: self.missing,
+                bias: if self.inliers > 0 {
+                    self.sum_inlier / self.inliers as f64
+                } else {
+                    0.0
+                },
+            }
+        })
+    }
 }
 
 /// The mean of per-scene metrics (the paper averages per scene).

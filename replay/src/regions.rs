@@ -2,7 +2,7 @@
 //! ground-truth disparity by forward warping with a z-buffer) and view-dependent surfaces (the
 //! simulator's glossy and mirror classes), where multiscopic fusion should help most.
 
-use fuse::metrics::{Metrics, evaluate};
+use fuse::metrics::{MetricSums, Metrics};
 use serde::Serialize;
 
 /// Disparity margin (px) by which a warped pixel must be hidden to count as occluded.
@@ -229,27 +229,23 @@ pub struct Sparsification {
 /// pooled, as a robot with one confidence threshold for every scene keeps them.
 #[derive(Debug, Clone, Default)]
 pub struct RankedErrors {
-    pairs: Vec<(f32, f64)>,
+    /// (confidence, error): an error is an `f32` difference, or the missing estimate's error,
+    /// so `f32` holds it exactly.
+    pairs: Vec<(f32, f32)>,
 }
 
 impl RankedErrors {
     /// The errors of `estimate` against `truth` (NaN = unknown) with their `confidence`; a pixel
     /// without an estimate counts as an error of `missing_error_px`.
     pub fn new(estimate: &[f32], confidence: &[f32], truth: &[f32], missing_error_px: f64) -> Self {
-        let pairs = estimate
-            .iter()
-            .zip(confidence)
-            .zip(truth)
-            .filter(|(_, t)| t.is_finite())
-            .map(|((e, c), t)| {
-                let error = if e.is_finite() {
-                    f64::from((e - t).abs())
-                } else {
-                    missing_error_px
-                };
-                (*c, error)
-            })
-            .collect();
+        let mut pairs = Vec::new();
+        ImagePixels {
+            estimate,
+            confidence,
+            truth,
+            missing_error_px,
+        }
+        .each(|c, e| pairs.push((c, e)));
         Self { pairs }
     }
 
@@ -261,82 +257,151 @@ impl RankedErrors {
     /// The curve over every pixel held, ranked by confidence (stable: ties keep their order).
     /// `None` without pixels.
     pub fn curve(self) -> Option<Sparsification> {
-        if self.pairs.is_empty() {
-            return None;
-        }
-        let count = self.pairs.len();
-        let kept = Sparsification::SHARES.map(|share| ((count as f64 * share).round() as usize).clamp(1, count));
-        // The ranking by confidence: one key per pixel, the confidence's order-preserving bits
-        // (descending) then its index, the order of a stable sort. Only the sums of the first
-        // `kept` are needed, so the keys are partitioned at each share (from the largest down)
-        // instead of sorted: linear time, the same pixels in each share.
-        let descending = |c: f32| {
-            let bits = c.to_bits();
-            !(if bits >> 31 == 1 { !bits } else { bits | 0x8000_0000 })
-        };
-        let ranked = || {
-            if u32::try_from(count - 1).is_ok() {
-                // Confidence bits and index in one `u64`: half the bytes to move, one compare.
-                let mut keys: Vec<u64> = self
-                    .pairs
-                    .iter()
-                    .enumerate()
-                    .map(|(i, (c, _))| (u64::from(descending(*c)) << 32) | i as u64)
-                    .collect();
-                prefix_sums(&mut keys, kept, |k| self.pairs[(k & 0xffff_ffff) as usize].1, Ord::cmp)
-            } else {
-                let mut keys: Vec<(u32, usize)> = self
-                    .pairs
-                    .iter()
-                    .enumerate()
-                    .map(|(i, (c, _))| (descending(*c), i))
-                    .collect();
-                prefix_sums(&mut keys, kept, |(_, i)| self.pairs[*i].1, Ord::cmp)
-            }
-        };
-        // The oracle's ranking by the error itself.
-        let oracle = || {
-            let mut errors: Vec<f64> = self.pairs.iter().map(|(_, e)| *e).collect();
-            prefix_sums(&mut errors, kept, |e| *e, f64::total_cmp)
-        };
-        let (ranked, oracle) = rayon::join(ranked, oracle);
-        let all = self.pairs.iter().map(|(_, e)| *e).sum::<f64>();
-        let mean = |sums: [f64; 3], k: usize| sums[k] / kept[k] as f64;
-        Some(Sparsification {
-            avg_err_top50_px: mean(ranked, 0),
-            avg_err_top75_px: mean(ranked, 1),
-            avg_err_top90_px: mean(ranked, 2),
-            avg_err_all_px: all / count as f64,
-            oracle_avg_err_px: [0, 1, 2].map(|k| mean(oracle, k)),
-        })
+        curve_of(&self.pairs[..])
     }
 }
 
-/// The sums of `error(item)` over the first `kept[k]` items of `items` in the order `order`
-/// (`kept` ascending, each in `1..=items.len()`), for each `k`. Partitions `items` (selection,
-/// from the largest share down) instead of sorting them.
-fn prefix_sums<T>(
-    items: &mut [T],
-    kept: [usize; 3],
-    error: impl Fn(&T) -> f64,
-    order: impl Fn(&T, &T) -> std::cmp::Ordering + Copy,
-) -> [f64; 3] {
-    let mut end = items.len();
-    for &k in kept.iter().rev() {
-        if k < end {
-            items[..end].select_nth_unstable_by(k, order);
+/// Pixels to rank: (confidence, error) pairs, in an order, walked as often as needed.
+trait Ranked: Sync {
+    /// Calls `f(confidence, error)` for every pixel, in order.
+    fn each(&self, f: impl FnMut(f32, f32));
+}
+
+impl Ranked for [(f32, f32)] {
+    #[inline]
+    fn each(&self, mut f: impl FnMut(f32, f32)) {
+        self.iter().for_each(|(c, e)| f(*c, *e));
+    }
+}
+
+/// One image's pixels with a known truth, in image order, without a copy.
+struct ImagePixels<'a> {
+    estimate: &'a [f32],
+    confidence: &'a [f32],
+    truth: &'a [f32],
+    missing_error_px: f64,
+}
+
+impl Ranked for ImagePixels<'_> {
+    #[inline]
+    fn each(&self, mut f: impl FnMut(f32, f32)) {
+        let missing = self.missing_error_px as f32;
+        for ((e, c), t) in self.estimate.iter().zip(self.confidence).zip(self.truth) {
+            if t.is_finite() {
+                f(*c, if e.is_finite() { (e - t).abs() } else { missing });
+            }
         }
-        end = k;
     }
-    let mut sums = [0.0; 3];
-    let mut total = 0.0;
-    let mut start = 0;
-    for (sum, &k) in sums.iter_mut().zip(&kept) {
-        total += items[start..k].iter().map(&error).sum::<f64>();
-        *sum = total;
-        start = k;
+}
+
+/// A confidence's ranking key: ascending keys are descending confidences (total order).
+#[inline]
+fn descending(c: f32) -> u32 {
+    let bits = c.to_bits();
+    !(if bits >> 31 == 1 { !bits } else { bits | 0x8000_0000 })
+}
+
+/// The sparsification curve of the pixels `each` calls back with (confidence, error), in their
+/// order, as often as it is called. `None` without pixels.
+fn curve_of<P: Ranked + ?Sized>(pixels: &P) -> Option<Sparsification> {
+    let (mut count, mut all) = (0usize, 0.0f64);
+    pixels.each(|_, e| {
+        count += 1;
+        all += f64::from(e);
+    });
+    if count == 0 {
+        return None;
     }
-    sums
+    let kept = Sparsification::SHARES.map(|share| ((count as f64 * share).round() as usize).clamp(1, count));
+    // Ranked by confidence (ties in their order), and the oracle's ranking by the error itself
+    // (errors are non-negative, so their bits order as they do).
+    let ranked = || ranked_sums(kept, pixels, |c, _| descending(c));
+    let oracle = || ranked_sums(kept, pixels, |_, e| e.to_bits());
+    let (ranked, oracle) = rayon::join(ranked, oracle);
+    let mean = |sums: [f64; 3], k: usize| sums[k] / kept[k] as f64;
+    Some(Sparsification {
+        avg_err_top50_px: mean(ranked, 0),
+        avg_err_top75_px: mean(ranked, 1),
+        avg_err_top90_px: mean(ranked, 2),
+        avg_err_all_px: all / count as f64,
+        oracle_avg_err_px: [0, 1, 2].map(|k| mean(oracle, k)),
+    })
+}
+
+/// Bins of one level of [`ranked_sums`]' histograms: 16 bits of the key.
+const LEVEL_BINS: usize = 1 << 16;
+
+/// The sums of the errors of the first `kept[j]` pixels in ascending `key(confidence, error)`
+/// order, ties in the pixels' order (a stable sort's), for each `j` (`kept` ascending, each in
+/// `1..=count`).
+/// Three passes over the items and no copy of them: counts and sums per top 16 bits of the key
+/// find the bin where each share ends, counts and sums per low 16 bits within that bin find
+/// the key, and a last pass adds the first items of that key the share still needs.
+fn ranked_sums<P: Ranked + ?Sized>(kept: [usize; 3], pixels: &P, key: impl Fn(f32, f32) -> u32) -> [f64; 3] {
+    // Where in `counts` (cumulative count and sum before `bin`) share `need` ends: (bin, count
+    // before it, sum before it).
+    let boundary = |counts: &[u32], sums: &[f64], need: usize| {
+        let (mut before, mut sum) = (0usize, 0.0f64);
+        for (bin, (&c, &s)) in counts.iter().zip(sums).enumerate() {
+            if before + c as usize >= need {
+                return (bin, before, sum);
+            }
+            before += c as usize;
+            sum += s;
+        }
+        (counts.len().saturating_sub(1), before, sum)
+    };
+    let mut counts = vec![0u32; LEVEL_BINS];
+    let mut sums = vec![0.0f64; LEVEL_BINS];
+    pixels.each(|c, e| {
+        let bin = (key(c, e) >> 16) as usize;
+        counts[bin] += 1;
+        sums[bin] += f64::from(e);
+    });
+    let high = kept.map(|need| boundary(&counts, &sums, need));
+    // The second level, per share (shares often end in one bin: counted once).
+    let mut low: Vec<(usize, Vec<u32>, Vec<f64>)> = Vec::with_capacity(3);
+    for (bin, _, _) in high {
+        if !low.iter().any(|(b, _, _)| *b == bin) {
+            low.push((bin, vec![0u32; LEVEL_BINS], vec![0.0f64; LEVEL_BINS]));
+        }
+    }
+    pixels.each(|c, e| {
+        let key = key(c, e);
+        let bin = (key >> 16) as usize;
+        for (b, counts, sums) in low.iter_mut() {
+            if *b == bin {
+                let at = (key & 0xffff) as usize;
+                counts[at] += 1;
+                sums[at] += f64::from(e);
+            }
+        }
+    });
+    // Per share: the exact key where it ends, how many items of that key it takes, and the sum
+    // of every item before that key.
+    let ends: [(u32, usize, f64); 3] = std::array::from_fn(|j| {
+        let (bin, before, sum) = high[j];
+        let need = kept[j] - before;
+        let (counts, sums) = low
+            .iter()
+            .find(|(b, _, _)| *b == bin)
+            .map(|(_, c, s)| (c.as_slice(), s.as_slice()))
+            .unwrap_or((&[], &[]));
+        let (at, before_low, sum_low) = boundary(counts, sums, need);
+        (((bin as u32) << 16) | at as u32, need - before_low, sum + sum_low)
+    });
+    let mut taken = [0usize; 3];
+    let mut tail = [0.0f64; 3];
+    pixels.each(|c, e| {
+        let key = key(c, e);
+        for j in 0..3 {
+            if key == ends[j].0 && taken[j] < ends[j].1 {
+                taken[j] += 1;
+                tail[j] += f64::from(e);
+            }
+        }
+    });
+    std::array::from_fn(|j| ends[j].2 + tail[j])
 }
 
 impl Sparsification {
@@ -346,7 +411,12 @@ impl Sparsification {
     /// The curve of `estimate` against `truth` (NaN = unknown) ranked by `confidence`; a pixel
     /// without an estimate counts as an error of `missing_error_px`. `None` without pixels.
     pub fn measure(estimate: &[f32], confidence: &[f32], truth: &[f32], missing_error_px: f64) -> Option<Self> {
-        RankedErrors::new(estimate, confidence, truth, missing_error_px).curve()
+        curve_of(&ImagePixels {
+            estimate,
+            confidence,
+            truth,
+            missing_error_px,
+        })
     }
 
     /// The AvgErr of the most confident 75 % ÷ that of all pixels (0.5: they err half as much).
@@ -388,24 +458,32 @@ pub fn region_metrics(
     surface_class: Option<&[u8]>,
     missing_error_px: f64,
 ) -> Option<RegionMetrics> {
-    // The sparsification's sorts beside the regions' single passes.
+    // The regions in one pass beside the sparsification's.
     let (regions, sparsification) = rayon::join(
         || {
-            let visible_mask: Vec<bool> = occluded.iter().map(|o| !o).collect();
-            let specular_mask: Option<Vec<bool>> = surface_class.map(|classes| {
-                classes
-                    .iter()
-                    .map(|c| {
-                        *c == record::scene::SurfaceClass::Glossy as u8
-                            || *c == record::scene::SurfaceClass::Mirror as u8
-                    })
-                    .collect()
-            });
+            let is_specular = |c: u8| {
+                c == record::scene::SurfaceClass::Glossy as u8 || c == record::scene::SurfaceClass::Mirror as u8
+            };
+            let [mut all, mut hidden, mut visible, mut specular] = [MetricSums::default(); 4];
+            for (i, (&e, &g)) in estimate.iter().zip(truth).enumerate() {
+                if !g.is_finite() {
+                    continue;
+                }
+                all.add(e, g, missing_error_px);
+                if occluded[i] {
+                    hidden.add(e, g, missing_error_px);
+                } else {
+                    visible.add(e, g, missing_error_px);
+                }
+                if surface_class.is_some_and(|classes| is_specular(classes[i])) {
+                    specular.add(e, g, missing_error_px);
+                }
+            }
             (
-                evaluate(estimate, truth, None, missing_error_px),
-                evaluate(estimate, truth, Some(occluded), missing_error_px),
-                evaluate(estimate, truth, Some(&visible_mask), missing_error_px),
-                specular_mask.and_then(|mask| evaluate(estimate, truth, Some(&mask), missing_error_px)),
+                all.metrics(),
+                hidden.metrics(),
+                visible.metrics(),
+                surface_class.and_then(|_| specular.metrics()),
             )
         },
         || confidence.and_then(|c| Sparsification::measure(estimate, c, truth, missing_error_px)),
@@ -610,6 +688,38 @@ mod tests {
             curve.avg_err_top50_px != curve.oracle_avg_err_px[0],
             "a random confidence is not the oracle"
         );
+    }
+
+    #[test]
+    fn confidences_and_errors_alike_in_their_high_bits_rank_by_their_low_bits() {
+        // Confidences 0.5 + k·ulp and errors 1 + k·ulp (k < 64): every key shares its high 16
+        // bits with the others, so the ranking is decided in the histogram's second level and
+        // by the pixels' order within a key.
+        let n = 5003;
+        let mut next = lcg(99);
+        let truth = vec![0.0f32; n];
+        let estimate: Vec<f32> = (0..n).map(|_| f32::from_bits(1.0f32.to_bits() + next() % 64)).collect();
+        let confidence: Vec<f32> = (0..n).map(|_| f32::from_bits(0.5f32.to_bits() + next() % 8)).collect();
+        let curve = Sparsification::measure(&estimate, &confidence, &truth, 9.0).unwrap_or_else(|| panic!("none"));
+        let mut order: Vec<usize> = (0..n).collect();
+        order.sort_by(|a, b| confidence[*b].total_cmp(&confidence[*a]));
+        let mut sorted_errors: Vec<f64> = estimate.iter().map(|e| f64::from(*e)).collect();
+        sorted_errors.sort_by(f64::total_cmp);
+        for (j, share) in Sparsification::SHARES.into_iter().enumerate() {
+            let k = (n as f64 * share).round() as usize;
+            let want = order[..k].iter().map(|i| f64::from(estimate[*i])).sum::<f64>() / k as f64;
+            let want_oracle = sorted_errors[..k].iter().sum::<f64>() / k as f64;
+            let got = [curve.avg_err_top50_px, curve.avg_err_top75_px, curve.avg_err_top90_px][j];
+            assert!((got - want).abs() < 1e-12, "{share}: {got} vs {want}");
+            let oracle = curve.oracle_avg_err_px[j];
+            assert!(
+                (oracle - want_oracle).abs() < 1e-12,
+                "{share}: {oracle} vs {want_oracle}"
+            );
+        }
+        // The pooled path walks its pairs the same way.
+        let pooled = RankedErrors::new(&estimate, &confidence, &truth, 9.0).curve();
+        assert_eq!(pooled, Some(curve));
     }
 
     #[test]
