@@ -321,6 +321,28 @@ fn training_can_average_its_weights_and_switch_the_average_on_when_resuming() {
     );
     let third = train_with(dir.path(), "8", &average);
     assert_eq!(third["resumed_at_step"], 6, "{third}");
+    // The run keeps its best-validated network across the legs: the step whose validation in
+    // the curves is the least, with that validation in its metadata.
+    let curves = std::fs::read_to_string(dir.path().join("run/curves.csv")).unwrap_or_else(|e| panic!("{e}"));
+    let best_row = curves
+        .lines()
+        .skip(1)
+        .filter_map(|line| {
+            let fields: Vec<&str> = line.split(',').collect();
+            Some((fields[0].parse::<u64>().ok()?, fields.get(2)?.parse::<f64>().ok()?))
+        })
+        .fold(None, |best: Option<(u64, f64)>, (step, avg)| match best {
+            Some((_, b)) if b <= avg => best,
+            _ => Some((step, avg)),
+        })
+        .unwrap_or_else(|| panic!("no validation in the curves:\n{curves}"));
+    let best = safetensors_header(&dir.path().join("run/best.safetensors"))["__metadata__"].clone();
+    assert_eq!(best["steps"], best_row.0.to_string(), "{best}\n{curves}");
+    let kept: f64 = best["val_avg_err_px"]
+        .as_str()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or_else(|| panic!("{best}"));
+    assert!((kept - best_row.1).abs() < 1e-3, "{kept} against {best_row:?}");
     let header = safetensors_header(&checkpoint);
     assert_eq!(
         header["__metadata__"]["average_updates"], "5",

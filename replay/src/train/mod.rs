@@ -267,6 +267,11 @@ impl RunFiles {
     pub fn checkpoint(&self) -> PathBuf {
         self.dir.join("checkpoint.safetensors")
     }
+    /// The best-validated network so far (the exported network, with its metadata) across
+    /// every leg of the run: a run that worsens later keeps its best.
+    pub fn best(&self) -> PathBuf {
+        self.dir.join("best.safetensors")
+    }
     /// Loss and validation per step (CSV).
     pub fn curves_csv(&self) -> PathBuf {
         self.dir.join("curves.csv")
@@ -513,11 +518,8 @@ pub fn train(
             val_bad1_percent: None,
         };
         if done % config.validate_every == 0 || done == config.steps {
-            let estimates = validate_estimates(
-                &exported(&net, average.as_ref(), config, &calibration)?,
-                &val_examples,
-                locking,
-            )?;
+            let candidate = exported(&net, average.as_ref(), config, &calibration)?;
+            let estimates = validate_estimates(&candidate, &val_examples, locking)?;
             tracing::info!(
                 "step {done}: validation{} AvgErr {:.3} px / Bad1 {:.2} % (refined {:.3} / {:.2}), logit range {:.1} (tens is healthy, thousands saturated)",
                 if average.is_some() {
@@ -533,6 +535,28 @@ pub fn train(
             );
             last_estimates = Some((done, estimates));
             let (avg, bad1) = estimates.soft_argmin;
+            // Best so far across every leg (the curves keep earlier legs' validations; a leg
+            // that resumes a run made before this file existed saves only what beats them).
+            let best_before = history
+                .iter()
+                .filter_map(|r| r.val_avg_err_px)
+                .fold(f64::INFINITY, f64::min);
+            if avg < best_before {
+                let info = export_info(
+                    info_for(train_seconds + started.elapsed().as_secs_f64()),
+                    config,
+                    done,
+                    average.as_ref(),
+                    &estimates,
+                    locking,
+                    command,
+                )?;
+                weights::save(&candidate, &info, &files.best())?;
+                tracing::info!(
+                    "step {done}: the best validation so far, saved as {}",
+                    files.best().display()
+                );
+            }
             row.val_avg_err_px = Some(avg);
             row.val_bad1_percent = Some(bad1);
             last_validation = Some((avg, bad1));
@@ -567,7 +591,56 @@ pub fn train(
         &files.checkpoint(),
     )?;
     write_curves(&files, &history)?;
-    let mut info = info_for(train_seconds);
+    let net = exported(&net, average.as_ref(), config, &calibration)?;
+    // The final network's validation (the last step's when it validated; else made now, e.g.
+    // after an interruption or for a run another trainer finished), and from it how inference
+    // should read this network: whichever estimate validates better.
+    let estimates = match last_estimates {
+        Some((step, estimates)) if step == adam.step => estimates,
+        _ => validate_estimates(&net, &val_examples, locking)?,
+    };
+    let last_validation = Some(estimates.soft_argmin);
+    let info = export_info(
+        info_for(train_seconds),
+        config,
+        adam.step,
+        average.as_ref(),
+        &estimates,
+        locking,
+        command,
+    )?;
+    weights::save(&net, &info, weights_out)?;
+    let summary = TrainSummary {
+        config: config.clone(),
+        steps_done: adam.step,
+        resumed_at_step: session_start_step,
+        interrupted,
+        train_seconds,
+        dataset_seconds,
+        val_avg_err_px: last_validation.map(|v| v.0),
+        val_bad1_percent: last_validation.map(|v| v.1),
+        val_wta_avg_err_px: wta_avg,
+        parameters: net.parameter_count(),
+        weights: weights_out.to_path_buf(),
+    };
+    let json = serde_json::to_string_pretty(&summary).map_err(|e| file_error(&files.summary(), e.to_string()))?;
+    std::fs::write(files.summary(), json).map_err(|e| file_error(&files.summary(), e.to_string()))?;
+    Ok(summary)
+}
+
+/// The metadata of a network a run exports after `steps` steps (the final file and the
+/// best-validated one): `info` (the run's own entries) with the variant, its inputs, how it
+/// was made and validated (`estimates`), and how inference should read it.
+fn export_info(
+    info: WeightsInfo,
+    config: &TrainConfig,
+    steps: u64,
+    average: Option<&Average>,
+    estimates: &Validation,
+    locking: Option<fuse::wta::LockingCurve>,
+    command: &str,
+) -> Result<WeightsInfo, TrainError> {
+    let mut info = info;
     info.set("format", "mfusenet-weights/1");
     info.set("variant", variant_name(config.views, config.architecture));
     info.set(
@@ -614,25 +687,15 @@ pub fn train(
     };
     info.set("context_below", context.to_string());
     info.set("made_by", command);
-    info.set("steps", adam.step.to_string());
-    if let Some(average) = &average {
+    info.set("steps", steps.to_string());
+    if let Some(average) = average {
         // The exported weights are the average of the last ≈ 1 / (1 − decay) steps' weights.
         info.set("average_decay", average.decay.to_string());
         info.set("average_updates", average.updates.to_string());
     }
-    let net = exported(&net, average.as_ref(), config, &calibration)?;
-    // The final network's validation (the last step's when it validated; else made now, e.g.
-    // after an interruption or for a run another trainer finished), and from it how inference
-    // should read this network: whichever estimate validates better.
-    let estimates = match last_estimates {
-        Some((step, estimates)) if step == adam.step => estimates,
-        _ => validate_estimates(&net, &val_examples, locking)?,
-    };
-    let last_validation = Some(estimates.soft_argmin);
-    if let Some((avg, bad1)) = last_validation {
-        info.set("val_avg_err_px", format!("{avg:.4}"));
-        info.set("val_bad1_percent", format!("{bad1:.3}"));
-    }
+    let (avg, bad1) = estimates.soft_argmin;
+    info.set("val_avg_err_px", format!("{avg:.4}"));
+    info.set("val_bad1_percent", format!("{bad1:.3}"));
     let (avg, bad1) = estimates.refined;
     info.set("val_refined_avg_err_px", format!("{avg:.4}"));
     info.set("val_refined_bad1_percent", format!("{bad1:.3}"));
@@ -648,23 +711,7 @@ pub fn train(
             "soft-argmin"
         },
     );
-    weights::save(&net, &info, weights_out)?;
-    let summary = TrainSummary {
-        config: config.clone(),
-        steps_done: adam.step,
-        resumed_at_step: session_start_step,
-        interrupted,
-        train_seconds,
-        dataset_seconds,
-        val_avg_err_px: last_validation.map(|v| v.0),
-        val_bad1_percent: last_validation.map(|v| v.1),
-        val_wta_avg_err_px: wta_avg,
-        parameters: net.parameter_count(),
-        weights: weights_out.to_path_buf(),
-    };
-    let json = serde_json::to_string_pretty(&summary).map_err(|e| file_error(&files.summary(), e.to_string()))?;
-    std::fs::write(files.summary(), json).map_err(|e| file_error(&files.summary(), e.to_string()))?;
-    Ok(summary)
+    Ok(info)
 }
 
 /// The registry name of a variant: `mfusenet-stereo`, `mfusenet-3view`, `mfusenet-5view` or
