@@ -948,7 +948,7 @@ impl SpinBarrier {
         while self.generation.load(Ordering::Acquire) == generation {
             spins = spins.wrapping_add(1);
             std::hint::spin_loop();
-            if spins % 256 != 0 {
+            if !spins.is_multiple_of(256) {
                 continue;
             }
             let started = *since.get_or_insert_with(std::time::Instant::now);

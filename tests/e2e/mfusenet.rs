@@ -448,6 +448,51 @@ fn the_view_count_agnostic_network_trains_resumes_and_is_named() {
 }
 
 #[test]
+fn a_renewing_pool_trains_on_new_captures_deletes_the_old_and_resumes_alike() {
+    // Two captures in memory, one replaced every two steps in turn: steps 2 and 4 bring in
+    // captures 2 and 3, steps 6 and 8 captures 4 and 5 (2 and 3 then leave the cache; the
+    // first two stay), also when the run stops at 6 and resumes (the pool at a step is a
+    // function of the step: `TrainConfig::pool_index`, unit-tested against the renewals made
+    // one by one).
+    let dir = temp_dir();
+    let dataset = dir.path().join("dataset");
+    let renew = ["--renew-every", "2", "--checkpoint-every", "2", "--validate-every", "5"];
+    let cached = || -> Vec<String> {
+        let mut names: Vec<String> = std::fs::read_dir(&dataset)
+            .map(|entries| {
+                entries
+                    .filter_map(|e| e.ok()?.file_name().into_string().ok())
+                    .filter(|n| n.starts_with("train-"))
+                    .map(|n| n[..10].to_owned())
+                    .collect()
+            })
+            .unwrap_or_default();
+        names.sort();
+        names
+    };
+    let run = |name: &str, steps: &str| {
+        let output = tiny_training(&dir.path().join(name), &dataset, steps, &renew);
+        assert_success(&output, "replay train --renew-every 2");
+    };
+    run("legs", "6");
+    assert_eq!(cached(), ["train-0000", "train-0001", "train-0002", "train-0003"]);
+    run("legs", "10");
+    assert_eq!(cached(), ["train-0000", "train-0001", "train-0004", "train-0005"]);
+    let summary: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("legs/training.json")).unwrap_or_default())
+            .unwrap_or_else(|e| panic!("training.json: {e}"));
+    assert_eq!(summary["config"]["renew_every"], 2, "{summary}");
+    assert_eq!(summary["resumed_at_step"], 6, "{summary}");
+    let tensors = |name: &str| safetensors_tensor_bytes(&dir.path().join(name).join("mfusenet-3view.safetensors"));
+    let legs = tensors("legs");
+    assert!(!legs.is_empty());
+    // Without renewal the same steps give other weights (the captures differ from step 2 on).
+    let fixed = tiny_training(&dir.path().join("fixed"), &dataset, "10", &renew[2..]);
+    assert_success(&fixed, "replay train");
+    assert!(legs != tensors("fixed"), "renewal changed nothing");
+}
+
+#[test]
 fn training_resumes_and_its_weights_run() {
     let dir = temp_dir();
     let first = train(dir.path(), "4");

@@ -116,6 +116,10 @@ pub struct TrainConfig {
     /// what to answer where the costs cannot tell. Off in the shipped stereo and five-view files.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub keep_hopeless: bool,
+    /// Every this many steps one training capture in memory is replaced by a new one (slot by
+    /// slot in turn: [`TrainConfig::pool_index`]); 0 = the same `train_sets` captures throughout.
+    #[serde(default, skip_serializing_if = "is_zero_usize")]
+    pub renew_every: usize,
     /// Exposure differences between the views of a capture: each view's gain is drawn from
     /// 1 ± this (`record::capture::ErrorInjection::exposure_jitter`), as an auto-exposure camera
     /// gives; 0 = every view alike (the shipped files).
@@ -185,6 +189,7 @@ impl Default for TrainConfig {
             context_below: 0,
             flips: false,
             keep_hopeless: false,
+            renew_every: 0,
             exposure_jitter: 0.0,
             rig: RigKind::FiveView,
             sharp: None,
@@ -393,8 +398,33 @@ impl TrainConfig {
 
     /// The simulation of dataset capture `index` (validation captures have other seeds).
     /// `attempt` > 0 draws another scene for the same index (after an unreachable station).
+    /// The training capture that slot `slot` (of `train_sets`) holds at step `step`: the slot's
+    /// own index until it is first renewed, then one `train_sets` further on at each renewal.
+    /// Renewal `r` (at step `r · renew_every`) replaces slot `(r − 1) mod train_sets`.
+    pub fn pool_index(&self, slot: usize, step: u64) -> usize {
+        let sets = self.train_sets.max(1);
+        if self.renew_every == 0 {
+            return slot;
+        }
+        let renewals = (step / self.renew_every as u64) as usize;
+        let of_slot = if renewals > slot {
+            (renewals - 1 - slot) / sets + 1
+        } else {
+            0
+        };
+        slot + of_slot * sets
+    }
+
+    /// The simulation of training capture `index` (validation capture with `validation`), on its
+    /// `attempt`-th draw. Captures past the first `train_sets` (a renewing pool's) take seeds
+    /// from 2,000,000 on, clear of the validation seeds and of every held-out evaluation's.
     pub fn capture_config(&self, index: usize, validation: bool, attempt: u64) -> SimulationConfig {
-        let seed = self.seed + index as u64 + if validation { 1_000_000 } else { 0 } + attempt * 10_000_000;
+        let renewed = !validation && index >= self.train_sets;
+        let seed = self.seed
+            + index as u64
+            + if validation { 1_000_000 } else { 0 }
+            + if renewed { 2_000_000 } else { 0 }
+            + attempt * 10_000_000;
         let mut rng = SplitMix64::new(seed.wrapping_mul(0x2545_F491_4F6C_DD1D));
         let unit = rng.unit();
         SimulationConfig {

@@ -106,14 +106,18 @@ impl Sample {
     }
 }
 
-/// Makes (or reads from `cache_dir`) one dataset sample.
-pub fn sample(config: &TrainConfig, index: usize, validation: bool, cache_dir: &Path) -> Result<Sample, TrainError> {
-    let name = format!(
+/// The cache's file name of training (or `validation`) capture `index`.
+pub fn sample_file_name(config: &TrainConfig, index: usize, validation: bool) -> String {
+    format!(
         "{}-{index:04}-{:016x}.safetensors",
         if validation { "val" } else { "train" },
         config.data_key()
-    );
-    let path = cache_dir.join(name);
+    )
+}
+
+/// Makes (or reads from `cache_dir`) one dataset sample.
+pub fn sample(config: &TrainConfig, index: usize, validation: bool, cache_dir: &Path) -> Result<Sample, TrainError> {
+    let path = cache_dir.join(sample_file_name(config, index, validation));
     let kept = neighbours_kept(config.rig);
     if let Ok(bytes) = std::fs::read(&path)
         && let Some(sample) = read_sample(&bytes, config.depth(), kept, config.sharp.is_some())

@@ -324,9 +324,31 @@ pub fn train(
     let total = config.train_sets + config.val_sets;
     let mut train_samples = Vec::new();
     let mut val_samples = Vec::new();
+    // A renewing pool resumes with the captures its slots hold at the checkpoint's step.
+    let start_step = if config.renew_every > 0 && files.checkpoint().exists() {
+        load_checkpoint(&files.checkpoint(), config.views)?.adam.step
+    } else {
+        0
+    };
+    let mut pool: Vec<usize> = (0..config.train_sets)
+        .map(|slot| config.pool_index(slot, start_step))
+        .collect();
+    if start_step > 0 {
+        // The renewal at the checkpoint's step is taken here: what it replaced leaves the cache.
+        for (slot, index) in pool.iter().enumerate() {
+            let before = config.pool_index(slot, start_step - 1);
+            if before != *index && before >= config.train_sets {
+                let _ = std::fs::remove_file(dataset_dir.join(sample_file_name(config, before, false)));
+            }
+        }
+    }
     for i in 0..total {
         let validation = i >= config.train_sets;
-        let index = if validation { i - config.train_sets } else { i };
+        let index = if validation {
+            i - config.train_sets
+        } else {
+            pool.get(i).copied().unwrap_or(i)
+        };
         let s = sample(config, index, validation, dataset_dir)?;
         if validation {
             val_samples.push(s);
@@ -494,6 +516,9 @@ pub fn train(
         } else {
             config.learning_rate
         };
+        if config.renew_every > 0 && step > 0 && step.is_multiple_of(config.renew_every as u64) {
+            renew(config, step, &mut pool, &mut train_samples, dataset_dir)?;
+        }
         let mut rng = SplitMix64::new(
             (config.seed ^ 0x9E37_79B9_7F4A_7C15).wrapping_add(step.wrapping_mul(0xD1B5_4A32_D192_ED03)),
         );
@@ -628,6 +653,41 @@ pub fn train(
     Ok(summary)
 }
 
+/// A renewing pool's renewal at `step` (a multiple of `renew_every`): the slot whose turn it is
+/// gets the capture [`TrainConfig::pool_index`] names for it now (made, or read from the cache),
+/// and the capture it held leaves the cache when it was itself a renewed one (the first
+/// `train_sets` stay: a later run starts from them).
+fn renew(
+    config: &TrainConfig,
+    step: u64,
+    pool: &mut [usize],
+    samples: &mut [Sample],
+    dataset_dir: &Path,
+) -> Result<(), TrainError> {
+    let renewal = (step / config.renew_every as u64) as usize;
+    let slot = (renewal - 1) % config.train_sets.max(1);
+    let index = config.pool_index(slot, step);
+    let (Some(held), Some(kept)) = (pool.get_mut(slot), samples.get_mut(slot)) else {
+        return Ok(());
+    };
+    if *held == index {
+        return Ok(());
+    }
+    let started = Instant::now();
+    *kept = sample(config, index, false, dataset_dir)?;
+    let retired = std::mem::replace(held, index);
+    if retired >= config.train_sets {
+        let path = dataset_dir.join(sample_file_name(config, retired, false));
+        // A missing file is fine (another run sharing the cache removed it).
+        let _ = std::fs::remove_file(path);
+    }
+    tracing::debug!(
+        "step {step}: training capture {index} replaces {retired} in slot {slot} ({:.1} s)",
+        started.elapsed().as_secs_f64()
+    );
+    Ok(())
+}
+
 /// The metadata of a network a run exports after `steps` steps (the final file and the
 /// best-validated one): `info` (the run's own entries) with the variant, its inputs, how it
 /// was made and validated (`estimates`), and how inference should read it.
@@ -735,6 +795,45 @@ mod tests {
     use fuse::nn::Tensor;
     use fuse::volume::{CostVolume, VolumeSource};
     use record::scene::SceneKind;
+
+    /// A renewing pool's captures at every step, in closed form, are the ones the renewals
+    /// made one by one give (slot `(r − 1) mod sets` takes the next capture after the last
+    /// one any slot took), so a run that resumes at any step holds what it held there; without
+    /// renewal every slot keeps its capture; renewed captures draw seeds of their own.
+    #[test]
+    fn a_renewing_pool_holds_at_each_step_what_its_renewals_gave_it() {
+        for (sets, every) in [(1, 1), (3, 2), (4, 5), (48, 25)] {
+            let config = TrainConfig {
+                train_sets: sets,
+                renew_every: every,
+                ..TrainConfig::default()
+            };
+            let mut pool: Vec<usize> = (0..sets).collect();
+            let mut next = sets;
+            for step in 0..400u64 {
+                if step > 0 && step.is_multiple_of(every as u64) {
+                    let renewal = (step / every as u64) as usize;
+                    pool[(renewal - 1) % sets] = next;
+                    next += 1;
+                }
+                let closed: Vec<usize> = (0..sets).map(|slot| config.pool_index(slot, step)).collect();
+                assert_eq!(closed, pool, "{sets} sets, every {every}, step {step}");
+            }
+        }
+        let fixed = TrainConfig::default();
+        assert_eq!(fixed.pool_index(1, 1_000), 1);
+        let renewing = TrainConfig {
+            renew_every: 10,
+            ..TrainConfig::default()
+        };
+        let seeds: Vec<u64> = (0..3 * renewing.train_sets)
+            .map(|index| renewing.capture_config(index, false, 0).seed)
+            .collect();
+        let validation = renewing.capture_config(0, true, 0).seed;
+        assert!(seeds[..renewing.train_sets].iter().all(|s| *s < 1_000_000));
+        assert!(seeds[renewing.train_sets..].iter().all(|s| *s > 2_000_000));
+        assert!(!seeds.contains(&validation));
+    }
 
     /// The rig is part of the dataset's key only when it is not the five-view one, so the caches
     /// and checkpoints of five-view runs made before the option stay theirs; only the two rigs

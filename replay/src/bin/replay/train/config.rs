@@ -71,6 +71,7 @@ impl TrainArgs {
             context_below: self.context_below,
             flips: self.flips,
             keep_hopeless: self.keep_hopeless,
+            renew_every: self.renew_every,
             scenes: self.scenes.clone(),
             exposure_jitter: self.exposure_jitter,
             rig: self.rig,

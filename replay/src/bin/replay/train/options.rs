@@ -138,6 +138,13 @@ pub struct TrainArgs {
     /// Training (9))
     #[arg(long)]
     pub(crate) keep_hopeless: bool,
+    /// Training at scale: every N steps one of the --train-sets captures in memory is replaced
+    /// by a new one (in turn, made when it is needed and deleted from the cache when it is
+    /// replaced), so that a long run sees step / N more scenes than it holds instead of
+    /// learning its few captures by heart. Which captures a step sees depends only on the step:
+    /// a resumed run sees the same ones. 0 = the same captures throughout (default)
+    #[arg(long, value_name = "N", default_value_t = 0)]
+    pub(crate) renew_every: usize,
     /// Do not train: fit the pixel-locking curve of the refined readout for FILE, a weights
     /// file made by `replay train` before it wrote the curve itself, on the training captures
     /// its metadata names (cached in --dataset-dir), and write FILE again with the curve in its
