@@ -462,8 +462,8 @@ fn a_renewing_pool_trains_on_new_captures_deletes_the_old_and_resumes_alike() {
             .map(|entries| {
                 entries
                     .filter_map(|e| e.ok()?.file_name().into_string().ok())
-                    .filter(|n| n.starts_with("train-"))
-                    .map(|n| n[..10].to_owned())
+                    .filter(|n| n.starts_with("train-") || n.starts_with("renew-"))
+                    .map(|n| n.split('-').take(2).collect::<Vec<_>>().join("-"))
                     .collect()
             })
             .unwrap_or_default();
@@ -475,9 +475,9 @@ fn a_renewing_pool_trains_on_new_captures_deletes_the_old_and_resumes_alike() {
         assert_success(&output, "replay train --renew-every 2");
     };
     run("legs", "6");
-    assert_eq!(cached(), ["train-0000", "train-0001", "train-0002", "train-0003"]);
+    assert_eq!(cached(), ["renew-0002", "renew-0003", "train-0000", "train-0001"]);
     run("legs", "10");
-    assert_eq!(cached(), ["train-0000", "train-0001", "train-0004", "train-0005"]);
+    assert_eq!(cached(), ["renew-0004", "renew-0005", "train-0000", "train-0001"]);
     let summary: serde_json::Value =
         serde_json::from_slice(&std::fs::read(dir.path().join("legs/training.json")).unwrap_or_default())
             .unwrap_or_else(|e| panic!("training.json: {e}"));

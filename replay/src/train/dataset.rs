@@ -106,13 +106,18 @@ impl Sample {
     }
 }
 
-/// The cache's file name of training (or `validation`) capture `index`.
+/// The cache's file name of training (or `validation`) capture `index`: `train-`, `val-`, or
+/// `renew-` for a renewing pool's captures past the first `train_sets` (their seeds are their
+/// own, so a run with more `train_sets` never reads one as its own `train-` capture).
 pub fn sample_file_name(config: &TrainConfig, index: usize, validation: bool) -> String {
-    format!(
-        "{}-{index:04}-{:016x}.safetensors",
-        if validation { "val" } else { "train" },
-        config.data_key()
-    )
+    let kind = if validation {
+        "val"
+    } else if index >= config.train_sets {
+        "renew"
+    } else {
+        "train"
+    };
+    format!("{kind}-{index:04}-{:016x}.safetensors", config.data_key())
 }
 
 /// Makes (or reads from `cache_dir`) one dataset sample.
