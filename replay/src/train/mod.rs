@@ -324,11 +324,16 @@ pub fn train(
     let total = config.train_sets + config.val_sets;
     let mut train_samples = Vec::new();
     let mut val_samples = Vec::new();
-    // A renewing pool resumes with the captures its slots hold at the checkpoint's step.
-    let start_step = if config.renew_every > 0 && files.checkpoint().exists() {
-        load_checkpoint(&files.checkpoint(), config.views)?.adam.step
+    // Resume (the folder's checkpoint is this run's: `check_run_folder`) or start; read first,
+    // as a renewing pool resumes with the captures its slots hold at the checkpoint's step.
+    let resumed = if files.checkpoint().exists() {
+        Some(load_checkpoint(&files.checkpoint(), config.views)?)
     } else {
-        0
+        None
+    };
+    let start_step = match &resumed {
+        Some(checkpoint) if config.renew_every > 0 => checkpoint.adam.step,
+        _ => 0,
     };
     let mut pool: Vec<usize> = (0..config.train_sets)
         .map(|slot| config.pool_index(slot, start_step))
@@ -383,12 +388,6 @@ pub fn train(
     let calibration: Vec<Example> = (0..CALIBRATION_CROPS)
         .map(|_| random_crop(config, &train_samples, config.crop_px, &mut calibration_rng))
         .collect();
-    // Resume (the folder's checkpoint is this run's: `check_run_folder`) or start.
-    let resumed = if files.checkpoint().exists() {
-        Some(load_checkpoint(&files.checkpoint(), config.views)?)
-    } else {
-        None
-    };
     let (mut net, mut adam, mut average, mut history, mut train_seconds, continued) = match resumed {
         Some(Checkpoint {
             net,
