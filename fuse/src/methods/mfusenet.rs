@@ -213,12 +213,13 @@ pub struct MFuseNetConfig {
     /// and SGM inputs. Slanted planes (`scripts/eval-subpixel.sh`): AvgErr 0.077 → 0.044 px,
     /// BadPix 0.07 52.1 → 18.7 %; Middlebury 0.293 → 0.288 px, Bad1 4.87 → 4.87 %.
     pub block_subpixel: Option<BlockSubpixel>,
-    /// Thin nearer parts (rods, wires, slats) that the block-summed inputs lose, recovered
-    /// from per-pixel costs last (`thin_parts::ThinParts`; `{}` = its defaults, the default;
-    /// `null` = none). The `thin` family (`scripts/eval-thin.sh`, never trained on): AvgErr
-    /// 1.047 → 0.610 px, Bad1 8.88 → 5.84 % (per-pixel costs averaged over cross-shaped
-    /// supports, moves kept in patches shaped like parts); Middlebury and the simulated lines
-    /// no worse (docs/methods.md, "Thin parts from per-pixel costs").
+    /// Thin nearer parts (rods, wires, slats) that the block-summed inputs lose, and the
+    /// background seen through the gaps between them that they fill, recovered from per-pixel
+    /// costs last (`thin_parts::ThinParts`; `{}` = its defaults, the default; `null` = none). The
+    /// `thin` family (`scripts/eval-thin.sh`, never trained on): AvgErr 1.047 → 0.517 px, Bad1
+    /// 8.88 → 4.76 % (per-pixel costs averaged over cross-shaped supports, moves kept in patches
+    /// shaped like parts, farther moves only to a disparity seen nearby); Middlebury and the
+    /// simulated lines no worse (docs/methods.md, "Thin parts from per-pixel costs").
     pub thin_parts: Option<ThinParts>,
     /// The convolutions' products: `"bf16"` (the default: inputs and weights rounded to
     /// bfloat16, sums in f32, for the 3³–7³ layers where the host has AVX512-BF16, Intel from
