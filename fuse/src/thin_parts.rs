@@ -178,14 +178,8 @@ pub fn recover_thin_parts(
         window_min(&slices, w, h, config.farther_guard_px)
     });
     // The disparities estimated near each pixel, for the test that a farther move goes to one.
-    let seen_near = (config.farther && config.farther_seen_px > 0).then(|| {
-        SeenNear::new(
-            &disparity.data,
-            (w, h, nd),
-            min,
-            config.farther_seen_px,
-        )
-    });
+    let seen_near = (config.farther && config.farther_seen_px > 0)
+        .then(|| SeenNear::new(&disparity.data, (w, h, nd), min, config.farther_seen_px));
     // Each pixel's candidate (the new disparity, its confidence), NaN where none.
     let mut candidates = vec![(f32::NAN, 0.0f32); w * h];
     candidates
@@ -613,7 +607,10 @@ impl SeenNear {
     /// Pixel `i`'s window holds an estimate within a slice of `slice` (within a bin, where bins
     /// are wider than a slice).
     fn holds(&self, i: usize, slice: usize) -> bool {
-        let (lo, hi) = (slice.saturating_sub(1) / self.bin, ((slice + 1) / self.bin).min(self.bins - 1));
+        let (lo, hi) = (
+            slice.saturating_sub(1) / self.bin,
+            ((slice + 1) / self.bin).min(self.bins - 1),
+        );
         let mask = if hi - lo >= 127 {
             u128::MAX
         } else {
@@ -1389,7 +1386,9 @@ mod tests {
         let (problem, in_slit) = board_with_a_slit(w, h);
         let boxed = |x: usize, y: usize| (8..36).contains(&y) && (20..60).contains(&x);
         let filled = DisparityImage {
-            data: (0..w * h).map(|i| if boxed(i % w, i / w) { 10.0 } else { 2.0 }).collect(),
+            data: (0..w * h)
+                .map(|i| if boxed(i % w, i / w) { 10.0 } else { 2.0 })
+                .collect(),
             ..far_everywhere(w, h)
         };
         let mut disparity = filled.clone();
@@ -1416,7 +1415,9 @@ mod tests {
         };
         let mut kept = filled.clone();
         recover_thin_parts(&problem, &mut kept, &nearer_only).unwrap_or_else(|e| panic!("{e}"));
-        let slit_back = (0..w * h).filter(|&i| in_slit[i] && (kept.data[i] - 2.0).abs() <= 1.0).count();
+        let slit_back = (0..w * h)
+            .filter(|&i| in_slit[i] && (kept.data[i] - 2.0).abs() <= 1.0)
+            .count();
         assert_eq!(slit_back, 0);
     }
 
@@ -1446,7 +1447,13 @@ mod tests {
         // Radius 6 px: every 4 × 4 cell within two cells of the pixel's own.
         let (w, h, nd, radius) = (23, 17, 40, 6);
         let disparity: Vec<f32> = (0..w * h)
-            .map(|i| if i % 7 == 0 { f32::NAN } else { ((i * 37 + i / w * 11) % 45) as f32 - 1.4 })
+            .map(|i| {
+                if i % 7 == 0 {
+                    f32::NAN
+                } else {
+                    ((i * 37 + i / w * 11) % 45) as f32 - 1.4
+                }
+            })
             .collect();
         let seen = SeenNear::new(&disparity, (w, h, nd), -2.0, radius);
         let cell = |v: usize| v / SEEN_CELL_PX;
@@ -1460,7 +1467,8 @@ mod tests {
                                 continue;
                             }
                             let s = (disparity[ny * w + nx] + 2.0).round();
-                            plain |= s.is_finite() && s >= 0.0 && (s as usize) < nd && (s as usize).abs_diff(slice) <= 1;
+                            plain |=
+                                s.is_finite() && s >= 0.0 && (s as usize) < nd && (s as usize).abs_diff(slice) <= 1;
                         }
                     }
                     assert_eq!(seen.holds(y * w + x, slice), plain, "({x}, {y}) slice {slice}");
