@@ -85,6 +85,11 @@ pub struct ThinParts {
     /// widen a region the estimate already holds at that disparity (a mirror's reflection
     /// creeping over the mirror's frame) border it along their length. 1 = no such test.
     pub farther_max_extension: f32,
+    /// The shape test (`min_length_px`, `max_width_px`) for farther moves too. Without it
+    /// (`false`) the occluded strips beside near boards and wide gaps come back as well (the
+    /// thin family 0.516 → 0.505 px, Middlebury 0.285 → 0.281 px), but so does more of a
+    /// mirror's reflection (the workpiece lines +3.3 and +3.5 %; docs/experiments.md).
+    pub farther_shape_test: bool,
     /// The shortest part (px) a move may belong to: moves whose connected patch (8-neighbours
     /// moved to within a pixel of each other) spans fewer pixels than this both across and down
     /// the image are undone. A lost rod, wire or slat is a long line; a chance match of the
@@ -132,6 +137,7 @@ impl Default for ThinParts {
             farther_guard_px: 0,
             farther_seen_px: 32,
             farther_max_extension: 0.15,
+            farther_shape_test: true,
             min_length_px: 20,
             max_width_px: 8.0,
         }
@@ -227,7 +233,14 @@ pub fn recover_thin_parts(
         let moved_to: Vec<f32> = supported
             .iter()
             .zip(&candidates)
-            .map(|(&keep, c)| if keep { c.0 } else { f32::NAN })
+            .zip(&disparity.data)
+            .map(|((&keep, c), &d)| {
+                if keep && (config.farther_shape_test || c.0 > d) {
+                    c.0
+                } else {
+                    f32::NAN
+                }
+            })
             .collect();
         for (keep, unlike) in
             supported
@@ -1041,6 +1054,24 @@ mod tests {
             plane_back * 10 >= plane_total * 6,
             "plane {plane_back} of {plane_total}"
         );
+        // The shape limits at their defaults but not for farther moves: the same moves back.
+        let shapes_for_nearer_only = ThinParts {
+            min_length_px: ThinParts::default().min_length_px,
+            max_width_px: ThinParts::default().max_width_px,
+            farther_shape_test: false,
+            ..config
+        };
+        let mut same = fattened.clone();
+        recover_thin_parts(&problem, &mut same, &shapes_for_nearer_only).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(same.data, disparity.data);
+        // With them, the plane (one patch far wider than a gap) stays.
+        let shaped = ThinParts {
+            farther_shape_test: true,
+            ..shapes_for_nearer_only
+        };
+        let mut kept = fattened.clone();
+        recover_thin_parts(&problem, &mut kept, &shaped).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(kept.data, fattened.data);
         // Without `farther` nothing moves back; with the defaults neither, since no estimate
         // near the plane holds its disparity (a reflection's case).
         let nearer_only = ThinParts {
