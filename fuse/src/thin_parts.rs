@@ -27,7 +27,7 @@
 //! moves must not border a region already at its disparity along more than
 //! [`ThinParts::farther_max_extension`] of its border (a gap meets the background only at its
 //! ends; moves that widen a mis-estimated mirror region border it along their length). The
-//! thin family's Bad1 5.15 → 4.76 %, its unseen seeds 5–8 6.53 → 5.30 %; the reflective
+//! thin family's Bad1 5.15 → 4.74 %, its unseen seeds 5–8 6.53 → 5.29 %; the reflective
 //! workpiece lines within 1 % (farther moves without the two tests: +4 to +8 %; docs/experiments.md).
 
 use std::ops::Range;
@@ -75,15 +75,18 @@ pub struct ThinParts {
     /// 0 = no such guard.
     pub farther_guard_px: usize,
     /// With `farther`, a pixel moves farther only to a disparity that the estimate holds
-    /// (within a pixel) somewhere within this radius (px): the background seen through a gap
-    /// between parts is the surface seen around them, while a mirror's reflection lies at a
-    /// depth no real surface near it has. 0 = no such test.
+    /// (within a slice of its rounded value) somewhere within this reach (px; a square, rounded
+    /// up to whole cells of 4 × 4 px): the background seen through a gap between parts is the
+    /// surface seen around them, while a mirror's reflection lies at a depth no real surface
+    /// near it has. 0 = no such test.
     pub farther_seen_px: usize,
     /// With `farther`, the largest share of a patch of farther moves' border whose estimate
     /// already lies within a pixel of the patch: a gap's background is flanked by the parts
     /// (nearer) and meets the surface seen around them only at its ends, while moves that only
     /// widen a region the estimate already holds at that disparity (a mirror's reflection
-    /// creeping over the mirror's frame) border it along their length. 1 = no such test.
+    /// creeping over the mirror's frame) border it along their length. A gap `W` px wide and
+    /// `L` long meets the background over about `(W + 2) / (L + W + 2)` of its border, so 0.15
+    /// keeps gaps longer than about 4.7 `W` + 9 px (a 4 px gap: 28 px). 1 = no such test.
     pub farther_max_extension: f32,
     /// The shape test (`min_length_px`, `max_width_px`) for farther moves too. Without it
     /// (`false`) the occluded strips beside near boards and wide gaps come back as well (the
@@ -787,38 +790,44 @@ fn unlike_parts(disparity: &[f32], w: usize, h: usize, min_length: usize, max_wi
 fn extensions(moved_to: &[f32], estimate: &[f32], w: usize, h: usize, max_share: f32) -> Vec<bool> {
     let mut widens = vec![false; w * h];
     let mut seen = vec![false; w * h];
-    // The border pixel last counted for patch `stamp` (each counted once per patch).
+    // The patch (by its first pixel) each pixel last belonged to or was counted as border of:
+    // a pixel of the patch is never its border, a border pixel is counted once.
+    let mut member = vec![usize::MAX; w * h];
     let mut counted = vec![usize::MAX; w * h];
     let mut patch = Vec::new();
+    let neighbours = |i: usize| {
+        let (x, y) = (i % w, i / w);
+        (y.saturating_sub(1)..(y + 2).min(h))
+            .flat_map(move |ny| (x.saturating_sub(1)..(x + 2).min(w)).map(move |nx| ny * w + nx))
+            .filter(move |&j| j != i)
+    };
     for start in 0..w * h {
         if seen[start] || !moved_to[start].is_finite() {
             continue;
         }
         seen[start] = true;
+        member[start] = start;
         patch.clear();
         patch.push(start);
-        let (mut border, mut alike) = (0usize, 0usize);
         let mut next = 0;
         while let Some(&i) = patch.get(next) {
             next += 1;
-            let (x, y) = (i % w, i / w);
-            for ny in y.saturating_sub(1)..(y + 2).min(h) {
-                for nx in x.saturating_sub(1)..(x + 2).min(w) {
-                    let j = ny * w + nx;
-                    if j == i {
-                        continue;
-                    }
-                    if moved_to[j].is_finite() && (moved_to[j] - moved_to[i]).abs() <= 1.0 {
-                        if !seen[j] {
-                            seen[j] = true;
-                            patch.push(j);
-                        }
-                    } else if counted[j] != start {
-                        counted[j] = start;
-                        border += 1;
-                        if (estimate[j] - moved_to[i]).abs() <= 1.0 {
-                            alike += 1;
-                        }
+            for j in neighbours(i) {
+                if !seen[j] && moved_to[j].is_finite() && (moved_to[j] - moved_to[i]).abs() <= 1.0 {
+                    seen[j] = true;
+                    member[j] = start;
+                    patch.push(j);
+                }
+            }
+        }
+        let (mut border, mut alike) = (0usize, 0usize);
+        for &i in &patch {
+            for j in neighbours(i) {
+                if member[j] != start && counted[j] != start {
+                    counted[j] = start;
+                    border += 1;
+                    if (estimate[j] - moved_to[i]).abs() <= 1.0 {
+                        alike += 1;
                     }
                 }
             }
@@ -1072,13 +1081,20 @@ mod tests {
         let mut kept = fattened.clone();
         recover_thin_parts(&problem, &mut kept, &shaped).unwrap_or_else(|e| panic!("{e}"));
         assert_eq!(kept.data, fattened.data);
-        // Without `farther` nothing moves back; with the defaults neither, since no estimate
-        // near the plane holds its disparity (a reflection's case).
+        // Without `farther` nothing moves back; nor with the defaults (the plane is one patch far
+        // wider than a gap), nor with the seen-nearby test alone: no estimate near the plane
+        // holds its disparity (a reflection's case).
         let nearer_only = ThinParts {
             farther: false,
             ..ThinParts::default()
         };
-        for config in [nearer_only, ThinParts::default()] {
+        let seen_test_only = ThinParts {
+            farther_shape_test: false,
+            farther_max_extension: 1.0,
+            farther_seen_px: 32,
+            ..config
+        };
+        for config in [nearer_only, ThinParts::default(), seen_test_only] {
             let mut unchanged = fattened.clone();
             recover_thin_parts(&problem, &mut unchanged, &config).unwrap_or_else(|e| panic!("{e}"));
             assert_eq!(unchanged.data, fattened.data);
@@ -1475,36 +1491,51 @@ mod tests {
 
     #[test]
     fn the_disparities_held_near_each_pixel_are_those_of_a_plain_window_search() {
-        // Radius 6 px: every 4 × 4 cell within two cells of the pixel's own.
-        let (w, h, nd, radius) = (23, 17, 40, 6);
-        let disparity: Vec<f32> = (0..w * h)
-            .map(|i| {
-                if i % 7 == 0 {
-                    f32::NAN
-                } else {
-                    ((i * 37 + i / w * 11) % 45) as f32 - 1.4
-                }
-            })
-            .collect();
-        let seen = SeenNear::new(&disparity, (w, h, nd), -2.0, radius);
-        let cell = |v: usize| v / SEEN_CELL_PX;
-        for y in 0..h {
-            for x in 0..w {
-                for slice in 0..nd {
-                    let mut plain = false;
-                    for ny in 0..h {
-                        for nx in 0..w {
-                            if cell(nx).abs_diff(cell(x)) > 2 || cell(ny).abs_diff(cell(y)) > 2 {
-                                continue;
+        // Radius 6 px: every 4 × 4 cell within two cells of the pixel's own. A few estimates
+        // among non-finite ones, so that most windows hold few disparities; slices of one bin
+        // (40 disparities) and of three (300: 100 bins, a slice's neighbours within a bin).
+        let (w, h, radius) = (23, 17, 6);
+        for nd in [40usize, 300] {
+            let bin = nd.div_ceil(128);
+            let disparity: Vec<f32> = (0..w * h)
+                .map(|i| {
+                    if i % 29 == 3 {
+                        ((i * 37 + i / w * 11) % (nd + 4)) as f32 - 1.4
+                    } else {
+                        f32::NAN
+                    }
+                })
+                .collect();
+            let seen = SeenNear::new(&disparity, (w, h, nd), -2.0, radius);
+            let cell = |v: usize| v / SEEN_CELL_PX;
+            let (mut held, mut not_held) = (0, 0);
+            for y in 0..h {
+                for x in 0..w {
+                    for slice in 0..nd {
+                        let (lo, hi) = (slice.saturating_sub(1) / bin, (slice + 1) / bin);
+                        let mut plain = false;
+                        for ny in 0..h {
+                            for nx in 0..w {
+                                if cell(nx).abs_diff(cell(x)) > 2 || cell(ny).abs_diff(cell(y)) > 2 {
+                                    continue;
+                                }
+                                let s = (disparity[ny * w + nx] + 2.0).round();
+                                plain |= s.is_finite()
+                                    && s >= 0.0
+                                    && (s as usize) < nd
+                                    && (lo..=hi).contains(&(s as usize / bin));
                             }
-                            let s = (disparity[ny * w + nx] + 2.0).round();
-                            plain |=
-                                s.is_finite() && s >= 0.0 && (s as usize) < nd && (s as usize).abs_diff(slice) <= 1;
+                        }
+                        assert_eq!(seen.holds(y * w + x, slice), plain, "nd {nd}: ({x}, {y}) slice {slice}");
+                        if plain {
+                            held += 1;
+                        } else {
+                            not_held += 1;
                         }
                     }
-                    assert_eq!(seen.holds(y * w + x, slice), plain, "({x}, {y}) slice {slice}");
                 }
             }
+            assert!(held > 0 && not_held > held, "nd {nd}: {held} held, {not_held} not");
         }
     }
 }

@@ -216,8 +216,8 @@ pub struct MFuseNetConfig {
     /// Thin nearer parts (rods, wires, slats) that the block-summed inputs lose, and the
     /// background seen through the gaps between them that they fill, recovered from per-pixel
     /// costs last (`thin_parts::ThinParts`; `{}` = its defaults, the default; `null` = none). The
-    /// `thin` family (`scripts/eval-thin.sh`, never trained on): AvgErr 1.047 → 0.517 px, Bad1
-    /// 8.88 → 4.76 % (per-pixel costs averaged over cross-shaped supports, moves kept in patches
+    /// `thin` family (`scripts/eval-thin.sh`, never trained on): AvgErr 1.047 → 0.516 px, Bad1
+    /// 8.88 → 4.74 % (per-pixel costs averaged over cross-shaped supports, moves kept in patches
     /// shaped like parts, farther moves only to a disparity seen nearby); Middlebury and the
     /// simulated lines no worse (docs/methods.md, "Thin parts from per-pixel costs").
     pub thin_parts: Option<ThinParts>,
