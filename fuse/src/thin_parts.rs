@@ -639,98 +639,73 @@ impl SeenNear {
 
 /// The OR of `values` (`w × h`) over the square window within `radius` of each pixel.
 fn window_or(values: &[u128], w: usize, h: usize, radius: usize) -> Vec<u128> {
-    // A running OR along a line: each output the OR of the inputs within `radius` (block prefix
-    // and suffix ORs of width 2r + 1, van Herk / Gil–Werman).
-    let line_or = |line: &[u128], out: &mut [u128]| {
-        let (n, k) = (line.len(), 2 * radius + 1);
-        let mut prefix = vec![0u128; n];
-        let mut suffix = vec![0u128; n];
-        for i in 0..n {
-            prefix[i] = if i % k == 0 { line[i] } else { prefix[i - 1] | line[i] };
-        }
-        for i in (0..n).rev() {
-            suffix[i] = if i % k == k - 1 || i == n - 1 {
-                line[i]
-            } else {
-                suffix[i + 1] | line[i]
-            };
-        }
-        for (i, o) in out.iter_mut().enumerate() {
-            let (lo, hi) = (i.saturating_sub(radius), (i + radius).min(n - 1));
-            *o = if lo / k == hi / k {
-                line[lo..=hi].iter().fold(0, |a, b| a | b)
-            } else {
-                suffix[lo] | prefix[hi]
-            };
-        }
-    };
-    let mut rows = vec![0u128; w * h];
-    rows.par_chunks_mut(w)
-        .zip(values.par_chunks(w))
-        .for_each(|(out, line)| line_or(line, out));
-    let columns: Vec<Vec<u128>> = (0..w)
-        .into_par_iter()
-        .map(|x| {
-            let line: Vec<u128> = (0..h).map(|y| rows[y * w + x]).collect();
-            let mut column = vec![0u128; h];
-            line_or(&line, &mut column);
-            column
-        })
-        .collect();
-    let mut out = vec![0u128; w * h];
-    for (x, column) in columns.iter().enumerate() {
-        for (y, v) in column.iter().enumerate() {
-            out[y * w + x] = *v;
-        }
-    }
-    out
+    window_reduce(values, w, h, radius, 0, |a, b| a | b)
 }
 
 /// The smallest finite value of `values` (`w × h`) within `radius` of each pixel (a square
 /// window; `f32::INFINITY` where there is none): two passes of a running minimum.
 fn window_min(values: &[f32], w: usize, h: usize, radius: usize) -> Vec<f32> {
-    let finite = |v: f32| if v.is_finite() { v } else { f32::INFINITY };
-    let line_min = |line: &[f32], out: &mut [f32]| {
-        // Van Herk / Gil–Werman: block prefix and suffix minima of width 2r+1.
+    let finite: Vec<f32> = values
+        .iter()
+        .map(|&v| if v.is_finite() { v } else { f32::INFINITY })
+        .collect();
+    window_reduce(&finite, w, h, radius, f32::INFINITY, f32::min)
+}
+
+/// `op` (associative, commutative, idempotent: a minimum, an OR) of `values` (`w × h`) over the
+/// square window within `radius` of each pixel, `identity` its neutral value: a running pass
+/// along the rows, then along the columns (van Herk / Gil–Werman: block prefix and suffix
+/// values of width 2r + 1, so the cost does not grow with the radius).
+fn window_reduce<T: Copy + Send + Sync>(
+    values: &[T],
+    w: usize,
+    h: usize,
+    radius: usize,
+    identity: T,
+    op: impl Fn(T, T) -> T + Sync,
+) -> Vec<T> {
+    let line_reduce = |line: &[T], out: &mut [T]| {
         let (n, k) = (line.len(), 2 * radius + 1);
-        let mut prefix = vec![f32::INFINITY; n];
-        let mut suffix = vec![f32::INFINITY; n];
+        let mut prefix = vec![identity; n];
+        let mut suffix = vec![identity; n];
         for i in 0..n {
-            let v = finite(line[i]);
-            prefix[i] = if i % k == 0 { v } else { prefix[i - 1].min(v) };
+            prefix[i] = if i % k == 0 {
+                line[i]
+            } else {
+                op(prefix[i - 1], line[i])
+            };
         }
         for i in (0..n).rev() {
-            let v = finite(line[i]);
             suffix[i] = if i % k == k - 1 || i == n - 1 {
-                v
+                line[i]
             } else {
-                suffix[i + 1].min(v)
+                op(suffix[i + 1], line[i])
             };
         }
         for (i, o) in out.iter_mut().enumerate() {
             let (lo, hi) = (i.saturating_sub(radius), (i + radius).min(n - 1));
-            // A window cut by the line's ends may lie within one block: its own minimum.
+            // A window cut by the line's ends may lie within one block: its own values.
             *o = if lo / k == hi / k {
-                line[lo..=hi].iter().map(|v| finite(*v)).fold(f32::INFINITY, f32::min)
+                line[lo..=hi].iter().fold(identity, |a, &b| op(a, b))
             } else {
-                suffix[lo].min(prefix[hi])
+                op(suffix[lo], prefix[hi])
             };
         }
     };
-    let mut rows = vec![f32::INFINITY; w * h];
+    let mut rows = vec![identity; w * h];
     rows.par_chunks_mut(w)
         .zip(values.par_chunks(w))
-        .for_each(|(out, line)| line_min(line, out));
-    let mut out = vec![f32::INFINITY; w * h];
-    let columns: Vec<Vec<f32>> = (0..w)
+        .for_each(|(out, line)| line_reduce(line, out));
+    let columns: Vec<Vec<T>> = (0..w)
         .into_par_iter()
         .map(|x| {
-            let line: Vec<f32> = (0..h).map(|y| rows[y * w + x]).collect();
-            let mut column = vec![f32::INFINITY; h];
-            line_min(&line, &mut column);
+            let line: Vec<T> = (0..h).map(|y| rows[y * w + x]).collect();
+            let mut column = vec![identity; h];
+            line_reduce(&line, &mut column);
             column
         })
         .collect();
+    let mut out = vec![identity; w * h];
     for (x, column) in columns.iter().enumerate() {
         for (y, v) in column.iter().enumerate() {
             out[y * w + x] = *v;
@@ -929,6 +904,27 @@ mod tests {
     use super::*;
     use crate::volume::Neighbour;
 
+    /// The reference `view([0, 0])` and the four views of a cross around it, 16 disparities.
+    fn cross_of(view: impl Fn([i32; 2]) -> Image) -> Problem {
+        let neighbour = |offset: [i32; 2], role: &str| Neighbour {
+            image: view(offset),
+            offset,
+            role: role.into(),
+            baseline_ratio: 1.0,
+        };
+        Problem {
+            reference: view([0, 0]),
+            neighbours: vec![
+                neighbour([-1, 0], "left"),
+                neighbour([1, 0], "right"),
+                neighbour([0, -1], "top"),
+                neighbour([0, 1], "bottom"),
+            ],
+            min_disparity: 0,
+            num_disparities: 16,
+        }
+    }
+
     /// A textured far plane at disparity 2 with a rod two pixels thick across it at disparity
     /// 10 (rows 20 and 21 of the reference), seen from the four views of a cross: the view at
     /// offset `o` shows at `p` the point that the reference shows at `p + o·d`.
@@ -963,23 +959,7 @@ mod tests {
             }
             Image::new(w, h, 3, data).unwrap_or_else(|e| panic!("{e}"))
         };
-        let neighbour = |offset: [i32; 2], role: &str| Neighbour {
-            image: view(offset),
-            offset,
-            role: role.into(),
-            baseline_ratio: 1.0,
-        };
-        let problem = Problem {
-            reference: view([0, 0]),
-            neighbours: vec![
-                neighbour([-1, 0], "left"),
-                neighbour([1, 0], "right"),
-                neighbour([0, -1], "top"),
-                neighbour([0, 1], "bottom"),
-            ],
-            min_disparity: 0,
-            num_disparities: 16,
-        };
+        let problem = cross_of(view);
         let on_rod = (0..h)
             .flat_map(|y| std::iter::repeat_n(rod.contains(&(y as f32)), w))
             .collect();
@@ -1399,23 +1379,7 @@ mod tests {
             }
             Image::new(w, h, 3, data).unwrap_or_else(|e| panic!("{e}"))
         };
-        let neighbour = |offset: [i32; 2], role: &str| Neighbour {
-            image: view(offset),
-            offset,
-            role: role.into(),
-            baseline_ratio: 1.0,
-        };
-        let problem = Problem {
-            reference: view([0, 0]),
-            neighbours: vec![
-                neighbour([-1, 0], "left"),
-                neighbour([1, 0], "right"),
-                neighbour([0, -1], "top"),
-                neighbour([0, 1], "bottom"),
-            ],
-            min_disparity: 0,
-            num_disparities: 16,
-        };
+        let problem = cross_of(view);
         let in_slit = (0..w * h)
             .map(|i| {
                 let (x, y) = ((i % w) as f32, (i / w) as f32);
