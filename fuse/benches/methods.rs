@@ -305,6 +305,32 @@ fn pixel_costs(c: &mut Criterion) {
         });
     }
     group.finish();
+    // The access pattern inside the fused tiles: one 104-column tile (96 and the block's halo)
+    // row after row down 256 rows, for a neighbour along the row (its search lines are the
+    // image rows) and one along the column (a line per column: the tile reads 104 lines).
+    let (height, tile) = (256, 104);
+    let problem = self::problem(width, height, nd);
+    let cost = PixelCost::Census {
+        radius: 3,
+        symmetric: false,
+    };
+    let reference = PreparedView::new(problem.reference.clone(), cost);
+    let mut out = vec![0u8; tile * nd];
+    let mut group = c.benchmark_group("census_7x7_tile_104x256x128");
+    for (name, neighbour) in [("right", &problem.neighbours[1]), ("bottom", &problem.neighbours[3])] {
+        let Some(lines) = SearchLines::new(&neighbour.image, cost, neighbour.offset, 0..nd as i32) else {
+            panic!("an axis neighbour has search lines");
+        };
+        group.bench_function(name, |b| {
+            b.iter(|| {
+                for y in 0..height {
+                    pixel_cost_tile_lines(cost, &reference, &lines, y, 900..900 + tile as isize, 0, nd, &mut out);
+                    black_box(&out);
+                }
+            })
+        });
+    }
+    group.finish();
 }
 
 /// MFuseNet's last step: the thin-part recovery on each pixel's own costs and over cross-shaped

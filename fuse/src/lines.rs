@@ -15,6 +15,8 @@ use crate::cost::{
 };
 use crate::image::Image;
 
+mod census_kernel;
+
 /// A neighbour's samples in search-line order, with the border replicated past the image.
 #[derive(Debug, Clone)]
 pub struct SearchLines {
@@ -268,6 +270,10 @@ pub fn pixel_cost_tile_lines(
                 {
                     // The 7×7 window (SGM's default): 48 bits.
                     let from = range.start;
+                    let codes = [c0[at], c1[at], c2[at], c3[at], c4[at], c5[at]];
+                    if census_kernel::Planes48::new([p0, p1, p2, p3, p4, p5]).distances(from, codes, costs) {
+                        continue;
+                    }
                     census_distances_48(
                         [
                             &p0[from..],
@@ -277,7 +283,7 @@ pub fn pixel_cost_tile_lines(
                             &p4[from..],
                             &p5[from..],
                         ],
-                        [c0[at], c1[at], c2[at], c3[at], c4[at], c5[at]],
+                        codes,
                         costs,
                     );
                 } else {
