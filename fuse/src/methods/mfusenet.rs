@@ -221,6 +221,15 @@ pub struct MFuseNetConfig {
     /// shaped like parts, farther moves only to a disparity seen nearby); Middlebury and the
     /// simulated lines no worse (docs/methods.md, "Thin parts from per-pixel costs").
     pub thin_parts: Option<ThinParts>,
+    /// The thin-part recovery reads every view of the set (`true`, the default), not only the
+    /// network's nearest group: a line of five's outer pair confirms a rod or rejects a
+    /// periodic texture's alias that the inner pair alone cannot (the `random` line of seed 8
+    /// 0.171 → 0.134 px, a line of five of the held-out `thin` family 1.218 → 1.123 px; the
+    /// other lines, grids and crosses within ±1 %; docs/experiments.md 2026-12-06). The
+    /// sub-pixel re-reading keeps to the nearest group: a 3 × 3 grid's diagonal views move its
+    /// fraction off (the `bin` grid 0.110 → 0.116 px).
+    #[serde(default = "yes")]
+    pub thin_parts_every_view: bool,
     /// The convolutions' products: `"bf16"` (the default: inputs and weights rounded to
     /// bfloat16, sums in f32, for the 3³–7³ layers where the host has AVX512-BF16, Intel from
     /// Cooper Lake and AMD from Zen 4; f32 elsewhere) or `"f32"`. The run's details say which
@@ -257,6 +266,7 @@ impl Default for MFuseNetConfig {
             side_rule: SideRule::NearCapped,
             block_subpixel: Some(BlockSubpixel::default()),
             thin_parts: Some(ThinParts::default()),
+            thin_parts_every_view: true,
             precision: Precision::Bf16,
         }
     }
@@ -474,6 +484,12 @@ impl MFuseNet {
                     .map(|side| side.iter().map(|n| n.role.as_str()).collect::<Vec<_>>().join(" + "))
                     .collect::<Vec<_>>()
             });
+        // The views the thin-part recovery reads (`thin_parts_every_view`), where they are more
+        // than the network's nearest group.
+        let thin_parts_views = (self.config.thin_parts.is_some() && self.config.thin_parts_every_view)
+            .then(|| ordered_neighbours(problem, loaded.views).map_or(0, |used| used.len()))
+            .filter(|used| *used < problem.neighbours.len())
+            .map(|_| problem.neighbours.iter().map(|n| n.role.as_str()).collect::<Vec<_>>());
         if let Some(serde_json::Value::Object(plan)) = self.plan_details(problem) {
             let mut out = serde_json::json!({
                 "network": "fused",
@@ -483,6 +499,7 @@ impl MFuseNet {
                 "full_size_band_px": (factor > 1).then_some(factor),
                 "side_inputs": side_inputs,
                 "side_rule": side_inputs.is_some().then_some(self.config.side_rule),
+                "thin_parts_views": thin_parts_views,
             });
             if let serde_json::Value::Object(map) = &mut out {
                 map.extend(plan);
@@ -506,6 +523,7 @@ impl MFuseNet {
                 .unwrap_or_default(),
             "side_inputs": side_inputs,
             "side_rule": side_inputs.is_some().then_some(self.config.side_rule),
+            "thin_parts_views": thin_parts_views,
         })
     }
 }
@@ -929,8 +947,8 @@ impl MFuseNet {
             }
         }
         if stage == Stage::Last && (self.config.block_subpixel.is_some() || self.config.thin_parts.is_some()) {
-            // The costs of the views the network answered from (the nearest group), so that a
-            // method never changes with views it does not use.
+            // The sub-pixel step reads the views the network answered from (the nearest group);
+            // the thin-part step every view (`thin_parts_every_view`).
             let used = ordered_neighbours(problem, self.network_for(problem)?.views)?;
             let nearest;
             let costs_of = if used.len() == problem.neighbours.len() {
@@ -947,7 +965,8 @@ impl MFuseNet {
                 refine_with_block_costs(costs_of, &mut out, config)?;
             }
             if let Some(config) = &self.config.thin_parts {
-                recover_thin_parts(costs_of, &mut out, config)?;
+                let views = if self.config.thin_parts_every_view { problem } else { costs_of };
+                recover_thin_parts(views, &mut out, config)?;
             }
         }
         scale_by_local_consistency(&mut out);
