@@ -195,21 +195,53 @@ pub fn peak_confidence(costs: &[u16], best: usize) -> f32 {
     if c1 == INVALID_COST {
         return 0.0;
     }
-    // The least cost left of `best − 1` and right of `best + 1`: two plain slice minima that
-    // vectorise (an invalid cost is `u16::MAX`, so it never wins unless every one is invalid).
-    let below = costs.get(..best.saturating_sub(1)).unwrap_or(&[]);
-    let above = costs.get(best + 2..).unwrap_or(&[]);
-    let c2 = below
-        .iter()
-        .copied()
-        .fold(INVALID_COST, u16::min)
-        .min(above.iter().copied().fold(INVALID_COST, u16::min));
+    // The least cost more than one disparity from `best` (an invalid cost is `u16::MAX`, so it
+    // never wins unless every one is invalid): one pass over whole runs of lanes with the three
+    // around `best` masked, whose trip count is fixed (two minima of slices whose lengths
+    // change from pixel to pixel spent as long in their unaligned heads and tails as in the
+    // minima, 2026-12-06).
+    let c2 = if let Ok(best) = u16::try_from(best)
+        && costs.len() <= usize::from(u16::MAX)
+    {
+        // Lane `l` of run `k` is disparity `16k + l`; it is within one of `best` where
+        // `d − best + 1` (mod 2¹⁶) is at most 2: 16-bit lanes throughout.
+        let mut lanes = [INVALID_COST; CONFIDENCE_LANES];
+        let (runs, rest) = costs.as_chunks::<CONFIDENCE_LANES>();
+        // `d − best + 1` of each lane, stepped by a run at a time.
+        let mut offsets: [u16; CONFIDENCE_LANES] =
+            std::array::from_fn(|l| (l as u16).wrapping_sub(best).wrapping_add(1));
+        for run in runs {
+            for ((lane, v), offset) in lanes.iter_mut().zip(run).zip(&mut offsets) {
+                // All ones (an invalid cost) within one of `best`, else the cost.
+                let near = 0u16.wrapping_sub(u16::from(*offset <= 2));
+                *lane = (*lane).min(*v | near);
+                *offset = offset.wrapping_add(CONFIDENCE_LANES as u16);
+            }
+        }
+        let near = |d: usize| d.abs_diff(usize::from(best)) <= 1;
+        let tail = runs.len() * CONFIDENCE_LANES;
+        rest.iter()
+            .enumerate()
+            .filter(|(l, _)| !near(tail + l))
+            .fold(lanes.into_iter().fold(INVALID_COST, u16::min), |m, (_, v)| m.min(*v))
+    } else {
+        let below = costs.get(..best.saturating_sub(1)).unwrap_or(&[]);
+        let above = costs.get(best + 2..).unwrap_or(&[]);
+        below
+            .iter()
+            .copied()
+            .fold(INVALID_COST, u16::min)
+            .min(above.iter().copied().fold(INVALID_COST, u16::min))
+    };
     match c2 {
         INVALID_COST => 1.0,
         0 => 0.0,
         c2 => (1.0 - f32::from(c1) / f32::from(c2)).clamp(0.0, 1.0),
     }
 }
+
+/// Costs [`peak_confidence`] takes at once (one AVX2 register of `u16`).
+const CONFIDENCE_LANES: usize = 16;
 
 /// The smallest of `costs` and its first index (`(0, INVALID_COST)` when empty): a vectorised
 /// minimum, then the runs of [`MINIMUM_RUN`] searched for it with one comparison each (they
@@ -265,6 +297,54 @@ fn winners(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_peak_confidence_is_the_plain_peak_ratio() {
+        // The definition: the least cost more than one disparity from `best`.
+        let plain = |c: &[u16], best: usize| -> f32 {
+            let c1 = c.get(best).copied().unwrap_or(INVALID_COST);
+            if c1 == INVALID_COST {
+                return 0.0;
+            }
+            let c2 = c
+                .iter()
+                .enumerate()
+                .filter(|(d, _)| d.abs_diff(best) > 1)
+                .map(|(_, v)| *v)
+                .min()
+                .unwrap_or(INVALID_COST);
+            match c2 {
+                INVALID_COST => 1.0,
+                0 => 0.0,
+                c2 => (1.0 - f32::from(c1) / f32::from(c2)).clamp(0.0, 1.0),
+            }
+        };
+        let mut state = 11u32;
+        let mut next = || {
+            state = state.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+            state >> 16
+        };
+        for n in [1usize, 2, 3, 5, 16, 17, 31, 33, 128, 131] {
+            for _ in 0..40 {
+                let costs: Vec<u16> = (0..n)
+                    .map(|_| {
+                        if next() % 7 == 0 {
+                            INVALID_COST
+                        } else {
+                            (next() % 300) as u16
+                        }
+                    })
+                    .collect();
+                for best in [0, 1, n / 2, n.saturating_sub(2), n - 1] {
+                    assert_eq!(
+                        peak_confidence(&costs, best),
+                        plain(&costs, best),
+                        "{n} costs, best {best}: {costs:?}"
+                    );
+                }
+            }
+        }
+    }
 
     #[test]
     fn the_first_minimum_is_the_packed_minimum() {

@@ -965,7 +965,11 @@ impl MFuseNet {
                 refine_with_block_costs(costs_of, &mut out, config)?;
             }
             if let Some(config) = &self.config.thin_parts {
-                let views = if self.config.thin_parts_every_view { problem } else { costs_of };
+                let views = if self.config.thin_parts_every_view {
+                    problem
+                } else {
+                    costs_of
+                };
                 recover_thin_parts(views, &mut out, config)?;
             }
         }
