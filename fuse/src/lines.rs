@@ -210,6 +210,11 @@ pub fn pixel_cost_tile_lines(
 ) {
     let image = reference.image();
     let (width, channels) = (image.width, image.channels);
+    // The 48-bit census planes for the intrinsics kernel, bounded once per tile row.
+    let planes48 = match &lines.census[..] {
+        [p0, p1, p2, p3, p4, p5] => Some(census_kernel::Planes48::new([p0, p1, p2, p3, p4, p5])),
+        _ => None,
+    };
     for (costs, x) in out.chunks_exact_mut(num_disparities).zip(xs) {
         let x = x.clamp(0, width as isize - 1) as usize;
         let start = lines.base(x, y).saturating_add_signed(min_disparity as isize);
@@ -271,7 +276,7 @@ pub fn pixel_cost_tile_lines(
                     // The 7×7 window (SGM's default): 48 bits.
                     let from = range.start;
                     let codes = [c0[at], c1[at], c2[at], c3[at], c4[at], c5[at]];
-                    if census_kernel::Planes48::new([p0, p1, p2, p3, p4, p5]).distances(from, codes, costs) {
+                    if planes48.as_ref().is_some_and(|k| k.distances(from, codes, costs)) {
                         continue;
                     }
                     census_distances_48(
