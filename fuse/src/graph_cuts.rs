@@ -927,9 +927,17 @@ impl KzEnergy {
     /// The IPOL program's automatic K: the mean over pixels (with every label allowed) of the
     /// k-th smallest data cost, k = max(3, (labels + 2) / 4), in data-cost units.
     pub fn automatic_occlusion(&self) -> f32 {
+        let (sum, count) = self.kth_cost_sums(0..self.height);
+        if count == 0 { 0.0 } else { (sum / count as f64) as f32 }
+    }
+
+    /// The sum and count behind [`Self::automatic_occlusion`] over the pixels of `rows`: a
+    /// problem solved in strips takes its K from the rows each strip keeps.
+    pub fn kth_cost_sums(&self, rows: std::ops::Range<usize>) -> (f64, usize) {
         let k = ((self.labels + 2) / 4).max(3).min(self.labels);
+        let rows = rows.start.min(self.height)..rows.end.min(self.height);
         // Each pixel's k-th cost in parallel, summed in pixel order (the same sum every time).
-        let kth: Vec<Option<u16>> = (0..self.width * self.height)
+        let kth: Vec<Option<u16>> = (rows.start * self.width..rows.end * self.width)
             .into_par_iter()
             .map_init(
                 || Vec::with_capacity(self.labels),
@@ -949,7 +957,7 @@ impl KzEnergy {
             sum += f64::from(c);
             count += 1;
         }
-        if count == 0 { 0.0 } else { (sum / count as f64) as f32 }
+        (sum, count)
     }
 
     /// Replaces the occlusion and smoothness penalties (data-cost units) and recomputes the
