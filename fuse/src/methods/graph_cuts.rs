@@ -148,10 +148,18 @@ impl Method for GraphCuts {
             stored_data_mib: c.stored_data_mib,
         };
         let strips = strips_of(solved, c.strips);
-        // Each strip its own problem and energy, side by side; the stored data term's memory
-        // shared out among them (`stored_data_mib` is the whole run's).
+        // Each strip its own problem and energy, side by side. `stored_data_mib` is the whole
+        // run's: every strip stores its data term when all of them together fit, none otherwise.
+        let cells: usize = strips
+            .iter()
+            .map(|s| s.rows.len() * solved.reference.width * solved.num_disparities)
+            .sum();
         let params = EnergyParams {
-            stored_data_mib: params.stored_data_mib / strips.len(),
+            stored_data_mib: if cells.saturating_mul(3) <= c.stored_data_mib.saturating_mul(1 << 20) {
+                usize::MAX
+            } else {
+                0
+            },
             ..params
         };
         let mut energies = strips
@@ -572,6 +580,14 @@ mod tests {
                 .unwrap_or_else(|e| panic!("{e}"))
         };
         let (whole, halves) = (run(1), run(2));
+        // The data term computed where it is read gives the same strips.
+        let computed = super::super::build(
+            "gc-heuristic",
+            Some(&serde_json::json!({"strips": 2, "stored_data_mib": 0})),
+        )
+        .and_then(|m| m.run(&problem, &|_| {}))
+        .unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(computed, halves);
         assert_eq!((halves.width, halves.height), (w, h));
         let confidence = halves.confidence.as_ref().map_or(0, Vec::len);
         assert_eq!(confidence, w * h);
