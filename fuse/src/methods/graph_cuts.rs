@@ -326,7 +326,7 @@ impl Strip {
 /// range) plus [`STRIP_CONTEXT_ROWS`] on each side that has a neighbouring strip, so that the
 /// pixels it keeps find their matches where the whole image has them and their smoothness
 /// terms and readout windows within the strip (the labels there are the strip's own cut's); a
-/// share is at least twice that margin. Uniqueness is enforced within each strip: two strips
+/// share is at least that margin (a smaller one would cost more rows than it saves). Uniqueness is enforced within each strip: two strips
 /// may both match a neighbour pixel near their seam.
 pub fn strips_of(problem: &Problem, fusion: Fusion, wanted: usize) -> Vec<Strip> {
     let height = problem.reference.height;
@@ -342,7 +342,7 @@ pub fn strips_of(problem: &Problem, fusion: Fusion, wanted: usize) -> Vec<Strip>
         .unwrap_or(0)
         .min(height);
     let margin = reach + STRIP_CONTEXT_ROWS;
-    let count = wanted.clamp(1, MAX_STRIPS).min(height / (2 * margin)).max(1);
+    let count = wanted.clamp(1, MAX_STRIPS).min(height / margin).max(1);
     (0..count)
         .map(|i| {
             let share = i * height / count..(i + 1) * height / count;
@@ -559,8 +559,9 @@ mod tests {
                 },
             ]
         );
-        // Three shares of 66 rows would be under twice the margin: two strips.
-        assert_eq!(strips_of(&problem, Fusion::Heuristic, 3).len(), 2);
+        // Three shares of 66 rows hold their margin of 39; six of 33 would not: five.
+        assert_eq!(strips_of(&problem, Fusion::Heuristic, 3).len(), 3);
+        assert_eq!(strips_of(&problem, Fusion::Heuristic, 6).len(), 5);
         assert_eq!(
             strips_of(&problem, Fusion::Heuristic, 1),
             vec![Strip {
