@@ -927,8 +927,7 @@ impl KzEnergy {
     /// The IPOL program's automatic K: the mean over pixels (with every label allowed) of the
     /// k-th smallest data cost, k = max(3, (labels + 2) / 4), in data-cost units.
     pub fn automatic_occlusion(&self) -> f32 {
-        let (sum, count) = self.kth_cost_sums(0..self.height);
-        if count == 0 { 0.0 } else { (sum / count as f64) as f32 }
+        occlusion_from_kth_sums(self.kth_cost_sums(0..self.height))
     }
 
     /// The sum and count behind [`Self::automatic_occlusion`] over the pixels of `rows`: a
@@ -969,6 +968,12 @@ impl KzEnergy {
         self.lambda_edge = units(lambda_edge);
         self.energy = self.compute_energy();
     }
+}
+
+/// The automatic K from [`KzEnergy::kth_cost_sums`]' sum and count (their mean; 0 without
+/// pixels).
+pub fn occlusion_from_kth_sums((sum, count): (f64, usize)) -> f32 {
+    if count == 0 { 0.0 } else { (sum / count as f64) as f32 }
 }
 
 /// A random permutation of `0..n` from `seed` (Fisher–Yates on a 64-bit LCG).

@@ -34,6 +34,32 @@ pub struct Neighbour {
     pub baseline_ratio: f32,
 }
 
+/// A plane seen from a cross of four neighbours (tests): the reference `view([0, 0])` and each
+/// neighbour `view(offset)` (the view one baseline along `offset`, which the caller shifts by
+/// its plane's disparity), searched over `0..num_disparities`.
+#[cfg(test)]
+pub(crate) fn plane_of_cross(view: impl Fn([i32; 2]) -> Image, num_disparities: usize) -> Problem {
+    Problem {
+        reference: view([0, 0]),
+        neighbours: [
+            ("left", [-1, 0]),
+            ("right", [1, 0]),
+            ("top", [0, -1]),
+            ("bottom", [0, 1]),
+        ]
+        .into_iter()
+        .map(|(role, offset)| Neighbour {
+            role: role.into(),
+            image: view(offset),
+            offset,
+            baseline_ratio: 1.0,
+        })
+        .collect(),
+        min_disparity: 0,
+        num_disparities,
+    }
+}
+
 /// A fronto-parallel plane at disparity `d` seen from views along x (tests): the reference
 /// `view(0)` and, per `(role, k)`, the view `k` baselines away, `view(k · d)`; disparities
 /// searched from 0.

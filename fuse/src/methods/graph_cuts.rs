@@ -11,7 +11,9 @@ use serde::{Deserialize, Serialize};
 use super::{Family, Method, MethodEntry, Progress, configure};
 use crate::FuseError;
 use crate::fusion::Fusion;
-use crate::graph_cuts::{DataNorm, EnergyParams, KzEnergy, Uniqueness, expand_until_converged, label_order};
+use crate::graph_cuts::{
+    DataNorm, EnergyParams, KzEnergy, Uniqueness, expand_until_converged, label_order, occlusion_from_kth_sums,
+};
 use crate::image::{DisparityImage, Image};
 use crate::postprocess::{WeightedMedian, weighted_median};
 use crate::volume::{Neighbour, Problem};
@@ -138,15 +140,6 @@ impl Method for GraphCuts {
         if let Some(filter) = &c.weighted_median {
             filter.validate()?;
         }
-        let params = EnergyParams {
-            occlusion: c.occlusion_k,
-            lambda_similar: c.lambda1,
-            lambda_edge: c.lambda2,
-            edge_threshold: c.edge_threshold,
-            norm: c.data_norm,
-            uniqueness: c.uniqueness,
-            stored_data_mib: c.stored_data_mib,
-        };
         // The views' sizes before they are cut into strips.
         solved.validate()?;
         let strips = strips_of(solved, c.fusion, c.strips);
@@ -162,12 +155,17 @@ impl Method for GraphCuts {
             })
             .fold(0, usize::saturating_add);
         let params = EnergyParams {
+            occlusion: c.occlusion_k,
+            lambda_similar: c.lambda1,
+            lambda_edge: c.lambda2,
+            edge_threshold: c.edge_threshold,
+            norm: c.data_norm,
+            uniqueness: c.uniqueness,
             stored_data_mib: if cells.saturating_mul(3) <= c.stored_data_mib.saturating_mul(1 << 20) {
                 usize::MAX
             } else {
                 0
             },
-            ..params
         };
         let mut energies = strips
             .par_iter()
@@ -175,12 +173,13 @@ impl Method for GraphCuts {
             .collect::<Result<Vec<_>, FuseError>>()?;
         if c.automatic_k {
             // K from the rows the strips keep: every pixel once.
-            let (sum, count) = energies
-                .iter()
-                .zip(&strips)
-                .map(|(energy, strip)| energy.kth_cost_sums(strip.keep.clone()))
-                .fold((0.0, 0), |(s, n), (sum, count)| (s + sum, n + count));
-            let k = if count == 0 { 0.0 } else { (sum / count as f64) as f32 };
+            let k = occlusion_from_kth_sums(
+                energies
+                    .iter()
+                    .zip(&strips)
+                    .map(|(energy, strip)| energy.kth_cost_sums(strip.keep.clone()))
+                    .fold((0.0, 0), |(s, n), (sum, count)| (s + sum, n + count)),
+            );
             for energy in &mut energies {
                 energy.set_penalties(k, 3.0 * k / 5.0, k / 5.0);
             }
@@ -245,24 +244,32 @@ fn upsample_image(image: &Image) -> Result<Image, FuseError> {
     Image::new(uw, uh, c, data)
 }
 
-/// The problem at twice the resolution and twice the disparities.
-fn upsample_problem(problem: &Problem) -> Result<Problem, FuseError> {
+/// `problem` with every view made by `image` from its own (the range unchanged).
+fn map_views(problem: &Problem, image: impl Fn(&Image) -> Result<Image, FuseError>) -> Result<Problem, FuseError> {
     Ok(Problem {
-        reference: upsample_image(&problem.reference)?,
+        reference: image(&problem.reference)?,
         neighbours: problem
             .neighbours
             .iter()
             .map(|n| {
                 Ok(Neighbour {
                     role: n.role.clone(),
-                    image: upsample_image(&n.image)?,
+                    image: image(&n.image)?,
                     offset: n.offset,
                     baseline_ratio: n.baseline_ratio,
                 })
             })
             .collect::<Result<_, FuseError>>()?,
+        ..*problem
+    })
+}
+
+/// The problem at twice the resolution and twice the disparities.
+fn upsample_problem(problem: &Problem) -> Result<Problem, FuseError> {
+    Ok(Problem {
         min_disparity: 2 * problem.min_disparity,
         num_disparities: 2 * problem.num_disparities - 1,
+        ..map_views(problem, upsample_image)?
     })
 }
 
@@ -291,7 +298,7 @@ pub struct Strip {
 impl Strip {
     /// The problem of this strip: every view cut to its rows.
     fn problem(&self, problem: &Problem) -> Result<Problem, FuseError> {
-        let cut = |image: &Image| {
+        map_views(problem, |image| {
             let row = image.width * image.channels;
             Image::new(
                 image.width,
@@ -299,23 +306,6 @@ impl Strip {
                 image.channels,
                 image.data[self.rows.start * row..self.rows.end * row].to_vec(),
             )
-        };
-        Ok(Problem {
-            reference: cut(&problem.reference)?,
-            neighbours: problem
-                .neighbours
-                .iter()
-                .map(|n| {
-                    Ok(Neighbour {
-                        role: n.role.clone(),
-                        image: cut(&n.image)?,
-                        offset: n.offset,
-                        baseline_ratio: n.baseline_ratio,
-                    })
-                })
-                .collect::<Result<_, FuseError>>()?,
-            min_disparity: problem.min_disparity,
-            num_disparities: problem.num_disparities,
         })
     }
 }
@@ -519,25 +509,7 @@ mod tests {
                 .collect();
             Image::gray(width, height, data).unwrap_or_else(|e| panic!("{e}"))
         };
-        Problem {
-            reference: view([0, 0]),
-            neighbours: [
-                ("left", [-1, 0]),
-                ("right", [1, 0]),
-                ("top", [0, -1]),
-                ("bottom", [0, 1]),
-            ]
-            .into_iter()
-            .map(|(role, offset)| Neighbour {
-                role: role.into(),
-                image: view(offset),
-                offset,
-                baseline_ratio: 1.0,
-            })
-            .collect(),
-            min_disparity: 0,
-            num_disparities: 8,
-        }
+        crate::volume::plane_of_cross(view, 8)
     }
 
     #[test]

@@ -209,25 +209,7 @@ mod tests {
                 .collect();
             Image::gray(w, h, data).unwrap_or_else(|e| panic!("{e}"))
         };
-        let problem = Problem {
-            reference: view([0, 0]),
-            neighbours: [
-                ("left", [-1, 0]),
-                ("right", [1, 0]),
-                ("top", [0, -1]),
-                ("bottom", [0, 1]),
-            ]
-            .into_iter()
-            .map(|(role, offset)| Neighbour {
-                role: role.into(),
-                image: view(offset),
-                offset,
-                baseline_ratio: 1.0,
-            })
-            .collect(),
-            min_disparity: 0,
-            num_disparities: 16,
-        };
+        let problem = crate::volume::plane_of_cross(view, 16);
         let run = |costs_in_passes: bool| {
             let method = Sgm {
                 name: "sgm-heuristic",
