@@ -141,6 +141,12 @@ fn mfusenet(c: &mut Criterion) {
         b.iter(|| black_box(conv3d_same(&x, &weight, 4, 7, None)));
         fuse::wide::set_enabled(true);
     });
+    // In 16-bit integer products (`fuse::nn::int16_kernel`, AVX2), against the 256-bit f32 path.
+    group.bench_function("conv_k7_8to4_forward_int16", |b| {
+        fuse::nn::conv::with_precision(fuse::nn::conv::Precision::Int16, || {
+            b.iter(|| black_box(conv3d_same(&x, &weight, 4, 7, None)))
+        })
+    });
     // The lite network's commonest layer: 3³, 4 → 4 channels.
     let x4 = Tensor {
         shape: [4, shape[1], shape[2], shape[3]],
@@ -154,6 +160,11 @@ fn mfusenet(c: &mut Criterion) {
         fuse::wide::set_enabled(false);
         b.iter(|| black_box(conv3d_same(&x4, &weight3, 4, 3, None)));
         fuse::wide::set_enabled(true);
+    });
+    group.bench_function("conv_k3_4to4_forward_int16", |b| {
+        fuse::nn::conv::with_precision(fuse::nn::conv::Precision::Int16, || {
+            b.iter(|| black_box(conv3d_same(&x4, &weight3, 4, 3, None)))
+        })
     });
     group.bench_function("conv_k7_8to4_input_grad", |b| {
         b.iter(|| black_box(conv3d_same_input_grad(&grad, &weight, 8, 7)))

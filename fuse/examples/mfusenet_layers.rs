@@ -9,7 +9,8 @@
 //! five-view network's four volumes; N = 2 is the three-view network; `lite` anywhere among the
 //! arguments: the lite architecture's kernels; `narrow`: the 256-bit paths only, on a host with
 //! AVX-512F, whose 512-bit kernel the layers otherwise take; `bf16`: the 3³–7³ layers in
-//! bfloat16 products where the host has AVX512-BF16, `fuse::nn::conv::Precision`). The figures are in
+//! bfloat16 products where the host has AVX512-BF16; `int16`: in 16-bit integer products on AVX2,
+//! `fuse::nn::conv::Precision`). The figures are in
 //! docs/benchmarks.md ("MFuseNet per layer").
 
 use std::hint::black_box;
@@ -86,6 +87,8 @@ fn main() {
     }
     let precision = if std::env::args().any(|a| a == "bf16") {
         fuse::nn::conv::Precision::Bf16
+    } else if std::env::args().any(|a| a == "int16") {
+        fuse::nn::conv::Precision::Int16
     } else {
         fuse::nn::conv::Precision::F32
     };

@@ -232,9 +232,13 @@ pub struct MFuseNetConfig {
     pub thin_parts_every_view: bool,
     /// The convolutions' products: `"bf16"` (the default: inputs and weights rounded to
     /// bfloat16, sums in f32, for the 3³–7³ layers where the host has AVX512-BF16, Intel from
-    /// Cooper Lake and AMD from Zen 4; f32 elsewhere) or `"f32"`. The run's details say which
-    /// ran. On the Middlebury dev scenes and the held-out simulated captures AvgErr and Bad1
-    /// are the same to the third decimal, the paper's networks 25 % faster
+    /// Cooper Lake and AMD from Zen 4; f32 elsewhere), `"int16"` (inputs and weights quantised
+    /// to 16-bit integers, pairs of input channels multiplied by AVX2's `vpmaddwd`, for the
+    /// 3³–7³ layers of two or more input channels, f32 for the rest; `fuse::nn::int16_kernel`:
+    /// the same figures as f32 to the fourth decimal, but no faster than f32 on an AVX2 path,
+    /// whose 3³ layers wait on memory) or `"f32"`. The run's details say which ran. On the
+    /// Middlebury dev scenes and the held-out simulated captures AvgErr and Bad1 are the same
+    /// to the third decimal in bfloat16, the paper's networks 25 % faster
     /// (`scripts/eval-precision.sh`, docs/benchmarks.md).
     #[serde(default = "bf16")]
     pub precision: Precision,
@@ -1172,7 +1176,7 @@ mod tests {
     }
 
     #[test]
-    fn bfloat16_products_find_the_plane_as_f32_does_and_the_details_say_which_ran() {
+    fn bfloat16_and_integer_products_find_the_plane_as_f32_does_and_the_details_say_which_ran() {
         let problem = plane_sized(&[[-1, 0], [1, 0], [0, -1], [0, 1]], 7, (0, 32), (144, 72));
         let run = |precision: &str| {
             let config = serde_json::json!({ "precision": precision });
@@ -1205,6 +1209,26 @@ mod tests {
             .map(|(x, y)| (x - y).abs())
             .fold(0f32, f32::max);
         assert!(worst < 0.5, "a pixel moved by {worst} px in bfloat16");
+        // 16-bit integer products: the same plane, and the details say so where they ran.
+        let (int16_ran, quantised) = run("int16");
+        let host = if crate::nn::int16_kernel::available() {
+            "int16"
+        } else {
+            "f32"
+        };
+        assert_eq!(
+            int16_ran, host,
+            "16-bit integers run where the host has AVX2, f32 elsewhere"
+        );
+        let c = mean(&quantised);
+        assert!(c < 0.25 && (a - c).abs() < 0.02, "AvgErr f32 {a:.4}, int16 {c:.4} px");
+        let worst = exact
+            .data
+            .iter()
+            .zip(&quantised.data)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0f32, f32::max);
+        assert!(worst < 0.5, "a pixel moved by {worst} px in 16-bit integers");
         // Unknown precisions are refused by name.
         let bad = serde_json::json!({ "precision": "fp8" });
         assert!(crate::methods::build("mfusenet", Some(&bad)).is_err());

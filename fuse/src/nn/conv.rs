@@ -35,6 +35,7 @@ use wide::f32x8;
 use super::Tensor;
 use super::bf16_kernel;
 use super::fma_kernel::{self, ACCUMULATORS};
+use super::int16_kernel;
 use super::wide_kernel;
 
 /// Lanes of one vector.
@@ -393,6 +394,10 @@ pub enum Precision {
     /// Inputs and weights rounded to bfloat16, the sums in f32 ([`super::bf16_kernel`]), for the
     /// 3³, 5³ and 7³ layers where the host has AVX512-BF16; elsewhere (and for 1³ layers) f32.
     Bf16,
+    /// Inputs and weights quantised to 16-bit integers, pairs of input channels multiplied and
+    /// summed by `vpmaddwd` ([`super::int16_kernel`]), for the 3³, 5³ and 7³ layers of two or
+    /// more input channels on AVX2; elsewhere f32.
+    Int16,
 }
 
 thread_local! {
@@ -420,14 +425,24 @@ pub fn precision() -> Precision {
     PRECISION.with(std::cell::Cell::get)
 }
 
-/// The precision a layer with kernel `k` runs in here: bfloat16 where asked, the kernel has
-/// pairs of taps to share (3, 5, 7) and the host has the instructions.
-pub fn effective_precision(k: usize) -> Precision {
-    if precision() == Precision::Bf16 && k >= 3 && k % 2 == 1 && bf16_kernel::available() {
-        Precision::Bf16
-    } else {
-        Precision::F32
+/// The precision a layer with kernel `k` and `cin` input channels runs in here: bfloat16 where
+/// asked, the kernel has pairs of taps to share (3, 5, 7) and the host has the instructions;
+/// 16-bit integers where asked, the kernel is 3, 5 or 7 and there are channels to pair.
+pub fn effective_precision_for(k: usize, cin: usize) -> Precision {
+    let odd = k >= 3 && k % 2 == 1;
+    let bf16 = odd && bf16_kernel::available();
+    let int16 = odd && cin >= 2 && int16_kernel::available();
+    match precision() {
+        Precision::Bf16 if bf16 => Precision::Bf16,
+        Precision::Int16 if int16 => Precision::Int16,
+        _ => Precision::F32,
     }
+}
+
+/// [`effective_precision_for`] a layer of 4 input channels (the networks' usual width): what
+/// the run's details report.
+pub fn effective_precision(k: usize) -> Precision {
+    effective_precision_for(k, 4)
 }
 
 #[inline]
@@ -819,11 +834,23 @@ fn conv_k<const K: usize>(
     let mut padded = source.into_padded(p, step, step + K - 1);
     // In bfloat16, the padded tiles become shifted pairs in place (same size) and every tile,
     // a partial last one included, goes through the bfloat16 kernel.
-    let bf16 = effective_precision(K) == Precision::Bf16;
+    let precision = effective_precision_for(K, cin);
+    let bf16 = precision == Precision::Bf16;
     if bf16 {
         bf16_kernel::to_shifted_pairs(&mut padded.data);
         padded.pairs = true;
     }
+    // In 16-bit integers, the padded tiles become quantised channel pairs in place, at the scale
+    // of this input's largest value.
+    let int16 = precision == Precision::Int16;
+    let input_scale = if int16 {
+        let scale = int16_kernel::input_scale(int16_kernel::max_abs(&padded.data));
+        int16_kernel::to_channel_pairs(&mut padded.data, cin, padded.row, scale);
+        padded.pairs = true;
+        scale
+    } else {
+        1.0
+    };
     let groups = cout.div_ceil(GROUP);
     // Weights per group as [i][td][th][tw][4] (missing channels zero).
     let taps = K * K * K;
@@ -842,6 +869,29 @@ fn conv_k<const K: usize>(
         Vec::new()
     };
     let pair_weights_per_group = cin * K * K * bf16_kernel::pairs_per_row(K) * GROUP;
+    // Per group, the weights as quantised pairs of input channels, and the table of each pair's
+    // `K²` rows (the even channel's rows, which hold the pairs).
+    let int16_weights: Vec<int16_kernel::PairWeights> = if int16 {
+        (0..groups)
+            .map(|g| {
+                int16_kernel::pack_weights::<K>(
+                    &packed[g * cin * taps * GROUP..(g + 1) * cin * taps * GROUP],
+                    cin,
+                    input_scale,
+                )
+            })
+            .collect()
+    } else {
+        Vec::new()
+    };
+    let pair_rows = fma_kernel::RowTable::new(if int16 {
+        (0..cin.div_ceil(2))
+            .flat_map(|p| (0..K).flat_map(move |td| (0..K).map(move |th| (p, td, th))))
+            .map(|(p, td, th)| padded.tile_row_start(0, 2 * p, td, th))
+            .collect()
+    } else {
+        Vec::new()
+    });
     // Each input row (i, td, th) a block reads, as an offset from row (0, z, y) of its tile, in
     // the packed weights' order (for the assembly kernels, `fma_kernel`).
     let rows = fma_kernel::RowTable::new(
@@ -946,6 +996,12 @@ fn conv_k<const K: usize>(
                     let pair_weights = &pair_weights[g * pair_weights_per_group..(g + 1) * pair_weights_per_group];
                     if !bf16_kernel::rows::<K>(&padded.data, base, &rows, pair_weights, &mut pair) {
                         bf16_kernel::rows_portable::<K>(&padded.data, base, &rows, pair_weights, &mut pair);
+                    }
+                    true
+                } else if int16 {
+                    let weights = &int16_weights[g];
+                    if !int16_kernel::rows::<K>(&padded.data, base, &pair_rows, weights, &mut pair) {
+                        int16_kernel::rows_portable::<K>(&padded.data, base, &pair_rows, weights, &mut pair);
                     }
                     true
                 } else {
@@ -1551,6 +1607,138 @@ pub(crate) mod tests {
             let largest = exact.data.iter().map(|v| v.abs()).fold(0f32, f32::max);
             assert!(
                 worst <= 0.02 * largest.max(1.0),
+                "chain {d}x{h}x{w}: off by {worst} of {largest}"
+            );
+        }
+        assert_eq!(
+            effective_precision(3),
+            Precision::F32,
+            "the precision before is restored"
+        );
+    }
+
+    #[test]
+    fn integer_convolutions_stay_within_their_quantisation() {
+        if with_precision(Precision::Int16, || effective_precision(3)) != Precision::Int16 {
+            println!("skipped: no AVX2 integer kernel on this target (16-bit integers asked for run in f32)");
+            return;
+        }
+        // One input channel has nothing to pair: f32.
+        assert_eq!(
+            with_precision(Precision::Int16, || effective_precision_for(3, 1)),
+            Precision::F32
+        );
+        assert_eq!(
+            with_precision(Precision::Int16, || effective_precision_for(1, 4)),
+            Precision::F32
+        );
+        // Widths around the 48-column tile, every kernel size, odd and even channel counts, both
+        // strides, the ReLU, a sum into a tensor and a chain through padded tiles.
+        for (seed, &[c, d, h, w]) in [[3usize, 3, 4, 101], [4, 2, 3, 49], [2, 4, 2, 47], [5, 2, 5, 9]]
+            .iter()
+            .enumerate()
+        {
+            let seed = seed as u64 * 10 + 1;
+            let x = random([c, d, h, w], seed);
+            let largest_x = x.data.iter().map(|v| v.abs()).fold(0f32, f32::max);
+            let x_abs = Tensor {
+                shape: x.shape,
+                data: x.data.iter().map(|v| v.abs()).collect(),
+            };
+            for k in [3, 5, 7] {
+                let weight = random_values(5 * c * k * k * k, seed + k as u64);
+                let bias = random_values(5, seed + 2);
+                // Per output channel: the weight step (at most the largest weight / 2¹⁵ or the
+                // widest pair's L1 norm / 2¹⁷) and the sum of |w|.
+                let taps = c * k * k * k;
+                let steps: Vec<f32> = weight
+                    .chunks(taps)
+                    .map(|w_o| {
+                        let largest = w_o.iter().map(|v| v.abs()).fold(0f32, f32::max);
+                        let widest = w_o
+                            .chunks(2 * k * k * k)
+                            .map(|p| p.iter().map(|v| v.abs()).sum::<f32>())
+                            .fold(0f32, f32::max);
+                        0.5 * (largest / 32767.0).max(widest / 130_000.0)
+                    })
+                    .collect();
+                let x_step = 0.5 * largest_x / int16_kernel::INPUT_LEVELS;
+                for stride in [1, 2] {
+                    for relu in [false, true] {
+                        let epilogue = Epilogue { stride, relu };
+                        let exact = conv3d_with(&x, &weight, 5, k, Some(&bias), epilogue);
+                        let got = with_precision(Precision::Int16, || {
+                            conv3d_with(&x, &weight, 5, k, Some(&bias), epilogue)
+                        });
+                        // Σ|x| over each output's taps: the convolution of |x| with ones.
+                        let x_sums = conv3d_with(
+                            &x_abs,
+                            &vec![1.0; 5 * taps],
+                            5,
+                            k,
+                            None,
+                            Epilogue { stride, relu: false },
+                        );
+                        let w_sums = magnitude(
+                            &Tensor {
+                                shape: x.shape,
+                                data: vec![1.0; x.data.len()],
+                            },
+                            &weight,
+                            5,
+                            k,
+                            stride,
+                        );
+                        assert_eq!(got.shape, exact.shape);
+                        let plane = got.shape[1] * got.shape[2] * got.shape[3];
+                        for (i, (g, e)) in got.data.iter().zip(&exact.data).enumerate() {
+                            let o = i / plane;
+                            let bound = x_sums.data[i] * steps[o]
+                                + w_sums.data[i] * x_step
+                                + taps as f32 * steps[o] * x_step
+                                + 1e-5 * (1.0 + e.abs());
+                            assert!(
+                                (g - e).abs() <= bound,
+                                "k {k}, {c} channels, stride {stride}, relu {relu}, {d}x{h}x{w}: {g} against {e} (bound {bound})"
+                            );
+                        }
+                        if !relu && stride == 1 {
+                            assert!(
+                                bits_differing(&got, &exact) > 0,
+                                "k {k}: 16-bit integers gave f32's bits"
+                            );
+                        }
+                    }
+                }
+                // Summed into a tensor.
+                let prior = random([5, d, h, w], seed + 7);
+                let exact = conv3d_accumulate_input(ConvInput::Borrowed(&x), &weight, k, prior.clone(), true);
+                let got = with_precision(Precision::Int16, || {
+                    conv3d_accumulate_input(ConvInput::Borrowed(&x), &weight, k, prior.clone(), true)
+                });
+                let scale = magnitude(&x, &weight, 5, k, 1);
+                for ((g, e), m) in got.data.iter().zip(&exact.data).zip(&scale.data) {
+                    assert!((g - e).abs() <= 0.01 * (m + 1.0), "k {k} summed: {g} against {e}");
+                }
+            }
+            // A chain through padded tiles: a paired input is not read again as values.
+            let w1 = random_values(4 * c * 125, seed + 20);
+            let w2 = random_values(2 * 4 * 27, seed + 21);
+            let relu = Epilogue { stride: 1, relu: true };
+            let exact = conv3d_with(&conv3d_with(&x, &w1, 4, 5, None, relu), &w2, 2, 3, None, relu);
+            let got = with_precision(Precision::Int16, || {
+                let first = conv3d_padded(ConvInput::Borrowed(&x), &w1, 4, 5, None, true, 3);
+                conv3d_input(ConvInput::Padded(first), &w2, 2, 3, None, relu)
+            });
+            let worst = got
+                .data
+                .iter()
+                .zip(&exact.data)
+                .map(|(g, e)| (g - e).abs())
+                .fold(0f32, f32::max);
+            let largest = exact.data.iter().map(|v| v.abs()).fold(0f32, f32::max);
+            assert!(
+                worst <= 0.01 * largest.max(1.0),
                 "chain {d}x{h}x{w}: off by {worst} of {largest}"
             );
         }

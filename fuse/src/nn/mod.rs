@@ -8,7 +8,8 @@
 //!   Their inner loop runs on 512-bit vectors where the host has AVX-512F ([`wide_kernel`],
 //!   detected at run time), with the same sums bit for bit; in inference, where asked
 //!   ([`conv::set_precision`]), on bfloat16 pairs of taps where the host has AVX512-BF16
-//!   ([`bf16_kernel`]).
+//!   ([`bf16_kernel`]), or on 16-bit integer pairs of input channels on AVX2 hosts
+//!   ([`int16_kernel`]).
 //! - [`batch_norm`]: BatchNorm3d in train mode (batch statistics, running-statistics update,
 //!   backward) and eval mode (folded into the preceding convolution).
 //! - [`regression`]: softmax over disparity, soft-argmin and the smooth-L1 loss.
@@ -22,6 +23,7 @@ pub mod batch_norm;
 pub mod bf16_kernel;
 pub mod conv;
 mod fma_kernel;
+pub mod int16_kernel;
 pub mod pool;
 pub mod reference;
 pub mod regression;

@@ -88,6 +88,14 @@ fn keep_freed_pages() {
     }
 }
 
+/// `MULTISCOPIC_NO_AVX512=1`: the hot loops keep to 256-bit vectors (and MFuseNet's products to
+/// what an AVX2 host runs) on a host with AVX-512, to measure here what an AVX2-only host runs.
+fn narrow_vectors_if_asked() {
+    if std::env::var_os("MULTISCOPIC_NO_AVX512").is_some_and(|v| v != "0") {
+        fuse::wide::set_enabled(false);
+    }
+}
+
 /// Run multiscopic depth methods on the view sets of an MCAP log (from `record`), write the
 /// results and evaluate them against ground truth.
 #[derive(Debug, Parser)]
@@ -142,6 +150,7 @@ enum Command {
 fn main() -> ExitCode {
     no_huge_pages();
     keep_freed_pages();
+    narrow_vectors_if_asked();
     cli::main_with(|cli: &Cli| cli.quiet, |cli| dispatch(&cli))
 }
 
