@@ -8,6 +8,9 @@
 # (OUT/maps/<method>_error_0.0-4.0px.png, 0 … 4 px).
 #
 #   scripts/eval-thin.sh [OUT_DIR] [SCENES] [METHODS]    (default out/thin, 4 scenes)
+#   RIG=line5 RESOLUTION=384x288 scripts/eval-thin.sh out/thin-line5 3
+#       the same family as a row of five views at 384x288 (disparities of about 6-16 px): the
+#       shape of the classic five-view benchmark row whose lamp arm and tripod MFuseNet loses
 set -euo pipefail
 cd "$(dirname "$0")/.."
 out="${1:-out/thin}"
@@ -16,7 +19,7 @@ methods="${3:-mfusenet,sgm-heuristic,bm-heuristic,gc-heuristic}"
 mkdir -p "$out/maps"
 cargo build --release -q -p record -p replay
 source scripts/family-logs.sh
-family_logs thin "$out/thin" "$scenes" 640x360
+family_logs thin "$out/thin" "$scenes" "${RESOLUTION:-640x360}" "${RIG:-five-view}"
 IFS=, read -ra list <<<"$methods"
 for m in "${list[@]}"; do
     config=()
