@@ -6,7 +6,8 @@ use std::path::Path;
 use std::process::Command;
 
 use multiscopic_tests::{
-    assert_success, python_with_mcap, record_args, recorded, replay, replay_summary, run, temp_dir, workspace_root,
+    assert_success, binary, python_with_mcap, record_args, recorded, replay, replay_summary, run, temp_dir,
+    workspace_root,
 };
 
 fn weights(file: &str) -> String {
@@ -37,6 +38,48 @@ fn shipped_weights_have_the_reference_state_dict_names_and_shapes() {
     ] {
         assert!(text.contains(count), "{count} not in {text}");
     }
+}
+
+#[test]
+fn integer_products_and_the_256_bit_switch_run_and_say_so() {
+    // `MULTISCOPIC_NO_AVX512` keeps the convolutions to what an AVX2 host runs: no bfloat16
+    // (which needs AVX-512), f32 by default; `"precision": "int16"` takes 16-bit integer pairs.
+    let (dir, log) = recorded("five.mcap", "--resolution 256x192 --samples-per-pixel 1");
+    let run_with = |name: &str, config: &str| {
+        let out = dir.path().join(name);
+        let output = run(Command::new(binary("replay"))
+            .env("MULTISCOPIC_NO_AVX512", "1")
+            .args([
+                log.to_str().unwrap_or_default(),
+                "--method",
+                "mfusenet",
+                "--config",
+                config,
+            ])
+            .args(["--outputs", "none", "--out", out.to_str().unwrap_or_default(), "-q"]));
+        assert_success(&output, &format!("MULTISCOPIC_NO_AVX512=1 replay --config '{config}'"));
+        let summary = read_summary(&out);
+        let set = &summary["sets"][0];
+        let avg = set["outputs"]["metrics"]["all"]["avg_err_px"]
+            .as_f64()
+            .unwrap_or(f64::NAN);
+        (set["details"]["precision"].clone(), avg)
+    };
+    let (default_ran, f32_avg) = run_with("default", "{}");
+    assert_eq!(default_ran, "f32", "bfloat16 needs the 512-bit paths");
+    let (int16_ran, int16_avg) = run_with("int16", r#"{"precision": "int16"}"#);
+    let expected = if cfg!(all(target_arch = "x86_64", target_feature = "avx2")) {
+        "int16"
+    } else {
+        "f32"
+    };
+    assert_eq!(int16_ran, expected);
+    println!("AvgErr f32 {f32_avg:.4} px, int16 {int16_avg:.4} px");
+    assert!(f32_avg.is_finite() && f32_avg < 3.0, "f32 AvgErr {f32_avg}");
+    assert!(
+        (int16_avg - f32_avg).abs() <= 0.01 * f32_avg.max(0.1),
+        "int16 AvgErr {int16_avg} against {f32_avg}"
+    );
 }
 
 #[test]
