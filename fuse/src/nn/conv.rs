@@ -1541,6 +1541,39 @@ pub(crate) mod tests {
         conv3d_with(&abs, &weight, cout, k, None, Epilogue { stride, relu: false })
     }
 
+    /// `x` convolved with `weight` (5 output channels, kernel `k`) and summed into a random
+    /// tensor with the ReLU, in `precision` and in f32, with the [`magnitude`] bound.
+    fn summed_in(precision: Precision, x: &Tensor, weight: &[f32], k: usize, seed: u64) -> (Tensor, Tensor, Tensor) {
+        let [_, d, h, w] = x.shape;
+        let prior = random([5, d, h, w], seed + 7);
+        let exact = conv3d_accumulate_input(ConvInput::Borrowed(x), weight, k, prior.clone(), true);
+        let got = with_precision(precision, || {
+            conv3d_accumulate_input(ConvInput::Borrowed(x), weight, k, prior.clone(), true)
+        });
+        (got, exact, magnitude(x, weight, 5, k, 1))
+    }
+
+    /// Two layers (5³ to 4 channels, then 3³ to 2) chained through padded tiles in `precision`
+    /// (a paired input must not be read again as values), against f32: the largest difference
+    /// and the largest f32 value.
+    fn chain_in(precision: Precision, x: &Tensor, seed: u64) -> (f32, f32) {
+        let w1 = random_values(4 * x.shape[0] * 125, seed + 20);
+        let w2 = random_values(2 * 4 * 27, seed + 21);
+        let relu = Epilogue { stride: 1, relu: true };
+        let exact = conv3d_with(&conv3d_with(x, &w1, 4, 5, None, relu), &w2, 2, 3, None, relu);
+        let got = with_precision(precision, || {
+            let first = conv3d_padded(ConvInput::Borrowed(x), &w1, 4, 5, None, true, 3);
+            conv3d_input(ConvInput::Padded(first), &w2, 2, 3, None, relu)
+        });
+        let worst = got
+            .data
+            .iter()
+            .zip(&exact.data)
+            .map(|(g, e)| (g - e).abs())
+            .fold(0f32, f32::max);
+        (worst, exact.data.iter().map(|v| v.abs()).fold(0f32, f32::max))
+    }
+
     #[test]
     fn bfloat16_convolutions_stay_within_the_rounding_of_their_products() {
         assert_eq!(effective_precision(3), Precision::F32, "this thread starts in f32");
@@ -1579,32 +1612,13 @@ pub(crate) mod tests {
                     }
                 }
                 // Summed into a tensor.
-                let prior = random([5, d, h, w], seed + 7);
-                let exact = conv3d_accumulate_input(ConvInput::Borrowed(&x), &weight, k, prior.clone(), true);
-                let got = with_precision(Precision::Bf16, || {
-                    conv3d_accumulate_input(ConvInput::Borrowed(&x), &weight, k, prior.clone(), true)
-                });
-                let scale = magnitude(&x, &weight, 5, k, 1);
+                let (got, exact, scale) = summed_in(Precision::Bf16, &x, &weight, k, seed);
                 for ((g, e), m) in got.data.iter().zip(&exact.data).zip(&scale.data) {
                     assert!((g - e).abs() <= 2.0 * m / 256.0 + 1e-6, "k {k} summed: {g} against {e}");
                 }
             }
             // A chain through padded tiles: a paired input is not read again as values.
-            let w1 = random_values(4 * 3 * 125, seed + 20);
-            let w2 = random_values(2 * 4 * 27, seed + 21);
-            let relu = Epilogue { stride: 1, relu: true };
-            let exact = conv3d_with(&conv3d_with(&x, &w1, 4, 5, None, relu), &w2, 2, 3, None, relu);
-            let got = with_precision(Precision::Bf16, || {
-                let first = conv3d_padded(ConvInput::Borrowed(&x), &w1, 4, 5, None, true, 3);
-                conv3d_input(ConvInput::Padded(first), &w2, 2, 3, None, relu)
-            });
-            let worst = got
-                .data
-                .iter()
-                .zip(&exact.data)
-                .map(|(g, e)| (g - e).abs())
-                .fold(0f32, f32::max);
-            let largest = exact.data.iter().map(|v| v.abs()).fold(0f32, f32::max);
+            let (worst, largest) = chain_in(Precision::Bf16, &x, seed);
             assert!(
                 worst <= 0.02 * largest.max(1.0),
                 "chain {d}x{h}x{w}: off by {worst} of {largest}"
@@ -1711,32 +1725,13 @@ pub(crate) mod tests {
                     }
                 }
                 // Summed into a tensor.
-                let prior = random([5, d, h, w], seed + 7);
-                let exact = conv3d_accumulate_input(ConvInput::Borrowed(&x), &weight, k, prior.clone(), true);
-                let got = with_precision(Precision::Int16, || {
-                    conv3d_accumulate_input(ConvInput::Borrowed(&x), &weight, k, prior.clone(), true)
-                });
-                let scale = magnitude(&x, &weight, 5, k, 1);
+                let (got, exact, scale) = summed_in(Precision::Int16, &x, &weight, k, seed);
                 for ((g, e), m) in got.data.iter().zip(&exact.data).zip(&scale.data) {
                     assert!((g - e).abs() <= 0.01 * (m + 1.0), "k {k} summed: {g} against {e}");
                 }
             }
             // A chain through padded tiles: a paired input is not read again as values.
-            let w1 = random_values(4 * c * 125, seed + 20);
-            let w2 = random_values(2 * 4 * 27, seed + 21);
-            let relu = Epilogue { stride: 1, relu: true };
-            let exact = conv3d_with(&conv3d_with(&x, &w1, 4, 5, None, relu), &w2, 2, 3, None, relu);
-            let got = with_precision(Precision::Int16, || {
-                let first = conv3d_padded(ConvInput::Borrowed(&x), &w1, 4, 5, None, true, 3);
-                conv3d_input(ConvInput::Padded(first), &w2, 2, 3, None, relu)
-            });
-            let worst = got
-                .data
-                .iter()
-                .zip(&exact.data)
-                .map(|(g, e)| (g - e).abs())
-                .fold(0f32, f32::max);
-            let largest = exact.data.iter().map(|v| v.abs()).fold(0f32, f32::max);
+            let (worst, largest) = chain_in(Precision::Int16, &x, seed);
             assert!(
                 worst <= 0.01 * largest.max(1.0),
                 "chain {d}x{h}x{w}: off by {worst} of {largest}"
