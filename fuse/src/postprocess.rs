@@ -117,6 +117,84 @@ impl WeightedMedian {
     }
 }
 
+/// A second, wider weighted median that may only move pixels *farther*
+/// ([`farther_by_wider_median`]): a 3D network fattens a foreground over a background of another
+/// colour by up to its receptive field, wider than [`WeightedMedian`]'s window can undo, and a
+/// wider window alone rounds off steep slants and the thin near rims of same-coloured walls
+/// (a tote's). Taken only where it answers at least `min_move_px` farther than the first
+/// filter, it undoes the bands and blobs of foreground without touching a surface's own
+/// disparities. MFuseNet's default (docs/methods.md, "Weighted median").
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct FartherMedian {
+    /// The wider filter.
+    pub filter: WeightedMedian,
+    /// How much farther (px) its answer must be to be taken.
+    pub min_move_px: f32,
+}
+
+impl Default for FartherMedian {
+    /// Chosen on `middlebury2006-third-dev`, the `thin` family as five-view crosses and as rows
+    /// of five, and the `bin` grid's cross (docs/experiments.md, 2026-12-06, "A wider weighted
+    /// median that only moves pixels farther"): twice [`WeightedMedian`]'s radius at the same
+    /// number of samples.
+    fn default() -> Self {
+        Self {
+            filter: WeightedMedian {
+                radius_px: 20,
+                step_px: 4,
+                sigma_colour: 8.0,
+                sigma_space_px: 14.0,
+            },
+            min_move_px: 2.0,
+        }
+    }
+}
+
+impl FartherMedian {
+    /// Checks the parameters.
+    pub fn validate(&self) -> Result<(), FuseError> {
+        self.filter.validate()?;
+        if !(self.min_move_px >= 0.0 && self.min_move_px.is_finite()) {
+            return Err(FuseError::Config {
+                field: "farther_median.min_move_px",
+                value: self.min_move_px.to_string(),
+                reason: "a finite move of 0 px or more",
+            });
+        }
+        Ok(())
+    }
+}
+
+/// [`FartherMedian`]: the wider weighted median of `disparity` (with `votes` as
+/// [`weighted_median_with_votes`]), taken into `filtered` (the first filter's answer for the
+/// same `disparity`, the same size) wherever it is at least `min_move_px` farther (smaller).
+/// Invalid pixels stay as they are.
+pub fn farther_by_wider_median(
+    disparity: &DisparityImage,
+    reference: &Image,
+    farther: &FartherMedian,
+    votes: Option<&[f32]>,
+    filtered: &mut DisparityImage,
+) -> Result<(), FuseError> {
+    farther.validate()?;
+    if filtered.data.len() != disparity.data.len() {
+        return Err(FuseError::ImageSize {
+            what: "farther median's filtered map",
+            width: disparity.width,
+            height: disparity.height,
+            len: filtered.data.len(),
+        });
+    }
+    let wide = weighted_median_with_votes(disparity, reference, &farther.filter, votes)?;
+    for (d, f) in filtered.data.iter_mut().zip(&wide.data) {
+        if *f < *d - farther.min_move_px {
+            *d = *f;
+        }
+    }
+    Ok(())
+}
+
 /// [`WeightedMedian`] of `disparity`, guided by `reference` (grey or RGB, the same size).
 /// Invalid (non-finite) disparities neither vote nor change. Rows run in parallel.
 pub fn weighted_median(
@@ -664,6 +742,65 @@ mod tests {
         }
         // The plain 3×3 median keeps the bleed.
         assert_eq!(median3x3(&fattened).data[5 * w + 18], 20.5);
+    }
+
+    #[test]
+    fn a_wide_band_of_foreground_moves_back_only_farther() {
+        // Colour edge at x = 30; the foreground (x < 30, disparity 20) bleeds 10 px onto the
+        // background (10), as wide as the first window's radius; a thin near rod (3 px,
+        // disparity 25) of a colour of its own stands at x = 60..63.
+        let (w, h) = (90, 40);
+        let image = grey(w, h, |x, _| match x {
+            0..30 => 60,
+            60..63 => 120,
+            _ => 190,
+        });
+        let truth = |x: usize| match x {
+            0..30 => 20.0,
+            60..63 => 25.0,
+            _ => 10.0,
+        };
+        let fattened = disparity(w, h, |x, _| if x < 40 { 20.0 } else { truth(x) });
+        let first = weighted_median(&fattened, &image, &WeightedMedian::default()).unwrap();
+        let mut out = first.clone();
+        farther_by_wider_median(&fattened, &image, &FartherMedian::default(), None, &mut out).unwrap();
+        for y in 0..h {
+            let row = |m: &DisparityImage| m.data[y * w..(y + 1) * w].to_vec();
+            let (before, after) = (row(&first), row(&out));
+            // The first filter leaves the band; the wider one takes most of it back.
+            assert!(before[30..40].iter().all(|d| *d == 20.0), "row {y}: {before:?}");
+            let back = after[30..40].iter().filter(|d| **d == 10.0).count();
+            assert!(back >= 5, "row {y}: {back} of the band's 10 px back: {after:?}");
+            for x in 0..w {
+                // Farther only: never nearer than the first filter's answer, a value of the map.
+                assert!(
+                    after[x] <= before[x] && (after[x] == 10.0 || after[x] == before[x]),
+                    "({x}, {y})"
+                );
+                if !(30..40).contains(&x) {
+                    assert_eq!(after[x], truth(x), "kept at ({x}, {y})");
+                }
+            }
+        }
+        // A move below `min_move_px` is not taken.
+        let mut small = first.clone();
+        let far = FartherMedian {
+            min_move_px: 10.0,
+            ..Default::default()
+        };
+        farther_by_wider_median(&fattened, &image, &far, None, &mut small).unwrap();
+        assert_eq!(small, first);
+        let bad = FartherMedian {
+            min_move_px: -1.0,
+            ..Default::default()
+        };
+        assert!(matches!(
+            farther_by_wider_median(&fattened, &image, &bad, None, &mut small),
+            Err(FuseError::Config {
+                field: "farther_median.min_move_px",
+                ..
+            })
+        ));
     }
 
     #[test]

@@ -611,6 +611,7 @@ impl SimulationConfig {
             SceneKind::Bin => "bin",
             SceneKind::Thin => "thin",
             SceneKind::Fence => "fence",
+            SceneKind::Lamps => "lamps",
             SceneKind::Slanted => "slanted",
         }
     }
@@ -735,6 +736,7 @@ mod tests {
             SceneKind::Bin,
             SceneKind::Thin,
             SceneKind::Fence,
+            SceneKind::Lamps,
             SceneKind::Slanted,
         ] {
             let highest = (0..200)

@@ -49,6 +49,13 @@ pub enum SceneKind {
     /// `thin` family's kinds of parts drawn differently (several grilles, crossing bars, no
     /// lamps or board), so that `thin` stays a check of what training never saw.
     Fence,
+    /// Training's lamps and boards: desk lamps of two to four jointed arms 1–6 px wide (posts,
+    /// segments, joints, a shade), tripods of three legs, long sagging cables, and one or two
+    /// matte slabs near the camera whose occluded strips on the floor are 20–50 px wide at 640
+    /// px, before a far floor (plain in a third of the scenes). The `thin` family's lamp arms and
+    /// near board drawn differently (more joints, shades, tripods, cables, no slats or leaves),
+    /// so that `thin` stays a check of what training never saw.
+    Lamps,
     /// One matte, finely textured plane tilted 5–35° under the camera, nothing else: disparity
     /// is exactly linear in the image, every pixel at a different sub-pixel offset. The
     /// sub-pixel precision benchmark (BadPix 0.07 against exact truth); never used for training.
@@ -365,6 +372,7 @@ impl Scene {
             SceneKind::Bin => bin_scene(seed),
             SceneKind::Thin => thin_scene(seed),
             SceneKind::Fence => fence_scene(seed),
+            SceneKind::Lamps => lamps_scene(seed),
             SceneKind::Slanted => slanted_scene(seed),
         }
     }
@@ -1246,6 +1254,167 @@ fn fence_scene(seed: u64) -> Scene {
     scene
 }
 
+/// `lamps`: what training needs to keep lamp arms, tripods and the floor beside near boards
+/// (see [`SceneKind::Lamps`]). Each thin part is 1–6 px wide at its depth in a 640-px-wide 60°
+/// view, as in `thin` and `fence`.
+fn lamps_scene(seed: u64) -> Scene {
+    let mut rng = SplitMix64::new(seed ^ 0x6c61_6d70);
+    let camera_height_m = camera_height(&mut rng, 0.55, 0.93);
+    let mut scene = Scene::empty(SceneKind::Lamps, seed, camera_height_m);
+    let floor = far_floor(&mut rng, [0.47, 0.45, 0.43], [0.5, 0.52, 0.53]);
+    let floor = scene.add_material(floor);
+    table(&mut scene, floor);
+    scene.add_room();
+    let h = camera_height_m;
+    let c = WORK_AREA_CENTER_M;
+    // A thin part's radius (m) at height `z` above the floor: 1–6 px wide at 640 px.
+    let radius_at = |rng: &mut SplitMix64, z: f64| 0.5 * (h - z) * rng.range(0.0018, 0.011);
+    let place = |rng: &mut SplitMix64, z: f64| {
+        let depth = h - z;
+        (
+            c[0] + rng.range(-0.32, 0.32) * depth,
+            c[1] + rng.range(-0.18, 0.18) * depth,
+        )
+    };
+    // A thin cylinder from `a` to `b`, as wide as `radius_at` draws at its middle's height.
+    let segment = |scene: &mut Scene, rng: &mut SplitMix64, name: &str, a: [f64; 3], b: [f64; 3], material: usize| {
+        let mid = [(a[0] + b[0]) / 2.0, (a[1] + b[1]) / 2.0, (a[2] + b[2]) / 2.0];
+        let along = [b[0] - a[0], b[1] - a[1], b[2] - a[2]];
+        let half = 0.5 * (along[0] * along[0] + along[1] * along[1] + along[2] * along[2]).sqrt();
+        let radius = radius_at(rng, mid[2]);
+        scene.add(name, Shape::cylinder(mid, along, radius, half), material);
+        radius
+    };
+    for index in 0..rng.range_usize(2, 5) {
+        let material = random_material(&mut rng, &format!("lamp_{index}_material"), 5);
+        let material = scene.add_material(material);
+        let (x, y) = place(&mut rng, 0.0);
+        let top = h * rng.range(0.2, 0.55);
+        let mut joint = [x, y, top];
+        segment(
+            &mut scene,
+            &mut rng,
+            &format!("lamp_{index}_post"),
+            [x, y, 0.0],
+            joint,
+            material,
+        );
+        for arm in 0..rng.range_usize(2, 5) {
+            let (yaw, rise) = (rng.range(0.0, std::f64::consts::TAU), rng.range(-0.6, 0.7));
+            let length = h * rng.range(0.08, 0.22);
+            let end = [
+                joint[0] + yaw.cos() * rise.cos() * length,
+                joint[1] + yaw.sin() * rise.cos() * length,
+                (joint[2] + rise.sin() * length).clamp(0.05 * h, 0.72 * h),
+            ];
+            let radius = segment(
+                &mut scene,
+                &mut rng,
+                &format!("lamp_{index}_arm_{arm}"),
+                joint,
+                end,
+                material,
+            );
+            scene.add(
+                &format!("lamp_{index}_joint_{arm}"),
+                Shape::sphere(joint, rng.range(1.2, 2.0) * radius),
+                material,
+            );
+            joint = end;
+        }
+        // The shade: a small sphere or box at the last joint, a few times the arm's width.
+        let size = 2.0 * radius_at(&mut rng, joint[2]) * rng.range(2.0, 5.0);
+        let shade = if rng.below(2) == 0 {
+            Shape::sphere(joint, size)
+        } else {
+            Shape::Box {
+                center: joint,
+                half_extents_m: [size, 0.6 * size, 0.8 * size],
+                yaw_deg: rng.range(0.0, 180.0),
+                tilt_deg: rng.range(-40.0, 40.0),
+            }
+        };
+        scene.add(&format!("lamp_{index}_shade"), shade, material);
+    }
+    for index in 0..rng.range_usize(1, 3) {
+        let material = random_material(&mut rng, &format!("tripod_{index}_material"), 5);
+        let material = scene.add_material(material);
+        let head_z = h * rng.range(0.25, 0.6);
+        let (x, y) = place(&mut rng, head_z);
+        let head = [x, y, head_z];
+        let spread = head_z * rng.range(0.25, 0.6);
+        let turn = rng.range(0.0, std::f64::consts::TAU);
+        for leg in 0..3 {
+            let angle = turn + leg as f64 * std::f64::consts::TAU / 3.0 + rng.range(-0.3, 0.3);
+            let foot = [x + spread * angle.cos(), y + spread * angle.sin(), 0.0];
+            segment(
+                &mut scene,
+                &mut rng,
+                &format!("tripod_{index}_leg_{leg}"),
+                head,
+                foot,
+                material,
+            );
+        }
+        let size = 2.0 * radius_at(&mut rng, head_z) * rng.range(2.0, 4.0);
+        scene.add(
+            &format!("tripod_{index}_head"),
+            Shape::Box {
+                center: [x, y, head_z + size],
+                half_extents_m: [size, size, size],
+                yaw_deg: rng.range(0.0, 90.0),
+                tilt_deg: 0.0,
+            },
+            material,
+        );
+    }
+    // Cables: three to six short straight pieces sagging between two high points.
+    for index in 0..rng.range_usize(1, 4) {
+        let material = random_material(&mut rng, &format!("cable_{index}_material"), 3);
+        let material = scene.add_material(material);
+        let z = h * rng.range(0.3, 0.65);
+        let (x, y) = place(&mut rng, z);
+        let yaw = rng.range(0.0, std::f64::consts::TAU);
+        let (length, sag) = (h * rng.range(0.2, 0.5), h * rng.range(0.02, 0.15));
+        let pieces = rng.range_usize(3, 7);
+        let point = |t: f64| {
+            [
+                x + (t - 0.5) * length * yaw.cos(),
+                y + (t - 0.5) * length * yaw.sin(),
+                z - sag * 4.0 * t * (1.0 - t),
+            ]
+        };
+        for piece in 0..pieces {
+            let (a, b) = (
+                point(piece as f64 / pieces as f64),
+                point((piece + 1) as f64 / pieces as f64),
+            );
+            segment(&mut scene, &mut rng, &format!("cable_{index}_{piece}"), a, b, material);
+        }
+    }
+    // One or two matte slabs near the camera: the floor strip each hides from one side is its
+    // disparity jump wide (20–50 px at 640 px).
+    for index in 0..rng.range_usize(1, 3) {
+        let texture = random_texture(&mut rng, 10);
+        let material = scene.add_material(Material::matte(&format!("slab_{index}_material"), texture));
+        let z = h * rng.range(0.45, 0.65);
+        let (x, y) = place(&mut rng, z);
+        scene.add(
+            &format!("slab_{index}"),
+            Shape::Box {
+                center: [x, y, z],
+                half_extents_m: [h * rng.range(0.01, 0.03), h * rng.range(0.05, 0.12), 0.005 * h],
+                yaw_deg: rng.range(0.0, 180.0),
+                tilt_deg: rng.range(-15.0, 15.0),
+            },
+            material,
+        );
+    }
+    scene.ambient = [rng.range(0.1, 0.3); 3];
+    scene.add_lights(&mut rng);
+    scene
+}
+
 /// `bin`: bin picking. A plastic tote (floor and four walls 12–25 cm high) on a table, 10–30
 /// parts heaped in it (boxes, cylinders, balls; some of metal), the camera 0.5–0.9 m above the
 /// table: the walls hide much of the floor from one view or another. Never used for training.
@@ -1474,6 +1643,43 @@ mod tests {
             }
         }
         assert_ne!(Scene::build(SceneKind::Fence, 1), Scene::build(SceneKind::Fence, 2));
+    }
+
+    #[test]
+    fn lamps_scenes_hold_arms_legs_and_cables_one_to_six_pixels_wide_and_near_slabs() {
+        // fx of a 640-px-wide 60° view.
+        let fx = 320.0 / 30f64.to_radians().tan();
+        for seed in 0..10 {
+            let scene = Scene::build(SceneKind::Lamps, seed);
+            let h = scene.camera_height_m;
+            let mut thin = 0;
+            for o in &scene.objects {
+                let Shape::Cylinder { center, radius_m, .. } = &o.shape else {
+                    continue;
+                };
+                let width_px = fx * 2.0 * radius_m / (h - center[2]);
+                assert!(
+                    (0.9..=6.1).contains(&width_px),
+                    "seed {seed} {}: {width_px:.2} px",
+                    o.name
+                );
+                thin += 1;
+            }
+            assert!(thin >= 8, "seed {seed}: {thin} thin parts");
+            for prefix in ["lamp_", "tripod_", "cable_", "slab_"] {
+                assert!(
+                    scene.objects.iter().any(|o| o.name.starts_with(prefix)),
+                    "seed {seed}: no {prefix}"
+                );
+            }
+            assert!(
+                !scene
+                    .objects
+                    .iter()
+                    .any(|o| o.name.starts_with("slat_") || o.name.starts_with("leaf_"))
+            );
+        }
+        assert_ne!(Scene::build(SceneKind::Lamps, 1), Scene::build(SceneKind::Lamps, 2));
     }
 
     #[test]
