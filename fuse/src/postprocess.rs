@@ -186,13 +186,48 @@ pub fn farther_by_wider_median(
             len: filtered.data.len(),
         });
     }
-    let wide = weighted_median_with_votes(disparity, reference, &farther.filter, votes)?;
+    // Only a pixel whose window holds a value at least `min_move_px` below its answer can move:
+    // the least value of its whole box (a superset of the sampled window) says which, so the
+    // filter runs only near depth edges, with the same result.
+    let radius = farther.filter.radius_px;
+    let least = box_minimum(disparity, radius);
+    let only: Vec<bool> = least
+        .iter()
+        .zip(&filtered.data)
+        .map(|(low, d)| *low < *d - farther.min_move_px)
+        .collect();
+    let wide = weighted_median_of(disparity, reference, &farther.filter, votes, Some(&only))?;
     for (d, f) in filtered.data.iter_mut().zip(&wide.data) {
         if *f < *d - farther.min_move_px {
             *d = *f;
         }
     }
     Ok(())
+}
+
+/// The least finite value within `radius` px (a square box) of each pixel, `+∞` where none:
+/// a row pass, then a column pass.
+fn box_minimum(disparity: &DisparityImage, radius: usize) -> Vec<f32> {
+    let (w, h) = (disparity.width, disparity.height);
+    let finite = |v: f32| if v.is_finite() { v } else { f32::INFINITY };
+    let mut rows = vec![f32::INFINITY; w * h];
+    rows.par_chunks_mut(w.max(1)).enumerate().for_each(|(y, out)| {
+        let row = &disparity.data[y * w..(y + 1) * w];
+        for (x, o) in out.iter_mut().enumerate() {
+            *o = row[x.saturating_sub(radius)..(x + radius + 1).min(w)]
+                .iter()
+                .fold(f32::INFINITY, |a, v| a.min(finite(*v)));
+        }
+    });
+    let mut out = vec![f32::INFINITY; w * h];
+    out.par_chunks_mut(w.max(1)).enumerate().for_each(|(y, o)| {
+        for yy in y.saturating_sub(radius)..(y + radius + 1).min(h) {
+            for (a, v) in o.iter_mut().zip(&rows[yy * w..(yy + 1) * w]) {
+                *a = a.min(*v);
+            }
+        }
+    });
+    out
 }
 
 /// [`WeightedMedian`] of `disparity`, guided by `reference` (grey or RGB, the same size).
@@ -214,6 +249,18 @@ pub fn weighted_median_with_votes(
     reference: &Image,
     filter: &WeightedMedian,
     votes: Option<&[f32]>,
+) -> Result<DisparityImage, FuseError> {
+    weighted_median_of(disparity, reference, filter, votes, None)
+}
+
+/// [`weighted_median_with_votes`] at the pixels `only` marks (`None`: every pixel); the others
+/// keep their values.
+fn weighted_median_of(
+    disparity: &DisparityImage,
+    reference: &Image,
+    filter: &WeightedMedian,
+    votes: Option<&[f32]>,
+    only: Option<&[bool]>,
 ) -> Result<DisparityImage, FuseError> {
     let ones;
     let votes = match votes {
@@ -300,7 +347,7 @@ pub fn weighted_median_with_votes(
             colour: &colour,
         };
         for (x, value) in out.iter_mut().enumerate() {
-            if !value.is_finite() {
+            if !value.is_finite() || only.is_some_and(|only| !only[y * w + x]) {
                 continue;
             }
             let (left, right) = ks(x, w);
@@ -782,6 +829,15 @@ mod tests {
                 }
             }
         }
+        // The same as the wider filter run at every pixel.
+        let wide = weighted_median(&fattened, &image, &FartherMedian::default().filter).unwrap();
+        let mut everywhere = first.clone();
+        for (d, f) in everywhere.data.iter_mut().zip(&wide.data) {
+            if *f < *d - FartherMedian::default().min_move_px {
+                *d = *f;
+            }
+        }
+        assert_eq!(out, everywhere);
         // A move below `min_move_px` is not taken.
         let mut small = first.clone();
         let far = FartherMedian {
