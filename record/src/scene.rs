@@ -974,6 +974,38 @@ fn slanted_scene(seed: u64) -> Scene {
     scene
 }
 
+/// The start of a thin-part family's scene (`thin`, `fence`, `lamps`): its generator seeded with
+/// `salted_seed`, the camera 0.55–0.93 m up, a far floor (plain in `plain`'s colours a third of
+/// the time), the table and the room.
+fn far_floor_scene(kind: SceneKind, salted_seed: u64, seed: u64, plain: [Rgb; 2]) -> (Scene, SplitMix64) {
+    let mut rng = SplitMix64::new(salted_seed);
+    let camera_height_m = camera_height(&mut rng, 0.55, 0.93);
+    let mut scene = Scene::empty(kind, seed, camera_height_m);
+    let floor = far_floor(&mut rng, plain[0], plain[1]);
+    let floor = scene.add_material(floor);
+    table(&mut scene, floor);
+    scene.add_room();
+    (scene, rng)
+}
+
+/// A thin cylinder from `ends.0` to `ends.1`, its radius drawn by `radius_at(rng, z)` at its
+/// middle's height; answers the radius.
+fn add_segment(
+    scene: &mut Scene,
+    rng: &mut SplitMix64,
+    name: &str,
+    (a, b): ([f64; 3], [f64; 3]),
+    material: usize,
+    radius_at: &dyn Fn(&mut SplitMix64, f64) -> f64,
+) -> f64 {
+    let mid = [(a[0] + b[0]) / 2.0, (a[1] + b[1]) / 2.0, (a[2] + b[2]) / 2.0];
+    let along = [b[0] - a[0], b[1] - a[1], b[2] - a[2]];
+    let half = 0.5 * (along[0] * along[0] + along[1] * along[1] + along[2] * along[2]).sqrt();
+    let radius = radius_at(rng, mid[2]);
+    scene.add(name, Shape::cylinder(mid, along, radius, half), material);
+    radius
+}
+
 /// `thin`: what coarse levels and small crops lose. A far floor (plain in a third of the scenes),
 /// and between it and the camera: rods and wires at any angle, two or three lamp arms (a post
 /// and two jointed segments), a row of parallel slats, a handful of leaves (thin tilted plates)
@@ -982,14 +1014,13 @@ fn slanted_scene(seed: u64) -> Scene {
 /// (0.7–4 px at 448, 3–18 px at 1920): `diameter = depth × U(1.8, 11) / 1000`. Never used for
 /// training.
 fn thin_scene(seed: u64) -> Scene {
-    let mut rng = SplitMix64::new(seed ^ 0x7468_696e);
-    let camera_height_m = camera_height(&mut rng, 0.55, 0.93);
-    let mut scene = Scene::empty(SceneKind::Thin, seed, camera_height_m);
-    let floor = far_floor(&mut rng, [0.45, 0.46, 0.44], [0.52, 0.52, 0.5]);
-    let floor = scene.add_material(floor);
-    table(&mut scene, floor);
-    scene.add_room();
-    let h = camera_height_m;
+    let (mut scene, mut rng) = far_floor_scene(
+        SceneKind::Thin,
+        seed ^ 0x7468_696e,
+        seed,
+        [[0.45, 0.46, 0.44], [0.52, 0.52, 0.5]],
+    );
+    let h = scene.camera_height_m;
     let c = WORK_AREA_CENTER_M;
     // A thin part's radius (m) at height `z` above the floor: 1–6 px wide at 640 px.
     let radius_at = |rng: &mut SplitMix64, z: f64| 0.5 * (h - z) * rng.range(0.0018, 0.011);
@@ -1033,18 +1064,14 @@ fn thin_scene(seed: u64) -> Scene {
                 joint[1] + axis[1] * length,
                 (joint[2] + axis[2] * length).clamp(0.05 * h, 0.75 * h),
             ];
-            let mid = [
-                (joint[0] + end[0]) / 2.0,
-                (joint[1] + end[1]) / 2.0,
-                (joint[2] + end[2]) / 2.0,
-            ];
-            let along = [end[0] - joint[0], end[1] - joint[1], end[2] - joint[2]];
-            let half = 0.5 * (along[0] * along[0] + along[1] * along[1] + along[2] * along[2]).sqrt();
-            let radius = radius_at(&mut rng, mid[2]);
-            scene.add(
+            let arm = (joint, end);
+            let radius = add_segment(
+                &mut scene,
+                &mut rng,
                 &format!("lamp_{index}_arm_{segment}"),
-                Shape::cylinder(mid, along, radius, half),
+                arm,
                 material,
+                &radius_at,
             );
             scene.add(
                 &format!("lamp_{index}_joint_{segment}"),
@@ -1167,14 +1194,13 @@ fn add_leaves(scene: &mut Scene, rng: &mut SplitMix64, parts: &ThinParts<'_>, as
 /// widths; a third of them crossed by a second row: a lattice), rods and wires at any angle,
 /// leaves, and one to three stacks whose occluded strips on the floor are tens of pixels wide.
 fn fence_scene(seed: u64) -> Scene {
-    let mut rng = SplitMix64::new(seed ^ 0x6665_6e63);
-    let camera_height_m = camera_height(&mut rng, 0.55, 0.93);
-    let mut scene = Scene::empty(SceneKind::Fence, seed, camera_height_m);
-    let floor = far_floor(&mut rng, [0.44, 0.45, 0.47], [0.53, 0.52, 0.5]);
-    let floor = scene.add_material(floor);
-    table(&mut scene, floor);
-    scene.add_room();
-    let h = camera_height_m;
+    let (mut scene, mut rng) = far_floor_scene(
+        SceneKind::Fence,
+        seed ^ 0x6665_6e63,
+        seed,
+        [[0.44, 0.45, 0.47], [0.53, 0.52, 0.5]],
+    );
+    let h = scene.camera_height_m;
     let c = WORK_AREA_CENTER_M;
     // A bar's width (m) at height `z` above the floor: 1–6 px at 640 px.
     let width_at = |rng: &mut SplitMix64, z: f64| (h - z) * rng.range(0.0018, 0.011);
@@ -1258,14 +1284,13 @@ fn fence_scene(seed: u64) -> Scene {
 /// (see [`SceneKind::Lamps`]). Each thin part is 1–6 px wide at its depth in a 640-px-wide 60°
 /// view, as in `thin` and `fence`.
 fn lamps_scene(seed: u64) -> Scene {
-    let mut rng = SplitMix64::new(seed ^ 0x6c61_6d70);
-    let camera_height_m = camera_height(&mut rng, 0.55, 0.93);
-    let mut scene = Scene::empty(SceneKind::Lamps, seed, camera_height_m);
-    let floor = far_floor(&mut rng, [0.47, 0.45, 0.43], [0.5, 0.52, 0.53]);
-    let floor = scene.add_material(floor);
-    table(&mut scene, floor);
-    scene.add_room();
-    let h = camera_height_m;
+    let (mut scene, mut rng) = far_floor_scene(
+        SceneKind::Lamps,
+        seed ^ 0x6c61_6d70,
+        seed,
+        [[0.47, 0.45, 0.43], [0.5, 0.52, 0.53]],
+    );
+    let h = scene.camera_height_m;
     let c = WORK_AREA_CENTER_M;
     // A thin part's radius (m) at height `z` above the floor: 1–6 px wide at 640 px.
     let radius_at = |rng: &mut SplitMix64, z: f64| 0.5 * (h - z) * rng.range(0.0018, 0.011);
@@ -1276,14 +1301,8 @@ fn lamps_scene(seed: u64) -> Scene {
             c[1] + rng.range(-0.18, 0.18) * depth,
         )
     };
-    // A thin cylinder from `a` to `b`, as wide as `radius_at` draws at its middle's height.
     let segment = |scene: &mut Scene, rng: &mut SplitMix64, name: &str, a: [f64; 3], b: [f64; 3], material: usize| {
-        let mid = [(a[0] + b[0]) / 2.0, (a[1] + b[1]) / 2.0, (a[2] + b[2]) / 2.0];
-        let along = [b[0] - a[0], b[1] - a[1], b[2] - a[2]];
-        let half = 0.5 * (along[0] * along[0] + along[1] * along[1] + along[2] * along[2]).sqrt();
-        let radius = radius_at(rng, mid[2]);
-        scene.add(name, Shape::cylinder(mid, along, radius, half), material);
-        radius
+        add_segment(scene, rng, name, (a, b), material, &radius_at)
     };
     for index in 0..rng.range_usize(2, 5) {
         let material = random_material(&mut rng, &format!("lamp_{index}_material"), 5);
