@@ -141,7 +141,7 @@ pub struct MFuseNetConfig {
     /// colour by more than the first window undoes. Needs `weighted_median`. Middlebury
     /// three-view 0.285 → 0.268 px (Bad1 4.77 → 4.55 %), the held-out `thin` crosses 0.516 →
     /// 0.464 px (4.74 → 4.35 %), the `thin` rows of five at 384×288 0.504 → 0.467 px
-    /// (docs/experiments.md, 2026-12-06).
+    /// (docs/experiments.md, 2026-12-06 (late)).
     pub farther_median: Option<FartherMedian>,
     /// In the weighted median, the vote of a pixel whose estimate the input costs do not back
     /// (no local minimum of the summed input costs within 1 px of it), relative to one they do:
