@@ -211,7 +211,12 @@ fn decompress(compression: &[u8], records: &[u8], limit: u64, out: &mut Vec<u8>)
         }
         b"zstd" => {
             // The limit is the claimed size when that is plausible: one allocation, no doubling.
-            out.reserve(usize::try_from(limit).unwrap_or(0));
+            // A spare buffer too small is replaced, not grown: growing copies its old bytes
+            // (the allocator's `realloc` knows no length) into freshly faulted pages.
+            let wanted = usize::try_from(limit).unwrap_or(0);
+            if out.capacity() < wanted {
+                *out = Vec::with_capacity(wanted);
+            }
             // A whole frame within the limit decodes in one call straight into the buffer's
             // spare capacity (no zeroing first); anything else (a cut or corrupt stream, a
             // frame larger than claimed) is decoded again as a stream, as far as it goes.
