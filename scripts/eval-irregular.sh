@@ -3,10 +3,10 @@
 # a cross missing one arm, a diagonal beside an axis view): simulated 3 x 3 grids of families no
 # network was trained on (`bin`, `thin`) and of mirror-like workpieces at seeds training never
 # draws, 640x360, two sets each, replayed with subsets of their neighbours. `mfusenet` (default:
-# the view-count-agnostic network where the fixed ones would take the set only in part) against
-# `{"every_view": false}` (the fixed networks only: the stereo one on one view of an L, the
-# three-view one on the pair of a T), sgm-heuristic and gc-heuristic (occlusions filled).
-# AvgErr / Bad1 %, and the network the default ran.
+# the odd views at the nearest baseline each run the stereo network in the vote) against
+# `{"every_view": false}` (one network: the stereo one on one view of an L, the three-view one
+# on the pair of a T), sgm-heuristic and gc-heuristic (occlusions filled). AvgErr / Bad1 %, and
+# the networks the default ran.
 #
 #   scripts/eval-irregular.sh [OUT_DIR] [METHODS]   (default out/irregular; captures kept there)
 set -euo pipefail
@@ -60,7 +60,7 @@ print("|---|---|" + "---|" * (len(methods) + 1))
 for (log, s), row in table.items():
     try:
         d = json.load(open(os.path.join(out, f"{log}-{s}-network.json")))
-        net = f"{d.get('network')} [{', '.join(d.get('views') or [])}]"
+        net = "; ".join(d["networks"]) if "networks" in d else f"{d.get('network')} [{', '.join(d.get('views') or [])}]"
     except Exception:
         net = "?"
     cells = [f"{row[m]['avg_err_px']:.3f} / {row[m]['bad_1']:.2f}" if m in row else "–" for m in methods]

@@ -45,10 +45,8 @@ use crate::volume::{CostVolume, Problem};
 use crate::wta::{LockingCurve, SubpixelFit};
 
 /// The shipped weights: per number of input volumes, the paper's architecture and, for the
-/// five-view network, the lite one ([`MFuseNetConfig::architecture`] picks); 0 inputs: the
-/// view-count-agnostic network, for the sets the fixed ones take only in part
-/// ([`MFuseNet::takes_in_part`]).
-const SHIPPED: [(usize, Architecture, &str, &[u8]); 5] = [
+/// five-view network, the lite one ([`MFuseNetConfig::architecture`] picks).
+const SHIPPED: [(usize, Architecture, &str, &[u8]); 4] = [
     (
         1,
         Architecture::Paper,
@@ -72,12 +70,6 @@ const SHIPPED: [(usize, Architecture, &str, &[u8]); 5] = [
         Architecture::Lite,
         "mfusenet-5view-lite.safetensors",
         include_bytes!("../../weights/mfusenet-5view-lite.safetensors"),
-    ),
-    (
-        0,
-        Architecture::Lite,
-        "mfusenet-any-lite.safetensors",
-        include_bytes!("../../weights/mfusenet-any-lite.safetensors"),
     ),
 ];
 
@@ -188,11 +180,11 @@ pub struct MFuseNetConfig {
     /// (`mfusenet::input::view_groups`), and their log-probabilities are averaged with a vote
     /// per view (a farther group's only at the disparities its views see) before the estimate
     /// is read; it is refined and filtered with the nearest group's costs.
-    /// A set that one fixed network would take only in part (an L of two views, a cross
-    /// missing an arm: `MFuseNet::takes_in_part`) goes whole to the shipped view-count-agnostic
-    /// network instead. `false`: one fixed network on the nearest cross, pair or view, as the
-    /// paper, the other views unused (the run summary lists the networks and the views they
-    /// took). With a view-count-agnostic weights file
+    /// The views at the nearest baseline that no cross or pair takes (an L of two views, the
+    /// odd view of a cross missing an arm) each run the stereo network in the same vote.
+    /// `false`: one network on the nearest cross, pair or view, as the paper, the other views
+    /// unused (the run summary lists the networks and the views they took). With a
+    /// view-count-agnostic weights file
     /// (`replay train --views any`): one network pools every view of the set, the nearest
     /// baseline's on the axes first, and the post-processing reads those first ones' costs;
     /// `false`: the nearest ones only (the summary's `views` lists what it took). `null` (the
@@ -385,40 +377,6 @@ impl MFuseNet {
         })
     }
 
-    /// Whether the one fixed network a set gets ([`views_for`], with its side inputs) would
-    /// leave out a view on an axis (`left, right, top`: the three-view network on the pair, the
-    /// top unused) or every view but one (`left, top`: the stereo network on one of them), where
-    /// the shipped view-count-agnostic network takes them all. A 3 × 3 grid's diagonals left
-    /// beside its cross, a line's farther views on one side (side inputs) and sets that several
-    /// fixed networks share ([`Self::view_plan`]) stay with the fixed networks, as does
-    /// `every_view: false`. On the held-out `bin` grid's subsets: `left, top` 0.584 → 0.140 px,
-    /// `left, right, top` 0.124 → 0.115 (docs/results.md, "Irregular sets").
-    fn takes_in_part(&self, problem: &Problem) -> bool {
-        if self.config.every_view == Some(false)
-            || self.network_of(0).is_none()
-            || ordered_neighbours(problem, 0).is_err()
-            || self.view_plan(problem).is_some()
-        {
-            return false;
-        }
-        let views = views_for(problem);
-        let Ok(nearest) = ordered_neighbours(problem, views) else {
-            return false;
-        };
-        let used: Vec<&Neighbour> = if self.config.side_inputs {
-            sides_of(problem, &nearest).concat()
-        } else {
-            nearest
-        };
-        let on_axis = |n: &Neighbour| (n.offset[0] == 0) != (n.offset[1] == 0);
-        let mut unused = problem
-            .neighbours
-            .iter()
-            .filter(|n| !used.iter().any(|u| std::ptr::eq(*u, *n)))
-            .peekable();
-        unused.peek().is_some() && (views == 1 || unused.any(on_axis))
-    }
-
     /// The network for `views` volumes: the configured architecture's where one is shipped for
     /// them, else the paper's (a `weights` file is the only network).
     fn network_of(&self, views: usize) -> Option<&Loaded> {
@@ -429,14 +387,11 @@ impl MFuseNet {
             .or_else(|| of_views().next())
     }
 
-    /// The network for a problem: with the shipped weights, the fixed network of
-    /// [`views_for`], or the view-count-agnostic one where that would take the set only in
-    /// part ([`Self::takes_in_part`]).
+    /// The network for a problem.
     fn network_for(&self, problem: &Problem) -> Result<&Loaded, FuseError> {
         let views = match (&self.config.weights, self.stereo) {
             (_, true) => 1,
             (Some(_), false) => self.networks.first().map_or(1, |n| n.views),
-            (None, false) if self.takes_in_part(problem) => 0,
             (None, false) => views_for(problem),
         };
         self.network_of(views).ok_or(FuseError::Config {
@@ -955,10 +910,22 @@ impl MFuseNet {
                     .powi(i32::try_from(multiple - 1).unwrap_or(i32::MAX)),
             });
         }
-        // The estimate is refined and filtered with the nearest group's costs: the farther
+        // The estimate is refined and filtered with the nearest groups' costs: the farther
         // views' costs, summed in or taken side by side, raised AvgErr on the toy line of five
         // and on Middlebury's lines (docs/experiments.md).
-        let costs = summed_or_error(&volumes[..groups.first().map_or(0, |(group, _)| group.neighbours.len())])?;
+        // The nearest groups: the first and those after it at its baseline (an L's two views,
+        // each its own group, read together).
+        let reach = |n: &Neighbour| n.offset[0].abs().max(n.offset[1].abs());
+        let nearest_reach = groups
+            .first()
+            .and_then(|(group, _)| group.neighbours.first())
+            .map_or(1, |n| reach(n));
+        let nearest: usize = groups
+            .iter()
+            .take_while(|(group, _)| group.neighbours.iter().all(|n| reach(n) == nearest_reach))
+            .map(|(group, _)| group.neighbours.len())
+            .sum();
+        let costs = summed_or_error(&volumes[..nearest])?;
         progress(0.1);
         let (data, confidence) = infer_fused(
             &members,
@@ -1301,33 +1268,34 @@ mod tests {
     }
 
     #[test]
-    fn sets_the_fixed_networks_take_in_part_run_the_view_count_agnostic_one() {
+    fn the_odd_views_of_an_irregular_set_each_run_the_stereo_network() {
         let method = crate::methods::build("mfusenet", None).unwrap_or_else(|e| panic!("{e}"));
         let plane = |offsets: &[[i32; 2]]| plane_sized(offsets, 6, (0, 32), (128, 96));
-        let network = |offsets: &[[i32; 2]]| method.details(&plane(offsets))["network"].clone();
-        // An L, a T, a diagonal beside one axis view: every view to the pooled network.
-        assert_eq!(network(&[[-1, 0], [0, -1]]), "view-count-agnostic");
-        assert_eq!(network(&[[-1, 0], [1, 0], [0, -1]]), "view-count-agnostic");
-        assert_eq!(network(&[[1, -1], [1, 0]]), "view-count-agnostic");
-        // What the fixed networks take whole stays with them: one view, a pair, the cross, the
-        // cross of a 3 × 3 grid (its diagonals beside it), a one-sided line (side inputs), a
-        // line of five (two groups).
-        assert_eq!(network(&[[1, 0]]), "stereo");
-        assert_eq!(network(&[[-1, 0], [1, 0]]), "three-view");
-        assert_eq!(network(&[[-1, 0], [1, 0], [0, -1], [0, 1]]), "five-view");
-        let grid = [[-1, -1], [0, -1], [1, -1], [1, 0], [1, 1], [0, 1], [-1, 1], [-1, 0]];
-        assert_eq!(network(&grid), "five-view");
-        assert_eq!(network(&[[1, 0], [2, 0]]), "stereo");
-        assert_eq!(network(&[[-2, 0], [-1, 0], [1, 0], [2, 0]]), "fused");
-        // `every_view: false` keeps the fixed networks.
+        let details = |offsets: &[[i32; 2]]| method.details(&plane(offsets));
+        // An L: each view alone; a cross missing an arm: the pair and the odd view.
+        let l = details(&[[-1, 0], [0, -1]]);
+        assert_eq!(l["network"], "fused", "{l}");
+        assert_eq!(l["networks"], serde_json::json!(["stereo [left]", "stereo [top]"]), "{l}");
+        let t = details(&[[-1, 0], [1, 0], [0, -1]]);
+        assert_eq!(
+            t["networks"],
+            serde_json::json!(["three-view [left, right]", "stereo [top]"]),
+            "{t}"
+        );
+        // What one network takes whole stays with it: one view, a pair, the cross, a line from
+        // one end (its far view a side input).
+        assert_eq!(details(&[[1, 0]])["network"], "stereo");
+        assert_eq!(details(&[[-1, 0], [1, 0]])["network"], "three-view");
+        assert_eq!(details(&[[-1, 0], [1, 0], [0, -1], [0, 1]])["network"], "five-view");
+        assert_eq!(details(&[[1, 0], [2, 0]])["network"], "stereo");
+        // `every_view: false`: the stereo network on one view of the L.
         let fixed = serde_json::json!({ "every_view": false });
         let fixed = crate::methods::build("mfusenet", Some(&fixed)).unwrap_or_else(|e| panic!("{e}"));
         assert_eq!(fixed.details(&plane(&[[-1, 0], [0, -1]]))["network"], "stereo");
-        // The L takes both views and finds its plane away from the borders both shift.
-        let problem = plane(&[[-1, 0], [0, -1]]);
-        let details = method.details(&problem);
-        assert_eq!(details["views"], serde_json::json!(["left", "top"]), "{details}");
-        let out = method.run(&problem, &|_| {}).unwrap_or_else(|e| panic!("{e}"));
+        // The L finds its plane away from the borders its views shift.
+        let out = method
+            .run(&plane(&[[-1, 0], [0, -1]]), &|_| {})
+            .unwrap_or_else(|e| panic!("{e}"));
         let (w, h, margin) = (out.width, out.height, 12);
         let errors: Vec<f32> = (margin..h - margin)
             .flat_map(|y| (margin..w - margin).map(move |x| (x, y)))

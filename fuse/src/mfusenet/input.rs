@@ -132,10 +132,14 @@ pub struct ViewGroup<'a> {
 
 /// The set's neighbours placed in the networks that take them, nearest baselines first: at each
 /// multiple `k` of the baseline, the cross `(±k, 0), (0, ±k)` for the five-view network (when
-/// `available`), else its horizontal and vertical opposite pairs for the three-view one. What no
-/// group takes is returned apart: a view without its opposite (the stereo network on it did not
-/// move Middlebury's lines) and the diagonal views of a grid (the three-view network on a
-/// diagonal pair raised a simulated 3 × 3 grid's AvgErr by 5 %; docs/experiments.md).
+/// `available`), else its horizontal and vertical opposite pairs for the three-view one; then
+/// each view on an axis at the set's nearest baseline that no pair took, alone, for the stereo
+/// network (an L of two views: both; a cross missing an arm: the pair and the odd view; on the
+/// held-out grids' L subsets 0.30 → 0.16 px, docs/results.md "Irregular sets"). What no group
+/// takes is returned apart: a farther view without its opposite (the stereo network on it did not
+/// move Middlebury's lines; a single network reads it as a side input) and the diagonal views of
+/// a grid (the three-view network on a diagonal pair raised a simulated 3 × 3 grid's AvgErr by
+/// 5 %, the five-view one on the turned cross by 8 %; docs/experiments.md).
 pub fn view_groups<'a>(problem: &'a Problem, available: &[usize]) -> (Vec<ViewGroup<'a>>, Vec<&'a Neighbour>) {
     let mut left: Vec<&Neighbour> = problem.neighbours.iter().collect();
     let has =
@@ -166,6 +170,21 @@ pub fn view_groups<'a>(problem: &'a Problem, available: &[usize]) -> (Vec<ViewGr
                 }
             }
         }
+    }
+    // The odd views at the nearest baseline, each alone.
+    let on_axis = |n: &Neighbour| (n.offset[0] == 0) != (n.offset[1] == 0);
+    let reach_of = |n: &Neighbour| n.offset[0].abs().max(n.offset[1].abs());
+    let nearest = problem.neighbours.iter().filter(|n| on_axis(n)).map(reach_of).min();
+    if available.contains(&1)
+        && let Some(k) = nearest
+    {
+        let (odd, rest): (Vec<&Neighbour>, Vec<&Neighbour>) =
+            left.into_iter().partition(|n| on_axis(n) && reach_of(n) == k);
+        groups.extend(odd.into_iter().map(|n| ViewGroup {
+            views: 1,
+            neighbours: vec![n],
+        }));
+        left = rest;
     }
     (groups, left)
 }
@@ -665,6 +684,17 @@ mod tests {
                 vec![[-1, -1], [1, -1], [1, 1], [-1, 1]]
             )
         );
+        // An L, a cross missing an arm: the odd views at the nearest baseline alone.
+        assert_eq!(
+            groups(&[[0, -1], [-1, 0]], &[1, 2, 4]),
+            (vec![(1, vec![[0, -1]]), (1, vec![[-1, 0]])], vec![])
+        );
+        assert_eq!(
+            groups(&[[-1, 0], [1, 0], [0, -1], [1, -1]], &[1, 2, 4]),
+            (vec![(2, vec![[-1, 0], [1, 0]]), (1, vec![[0, -1]])], vec![[1, -1]])
+        );
+        // A line from one end: its nearest view alone, the farther one left for its side.
+        assert_eq!(groups(&[[1, 0], [2, 0]], &[1, 2, 4]), (vec![(1, vec![[1, 0]])], vec![[2, 0]]));
         // Crosses at two baselines.
         let crosses = [[-1, 0], [1, 0], [0, -1], [0, 1], [-2, 0], [2, 0], [0, -2], [0, 2]];
         assert_eq!(
