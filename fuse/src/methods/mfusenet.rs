@@ -1275,7 +1275,11 @@ mod tests {
         // An L: each view alone; a cross missing an arm: the pair and the odd view.
         let l = details(&[[-1, 0], [0, -1]]);
         assert_eq!(l["network"], "fused", "{l}");
-        assert_eq!(l["networks"], serde_json::json!(["stereo [left]", "stereo [top]"]), "{l}");
+        assert_eq!(
+            l["networks"],
+            serde_json::json!(["stereo [left]", "stereo [top]"]),
+            "{l}"
+        );
         let t = details(&[[-1, 0], [1, 0], [0, -1]]);
         assert_eq!(
             t["networks"],

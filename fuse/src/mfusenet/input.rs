@@ -694,7 +694,10 @@ mod tests {
             (vec![(2, vec![[-1, 0], [1, 0]]), (1, vec![[0, -1]])], vec![[1, -1]])
         );
         // A line from one end: its nearest view alone, the farther one left for its side.
-        assert_eq!(groups(&[[1, 0], [2, 0]], &[1, 2, 4]), (vec![(1, vec![[1, 0]])], vec![[2, 0]]));
+        assert_eq!(
+            groups(&[[1, 0], [2, 0]], &[1, 2, 4]),
+            (vec![(1, vec![[1, 0]])], vec![[2, 0]])
+        );
         // Crosses at two baselines.
         let crosses = [[-1, 0], [1, 0], [0, -1], [0, 1], [-2, 0], [2, 0], [0, -2], [0, 2]];
         assert_eq!(
