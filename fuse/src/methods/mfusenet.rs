@@ -1103,7 +1103,7 @@ pub const ENTRIES: &[MethodEntry] = &[
     },
     MethodEntry {
         name: "mfusenet",
-        summary: "MFuseNet: the per-neighbour SGM cost volumes fused by the trained 3D CNN (five-, three- or two-view network from the set)",
+        summary: "MFuseNet: the per-neighbour SGM cost volumes fused by the trained 3D CNN (the five-view network on each cross of the set, the three-view one on each pair, the stereo one on each odd view)",
         family: Family::MFuseNet,
         build: |o| build("mfusenet", false, o),
     },
