@@ -34,6 +34,19 @@ pub struct Neighbour {
     pub baseline_ratio: f32,
 }
 
+impl Neighbour {
+    /// How many baselines out it sits: its offset's larger component (a line's `left2` 2, a
+    /// grid's diagonal 1).
+    pub fn reach(&self) -> i32 {
+        self.offset[0].abs().max(self.offset[1].abs())
+    }
+
+    /// Whether it sits on the x or the y axis (not the reference, not a diagonal).
+    pub fn on_axis(&self) -> bool {
+        (self.offset[0] == 0) != (self.offset[1] == 0)
+    }
+}
+
 /// A plane seen from a cross of four neighbours (tests): the reference `view([0, 0])` and each
 /// neighbour `view(offset)` (the view one baseline along `offset`, which the caller shifts by
 /// its plane's disparity), searched over `0..num_disparities`.

@@ -915,14 +915,13 @@ impl MFuseNet {
         // and on Middlebury's lines (docs/experiments.md).
         // The nearest groups: the first and those after it at its baseline (an L's two views,
         // each its own group, read together).
-        let reach = |n: &Neighbour| n.offset[0].abs().max(n.offset[1].abs());
         let nearest_reach = groups
             .first()
             .and_then(|(group, _)| group.neighbours.first())
-            .map_or(1, |n| reach(n));
+            .map_or(1, |n| n.reach());
         let nearest: usize = groups
             .iter()
-            .take_while(|(group, _)| group.neighbours.iter().all(|n| reach(n) == nearest_reach))
+            .take_while(|(group, _)| group.neighbours.iter().all(|n| n.reach() == nearest_reach))
             .map(|(group, _)| group.neighbours.len())
             .sum();
         let costs = summed_or_error(&volumes[..nearest])?;

@@ -68,16 +68,15 @@ impl Default for InputSpec {
 /// in the set's order (its nearest group; [`pooled_neighbours`] adds the rest).
 pub fn ordered_neighbours(problem: &Problem, views: usize) -> Result<Vec<&Neighbour>, FuseError> {
     let at = |offset: [i32; 2]| problem.neighbours.iter().find(|n| n.offset == offset);
-    let on_axis = |n: &&Neighbour| (n.offset[0] == 0) != (n.offset[1] == 0);
-    let reach = |n: &Neighbour| n.offset[0].abs().max(n.offset[1].abs());
-    let nearest = problem.neighbours.iter().filter(on_axis).map(reach).min();
+    let on_axis = |n: &&Neighbour| n.on_axis();
+    let nearest = problem.neighbours.iter().filter(on_axis).map(Neighbour::reach).min();
     let found: Option<Vec<&Neighbour>> = match views {
         0 => nearest.map(|k| {
             problem
                 .neighbours
                 .iter()
                 .filter(on_axis)
-                .filter(|n| reach(n) == k)
+                .filter(|n| n.reach() == k)
                 .collect()
         }),
         1 => problem.neighbours_for(Fusion::Stereo).first().map(|n| vec![*n]),
@@ -108,13 +107,12 @@ pub fn ordered_neighbours(problem: &Problem, views: usize) -> Result<Vec<&Neighb
 pub fn pooled_neighbours(problem: &Problem, every: bool) -> Result<Vec<&Neighbour>, FuseError> {
     let mut out = ordered_neighbours(problem, 0)?;
     if every {
-        let reach = |n: &Neighbour| n.offset[0].abs().max(n.offset[1].abs());
         let mut rest: Vec<&Neighbour> = problem
             .neighbours
             .iter()
             .filter(|n| !out.iter().any(|o| std::ptr::eq(*o, *n)))
             .collect();
-        rest.sort_by_key(|n| reach(n));
+        rest.sort_by_key(|n| n.reach());
         out.extend(rest);
     }
     Ok(out)
@@ -144,12 +142,7 @@ pub fn view_groups<'a>(problem: &'a Problem, available: &[usize]) -> (Vec<ViewGr
     let mut left: Vec<&Neighbour> = problem.neighbours.iter().collect();
     let has =
         |left: &Vec<&Neighbour>, offsets: &[[i32; 2]]| offsets.iter().all(|o| left.iter().any(|n| n.offset == *o));
-    let reach = problem
-        .neighbours
-        .iter()
-        .map(|n| n.offset[0].abs().max(n.offset[1].abs()))
-        .max()
-        .unwrap_or(0);
+    let reach = problem.neighbours.iter().map(Neighbour::reach).max().unwrap_or(0);
     let mut groups = Vec::new();
     let mut group = |views: usize, offsets: &[[i32; 2]], left: &mut Vec<&'a Neighbour>| {
         let neighbours = offsets
@@ -172,14 +165,17 @@ pub fn view_groups<'a>(problem: &'a Problem, available: &[usize]) -> (Vec<ViewGr
         }
     }
     // The odd views at the nearest baseline, each alone.
-    let on_axis = |n: &Neighbour| (n.offset[0] == 0) != (n.offset[1] == 0);
-    let reach_of = |n: &Neighbour| n.offset[0].abs().max(n.offset[1].abs());
-    let nearest = problem.neighbours.iter().filter(|n| on_axis(n)).map(reach_of).min();
+    let nearest = problem
+        .neighbours
+        .iter()
+        .filter(|n| n.on_axis())
+        .map(Neighbour::reach)
+        .min();
     if available.contains(&1)
         && let Some(k) = nearest
     {
         let (odd, rest): (Vec<&Neighbour>, Vec<&Neighbour>) =
-            left.into_iter().partition(|n| on_axis(n) && reach_of(n) == k);
+            left.into_iter().partition(|n| n.on_axis() && n.reach() == k);
         groups.extend(odd.into_iter().map(|n| ViewGroup {
             views: 1,
             neighbours: vec![n],
