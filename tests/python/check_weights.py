@@ -6,8 +6,6 @@ convbn3d = Sequential(Conv3d(bias=False), BatchNorm3d), convTbn3d likewise with 
 `architecture = lite` is checked against the lite kernels (feature 5, 3, 3, 3; concat 3; uconv2 3;
 distill1 3; the rest as the paper's). A file whose metadata has a `sharp_spec` takes each view's
 sharp volume into `concat` beside its four features (`concat.0.weight` with 5·N input channels).
-VIEWS `any` is the view-count-agnostic network: `concat` reads the views' features pooled by mean
-and maximum (8 input channels), metadata `views = any` and `view_fusion = mean-max`.
 
 Usage: check_weights.py VIEWS FILE [VIEWS FILE ...]; prints one line per file, exits 1 on a
 mismatch."""
@@ -34,7 +32,7 @@ def state_dict(n_views, architecture="paper", sharp=False):
         ("feature.2", "conv", 4, 4, f2),
         ("feature.4", "conv", 4, 4, f4),
         ("feature.6", "conv", 4, 4, f6),
-        ("concat", "conv", 8 if n_views == "any" else (5 if sharp else 4) * n_views, 4, kc),
+        ("concat", "conv", (5 if sharp else 4) * n_views, 4, kc),
         ("down1", "conv", 4, 4, 3),
         ("dconv1", "conv", 4, 4, 3),
         ("down2", "conv", 4, 4, 3),
@@ -98,8 +96,6 @@ def check(n_views, path):
         problems.append(f"metadata estimate = {metadata.get('estimate')!r}, expected soft-argmin or refine")
     if metadata.get("views") != str(n_views):
         problems.append(f"metadata views = {metadata.get('views')}, expected {n_views}")
-    if n_views == "any" and metadata.get("view_fusion") != "mean-max":
-        problems.append(f"metadata view_fusion = {metadata.get('view_fusion')!r}, expected 'mean-max'")
     parameters = trainable(expected)
     if problems:
         print(f"FAIL {path}: " + "; ".join(problems))
@@ -113,8 +109,7 @@ def main():
     if not args or len(args) % 2:
         print(__doc__)
         return 2
-    views = lambda v: v if v == "any" else int(v)
-    ok = all([check(views(args[i]), args[i + 1]) for i in range(0, len(args), 2)])
+    ok = all([check(int(args[i]), args[i + 1]) for i in range(0, len(args), 2)])
     return 0 if ok else 1
 
 
