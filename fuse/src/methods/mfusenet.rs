@@ -205,6 +205,15 @@ pub struct MFuseNetConfig {
     /// crosses' (`scripts/eval-votes.sh`).
     #[serde(default = "default_farther_vote")]
     pub farther_vote: f32,
+    /// A line of five (±1, ±2 on one axis) into the five-view network alone: ±1 in its left
+    /// and right inputs, ±2 in its top and bottom ones (their costs at twice the disparity), in
+    /// place of the three-view network on each pair. Off by default: lines of mirror-like
+    /// workpieces gain 44–48 % (the five-view file saw workpieces in training), but a periodic
+    /// texture read at its alias by the far pair, which fills two of the four inputs, loses
+    /// 8 × (`random` seed 8: 0.134 → 1.117 px), and the `thin` rows of five lose 5 %
+    /// (docs/experiments.md, 2026-12-06, "A line of five in the five-view network").
+    #[serde(default)]
+    pub line_cross: bool,
     /// Each input of a fixed network's nearest group made from its whole side: the costs of
     /// the views along its ray (a line of five's left input from −1 and −2), made one by
     /// `side_rule`, as the classical heuristic counts sides (on by default; a set with one view
@@ -280,6 +289,7 @@ impl Default for MFuseNetConfig {
             min_network_disparities: MIN_NETWORK_DISPARITIES,
             every_view: None,
             farther_vote: DEFAULT_FARTHER_VOTE,
+            line_cross: false,
             side_inputs: true,
             side_rule: SideRule::NearCapped,
             block_subpixel: Some(BlockSubpixel::default()),
@@ -619,8 +629,8 @@ impl MFuseNet {
             return None;
         }
         let available: Vec<usize> = self.networks.iter().map(|n| n.views).collect();
-        let (groups, rest) = view_groups(problem, &available);
-        if groups.len() < 2 {
+        let (groups, rest) = view_groups(problem, &available, self.config.line_cross);
+        if groups.len() < 2 && !self.config.line_cross {
             return None;
         }
         let groups = groups
@@ -924,6 +934,17 @@ impl MFuseNet {
             .take_while(|(group, _)| group.neighbours.iter().all(|n| n.reach() == nearest_reach))
             .map(|(group, _)| group.neighbours.len())
             .sum();
+        let nearest = if nearest == 0 {
+            groups.first().map_or(0, |(group, _)| {
+                group
+                    .neighbours
+                    .iter()
+                    .take_while(|n| n.reach() == nearest_reach)
+                    .count()
+            })
+        } else {
+            nearest
+        };
         let costs = summed_or_error(&volumes[..nearest])?;
         progress(0.1);
         let (data, confidence) = infer_fused(

@@ -138,7 +138,11 @@ pub struct ViewGroup<'a> {
 /// move Middlebury's lines; a single network reads it as a side input) and the diagonal views of
 /// a grid (the three-view network on a diagonal pair raised a simulated 3 × 3 grid's AvgErr by
 /// 5 %, the five-view one on the turned cross by 8 %; docs/experiments.md).
-pub fn view_groups<'a>(problem: &'a Problem, available: &[usize]) -> (Vec<ViewGroup<'a>>, Vec<&'a Neighbour>) {
+pub fn view_groups<'a>(
+    problem: &'a Problem,
+    available: &[usize],
+    line_cross: bool,
+) -> (Vec<ViewGroup<'a>>, Vec<&'a Neighbour>) {
     let mut left: Vec<&Neighbour> = problem.neighbours.iter().collect();
     let has =
         |left: &Vec<&Neighbour>, offsets: &[[i32; 2]]| offsets.iter().all(|o| left.iter().any(|n| n.offset == *o));
@@ -151,6 +155,15 @@ pub fn view_groups<'a>(problem: &'a Problem, available: &[usize]) -> (Vec<ViewGr
             .collect();
         groups.push(ViewGroup { views, neighbours });
     };
+    // A line of five into the five-view network (`line_cross`): ±1 in its left and right
+    // inputs, ±2 in its top and bottom ones, on an axis with no cross of its own.
+    if line_cross && available.contains(&4) {
+        for line in [[[-1, 0], [1, 0], [-2, 0], [2, 0]], [[0, -1], [0, 1], [0, -2], [0, 2]]] {
+            if has(&left, &line) && !has(&left, &[[-1, 0], [1, 0], [0, -1], [0, 1]]) {
+                group(4, &line, &mut left);
+            }
+        }
+    }
     for k in 1..=reach {
         let cross = [[-k, 0], [k, 0], [0, -k], [0, k]];
         if available.contains(&4) && has(&left, &cross) {
@@ -633,7 +646,7 @@ mod tests {
         };
         let groups = |offsets: &[[i32; 2]], available: &[usize]| {
             let p = problem(offsets);
-            let (groups, rest) = view_groups(&p, available);
+            let (groups, rest) = view_groups(&p, available, false);
             (
                 groups
                     .iter()
@@ -671,6 +684,20 @@ mod tests {
             groups(&line, &[1, 2, 4]),
             (vec![(2, vec![[-1, 0], [1, 0]]), (2, vec![[-2, 0], [2, 0]])], vec![])
         );
+        // … or, with `line_cross`, all four in the five-view network, the far pair as its top
+        // and bottom inputs; a set with a cross keeps its crosses.
+        let p = problem(&line);
+        let (crossed, rest) = view_groups(&p, &[1, 2, 4], true);
+        let crossed: Vec<_> = crossed
+            .iter()
+            .map(|g| (g.views, g.neighbours.iter().map(|n| n.offset).collect::<Vec<_>>()))
+            .collect();
+        assert_eq!(
+            (crossed, rest.len()),
+            (vec![(4, vec![[-1, 0], [1, 0], [-2, 0], [2, 0]])], 0)
+        );
+        let p = problem(&[[-1, 0], [1, 0], [0, -1], [0, 1], [-2, 0], [2, 0]]);
+        assert_eq!(view_groups(&p, &[1, 2, 4], true), view_groups(&p, &[1, 2, 4], false));
         // A 3 × 3 grid: the cross in the five-view network's order; the diagonals unused.
         let grid = [[-1, -1], [0, -1], [1, -1], [1, 0], [1, 1], [0, 1], [-1, 1], [-1, 0]];
         assert_eq!(
