@@ -490,6 +490,73 @@ fn the_view_count_agnostic_network_trains_resumes_and_is_named() {
     );
 }
 
+/// `--rig line5 --views 4`: the five-view network trains on lines of five (the near pair in
+/// its left and right inputs, the far pair in its top and bottom ones), its file says so, and
+/// `mfusenet` with `line_cross` runs it on a line of five's four neighbours.
+#[test]
+fn the_five_view_network_trains_on_lines_of_five_and_runs_on_them() {
+    let dir = temp_dir();
+    let run = dir.path().join("line");
+    let dataset = dir.path().join("dataset");
+    let shipped = weights("mfusenet-5view.safetensors");
+    let mut args: Vec<&str> =
+        "train --views 4 --rig line5 --resolution 96x72 --num-disparities 12 --crop-px 32 --train-sets 2 --val-sets 1 --steps 2 -q"
+            .split_whitespace()
+            .collect();
+    args.extend([
+        "--dir",
+        run.to_str().unwrap_or_default(),
+        "--dataset-dir",
+        dataset.to_str().unwrap_or_default(),
+        "--init-weights",
+        shipped.as_str(),
+        "--flips",
+    ]);
+    assert_success(&replay(&args), "replay train --rig line5");
+    let record: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(run.join("training.json")).unwrap_or_default()).unwrap_or_default();
+    assert_eq!(record["config"]["rig"], "line5", "{record}");
+    // Each cached sample keeps the line's four neighbours.
+    let sample = std::fs::read_dir(&dataset)
+        .into_iter()
+        .flatten()
+        .flatten()
+        .map(|e| e.path())
+        .find(|p| p.extension().is_some_and(|x| x == "safetensors"))
+        .unwrap_or_default();
+    let tensors = safetensors_header(&sample);
+    assert!(
+        tensors.get("volume.3").is_some() && tensors.get("volume.4").is_none(),
+        "{tensors}"
+    );
+    let weights = run.join("mfusenet-5view.safetensors");
+    let header = safetensors_header(&weights);
+    assert_eq!(
+        header["__metadata__"]["input_order"], "left,right,left2,right2",
+        "{header}"
+    );
+    let (logs, log) = recorded("line.mcap", "--rig line5 --resolution 96x72 --samples-per-pixel 1");
+    // (No blank in the JSON: the helper splits its arguments at blanks.)
+    let config = format!("{{\"weights\":\"{}\",\"line_cross\":true}}", weights.display());
+    let summary = replay_summary(
+        &log,
+        &logs.path().join("out"),
+        &format!("--method mfusenet --config {config}"),
+    );
+    let set = &summary["sets"][0];
+    assert_eq!(
+        set["details"]["networks"],
+        serde_json::json!(["five-view [left, right, left2, right2]"]),
+        "{set}"
+    );
+    assert!(
+        set["outputs"]["metrics"]["all"]["avg_err_px"]
+            .as_f64()
+            .is_some_and(f64::is_finite),
+        "{set}"
+    );
+}
+
 #[test]
 fn a_renewing_pool_trains_on_new_captures_deletes_the_old_and_resumes_alike() {
     // Two captures in memory, one replaced every two steps in turn: steps 2 and 4 bring in

@@ -206,8 +206,9 @@ pub struct MFuseNetConfig {
     #[serde(default = "default_farther_vote")]
     pub farther_vote: f32,
     /// A line of five (±1, ±2 on one axis) into the five-view network alone: ±1 in its left
-    /// and right inputs, ±2 in its top and bottom ones (their costs at twice the disparity), in
-    /// place of the three-view network on each pair. Off by default: lines of mirror-like
+    /// and right inputs, ±2 in its top and bottom ones (their costs at twice the disparity, each
+    /// view its own input, no side inputs), in place of the three-view network on each pair;
+    /// with `weights`, that file (`replay train --rig line5` trains one). Off by default: lines of mirror-like
     /// workpieces gain 44–48 % (the five-view file saw workpieces in training), but a periodic
     /// texture read at its alias by the far pair, which fills two of the four inputs, loses
     /// 8 × (`random` seed 8: 0.134 → 1.117 px), and the `thin` rows of five lose 5 %
@@ -447,7 +448,7 @@ impl MFuseNet {
         let estimate = self.network_estimate(&coarse, &|f| progress(0.5 * f))?;
         let coarse_out = self.finish(&coarse, estimate, Stage::Coarse)?;
         let loaded = self.network_for(problem)?;
-        let neighbours = ordered_neighbours(problem, loaded.net.views)?;
+        let neighbours = self.nearest_neighbours(problem, loaded.net.views)?;
         // The full-size costs as one sum, made a neighbour at a time: the post-processing reads
         // only the sum, and four full-size byte volumes would hold twice its memory.
         let sides = self.sides(problem, &neighbours, loaded);
@@ -502,7 +503,7 @@ impl MFuseNet {
         let side_inputs = self
             .side_inputs(loaded)
             .then(|| {
-                let nearest = ordered_neighbours(problem, loaded.views).unwrap_or_default();
+                let nearest = self.nearest_neighbours(problem, loaded.views).unwrap_or_default();
                 sides_of(problem, &nearest)
             })
             .filter(|sides| sides.iter().any(|side| side.len() > 1))
@@ -515,7 +516,10 @@ impl MFuseNet {
         // The views the thin-part recovery reads (`thin_parts_every_view`), where they are more
         // than the network's nearest group.
         let thin_parts_views = (self.config.thin_parts.is_some() && self.config.thin_parts_every_view)
-            .then(|| ordered_neighbours(problem, loaded.views).map_or(0, |used| used.len()))
+            .then(|| {
+                self.nearest_neighbours(problem, loaded.views)
+                    .map_or(0, |used| used.len())
+            })
             .filter(|used| *used < problem.neighbours.len())
             .map(|_| problem.neighbours.iter().map(|n| n.role.as_str()).collect::<Vec<_>>());
         if let Some(serde_json::Value::Object(plan)) = self.plan_details(problem) {
@@ -625,7 +629,10 @@ impl MFuseNet {
     /// weights): the groups, each with its loaded network, and the neighbours no group takes.
     /// `None`: one network, [`Self::network_for`]'s.
     fn view_plan<'p>(&self, problem: &'p Problem) -> Option<ViewPlan<'p, '_>> {
-        if self.stereo || !self.config.every_view.unwrap_or(true) || self.config.weights.is_some() {
+        if self.stereo
+            || !self.config.every_view.unwrap_or(true)
+            || (self.config.weights.is_some() && !self.config.line_cross)
+        {
             return None;
         }
         let available: Vec<usize> = self.networks.iter().map(|n| n.views).collect();
@@ -677,6 +684,17 @@ impl MFuseNet {
             pooled_neighbours(problem, self.config.every_view.unwrap_or(loaded.far_views))
         } else {
             ordered_neighbours(problem, loaded.views)
+        }
+    }
+
+    /// The nearest group a network of `views` inputs answers from ([`ordered_neighbours`]); with
+    /// `line_cross`, a line of five's near pair for the five-view network (its far pair fills
+    /// the network's top and bottom inputs, and the post-processing reads the near pair's costs,
+    /// as for the three-view network on the line).
+    fn nearest_neighbours<'p>(&self, problem: &'p Problem, views: usize) -> Result<Vec<&'p Neighbour>, FuseError> {
+        match ordered_neighbours(problem, views) {
+            Err(_) if self.config.line_cross && views == 4 => ordered_neighbours(problem, 2),
+            found => found,
         }
     }
 
@@ -757,7 +775,7 @@ impl MFuseNet {
         let net = &loaded.net;
         let neighbours = self.network_neighbours(problem, loaded)?;
         // The nearest group's volumes come first; the post-processing reads only theirs.
-        let nearest = ordered_neighbours(problem, net.views)?.len();
+        let nearest = self.nearest_neighbours(problem, net.views)?.len();
         // Cost volumes: about a tenth of the work; the network the rest.
         let (volumes, first, origin) = self.input_volumes(problem, &neighbours, loaded, net.sharp)?;
         progress(0.1);
@@ -818,7 +836,7 @@ impl MFuseNet {
     /// Whether `loaded`'s inputs are made from whole sides: `side_inputs`, a fixed network, not
     /// the stereo method (one neighbour by definition).
     fn side_inputs(&self, loaded: &Loaded) -> bool {
-        self.config.side_inputs && loaded.views > 0 && !self.stereo
+        self.config.side_inputs && loaded.views > 0 && !self.stereo && !self.config.line_cross
     }
 
     /// The views each input of `loaded`'s network is made from: with [`Self::side_inputs`],
@@ -1006,7 +1024,7 @@ impl MFuseNet {
         if stage == Stage::Last && (self.config.block_subpixel.is_some() || self.config.thin_parts.is_some()) {
             // The sub-pixel step reads the views the network answered from (the nearest group);
             // the thin-part step every view (`thin_parts_every_view`).
-            let used = ordered_neighbours(problem, self.network_for(problem)?.views)?;
+            let used = self.nearest_neighbours(problem, self.network_for(problem)?.views)?;
             let nearest;
             let costs_of = if used.len() == problem.neighbours.len() {
                 problem

@@ -128,7 +128,9 @@ pub struct TrainConfig {
     /// The rig of the captures: `five-view` (every shipped file) or `grid-cross` (13 views: the
     /// 3 × 3 grid and the cross at two baselines), whose far and diagonal neighbours the
     /// view-count-agnostic network draws from as well ([`super::dataset::Sample`]); the fixed
-    /// networks take the cross at one baseline from either.
+    /// networks take the cross at one baseline from either; or `line5` (a line of five), whose
+    /// near pair fills the five-view network's left and right inputs and its far pair the top
+    /// and bottom ones ([`super::dataset::LINE_NEIGHBOURS`]; `--views 4` only).
     #[serde(default = "five_view", skip_serializing_if = "is_five_view")]
     pub rig: RigKind,
     /// Train a sharp network (`fuse::mfusenet::Network::sharp`): each view's per-pixel costs
@@ -293,11 +295,18 @@ impl TrainConfig {
                 "sharp volumes are for the fixed networks (--views 1, 2 or 4)",
             );
         }
-        if !matches!(self.rig, RigKind::FiveView | RigKind::GridCross) {
+        if !matches!(self.rig, RigKind::FiveView | RigKind::GridCross | RigKind::Line5) {
             return bad(
                 "rig",
                 self.rig.name().to_owned(),
-                "five-view or grid-cross (the rigs whose views the dataset keeps)",
+                "five-view, grid-cross or line5 (the rigs whose views the dataset keeps)",
+            );
+        }
+        if self.rig == RigKind::Line5 && self.views != 4 {
+            return bad(
+                "rig",
+                self.rig.name().to_owned(),
+                "line5 trains the five-view network (--views 4) on a line of five: the near pair in its left and right inputs, the far pair in its top and bottom ones",
             );
         }
         if !(0.0..0.5).contains(&self.exposure_jitter) {

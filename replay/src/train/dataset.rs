@@ -35,12 +35,30 @@ pub const NEIGHBOURS: [(&str, [i32; 2]); 12] = [
     ("bottom2", [0, 2]),
 ];
 
-/// How many of [`NEIGHBOURS`] a capture of `rig` has (the rigs training accepts).
-pub fn neighbours_kept(rig: RigKind) -> usize {
+/// A `line5` capture's neighbours in the five-view network's input order: the near pair in
+/// its left and right inputs, the far pair (`left2`, `right2`) in its top and bottom ones, as
+/// `mfusenet`'s `line_cross` feeds a line of five.
+pub const LINE_NEIGHBOURS: [(&str, [i32; 2]); 4] = [
+    ("left", [-1, 0]),
+    ("right", [1, 0]),
+    ("left2", [-2, 0]),
+    ("right2", [2, 0]),
+];
+
+/// The neighbours a sample of a capture of `rig` keeps, in its order (the rigs training
+/// accepts): the cross at one baseline, all twelve of [`NEIGHBOURS`] for `grid-cross`, the
+/// line's four ([`LINE_NEIGHBOURS`]) for `line5`.
+pub fn kept_neighbours(rig: RigKind) -> &'static [(&'static str, [i32; 2])] {
     match rig {
-        RigKind::GridCross => NEIGHBOURS.len(),
-        _ => 4,
+        RigKind::GridCross => &NEIGHBOURS,
+        RigKind::Line5 => &LINE_NEIGHBOURS,
+        _ => &NEIGHBOURS[..4],
     }
+}
+
+/// How many neighbours a sample of a capture of `rig` keeps ([`kept_neighbours`]).
+pub fn neighbours_kept(rig: RigKind) -> usize {
+    kept_neighbours(rig).len()
 }
 
 /// The most views a training crop of the view-count-agnostic network draws: a 3 × 3 grid's
@@ -48,10 +66,11 @@ pub fn neighbours_kept(rig: RigKind) -> usize {
 /// activations of the four-view network's for the rarest sets.
 pub const MAX_DRAWN_VIEWS: usize = 6;
 
-/// One sample of the cache: the per-neighbour volumes (the first [`neighbours_kept`] of
-/// [`NEIGHBOURS`]) and the ground-truth disparity.
+/// One sample of the cache: the per-neighbour volumes (its rig's [`kept_neighbours`]) and the
+/// ground-truth disparity.
 pub struct Sample {
-    /// In the order of [`NEIGHBOURS`]: left, right, top, bottom, then (grid-cross) the rest.
+    /// In the order of [`kept_neighbours`]: left, right, top, bottom, then (grid-cross) the
+    /// rest; a line's left, right, left2, right2.
     pub volumes: Vec<CostVolume<u8>>,
     /// `[y][x]` px, 0 = unknown.
     pub truth: Vec<f32>,
@@ -123,7 +142,7 @@ pub fn sample_file_name(config: &TrainConfig, index: usize, validation: bool) ->
 /// Makes (or reads from `cache_dir`) one dataset sample.
 pub fn sample(config: &TrainConfig, index: usize, validation: bool, cache_dir: &Path) -> Result<Sample, TrainError> {
     let path = cache_dir.join(sample_file_name(config, index, validation));
-    let kept = neighbours_kept(config.rig);
+    let kept = kept_neighbours(config.rig);
     if let Ok(bytes) = std::fs::read(&path)
         && let Some(sample) = read_sample(&bytes, config.depth(), kept, config.sharp.is_some())
     {
@@ -147,7 +166,7 @@ pub fn sample(config: &TrainConfig, index: usize, validation: bool, cache_dir: &
     let problem = view_set
         .problem(0, config.num_disparities, false)
         .map_err(|source| TrainError::Replay { index, source })?;
-    let neighbours = NEIGHBOURS[..kept]
+    let neighbours = kept
         .iter()
         .map(|(_, offset)| problem.neighbours.iter().find(|n| n.offset == *offset))
         .collect::<Option<Vec<_>>>()
@@ -156,7 +175,7 @@ pub fn sample(config: &TrainConfig, index: usize, validation: bool, cache_dir: &
             source: fuse::FuseError::Config {
                 field: "neighbours",
                 value: problem.neighbour_list(),
-                reason: "a training capture needs every neighbour its rig keeps (the cross at one baseline; grid-cross: also the diagonals and the cross at two)",
+                reason: "a training capture needs every neighbour its rig keeps (the cross at one baseline; grid-cross: also the diagonals and the cross at two; line5: both pairs)",
             },
         })?;
     // Samples are in slice coordinates, as `read_sample` gives them back: the first slice (the
@@ -225,7 +244,7 @@ fn write_sample(sample: &Sample, path: &Path) -> Result<(), TrainError> {
     std::fs::rename(&temporary, path).map_err(|e| file_error(path, e.to_string()))
 }
 
-fn read_sample(bytes: &[u8], num_disparities: usize, kept: usize, sharp: bool) -> Option<Sample> {
+fn read_sample(bytes: &[u8], num_disparities: usize, kept: &[(&str, [i32; 2])], sharp: bool) -> Option<Sample> {
     let tensors = SafeTensors::deserialize(bytes).ok()?;
     let truth_view = tensors.tensor("truth").ok()?;
     let (height, width) = (*truth_view.shape().first()?, *truth_view.shape().get(1)?);
@@ -235,8 +254,7 @@ fn read_sample(bytes: &[u8], num_disparities: usize, kept: usize, sharp: bool) -
         .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
         .collect();
     let read = |kind: &str| -> Option<Vec<CostVolume<u8>>> {
-        NEIGHBOURS[..kept]
-            .iter()
+        kept.iter()
             .enumerate()
             .map(|(i, (role, offset))| {
                 let view = tensors.tensor(&format!("{kind}.{i}")).ok()?;

@@ -719,6 +719,7 @@ fn export_info(
             0 => "any subset of left,right,top,bottom, in any order",
             1 => "right",
             2 => "left,right",
+            _ if config.rig == record::rig::RigKind::Line5 => "left,right,left2,right2",
             _ => "left,right,top,bottom",
         },
     );
@@ -835,7 +836,7 @@ mod tests {
     }
 
     /// The rig is part of the dataset's key only when it is not the five-view one, so the caches
-    /// and checkpoints of five-view runs made before the option stay theirs; only the two rigs
+    /// and checkpoints of five-view runs made before the option stay theirs; only the rigs
     /// whose neighbours the dataset keeps are accepted.
     #[test]
     fn the_rig_keys_the_dataset_only_when_it_is_not_five_view() {
@@ -851,15 +852,27 @@ mod tests {
         };
         assert_ne!(grid.data_key(), five.data_key());
         assert!(grid.validate().is_ok());
+        // A line of five trains the five-view network only; rigs whose views the dataset does
+        // not keep are refused.
         let line = TrainConfig {
             rig: record::rig::RigKind::Line5,
+            views: 4,
             ..TrainConfig::default()
         };
-        assert!(
-            matches!(line.validate(), Err(TrainError::Config { field: "rig", .. })),
-            "{:?}",
-            line.validate()
-        );
+        assert!(line.validate().is_ok(), "{:?}", line.validate());
+        assert_ne!(line.data_key(), five.data_key());
+        for (rig, views) in [(record::rig::RigKind::Line5, 2), (record::rig::RigKind::Grid3x3, 4)] {
+            let refused = TrainConfig {
+                rig,
+                views,
+                ..TrainConfig::default()
+            };
+            assert!(
+                matches!(refused.validate(), Err(TrainError::Config { field: "rig", .. })),
+                "{rig:?} with {views} views: {:?}",
+                refused.validate()
+            );
+        }
     }
 
     /// Two views whose costs are |d − m| around a minimum `m` per pixel.

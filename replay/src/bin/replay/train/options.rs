@@ -164,9 +164,11 @@ pub struct TrainArgs {
     /// as an auto-exposure camera gives; 0 = all alike.
     #[arg(long, value_name = "SPREAD", default_value_t = 0.0)]
     pub(crate) exposure_jitter: f64,
-    /// Rig of the training captures: five-view, or grid-cross (the 3×3 grid and the cross at two
-    /// baselines, 13 views) from which `--views any` also draws far and diagonal neighbours
-    /// (other rigs are refused).
+    /// Rig of the training captures: five-view, grid-cross (the 3×3 grid and the cross at two
+    /// baselines, 13 views) from which `--views any` also draws far and diagonal neighbours, or
+    /// line5 with `--views 4`: the five-view network on a line of five, the near pair in its
+    /// left and right inputs and the far pair in its top and bottom ones, as `mfusenet`'s
+    /// `line_cross` runs it (other rigs are refused).
     #[arg(long, value_enum, default_value = "five-view")]
     pub(crate) rig: record::rig::RigKind,
     /// Steps between validations.
