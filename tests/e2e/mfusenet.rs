@@ -537,7 +537,8 @@ fn the_five_view_network_trains_on_lines_of_five_and_runs_on_them() {
     );
     let (logs, log) = recorded("line.mcap", "--rig line5 --resolution 96x72 --samples-per-pixel 1");
     // (No blank in the JSON: the helper splits its arguments at blanks.)
-    let config = format!("{{\"weights\":\"{}\",\"line_cross\":true}}", weights.display());
+    // A file trained on lines implies `line_cross`.
+    let config = format!("{{\"weights\":\"{}\"}}", weights.display());
     let summary = replay_summary(
         &log,
         &logs.path().join("out"),
@@ -554,6 +555,24 @@ fn the_five_view_network_trains_on_lines_of_five_and_runs_on_them() {
             .as_f64()
             .is_some_and(f64::is_finite),
         "{set}"
+    );
+    // The shipped files: the three-view network on each pair by default, the shipped five-view
+    // file on all four with `line_cross`.
+    let networks = |config: &str, out: &str| {
+        let summary = replay_summary(
+            &log,
+            &logs.path().join(out),
+            &format!("--method mfusenet --config {config}"),
+        );
+        summary["sets"][0]["details"]["networks"].clone()
+    };
+    assert_eq!(
+        networks("{}", "default"),
+        serde_json::json!(["three-view [left, right]", "three-view [left2, right2]"])
+    );
+    assert_eq!(
+        networks("{\"line_cross\":true}", "crossed"),
+        serde_json::json!(["five-view (lite) [left, right, left2, right2]"])
     );
 }
 

@@ -208,7 +208,8 @@ pub struct MFuseNetConfig {
     /// A line of five (±1, ±2 on one axis) into the five-view network alone: ±1 in its left
     /// and right inputs, ±2 in its top and bottom ones (their costs at twice the disparity, each
     /// view its own input, no side inputs), in place of the three-view network on each pair;
-    /// with `weights`, that file (`replay train --rig line5` trains one). Off by default: lines of mirror-like
+    /// with `weights`, that file (`replay train --rig line5` trains one; such a file implies
+    /// `line_cross`). Off by default: lines of mirror-like
     /// workpieces gain 44–48 % (the five-view file saw workpieces in training), but a periodic
     /// texture read at its alias by the far pair, which fills two of the four inputs, loses
     /// 8 × (`random` seed 8: 0.134 → 1.117 px), and the `thin` rows of five lose 5 %
@@ -326,10 +327,17 @@ struct Loaded {
     /// Metadata `train_config` names the `grid-cross` rig: trained on far and diagonal
     /// neighbours too.
     far_views: bool,
+    /// Metadata `train_config` names the `line5` rig: a five-view network trained on lines of
+    /// five (`replay train --rig line5`), run as `line_cross` runs a line.
+    line: bool,
 }
 
 impl Loaded {
     fn new(net: Network, info: &weights::WeightsInfo, file: &str) -> Result<Self, FuseError> {
+        let config = info
+            .get("train_config")
+            .and_then(|c| serde_json::from_str::<serde_json::Value>(c).ok());
+        let rig = config.as_ref().and_then(|c| c["rig"].as_str());
         Ok(Self {
             views: net.views,
             refine: weights::refine_recommended(info, file)?,
@@ -337,10 +345,8 @@ impl Loaded {
             input: weights::input_spec_recommended(info, file)?,
             sharp: weights::sharp_spec_recommended(info, file)?,
             locking: weights::locking_recommended(info, file)?,
-            far_views: info
-                .get("train_config")
-                .and_then(|c| serde_json::from_str::<serde_json::Value>(c).ok())
-                .is_some_and(|c| c["rig"] == "grid-cross"),
+            far_views: rig == Some("grid-cross"),
+            line: rig == Some("line5"),
             net,
         })
     }
@@ -386,6 +392,11 @@ impl MFuseNet {
             networks,
             stereo,
         })
+    }
+
+    /// `line_cross`, asked for or implied by a `weights` file trained on lines of five.
+    fn line_cross(&self) -> bool {
+        self.config.line_cross || (self.config.weights.is_some() && self.networks.iter().any(|n| n.line))
     }
 
     /// The network for `views` volumes: the configured architecture's where one is shipped for
@@ -631,13 +642,13 @@ impl MFuseNet {
     fn view_plan<'p>(&self, problem: &'p Problem) -> Option<ViewPlan<'p, '_>> {
         if self.stereo
             || !self.config.every_view.unwrap_or(true)
-            || (self.config.weights.is_some() && !self.config.line_cross)
+            || (self.config.weights.is_some() && !self.line_cross())
         {
             return None;
         }
         let available: Vec<usize> = self.networks.iter().map(|n| n.views).collect();
-        let (groups, rest) = view_groups(problem, &available, self.config.line_cross);
-        if groups.len() < 2 && !self.config.line_cross {
+        let (groups, rest) = view_groups(problem, &available, self.line_cross());
+        if groups.len() < 2 && !self.line_cross() {
             return None;
         }
         let groups = groups
@@ -693,7 +704,7 @@ impl MFuseNet {
     /// as for the three-view network on the line).
     fn nearest_neighbours<'p>(&self, problem: &'p Problem, views: usize) -> Result<Vec<&'p Neighbour>, FuseError> {
         match ordered_neighbours(problem, views) {
-            Err(_) if self.config.line_cross && views == 4 => ordered_neighbours(problem, 2),
+            Err(_) if self.line_cross() && views == 4 => ordered_neighbours(problem, 2),
             found => found,
         }
     }
@@ -836,7 +847,7 @@ impl MFuseNet {
     /// Whether `loaded`'s inputs are made from whole sides: `side_inputs`, a fixed network, not
     /// the stereo method (one neighbour by definition).
     fn side_inputs(&self, loaded: &Loaded) -> bool {
-        self.config.side_inputs && loaded.views > 0 && !self.stereo && !self.config.line_cross
+        self.config.side_inputs && loaded.views > 0 && !self.stereo && !self.line_cross()
     }
 
     /// The views each input of `loaded`'s network is made from: with [`Self::side_inputs`],
