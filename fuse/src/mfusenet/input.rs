@@ -137,7 +137,9 @@ pub struct ViewGroup<'a> {
 /// takes is returned apart: a farther view without its opposite (the stereo network on it did not
 /// move Middlebury's lines; a single network reads it as a side input) and the diagonal views of
 /// a grid (the three-view network on a diagonal pair raised a simulated 3 × 3 grid's AvgErr by
-/// 5 %, the five-view one on the turned cross by 8 %; docs/experiments.md).
+/// 5 %, the five-view one on the turned cross by 8 %; docs/experiments.md). With `line_cross`
+/// a line of five on an axis without a cross of its own goes whole to the five-view network:
+/// left, right, then the far pair in its top and bottom inputs.
 pub fn view_groups<'a>(
     problem: &'a Problem,
     available: &[usize],
