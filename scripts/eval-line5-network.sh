@@ -6,7 +6,8 @@
 #   scripts/eval-line5-network.sh OUT_DIR '{}' '{"line_cross": true}' '{"weights": "train/line5/mfusenet-5view-lite.safetensors"}'
 #
 # AvgErr px / Bad1 % per line (two sets each, 640x360, --rectify), then the `thin` family's rows
-# of five (384x288, seeds 1-3; a family training never draws).
+# of five (384x288, seeds 1-3; a family training never draws); the first column is the inner
+# pair alone (`--neighbours left,right`), against which a view added may cost at most 2 %.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 out="${1:-out/line5h}"
@@ -27,15 +28,15 @@ row() {
     target/release/replay eval "$@" --format json 2>/dev/null |
         python3 -c 'import json,sys; r=json.load(sys.stdin)[0]["mean"]; print("%.3f / %.2f" % (r["avg_err_px"], r["bad_1"]), end="")'
 }
-header="| line |"; rule="|---|"
+header="| line | three views (±1 only, default) |"; rule="|---|---|"
 for c in "${configs[@]}"; do header+=" \`$c\` |"; rule+="---|"; done
 echo "$header"; echo "$rule"
 for sp in "${lines[@]}"; do
     s=${sp%%:*} n=${sp##*:}
-    line="| $s $n |"
+    line="| $s $n | $(row "$out/$s$n.mcap" --rectify --neighbours left,right --methods mfusenet) |"
     for c in "${configs[@]}"; do line+=" $(row "$out/$s$n.mcap" --rectify --methods mfusenet --config "$c") |"; done
     echo "$line"
 done
-line="| thin rows 1-3 |"
+line="| thin rows 1-3 | $(row "${logs[@]}" --neighbours left,right --methods mfusenet) |"
 for c in "${configs[@]}"; do line+=" $(row "${logs[@]}" --methods mfusenet --config "$c") |"; done
 echo "$line"
