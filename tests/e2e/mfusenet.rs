@@ -442,18 +442,7 @@ fn the_view_count_agnostic_network_trains_resumes_and_is_named() {
     assert_eq!(first["steps_done"], 2, "{first}");
     assert_eq!(first["config"]["rig"], "grid-cross", "{first}");
     // Each cached sample keeps the twelve neighbours within two baselines.
-    let sample = std::fs::read_dir(dir.path().join("dataset"))
-        .into_iter()
-        .flatten()
-        .flatten()
-        .map(|e| e.path())
-        .find(|p| p.extension().is_some_and(|x| x == "safetensors"))
-        .unwrap_or_default();
-    let tensors = safetensors_header(&sample);
-    assert!(
-        tensors.get("volume.11").is_some() && tensors.get("volume.12").is_none(),
-        "{tensors}"
-    );
+    assert_sample_keeps(&dir.path().join("dataset"), 12);
     let second = train("4");
     assert_eq!(second["resumed_at_step"], 2, "{second}");
     assert!(
@@ -517,18 +506,7 @@ fn the_five_view_network_trains_on_lines_of_five_and_runs_on_them() {
         serde_json::from_slice(&std::fs::read(run.join("training.json")).unwrap_or_default()).unwrap_or_default();
     assert_eq!(record["config"]["rig"], "line5", "{record}");
     // Each cached sample keeps the line's four neighbours.
-    let sample = std::fs::read_dir(&dataset)
-        .into_iter()
-        .flatten()
-        .flatten()
-        .map(|e| e.path())
-        .find(|p| p.extension().is_some_and(|x| x == "safetensors"))
-        .unwrap_or_default();
-    let tensors = safetensors_header(&sample);
-    assert!(
-        tensors.get("volume.3").is_some() && tensors.get("volume.4").is_none(),
-        "{tensors}"
-    );
+    assert_sample_keeps(&dataset, 4);
     let weights = run.join("mfusenet-5view.safetensors");
     let header = safetensors_header(&weights);
     assert_eq!(
@@ -759,6 +737,22 @@ fn read_summary(out: &Path) -> serde_json::Value {
     let path = out.join("summary.json");
     serde_json::from_slice(&std::fs::read(&path).unwrap_or_default())
         .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+}
+
+/// The first cached training sample in `dataset` holds exactly `views` neighbours' volumes.
+fn assert_sample_keeps(dataset: &Path, views: usize) {
+    let sample = std::fs::read_dir(dataset)
+        .into_iter()
+        .flatten()
+        .flatten()
+        .map(|e| e.path())
+        .find(|p| p.extension().is_some_and(|x| x == "safetensors"))
+        .unwrap_or_default();
+    let tensors = safetensors_header(&sample);
+    assert!(
+        tensors.get(format!("volume.{}", views - 1)).is_some() && tensors.get(format!("volume.{views}")).is_none(),
+        "{tensors}"
+    );
 }
 
 /// A safetensors file's header as JSON (each tensor's `shape` and `dtype`, and `__metadata__`),

@@ -209,11 +209,12 @@ pub struct MFuseNetConfig {
     /// and right inputs, ±2 in its top and bottom ones (their costs at twice the disparity, each
     /// view its own input, no side inputs), in place of the three-view network on each pair;
     /// with `weights`, that file (`replay train --rig line5` trains one; such a file implies
-    /// `line_cross`). Off by default: lines of mirror-like
-    /// workpieces gain 44–48 % (the five-view file saw workpieces in training), but a periodic
-    /// texture read at its alias by the far pair, which fills two of the four inputs, loses
-    /// 8 × (`random` seed 8: 0.134 → 1.117 px), and the `thin` rows of five lose 5 %
-    /// (docs/experiments.md, 2026-12-06, "A line of five in the five-view network").
+    /// `line_cross`). Off by default: with the shipped five-view file lines of mirror-like
+    /// workpieces gain 40–45 % (that file saw workpieces in training), but a periodic texture
+    /// read at its alias by the far pair, which fills two of the four inputs, loses 4 ×
+    /// (`random` seed 8: 0.134 → 0.524 px), and the `thin` rows of five lose 8 %
+    /// (docs/experiments.md, 2026-12-06 (late night), "A line of five in the five-view
+    /// network"). Side inputs are off while it is on.
     #[serde(default)]
     pub line_cross: bool,
     /// Each input of a fixed network's nearest group made from its whole side: the costs of
@@ -954,26 +955,9 @@ impl MFuseNet {
         // and on Middlebury's lines (docs/experiments.md).
         // The nearest groups: the first and those after it at its baseline (an L's two views,
         // each its own group, read together).
-        let nearest_reach = groups
-            .first()
-            .and_then(|(group, _)| group.neighbours.first())
-            .map_or(1, |n| n.reach());
-        let nearest: usize = groups
-            .iter()
-            .take_while(|(group, _)| group.neighbours.iter().all(|n| n.reach() == nearest_reach))
-            .map(|(group, _)| group.neighbours.len())
-            .sum();
-        let nearest = if nearest == 0 {
-            groups.first().map_or(0, |(group, _)| {
-                group
-                    .neighbours
-                    .iter()
-                    .take_while(|n| n.reach() == nearest_reach)
-                    .count()
-            })
-        } else {
-            nearest
-        };
+        let nearest_reach = neighbours.first().map_or(1, |n| n.reach());
+        // (A line of five's single group: its near pair, which leads it.)
+        let nearest = neighbours.iter().take_while(|n| n.reach() == nearest_reach).count();
         let costs = summed_or_error(&volumes[..nearest])?;
         progress(0.1);
         let (data, confidence) = infer_fused(
