@@ -14,6 +14,11 @@ PAUSE_S seconds, as a workcell runs one capture every few seconds (on virtual ma
 freed memory back to the host, a fresh page then costs a host fault). OpenCV is timed warm,
 its objects reused across calls as an application would.
 
+WATCH=N (default 6; 0 to skip) also times the workcell's process: `replay watch DIR` started once
+per method, the capture copied into DIR N times, PAUSE_S seconds apart (renamed into place, as
+the recorder does); for each copy the method's time and the latency from the rename to its
+summary.json, the first copy (a fresh process) apart from the median of the rest (warm).
+
 OUTPUTS=LIST passes `--outputs LIST` to replay (default: every result file; a workcell that needs
 only the depth: OUTPUTS=depth). BM_CONFIG=JSON and SGM_CONFIG=JSON pass `--config JSON` to the
 method (e.g. BM_CONFIG='{"colour": false}': block matching on luma, as StereoBM).
@@ -46,6 +51,8 @@ OUTPUTS = os.environ.get("OUTPUTS", "all")
 CONFIGS = {"bm-heuristic": os.environ.get("BM_CONFIG"), "sgm-heuristic": os.environ.get("SGM_CONFIG")}
 # Seconds of idle before each cold run (PAUSE_S=0 to skip the cold runs).
 PAUSE_S = float(os.environ.get("PAUSE_S", "5"))
+# Captures copied into a watched folder per method (WATCH=0 to skip).
+WATCH = int(os.environ.get("WATCH", "6"))
 
 
 def images(path):
@@ -95,6 +102,36 @@ def run_replay(log, method, out):
     return summary["sets"][0]["seconds"], wall, peak_kb / 1024
 
 
+def run_watch(log, method, work):
+    """`replay watch` on a folder into which `log` is copied WATCH times, PAUSE_S seconds apart:
+    per copy (method seconds, latency from the rename to its summary.json)."""
+    folder, out = os.path.join(work, method + "-in"), os.path.join(work, method + "-watch")
+    os.makedirs(folder)
+    watcher = subprocess.Popen([REPLAY, "watch", folder, "--method", method, "--num-disparities", str(DISPARITIES),
+                                "--out", out, "--poll-ms", "5", "--exit-after", str(WATCH), "-q"]
+                               + ([] if OUTPUTS == "all" else ["--outputs", OUTPUTS])
+                               + (["--config", CONFIGS[method]] if CONFIGS.get(method) else []))
+    runs = []
+    for k in range(WATCH):
+        time.sleep(PAUSE_S)
+        staging = os.path.join(folder, f".{k}.mcap.partial")
+        subprocess.run(["cp", log, staging], check=True)
+        summary_path = os.path.join(out, str(k), "summary.json")
+        renamed = time.perf_counter()
+        os.rename(staging, os.path.join(folder, f"{k}.mcap"))
+        while True:
+            try:
+                summary = json.load(open(summary_path))
+                break
+            except (OSError, ValueError):
+                if watcher.poll() is not None:
+                    raise SystemExit(f"replay watch exited with {watcher.returncode} before {summary_path}")
+                time.sleep(0.002)
+        runs.append((summary["sets"][0]["seconds"], time.perf_counter() - renamed))
+    watcher.wait(timeout=60)
+    return runs
+
+
 def main():
     subprocess.run(["cargo", "build", "--release", "--quiet", "-p", "record", "-p", "replay"], cwd=ROOT, check=True)
     work = tempfile.mkdtemp()
@@ -123,6 +160,18 @@ def main():
                 time.sleep(PAUSE_S)
                 cold.append(run_replay(log, method, out))
             runs["cold"] = sorted(cold, key=lambda r: r[0])[len(cold) // 2]
+        if WATCH > 1:
+            watched = run_watch(log, method, work)
+            rest = sorted(watched[1:])
+            seconds, latency = rest[len(rest) // 2]
+            results.setdefault(method, {})["watch"] = {
+                "first": {"method_s": watched[0][0], "latency_s": watched[0][1],
+                          "ratio_to_opencv": watched[0][0] / peer},
+                "median_of_the_rest": {"method_s": seconds, "latency_s": latency,
+                                       "ratio_to_opencv": seconds / peer, "goal_ratio": limit,
+                                       "latency_to_method": latency / seconds,
+                                       "goal_process_to_method": PROCESS_LIMIT},
+                "every_copy": [{"method_s": m, "latency_s": l} for m, l in watched]}
         for kind, (seconds, wall, rss_mb) in runs.items():
             verdicts = []
             if seconds / peer > limit:

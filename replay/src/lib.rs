@@ -31,6 +31,7 @@ pub mod train;
 pub mod undistort;
 pub mod viewer;
 pub mod viewset;
+pub mod watch;
 
 /// Errors of replay; each names the topic, set and field it is about.
 #[derive(Debug, thiserror::Error)]

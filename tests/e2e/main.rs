@@ -15,6 +15,7 @@ mod replay_check;
 mod replay_eval;
 mod replay_input;
 mod replay_plan;
+mod replay_watch;
 mod ros2_bags;
 mod signed_ranges;
 mod viz_rerun;

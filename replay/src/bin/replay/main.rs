@@ -12,6 +12,7 @@ mod plan;
 mod recover;
 mod run;
 mod train;
+mod watch;
 
 use std::process::ExitCode;
 
@@ -111,7 +112,8 @@ fn narrow_vectors_if_asked() {
     replay recover .capture.mcap.partial-4242 -o capture.mcap   finish what a crash left\n  \
     replay plan capture.mcap --neighbours left --budget 2   the views that would resolve most next\n  \
     replay eval ../shared/data/middlebury2006-third-dev --methods sgm-stereo,sgm-heuristic,mfusenet-stereo,mfusenet\n  \
-    replay train --views 2                               train the three-view network on simulated captures")]
+    replay train --views 2                               train the three-view network on simulated captures\n  \
+    replay watch captures/ --method sgm-heuristic --outputs depth   replay each log the cell writes into captures/")]
 struct Cli {
     #[command(subcommand)]
     command: Option<Command>,
@@ -145,6 +147,9 @@ enum Command {
     Demo(demo::DemoArgs),
     /// Train MFuseNet on simulated captures (checkpoints, resume, curves); writes safetensors weights.
     Train(train::TrainArgs),
+    /// Replay each finished log that appears in a folder, in one process that stays up (a
+    /// workcell: methods built once, memory warm from set to set); results in OUT/<log name>/.
+    Watch(watch::WatchArgs),
 }
 
 fn main() -> ExitCode {
@@ -169,6 +174,7 @@ fn dispatch(cli: &Cli) -> Result<Outcome> {
         Some(Command::Recover(args)) => recover::run(args),
         Some(Command::Plan(args)) => plan::run(args),
         Some(Command::Train(args)) => train::run(args, cli.quiet),
+        Some(Command::Watch(args)) => watch::run(args, cli.quiet),
         None => run::run(&cli.run, cli.quiet),
     }
 }

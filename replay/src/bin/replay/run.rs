@@ -74,7 +74,7 @@ pub struct RunArgs {
     pub(crate) stream: crate::info::StreamArgs,
 }
 
-fn parse_outputs(spec: &str) -> Result<replay::outputs::ResultFiles, String> {
+pub(crate) fn parse_outputs(spec: &str) -> Result<replay::outputs::ResultFiles, String> {
     replay::outputs::ResultFiles::parse(spec).map_err(|e| e.to_string())
 }
 
