@@ -103,33 +103,16 @@ def run_replay(log, method, out):
 
 
 def run_watch(log, method, work):
-    """`replay watch` on a folder into which `log` is copied WATCH times, PAUSE_S seconds apart:
-    per copy (method seconds, latency from the rename to its summary.json)."""
-    folder, out = os.path.join(work, method + "-in"), os.path.join(work, method + "-watch")
-    os.makedirs(folder)
-    watcher = subprocess.Popen([REPLAY, "watch", folder, "--method", method, "--num-disparities", str(DISPARITIES),
-                                "--out", out, "--poll-ms", "5", "--exit-after", str(WATCH), "-q"]
-                               + ([] if OUTPUTS == "all" else ["--outputs", OUTPUTS])
-                               + (["--config", CONFIGS[method]] if CONFIGS.get(method) else []))
-    runs = []
-    for k in range(WATCH):
-        time.sleep(PAUSE_S)
-        staging = os.path.join(folder, f".{k}.mcap.partial")
-        subprocess.run(["cp", log, staging], check=True)
-        summary_path = os.path.join(out, str(k), "summary.json")
-        renamed = time.perf_counter()
-        os.rename(staging, os.path.join(folder, f"{k}.mcap"))
-        while True:
-            try:
-                summary = json.load(open(summary_path))
-                break
-            except (OSError, ValueError):
-                if watcher.poll() is not None:
-                    raise SystemExit(f"replay watch exited with {watcher.returncode} before {summary_path}")
-                time.sleep(0.002)
-        runs.append((summary["sets"][0]["seconds"], time.perf_counter() - renamed))
-    watcher.wait(timeout=60)
-    return runs
+    """`replay watch` on a folder into which `log` is copied WATCH times, PAUSE_S seconds apart
+    (scripts/bench-watch.py): per copy (method seconds, latency from the rename to its summary.json)."""
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("bench_watch", os.path.join(ROOT, "scripts/bench-watch.py"))
+    bench_watch = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench_watch)
+    bench_watch.REPLAY = REPLAY
+    extra = ["--num-disparities", str(DISPARITIES)] + ([] if OUTPUTS == "all" else ["--outputs", OUTPUTS]) \
+        + (["--config", CONFIGS[method]] if CONFIGS.get(method) else [])
+    return bench_watch.run_watch(log, method, WATCH, PAUSE_S, extra, work)
 
 
 def main():

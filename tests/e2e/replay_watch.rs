@@ -71,7 +71,7 @@ fn the_watch_replays_each_log_that_appears_finished_and_goes_on_past_a_bad_one()
     // A corrupt log that ends as a finished one does: reported, and the watch goes on.
     std::fs::write(
         cell.join("corrupt.mcap"),
-        [b"garbage".as_slice(), b"\x89MCAP0\r\n"].concat(),
+        [b"garbage ".repeat(8).as_slice(), b"\x89MCAP0\r\n"].concat(),
     )
     .unwrap_or_else(|e| panic!("{e}"));
     std::thread::sleep(Duration::from_millis(300));
