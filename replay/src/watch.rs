@@ -197,10 +197,16 @@ pub fn watch(
     on_log: &mut dyn FnMut(&WatchedLog),
 ) -> Result<WatchReport, ReplayError> {
     let mut report = WatchReport::default();
-    // Logs seen and done with (replayed, failed, or there before the watch when not `existing`).
+    // Logs seen and done with (replayed, failed, or finished before the watch when not `existing`).
     let mut done: HashSet<PathBuf> = HashSet::new();
     if !request.existing {
-        done.extend(logs_in(request.dir)?);
+        // Those finished already; one still being written when the watch starts is replayed
+        // once it finishes.
+        done.extend(
+            logs_in(request.dir)?
+                .into_iter()
+                .filter(|p| is_finished_log(p) || is_finished_bag(p)),
+        );
     }
     // Logs seen unfinished (their size, when it last changed, whether the wait was reported):
     // they are read once they end with the magic.

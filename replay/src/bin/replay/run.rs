@@ -93,6 +93,13 @@ impl Drop for Bar {
     }
 }
 
+/// A method's progress bar with `message`, drawn unless `quiet` (`replay LOG`, `replay watch`).
+pub(crate) fn method_progress(message: &str, quiet: bool) -> Box<dyn Progress> {
+    let bar = progress_bar(100, quiet, "%");
+    bar.set_message(message.to_owned());
+    Box::new(Bar(bar))
+}
+
 /// Runs `replay LOG`.
 pub fn run(args: &RunArgs, quiet: bool) -> Result<Outcome> {
     let Some(log) = &args.log else {
@@ -123,11 +130,7 @@ pub fn run(args: &RunArgs, quiet: bool) -> Result<Outcome> {
         out_format: args.out_format,
         rerun: &args.rerun,
     };
-    let progress = |message: &str| -> Box<dyn Progress> {
-        let bar = progress_bar(100, quiet, "%");
-        bar.set_message(message.to_owned());
-        Box::new(Bar(bar))
-    };
+    let progress = |message: &str| method_progress(message, quiet);
     let report = replay_log(&request, &progress).with_context(|| format!("replaying {}", log.display()))?;
     Ok(if report.lost_anything {
         Outcome::Incomplete

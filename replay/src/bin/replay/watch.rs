@@ -6,9 +6,8 @@ use std::time::Duration;
 
 use anyhow::{Context, Result};
 use clap::Args;
-use cli::{Outcome, progress_bar};
+use cli::Outcome;
 use replay::pipeline::RunOptions;
-use replay::run::Progress;
 use replay::watch::{WatchRequest, WatchedLog, watch};
 use tracing::{error, info, warn};
 
@@ -59,21 +58,6 @@ pub struct WatchArgs {
     /// Stop when no log has appeared (or been written to) for this many seconds.
     #[arg(long, value_name = "SECS")]
     idle_exit: Option<f64>,
-}
-
-/// A method's progress bar, cleared when the method is done.
-struct Bar(cli::ProgressBar);
-
-impl Progress for Bar {
-    fn set(&self, fraction: f32) {
-        self.0.set_position((fraction * 100.0) as u64);
-    }
-}
-
-impl Drop for Bar {
-    fn drop(&mut self) {
-        self.0.finish_and_clear();
-    }
 }
 
 /// One log's line: where its results are and how long they took.
@@ -148,11 +132,7 @@ pub fn run(args: &WatchArgs, quiet: bool) -> Result<Outcome> {
         args.method,
         args.out.display()
     );
-    let progress = |message: &str| -> Box<dyn Progress> {
-        let bar = progress_bar(100, quiet, "%");
-        bar.set_message(message.to_owned());
-        Box::new(Bar(bar))
-    };
+    let progress = |message: &str| crate::run::method_progress(message, quiet);
     let done = watch(&request, &progress, &mut report).with_context(|| format!("watching {}", args.dir.display()))?;
     info!("{} logs replayed, {} failed", done.replayed, done.failed);
     Ok(if done.failed > 0 {
