@@ -48,11 +48,16 @@ def main():
     args = parser.parse_args()
 
     torch.manual_seed(1)
-    net = Reference(args.views, args.architecture).eval()
+    state, sharp = None, False
     if args.weights:
         from safetensors.torch import load_file
 
         state = load_file(args.weights)
+        # A sharp file (5·N input channels in `concat`) takes a sharp volume per view as well.
+        concat = state.get("concat.0.weight")
+        sharp = concat is not None and args.views > 0 and concat.shape[1] == 5 * args.views
+    net = Reference(args.views, args.architecture, sharp=sharp).eval()
+    if state is not None:
         net.load_state_dict(state, strict=True)  # every name and shape must fit
     result = {
         "torch": torch.__version__,
@@ -61,7 +66,7 @@ def main():
     }
 
     shape = [1, args.disparities, args.height, args.width]
-    volumes = [torch.rand(shape) for _ in range(args.views)]
+    volumes = [torch.rand(shape) for _ in range(args.views * (2 if sharp else 1))]
     times = []
     with torch.no_grad():
         for _ in range(args.repeats):
@@ -70,6 +75,7 @@ def main():
             times.append(time.perf_counter() - start)
     result["inference"] = {
         "views": args.views,
+        "sharp": sharp,
         "shape": shape,
         "seconds": min(times),
         "all_seconds": times,

@@ -1,7 +1,7 @@
 //! Result files of one set: disparity (PFM, invalid = +inf), depth in metres (PFM) and
 //! millimetres (16-bit PNG), a colour-mapped disparity PNG with its range in the name, the
-//! back-projected points (PLY), and with ground truth an error map (PNG, 0–4 px in the name) and
-//! `metrics.json`.
+//! back-projected points (PLY), and with ground truth an error map (PNG, 0–4 px in the name), the
+//! signed error (PFM, estimate − truth) and `metrics.json`.
 
 use std::path::{Path, PathBuf};
 
@@ -29,7 +29,8 @@ pub struct ResultFiles {
     pub confidence: bool,
     /// `points`: the back-projected points (PLY).
     pub points: bool,
-    /// `error`: the error map against the ground truth (PNG), when there is one.
+    /// `error`: the error map against the ground truth (PNG, 0–4 px) and the signed error
+    /// (PFM, estimate − truth in px), when there is a truth.
     pub error: bool,
 }
 
@@ -226,14 +227,25 @@ pub fn write_set_outputs_evaluating(
                     _ => f32::NAN,
                 })
                 .collect();
-            Ok(vec![viz::files::write_colormap_png(
-                set_dir,
-                &format!("{method}_error"),
-                w,
-                h,
-                &error,
-                ERROR_MAP_RANGE_PX,
-            )?])
+            // The signed error as well (estimate − truth, px; NaN where the truth is unknown,
+            // +inf where the method gave no estimate): for tools that split the errors into
+            // too near and too far, or compare two methods pixel by pixel.
+            let signed: Vec<f32> = disparity
+                .data
+                .iter()
+                .zip(truth)
+                .map(|(d, t)| match (t.is_finite(), d.is_finite()) {
+                    (true, true) => d - t,
+                    (true, false) => f32::INFINITY,
+                    _ => f32::NAN,
+                })
+                .collect();
+            let pfm = set_dir.join(format!("{method}_error_px.pfm"));
+            viz::files::write_pfm(&pfm, w, h, &signed)?;
+            Ok(vec![
+                viz::files::write_colormap_png(set_dir, &format!("{method}_error"), w, h, &error, ERROR_MAP_RANGE_PX)?,
+                pfm,
+            ])
         }));
     }
     let (written, metrics): (Vec<Result<Vec<PathBuf>, viz::files::FileError>>, _) = rayon::join(

@@ -555,6 +555,46 @@ fn the_five_view_network_trains_on_lines_of_five_and_runs_on_them() {
 }
 
 #[test]
+fn a_cross_missing_arms_runs_the_five_view_network_with_them_filled() {
+    // A 3 × 3 grid replayed as a T (left, right, top) and as an L (left, top): by default the
+    // five-view network, each missing arm's input filled by its opposite view; with
+    // `fill_cross` off, the pair's three-view network and the stereo one on each odd view.
+    let (logs, log) = recorded("grid.mcap", "--rig grid3x3 --resolution 96x72 --samples-per-pixel 1");
+    let run_with = |neighbours: &str, config: &str, out: &str| {
+        let summary = replay_summary(
+            &log,
+            &logs.path().join(out),
+            &format!("--method mfusenet --rectify --neighbours {neighbours} --config {config}"),
+        );
+        let set = &summary["sets"][0];
+        let avg = set["outputs"]["metrics"]["all"]["avg_err_px"]
+            .as_f64()
+            .unwrap_or(f64::NAN);
+        assert!(avg.is_finite() && avg < 3.0, "{neighbours} {config}: AvgErr {avg}");
+        set["details"]["networks"].clone()
+    };
+    assert_eq!(
+        run_with("left,right,top", "{}", "t"),
+        serde_json::json!(["five-view (lite) [left, right, top, top]"])
+    );
+    assert_eq!(
+        run_with("left,top", "{}", "l"),
+        serde_json::json!(["five-view (lite) [left, left, top, top]"])
+    );
+    assert_eq!(
+        run_with("left,right,top", "{\"fill_cross\":false}", "t-unfilled"),
+        serde_json::json!(["three-view [left, right]", "stereo [top]"])
+    );
+    // A single axis view beside a diagonal has nothing to fill: the stereo network alone.
+    let summary = replay_summary(
+        &log,
+        &logs.path().join("diagonal"),
+        "--method mfusenet --rectify --neighbours top-left,right",
+    );
+    assert_eq!(summary["sets"][0]["details"]["network"], "stereo", "{summary}");
+}
+
+#[test]
 fn a_renewing_pool_trains_on_new_captures_deletes_the_old_and_resumes_alike() {
     // Two captures in memory, one replaced every two steps in turn: steps 2 and 4 bring in
     // captures 2 and 3, steps 6 and 8 captures 4 and 5 (2 and 3 then leave the cache; the

@@ -194,6 +194,26 @@ fn replay_writes_result_files_and_a_result_log_other_tools_read() {
             .is_some_and(|e| e < 2.0),
         "{metrics}"
     );
+    // The signed error: estimate − truth, its mean magnitude the metrics' AvgErr.
+    let (_, _, signed) =
+        viz::files::read_pfm(&set_dir.join("bm-heuristic_error_px.pfm")).unwrap_or_else(|e| panic!("{e}"));
+    let known: Vec<f64> = signed.iter().filter(|e| e.is_finite()).map(|e| f64::from(*e)).collect();
+    assert!(
+        known.len() > signed.len() / 2,
+        "{} of {} pixels with a truth",
+        known.len(),
+        signed.len()
+    );
+    let mean_abs = known.iter().map(|e| e.abs()).sum::<f64>() / known.len() as f64;
+    let avg_err = metrics["metrics"]["all"]["avg_err_px"].as_f64().unwrap_or(f64::NAN);
+    assert!(
+        (mean_abs - avg_err).abs() < 1e-3,
+        "signed error's mean |e| {mean_abs} against AvgErr {avg_err}"
+    );
+    assert!(
+        known.iter().any(|e| *e > 0.0) && known.iter().any(|e| *e < 0.0),
+        "both signs"
+    );
     let names: Vec<String> = std::fs::read_dir(&set_dir)
         .into_iter()
         .flatten()

@@ -180,8 +180,11 @@ pub struct MFuseNetConfig {
     /// (`mfusenet::input::view_groups`), and their log-probabilities are averaged with a vote
     /// per view (a farther group's only at the disparities its views see) before the estimate
     /// is read; it is refined and filtered with the nearest group's costs.
-    /// The views at the nearest baseline that no cross or pair takes (an L of two views, the
-    /// odd view of a cross missing an arm) each run the stereo network in the same vote.
+    /// A cross missing arms at the nearest baseline (a T, an L) goes to the five-view network
+    /// with each missing input filled by the opposite view (`fill_cross`, the default); the
+    /// views at that baseline that no cross or pair takes then (a single axis view beside a
+    /// diagonal, or every odd view without `fill_cross`) each run the stereo network in the
+    /// same vote.
     /// `false`: one network on the nearest cross, pair or view, as the paper, the other views
     /// unused (the run summary lists the networks and the views they took). With a
     /// view-count-agnostic weights file
@@ -217,6 +220,16 @@ pub struct MFuseNetConfig {
     /// network"). Side inputs are off while it is on.
     #[serde(default)]
     pub line_cross: bool,
+    /// A cross missing arms (a T of three views, an L of two: a view on each axis at the
+    /// nearest baseline) into the five-view network, each missing arm's input filled with
+    /// the opposite view's volume (`mfusenet::input::view_groups`; the summary's `networks`
+    /// list a filled input under the view that fills it). On by default: on the held-out
+    /// irregular grids (`scripts/eval-irregular.sh`) the `thin` T 2.098 → 1.104 px and L
+    /// 1.640 → 1.126, the workpiece T and L −25 to −30 %, the matte `bin` L −12 % and T +4 to
+    /// +6 %, in a third less time; `false`: the three-view network on the T's pair and the
+    /// stereo one on each odd view, in one vote (docs/results.md "Irregular sets").
+    #[serde(default = "yes")]
+    pub fill_cross: bool,
     /// Each input of a fixed network's nearest group made from its whole side: the costs of
     /// the views along its ray (a line of five's left input from −1 and −2), made one by
     /// `side_rule`, as the classical heuristic counts sides (on by default; a set with one view
@@ -293,6 +306,7 @@ impl Default for MFuseNetConfig {
             every_view: None,
             farther_vote: DEFAULT_FARTHER_VOTE,
             line_cross: false,
+            fill_cross: true,
             side_inputs: true,
             side_rule: SideRule::NearCapped,
             block_subpixel: Some(BlockSubpixel::default()),
@@ -648,8 +662,8 @@ impl MFuseNet {
             return None;
         }
         let available: Vec<usize> = self.networks.iter().map(|n| n.views).collect();
-        let (groups, rest) = view_groups(problem, &available, self.line_cross());
-        if groups.len() < 2 && !self.line_cross() {
+        let (groups, rest) = view_groups(problem, &available, self.line_cross(), self.config.fill_cross);
+        if groups.len() < 2 && !self.line_cross() && !groups.iter().any(ViewGroup::filled) {
             return None;
         }
         let groups = groups
@@ -680,7 +694,7 @@ impl MFuseNet {
                         Architecture::Paper => String::new(),
                         other => format!(" ({})", other.name()),
                     },
-                    g.neighbours.iter().map(|n| n.role.as_str()).collect::<Vec<_>>().join(", ")
+                    g.slots.iter().map(|&s| g.neighbours[s].role.as_str()).collect::<Vec<_>>().join(", ")
                 ))
                 .collect::<Vec<_>>(),
             "unused": rest.iter().map(|n| n.role.clone()).collect::<Vec<_>>(),
@@ -922,9 +936,12 @@ impl MFuseNet {
             // disparity (its network answers from mirrored costs elsewhere).
             let reach = (g > 0).then(|| {
                 group
-                    .neighbours
+                    .slots
                     .iter()
-                    .map(|n| ValidDisparities::new(n.offset, size, axis, n.baseline_ratio))
+                    .map(|&s| {
+                        let n = group.neighbours[s];
+                        ValidDisparities::new(n.offset, size, axis, n.baseline_ratio)
+                    })
                     .collect()
             });
             // A group's baseline multiple: its views' farthest offset, in baselines.
@@ -935,10 +952,11 @@ impl MFuseNet {
                 .max()
                 .unwrap_or(1)
                 .max(1);
-            let own = *start..start + group.neighbours.len();
-            let mut inputs: Vec<usize> = own.clone().collect();
+            // Each input's volume: its slot's view (a filled cross repeats one).
+            let own: Vec<usize> = group.slots.iter().map(|s| start + s).collect();
+            let mut inputs = own.clone();
             if loaded.net.sharp {
-                inputs.extend(own.map(|i| total + i));
+                inputs.extend(own.iter().map(|i| total + i));
             }
             members.push(Member {
                 net: &loaded.net,
@@ -1019,7 +1037,16 @@ impl MFuseNet {
         if stage == Stage::Last && (self.config.block_subpixel.is_some() || self.config.thin_parts.is_some()) {
             // The sub-pixel step reads the views the network answered from (the nearest group);
             // the thin-part step every view (`thin_parts_every_view`).
-            let used = self.nearest_neighbours(problem, self.network_for(problem)?.views)?;
+            // (A filled cross: its views, each once.)
+            let filled = self
+                .view_plan(problem)
+                .and_then(|(groups, _)| groups.into_iter().next())
+                .filter(|(group, _)| group.filled())
+                .map(|(group, _)| group.neighbours);
+            let used = match filled {
+                Some(views) => views,
+                None => self.nearest_neighbours(problem, self.network_for(problem)?.views)?,
+            };
             let nearest;
             let costs_of = if used.len() == problem.neighbours.len() {
                 problem

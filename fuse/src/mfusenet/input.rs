@@ -122,10 +122,21 @@ pub fn pooled_neighbours(problem: &Problem, every: bool) -> Result<Vec<&Neighbou
 /// takes, in its input order.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ViewGroup<'a> {
-    /// Inputs of the network: 4 (five-view) or 2 (three-view).
+    /// Inputs of the network: 4 (five-view), 2 (three-view) or 1 (stereo).
     pub views: usize,
-    /// The neighbours, in the network's order.
+    /// The neighbours, in the network's order (each once).
     pub neighbours: Vec<&'a Neighbour>,
+    /// For each of the network's inputs, the index in `neighbours` of the view that fills it:
+    /// `0..views` but for a cross with a missing arm (`fill_cross`), whose empty input takes the
+    /// opposite view's volume.
+    pub slots: Vec<usize>,
+}
+
+impl ViewGroup<'_> {
+    /// Whether an input repeats another's view (a cross with a missing arm filled).
+    pub fn filled(&self) -> bool {
+        self.slots.len() != self.neighbours.len()
+    }
 }
 
 /// The set's neighbours placed in the networks that take them, nearest baselines first: at each
@@ -139,53 +150,70 @@ pub struct ViewGroup<'a> {
 /// a grid (the three-view network on a diagonal pair raised a simulated 3 × 3 grid's AvgErr by
 /// 5 %, the five-view one on the turned cross by 8 %; docs/experiments.md). With `line_cross`
 /// a line of five on an axis without a cross of its own goes whole to the five-view network:
-/// left, right, then the far pair in its top and bottom inputs.
+/// left, right, then the far pair in its top and bottom inputs. With `fill_cross`, a cross
+/// missing arms at a baseline that still has a view on each axis (a T of three views, an L of
+/// two) goes to the five-view network too, each missing arm's input filled with its opposite
+/// view's volume (the same correspondences, without that arm's own occlusions), at the
+/// nearest baseline only (farther views without their opposite stay unused, as without it).
 pub fn view_groups<'a>(
     problem: &'a Problem,
     available: &[usize],
     line_cross: bool,
+    fill_cross: bool,
 ) -> (Vec<ViewGroup<'a>>, Vec<&'a Neighbour>) {
     let mut left: Vec<&Neighbour> = problem.neighbours.iter().collect();
     let has =
         |left: &Vec<&Neighbour>, offsets: &[[i32; 2]]| offsets.iter().all(|o| left.iter().any(|n| n.offset == *o));
     let reach = problem.neighbours.iter().map(Neighbour::reach).max().unwrap_or(0);
     let mut groups = Vec::new();
-    let mut group = |views: usize, offsets: &[[i32; 2]], left: &mut Vec<&'a Neighbour>| {
-        let neighbours = offsets
+    let group = |groups: &mut Vec<ViewGroup<'a>>, views: usize, offsets: &[[i32; 2]], left: &mut Vec<&'a Neighbour>| {
+        let neighbours: Vec<&Neighbour> = offsets
             .iter()
             .filter_map(|o| left.iter().position(|n| n.offset == *o).map(|i| left.remove(i)))
             .collect();
-        groups.push(ViewGroup { views, neighbours });
+        let slots = (0..neighbours.len()).collect();
+        groups.push(ViewGroup {
+            views,
+            neighbours,
+            slots,
+        });
     };
     // A line of five into the five-view network (`line_cross`): ±1 in its left and right
     // inputs, ±2 in its top and bottom ones, on an axis with no cross of its own.
     if line_cross && available.contains(&4) {
         for line in [[[-1, 0], [1, 0], [-2, 0], [2, 0]], [[0, -1], [0, 1], [0, -2], [0, 2]]] {
             if has(&left, &line) && !has(&left, &[[-1, 0], [1, 0], [0, -1], [0, 1]]) {
-                group(4, &line, &mut left);
+                group(&mut groups, 4, &line, &mut left);
             }
         }
     }
-    for k in 1..=reach {
-        let cross = [[-k, 0], [k, 0], [0, -k], [0, k]];
-        if available.contains(&4) && has(&left, &cross) {
-            group(4, &cross, &mut left);
-        }
-        if available.contains(&2) {
-            for pair in [[[-k, 0], [k, 0]], [[0, -k], [0, k]]] {
-                if has(&left, &pair) {
-                    group(2, &pair, &mut left);
-                }
-            }
-        }
-    }
-    // The odd views at the nearest baseline, each alone.
+    // The nearest baseline with a view on an axis: its odd views, or its cross missing arms.
     let nearest = problem
         .neighbours
         .iter()
         .filter(|n| n.on_axis())
         .map(Neighbour::reach)
         .min();
+    for k in 1..=reach {
+        let cross = [[-k, 0], [k, 0], [0, -k], [0, k]];
+        if available.contains(&4) && has(&left, &cross) {
+            group(&mut groups, 4, &cross, &mut left);
+        } else if fill_cross
+            && nearest == Some(k)
+            && available.contains(&4)
+            && let Some(filled) = filled_cross(cross, &mut left)
+        {
+            groups.push(filled);
+        }
+        if available.contains(&2) {
+            for pair in [[[-k, 0], [k, 0]], [[0, -k], [0, k]]] {
+                if has(&left, &pair) {
+                    group(&mut groups, 2, &pair, &mut left);
+                }
+            }
+        }
+    }
+    // The odd views at the nearest baseline, each alone.
     if available.contains(&1)
         && let Some(k) = nearest
     {
@@ -194,10 +222,44 @@ pub fn view_groups<'a>(
         groups.extend(odd.into_iter().map(|n| ViewGroup {
             views: 1,
             neighbours: vec![n],
+            slots: vec![0],
         }));
         left = rest;
     }
     (groups, left)
+}
+
+/// The five-view group of a cross `cross` (left, right, top, bottom offsets) with missing
+/// arms, taken out of `left`: each input its own view, else the opposite one's (`slots`).
+/// `None`, and `left` untouched, when an axis has no view.
+fn filled_cross<'a>(cross: [[i32; 2]; 4], left: &mut Vec<&'a Neighbour>) -> Option<ViewGroup<'a>> {
+    let has = |left: &[&Neighbour], o: [i32; 2]| left.iter().any(|n| n.offset == o);
+    if !(0..4).all(|i| has(left, cross[i]) || has(left, cross[i ^ 1])) {
+        return None;
+    }
+    let mut neighbours: Vec<&Neighbour> = Vec::new();
+    let mut slots = Vec::with_capacity(4);
+    for (i, o) in cross.iter().enumerate() {
+        let view = if has(left, *o) || neighbours.iter().any(|n| n.offset == *o) {
+            *o
+        } else {
+            cross[i ^ 1]
+        };
+        let at = match neighbours.iter().position(|n| n.offset == view) {
+            Some(at) => at,
+            None => {
+                let i = left.iter().position(|n| n.offset == view)?;
+                neighbours.push(left.remove(i));
+                neighbours.len() - 1
+            }
+        };
+        slots.push(at);
+    }
+    Some(ViewGroup {
+        views: 4,
+        neighbours,
+        slots,
+    })
 }
 
 /// The grid offsets of the neighbours whose volumes these are (`None` if one is not a single
@@ -648,7 +710,7 @@ mod tests {
         };
         let groups = |offsets: &[[i32; 2]], available: &[usize]| {
             let p = problem(offsets);
-            let (groups, rest) = view_groups(&p, available, false);
+            let (groups, rest) = view_groups(&p, available, false, false);
             (
                 groups
                     .iter()
@@ -689,7 +751,7 @@ mod tests {
         // … or, with `line_cross`, all four in the five-view network, the far pair as its top
         // and bottom inputs; a set with a cross keeps its crosses.
         let p = problem(&line);
-        let (crossed, rest) = view_groups(&p, &[1, 2, 4], true);
+        let (crossed, rest) = view_groups(&p, &[1, 2, 4], true, false);
         let crossed: Vec<_> = crossed
             .iter()
             .map(|g| (g.views, g.neighbours.iter().map(|n| n.offset).collect::<Vec<_>>()))
@@ -699,7 +761,10 @@ mod tests {
             (vec![(4, vec![[-1, 0], [1, 0], [-2, 0], [2, 0]])], 0)
         );
         let p = problem(&[[-1, 0], [1, 0], [0, -1], [0, 1], [-2, 0], [2, 0]]);
-        assert_eq!(view_groups(&p, &[1, 2, 4], true), view_groups(&p, &[1, 2, 4], false));
+        assert_eq!(
+            view_groups(&p, &[1, 2, 4], true, false),
+            view_groups(&p, &[1, 2, 4], false, false)
+        );
         // A 3 × 3 grid: the cross in the five-view network's order; the diagonals unused.
         let grid = [[-1, -1], [0, -1], [1, -1], [1, 0], [1, 1], [0, 1], [-1, 1], [-1, 0]];
         assert_eq!(
@@ -708,6 +773,52 @@ mod tests {
                 vec![(4, vec![[-1, 0], [1, 0], [0, -1], [0, 1]])],
                 vec![[-1, -1], [1, -1], [1, 1], [-1, 1]]
             )
+        );
+        // With `fill_cross`, an L and a T at the nearest baseline go to the five-view network,
+        // each missing arm's input filled by the opposite view; a diagonal stays unused, and a
+        // set with one axis only keeps its pair or its single view.
+        let filled = |offsets: &[[i32; 2]]| {
+            let p = problem(offsets);
+            let (groups, rest) = view_groups(&p, &[1, 2, 4], false, true);
+            (
+                groups
+                    .iter()
+                    .map(|g| {
+                        let inputs: Vec<[i32; 2]> = g.slots.iter().map(|&s| g.neighbours[s].offset).collect();
+                        (g.views, inputs, g.filled())
+                    })
+                    .collect::<Vec<_>>(),
+                rest.iter().map(|n| n.offset).collect::<Vec<_>>(),
+            )
+        };
+        assert_eq!(
+            filled(&[[0, -1], [-1, 0]]),
+            (vec![(4, vec![[-1, 0], [-1, 0], [0, -1], [0, -1]], true)], vec![])
+        );
+        assert_eq!(
+            filled(&[[-1, 0], [1, 0], [0, -1], [1, -1]]),
+            (vec![(4, vec![[-1, 0], [1, 0], [0, -1], [0, -1]], true)], vec![[1, -1]])
+        );
+        assert_eq!(
+            filled(&[[0, 1], [1, 0], [0, -1], [2, 0]]),
+            (vec![(4, vec![[1, 0], [1, 0], [0, -1], [0, 1]], true)], vec![[2, 0]])
+        );
+        assert_eq!(
+            filled(&[[-1, 0], [1, 0]]),
+            (vec![(2, vec![[-1, 0], [1, 0]], false)], vec![])
+        );
+        assert_eq!(
+            filled(&[[1, 1], [1, 0]]),
+            (vec![(1, vec![[1, 0]], false)], vec![[1, 1]])
+        );
+        assert_eq!(
+            filled(&[[-1, 0], [1, 0], [0, -1], [0, 1]]),
+            (vec![(4, vec![[-1, 0], [1, 0], [0, -1], [0, 1]], false)], vec![])
+        );
+        // Only at the nearest baseline: a far L beside a near pair stays unused.
+        assert_eq!(
+            filled(&[[-1, 0], [1, 0], [2, 0], [0, 2]]),
+            (vec![(2, vec![[-1, 0], [1, 0]], false)], vec![[2, 0], [0, 2]])
         );
         // An L, a cross missing an arm: the odd views at the nearest baseline alone.
         assert_eq!(

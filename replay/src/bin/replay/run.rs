@@ -26,7 +26,7 @@ pub struct RunArgs {
     pub(crate) out: PathBuf,
     /// Which result files each set gets: `all`, `none`, or a comma-separated list of
     /// disparity (PFM), colormap (PNG), depth (PFM in m, 16-bit PNG in mm), confidence (PFM,
-    /// PNG), points (PLY), error (PNG, with ground truth); `summary.json` and the metrics are
+    /// PNG), points (PLY), error (PNG and the signed error as PFM, with ground truth); `summary.json` and the metrics are
     /// always written. A workcell that needs only the depth: `--outputs depth`.
     #[arg(long, default_value = "all", value_name = "FILES", value_parser = parse_outputs)]
     pub(crate) outputs: replay::outputs::ResultFiles,
