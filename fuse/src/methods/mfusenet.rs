@@ -1328,19 +1328,35 @@ mod tests {
     }
 
     #[test]
-    fn the_odd_views_of_an_irregular_set_each_run_the_stereo_network() {
+    fn a_cross_missing_arms_is_filled_and_the_odd_views_run_the_stereo_network() {
         let method = crate::methods::build("mfusenet", None).unwrap_or_else(|e| panic!("{e}"));
+        let unfilled = serde_json::json!({ "fill_cross": false });
+        let unfilled = crate::methods::build("mfusenet", Some(&unfilled)).unwrap_or_else(|e| panic!("{e}"));
         let plane = |offsets: &[[i32; 2]]| plane_sized(offsets, 6, (0, 32), (128, 96));
-        let details = |offsets: &[[i32; 2]]| method.details(&plane(offsets));
-        // An L: each view alone; a cross missing an arm: the pair and the odd view.
-        let l = details(&[[-1, 0], [0, -1]]);
+        // By default an L and a T run the five-view network, each missing input filled by the
+        // opposite view; the post-processing reads the views it took.
+        let l = method.details(&plane(&[[-1, 0], [0, -1]]));
         assert_eq!(l["network"], "fused", "{l}");
+        assert_eq!(
+            l["networks"],
+            serde_json::json!(["five-view (lite) [left, left, top, top]"]),
+            "{l}"
+        );
+        let t = method.details(&plane(&[[-1, 0], [1, 0], [0, -1]]));
+        assert_eq!(
+            t["networks"],
+            serde_json::json!(["five-view (lite) [left, right, top, top]"]),
+            "{t}"
+        );
+        // Without the filling: each odd view alone; a cross missing an arm: the pair and the
+        // odd view.
+        let l = unfilled.details(&plane(&[[-1, 0], [0, -1]]));
         assert_eq!(
             l["networks"],
             serde_json::json!(["stereo [left]", "stereo [top]"]),
             "{l}"
         );
-        let t = details(&[[-1, 0], [1, 0], [0, -1]]);
+        let t = unfilled.details(&plane(&[[-1, 0], [1, 0], [0, -1]]));
         assert_eq!(
             t["networks"],
             serde_json::json!(["three-view [left, right]", "stereo [top]"]),
@@ -1348,6 +1364,7 @@ mod tests {
         );
         // What one network takes whole stays with it: one view, a pair, the cross, a line from
         // one end (its far view a side input).
+        let details = |offsets: &[[i32; 2]]| method.details(&plane(offsets));
         assert_eq!(details(&[[1, 0]])["network"], "stereo");
         assert_eq!(details(&[[-1, 0], [1, 0]])["network"], "three-view");
         assert_eq!(details(&[[-1, 0], [1, 0], [0, -1], [0, 1]])["network"], "five-view");
@@ -1356,17 +1373,15 @@ mod tests {
         let fixed = serde_json::json!({ "every_view": false });
         let fixed = crate::methods::build("mfusenet", Some(&fixed)).unwrap_or_else(|e| panic!("{e}"));
         assert_eq!(fixed.details(&plane(&[[-1, 0], [0, -1]]))["network"], "stereo");
-        // The L finds its plane away from the borders its views shift.
-        let out = method
-            .run(&plane(&[[-1, 0], [0, -1]]), &|_| {})
-            .unwrap_or_else(|e| panic!("{e}"));
-        let (w, h, margin) = (out.width, out.height, 12);
-        let errors: Vec<f32> = (margin..h - margin)
-            .flat_map(|y| (margin..w - margin).map(move |x| (x, y)))
-            .map(|(x, y)| (out.data[y * w + x] - 6.0).abs())
-            .collect();
-        let mean = errors.iter().sum::<f32>() / errors.len() as f32;
-        assert!(mean < 0.25, "AvgErr {mean:.3} px");
+        // The L finds its plane away from the borders its views shift, both ways.
+        for method in [&method, &unfilled] {
+            let out = method
+                .run(&plane(&[[-1, 0], [0, -1]]), &|_| {})
+                .unwrap_or_else(|e| panic!("{e}"));
+            let errors = interior_errors(&out, 12, 6.0);
+            let mean = errors.iter().sum::<f32>() / errors.len() as f32;
+            assert!(mean < 0.25, "AvgErr {mean:.3} px");
+        }
     }
 
     #[test]
