@@ -7,7 +7,9 @@
 //! with more views (a line of five, a 3 × 3 grid, crosses at several baselines) runs every
 //! cross and opposite pair through its network and averages their log-probabilities, a farther
 //! group's only at the disparities its views see (`every_view`); the farther views along each
-//! side also join the nearest group's inputs (`side_inputs`).
+//! side also join the nearest group's inputs (`side_inputs`). A cross missing arms at the
+//! nearest baseline (a T, an L) runs the five-view network with each missing input filled by
+//! the opposite view (`fill_cross`); a view no group takes there runs the stereo network.
 //! The trained weights of the three variants are compiled into the binary (`fuse/weights/`,
 //! made by `replay train`, see `fuse/weights/README.md`); `{"weights": "FILE"}` (or replay's
 //! `--weights FILE`) takes a safetensors file instead, whose variant must fit the set.
@@ -473,8 +475,7 @@ impl MFuseNet {
         let coarse = downsampled(problem, factor);
         let estimate = self.network_estimate(&coarse, &|f| progress(0.5 * f))?;
         let coarse_out = self.finish(&coarse, estimate, Stage::Coarse)?;
-        let loaded = self.network_for(problem)?;
-        let neighbours = self.nearest_neighbours(problem, loaded.net.views)?;
+        let (neighbours, loaded) = self.post_views(problem)?;
         // The full-size costs as one sum, made a neighbour at a time: the post-processing reads
         // only the sum, and four full-size byte volumes would hold twice its memory.
         let sides = self.sides(problem, &neighbours, loaded);
@@ -526,12 +527,11 @@ impl MFuseNet {
             widened_range(range, self.config.min_network_disparities).unwrap_or(range);
         let room_below = self.config.room_below.unwrap_or(loaded.context_below);
         // Each input of the nearest group and the views it was made from, where one has several.
-        let side_inputs = self
-            .side_inputs(loaded)
-            .then(|| {
-                let nearest = self.nearest_neighbours(problem, loaded.views).unwrap_or_default();
-                sides_of(problem, &nearest)
-            })
+        let post = self.post_views(problem).ok();
+        let side_inputs = post
+            .as_ref()
+            .filter(|(_, loaded)| self.side_inputs(loaded))
+            .map(|(nearest, _)| sides_of(problem, nearest))
             .filter(|sides| sides.iter().any(|side| side.len() > 1))
             .map(|sides| {
                 sides
@@ -542,10 +542,7 @@ impl MFuseNet {
         // The views the thin-part recovery reads (`thin_parts_every_view`), where they are more
         // than the network's nearest group.
         let thin_parts_views = (self.config.thin_parts.is_some() && self.config.thin_parts_every_view)
-            .then(|| {
-                self.nearest_neighbours(problem, loaded.views)
-                    .map_or(0, |used| used.len())
-            })
+            .then(|| post.as_ref().map_or(0, |(used, _)| used.len()))
             .filter(|used| *used < problem.neighbours.len())
             .map(|_| problem.neighbours.iter().map(|n| n.role.as_str()).collect::<Vec<_>>());
         if let Some(serde_json::Value::Object(plan)) = self.plan_details(problem) {
@@ -662,7 +659,9 @@ impl MFuseNet {
             return None;
         }
         let available: Vec<usize> = self.networks.iter().map(|n| n.views).collect();
-        let (groups, rest) = view_groups(problem, &available, self.line_cross(), self.config.fill_cross);
+        // (A file trained on lines of five takes no filled cross.)
+        let fill = self.config.fill_cross && !self.networks.iter().any(|n| n.line);
+        let (groups, rest) = view_groups(problem, &available, self.line_cross(), fill);
         if groups.len() < 2 && !self.line_cross() && !groups.iter().any(ViewGroup::filled) {
             return None;
         }
@@ -699,6 +698,21 @@ impl MFuseNet {
                 .collect::<Vec<_>>(),
             "unused": rest.iter().map(|n| n.role.clone()).collect::<Vec<_>>(),
         }))
+    }
+
+    /// The views the post-processing reads and the network they are the inputs of: a filled
+    /// cross's views (each once) and the five-view network, else [`Self::network_for`]'s
+    /// network and its nearest group ([`Self::nearest_neighbours`]).
+    fn post_views<'p>(&self, problem: &'p Problem) -> Result<(Vec<&'p Neighbour>, &Loaded), FuseError> {
+        let filled = self
+            .view_plan(problem)
+            .and_then(|(groups, _)| groups.into_iter().next())
+            .filter(|(group, _)| group.filled());
+        if let Some((group, loaded)) = filled {
+            return Ok((group.neighbours, loaded));
+        }
+        let loaded = self.network_for(problem)?;
+        Ok((self.nearest_neighbours(problem, loaded.views)?, loaded))
     }
 
     /// The neighbours `loaded`'s network takes, in its order: a fixed network's
@@ -962,10 +976,13 @@ impl MFuseNet {
                 net: &loaded.net,
                 inputs,
                 reach,
+                // A filled cross votes as the views it has, not as its network's inputs.
                 vote: self
                     .config
                     .farther_vote
-                    .powi(i32::try_from(multiple - 1).unwrap_or(i32::MAX)),
+                    .powi(i32::try_from(multiple - 1).unwrap_or(i32::MAX))
+                    * group.neighbours.len() as f32
+                    / group.slots.len().max(1) as f32,
             });
         }
         // The estimate is refined and filtered with the nearest groups' costs: the farther
@@ -1037,16 +1054,7 @@ impl MFuseNet {
         if stage == Stage::Last && (self.config.block_subpixel.is_some() || self.config.thin_parts.is_some()) {
             // The sub-pixel step reads the views the network answered from (the nearest group);
             // the thin-part step every view (`thin_parts_every_view`).
-            // (A filled cross: its views, each once.)
-            let filled = self
-                .view_plan(problem)
-                .and_then(|(groups, _)| groups.into_iter().next())
-                .filter(|(group, _)| group.filled())
-                .map(|(group, _)| group.neighbours);
-            let used = match filled {
-                Some(views) => views,
-                None => self.nearest_neighbours(problem, self.network_for(problem)?.views)?,
-            };
+            let (used, _) = self.post_views(problem)?;
             let nearest;
             let costs_of = if used.len() == problem.neighbours.len() {
                 problem
@@ -1163,7 +1171,7 @@ pub const ENTRIES: &[MethodEntry] = &[
     },
     MethodEntry {
         name: "mfusenet",
-        summary: "MFuseNet: the per-neighbour SGM cost volumes fused by the trained 3D CNN (the five-view network on each cross of the set, the three-view one on each pair, the stereo one on each odd view)",
+        summary: "MFuseNet: the per-neighbour SGM cost volumes fused by the trained 3D CNN (the five-view network on each cross of the set, a cross missing arms filled by the opposite views, the three-view one on each pair, the stereo one on each odd view)",
         family: Family::MFuseNet,
         build: |o| build("mfusenet", false, o),
     },
@@ -1266,6 +1274,26 @@ mod tests {
         // Within the direct limit, the network runs at full size and says so.
         let narrow = plane(&offsets, 10, 0);
         assert_eq!(method.details(&narrow)["scale"], "1/1");
+        // An L over the same range: the filled cross at 1/3 size, then the band at full size
+        // over both of its views' costs (60 px from the borders each view shifts).
+        let l = plane_sized(&[[-1, 0], [0, -1]], 30, (0, 96), (180, 150));
+        let details = method.details(&l);
+        assert_eq!(
+            (&details["scale"], &details["networks"]),
+            (
+                &serde_json::json!("1/3"),
+                &serde_json::json!(["five-view (lite) [left, left, top, top]"])
+            ),
+            "{details}"
+        );
+        let out = method.run(&l, &|_| {}).unwrap_or_else(|e| panic!("{e}"));
+        let (w, h) = (out.width, out.height);
+        let errors: Vec<f32> = (60..h - 30)
+            .flat_map(|y| (60..w - 30).map(move |x| (x, y)))
+            .map(|(x, y)| (out.data[y * w + x] - 30.0).abs())
+            .collect();
+        let mean = errors.iter().sum::<f32>() / errors.len() as f32;
+        assert!(mean < 0.25, "the L coarse to fine: AvgErr {mean:.3} px");
     }
 
     #[test]
@@ -1373,12 +1401,17 @@ mod tests {
         let fixed = serde_json::json!({ "every_view": false });
         let fixed = crate::methods::build("mfusenet", Some(&fixed)).unwrap_or_else(|e| panic!("{e}"));
         assert_eq!(fixed.details(&plane(&[[-1, 0], [0, -1]]))["network"], "stereo");
-        // The L finds its plane away from the borders its views shift, both ways.
+        // The L finds its plane away from the borders its views shift (rows and columns), both
+        // ways.
         for method in [&method, &unfilled] {
             let out = method
                 .run(&plane(&[[-1, 0], [0, -1]]), &|_| {})
                 .unwrap_or_else(|e| panic!("{e}"));
-            let errors = interior_errors(&out, 12, 6.0);
+            let (w, h, margin) = (out.width, out.height, 12);
+            let errors: Vec<f32> = (margin..h - margin)
+                .flat_map(|y| (margin..w - margin).map(move |x| (x, y)))
+                .map(|(x, y)| (out.data[y * w + x] - 6.0).abs())
+                .collect();
             let mean = errors.iter().sum::<f32>() / errors.len() as f32;
             assert!(mean < 0.25, "AvgErr {mean:.3} px");
         }

@@ -298,7 +298,8 @@ pub struct Member<'a> {
     /// The vote of each of its views, relative to one of a member that votes 1 (the nearest
     /// group's): with saturated logits, two members that disagree are nearly tied, and a
     /// farther group's smaller vote settles it for the nearer views, which alias less
-    /// (`MFuseNetConfig::farther_vote`).
+    /// (`MFuseNetConfig::farther_vote`); a filled cross's scaled by its views over its inputs,
+    /// so that each view still has one vote.
     pub vote: f32,
 }
 
