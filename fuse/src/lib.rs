@@ -21,6 +21,7 @@
 //! - [`plan`]: next-best-view planning: which grid offset would resolve most of what the
 //!   current depth lacks (occlusions, texture direction, depth resolution).
 
+pub mod borders;
 pub mod cost;
 pub mod fusion;
 pub mod graph_cuts;

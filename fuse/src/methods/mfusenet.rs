@@ -20,6 +20,7 @@ use serde::{Deserialize, Serialize};
 
 use super::{Family, Method, MethodEntry, Progress, apply_overrides};
 use crate::FuseError;
+use crate::borders::{BorderCheck, recheck_borders};
 use crate::cost::ValidDisparities;
 use crate::fusion::SideRule;
 use crate::image::DisparityImage;
@@ -253,6 +254,15 @@ pub struct MFuseNetConfig {
     /// and SGM inputs. Slanted planes (`scripts/eval-subpixel.sh`): AvgErr 0.077 → 0.044 px,
     /// BadPix 0.07 52.1 → 18.7 %; Middlebury 0.293 → 0.288 px, Bad1 4.87 → 4.87 %.
     pub block_subpixel: Option<BlockSubpixel>,
+    /// The border bands re-read before the sub-pixel step (`borders::BorderCheck`; `{}` = its
+    /// defaults; `null`, the default = none): where a neighbour's correspondences leave its
+    /// image the network reads that neighbour's mirrored costs and can settle near the range's
+    /// start under a near part cut by the image's edge; an estimate there is replaced by the
+    /// minimum of the fused block costs of the views that see each disparity, in regions.
+    /// Opt-in: on a line of five with such a part (clutter seed 501) 1.083 → 0.724 px, but the
+    /// held-out `thin` crosses +13 % (block costs fatten rods near the borders), the toy and
+    /// demo captures +6 %, Middlebury +0.7 % (docs/experiments.md, 2026-12-07).
+    pub border_check: Option<BorderCheck>,
     /// Thin nearer parts (rods, wires, slats) that the block-summed inputs lose, and the
     /// background seen through the gaps between them that they fill, recovered from per-pixel
     /// costs last (`thin_parts::ThinParts`; `{}` = its defaults, the default; `null` = none). The
@@ -312,6 +322,7 @@ impl Default for MFuseNetConfig {
             side_inputs: true,
             side_rule: SideRule::NearCapped,
             block_subpixel: Some(BlockSubpixel::default()),
+            border_check: None,
             thin_parts: Some(ThinParts::default()),
             thin_parts_every_view: true,
             precision: Precision::Bf16,
@@ -1051,7 +1062,11 @@ impl MFuseNet {
                 *c = 0.5 * (*c + support) * if kept.is_finite() { kept } else { 0.0 };
             }
         }
-        if stage == Stage::Last && (self.config.block_subpixel.is_some() || self.config.thin_parts.is_some()) {
+        if stage == Stage::Last
+            && (self.config.block_subpixel.is_some()
+                || self.config.thin_parts.is_some()
+                || self.config.border_check.is_some())
+        {
             // The sub-pixel step reads the views the network answered from (the nearest group);
             // the thin-part step every view (`thin_parts_every_view`).
             let (used, _) = self.post_views(problem)?;
@@ -1066,6 +1081,9 @@ impl MFuseNet {
                 };
                 &nearest
             };
+            if let Some(config) = &self.config.border_check {
+                recheck_borders(costs_of, &mut out, config)?;
+            }
             if let Some(config) = &self.config.block_subpixel {
                 refine_with_block_costs(costs_of, &mut out, config)?;
             }
