@@ -229,35 +229,22 @@ pub fn recheck_borders(
 mod tests {
     use super::*;
     use crate::image::Image;
-    use crate::volume::Neighbour;
+    use crate::volume::plane_along_x;
 
-    /// A textured plane at disparity `d` seen by a left/right pair.
+    /// A textured plane at disparity `d` seen by a left/right pair (the neighbour at offset `k`
+    /// sees the reference's pixel `x` at `x − k·d`).
     fn plane(d: i32, (w, h): (usize, usize)) -> Problem {
         let texture = |x: i64, y: i64| {
             let v = (x.wrapping_mul(73_856_093) ^ y.wrapping_mul(19_349_663)).rem_euclid(1 << 20);
             (((v * 2_654_435_761) >> 7) & 0xFF) as u8
         };
-        let view = |o: [i32; 2]| {
-            let (sx, sy) = (i64::from(o[0] * d), i64::from(o[1] * d));
+        let view = |shift: i64| {
             let data = (0..h as i64)
-                .flat_map(|y| (0..w as i64).map(move |x| texture(x + sx, y + sy)))
+                .flat_map(|y| (0..w as i64).map(move |x| texture(x + shift, y)))
                 .collect();
             Image::gray(w, h, data).unwrap_or_else(|e| panic!("{e}"))
         };
-        Problem {
-            reference: view([0, 0]),
-            neighbours: [[-1, 0], [1, 0]]
-                .into_iter()
-                .map(|offset| Neighbour {
-                    role: format!("{offset:?}"),
-                    image: view(offset),
-                    offset,
-                    baseline_ratio: 1.0,
-                })
-                .collect(),
-            min_disparity: 0,
-            num_disparities: 32,
-        }
+        plane_along_x(view, &[("left", -1), ("right", 1)], i64::from(d), 32)
     }
 
     #[test]
