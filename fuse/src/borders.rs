@@ -87,12 +87,14 @@ impl BorderCheck {
     }
 }
 
-/// Replaces each finite estimate of `disparity` (over `problem`'s range) by the minimum of the
-/// fused block costs of the views that see each disparity when (1) some neighbour's
-/// correspondence at that minimum lies outside its image (the border bands only), (2) the
-/// minimum lies more than `config.min_jump_px` from the estimate, and (3) its cost is under
-/// `config.ratio` times the cost at the estimate (or no view sees the estimate). Returns how
-/// many changed.
+/// Replaces each finite estimate of `disparity` (over `problem`'s range) within
+/// `config.near_start_px` of the range's start by the minimum of the fused block costs of the
+/// views that see each disparity when (1) some neighbour's correspondence at that minimum lies
+/// outside its image (the border bands only), (2) the minimum lies more than
+/// `config.min_jump_px` above the estimate, (3) its cost is under `config.ratio` times the cost at
+/// the estimate (or no view sees the estimate) and under `config.uniqueness` times the lowest
+/// cost more than 2 px from it, and (4) most of its `config.region_radius_px` window would be
+/// replaced alike. Returns how many changed.
 pub fn recheck_borders(
     problem: &Problem,
     disparity: &mut DisparityImage,
@@ -129,7 +131,6 @@ pub fn recheck_borders(
             cx < 0.0 || cx > (w - 1) as f32 || cy < 0.0 || cy > (h - 1) as f32
         })
     };
-    // Rows and columns farther from every border than any view shifts need no look.
     let band = band_rows(h);
     // Each pixel's replacement, NaN where none (first all of them, then those in regions).
     let estimates = &disparity.data;
@@ -145,7 +146,8 @@ pub fn recheck_borders(
                 for (i, (found, costs)) in out[at..].iter_mut().zip(costs.chunks_exact(nd)).enumerate() {
                     let x = x_start + i;
                     let estimate = &estimates[y * w + x];
-                    if !estimate.is_finite() {
+                    // Only estimates near the range's start, where the failure puts them.
+                    if !estimate.is_finite() || *estimate - min > config.near_start_px {
                         continue;
                     }
                     let Some((best, best_cost)) = costs
@@ -159,10 +161,7 @@ pub fn recheck_borders(
                     let best_d = best as f32 + min;
                     // Only upwards: a view that cannot see the larger disparities leaves the
                     // smaller ones' fake minimum to the network, not the reverse.
-                    if *estimate - min > config.near_start_px
-                        || best_d - *estimate <= config.min_jump_px
-                        || !leaves(x, y, best_d)
-                    {
+                    if best_d - *estimate <= config.min_jump_px || !leaves(x, y, best_d) {
                         continue;
                     }
                     let runner_up = costs
@@ -182,7 +181,8 @@ pub fn recheck_borders(
                     }
                 }
             };
-            // The bands of rows along the top and bottom whole; the other rows at their ends.
+            // Rows and columns farther from every border than any view shifts need no look: the
+            // bands of rows along the top and bottom whole, the other rows at their ends.
             let (top, bottom) = (
                 start..rows.end.min(reach_y),
                 rows.start.max(h.saturating_sub(reach_y))..rows.end,
