@@ -32,6 +32,7 @@ pub mod methods;
 pub mod metrics;
 pub mod mfusenet;
 pub mod nn;
+pub mod photometric;
 pub mod plan;
 pub mod postprocess;
 pub mod rng;
