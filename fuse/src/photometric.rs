@@ -51,6 +51,8 @@ pub struct Photometric {
     /// The largest RMS brightness difference (grey levels) the fitted plane leaves over the
     /// window for the estimate to move.
     pub max_misfit: f32,
+    /// The largest standard error (px) of the refined value for the estimate to move.
+    pub max_error_px: f32,
 }
 
 impl Default for Photometric {
@@ -58,11 +60,12 @@ impl Default for Photometric {
         Self {
             window_radius_px: 7,
             iterations: 2,
-            max_shift_px: 0.5,
+            max_shift_px: 0.25,
             occluded_ratio: 2.0,
             min_gradient: 4.0,
             blur_passes: 0,
             max_misfit: 3.0,
+            max_error_px: 0.05,
         }
     }
 }
@@ -172,8 +175,9 @@ fn linearised(
 /// The weighted least-squares plane `t ≈ a + gx·x + gy·y` through the window pixels' solutions,
 /// from its normal equations' moments `m` (Σw, Σwx, Σwy, Σwx², Σwxy, Σwy²) and right-hand
 /// side `c` (Σwt, Σwtx, Σwty): `[a, gx, gy]`, or the weighted mean `[Σwt ⁄ Σw, 0, 0]` where the
-/// positions do not determine a plane (the weights on one line).
-fn fitted_plane(m: [f64; 6], c: [f64; 3]) -> Option<[f64; 3]> {
+/// positions do not determine a plane (the weights on one line); and the first diagonal entry
+/// of the moments' inverse (`a`'s variance per unit of residual variance).
+fn fitted_plane(m: [f64; 6], c: [f64; 3]) -> Option<([f64; 3], f64)> {
     let a = [[m[0], m[1], m[2]], [m[1], m[3], m[4]], [m[2], m[4], m[5]]];
     let det = |a: [[f64; 3]; 3]| {
         a[0][0] * (a[1][1] * a[2][2] - a[1][2] * a[2][1]) - a[0][1] * (a[1][0] * a[2][2] - a[1][2] * a[2][0])
@@ -190,9 +194,9 @@ fn fitted_plane(m: [f64; 6], c: [f64; 3]) -> Option<[f64; 3]> {
             }
             *coefficient = det(replaced) / full;
         }
-        return Some(out);
+        return Some((out, (m[3] * m[5] - m[4] * m[4]) / full));
     }
-    (m[0] > 0.0).then(|| [c[0] / m[0], 0.0, 0.0])
+    (m[0] > 0.0).then(|| ([c[0] / m[0], 0.0, 0.0], 1.0 / m[0]))
 }
 
 /// Rows of the output refined together (their window sums held at once).
@@ -411,13 +415,19 @@ pub fn refine_photometric(
                         total[WYY] - 2.0 * cy * total[WY] + cy * cy * total[W],
                     ];
                     let c = [total[WT], total[WTX] - cx * total[WT], total[WTY] - cy * total[WT]];
-                    let Some(plane) = fitted_plane(m, c) else { continue };
+                    let Some((plane, spread)) = fitted_plane(m, c) else {
+                        continue;
+                    };
                     // The views' brightness the fitted plane leaves unexplained (RMS, grey levels:
                     // Σ J²·(t − plane)² = Σ (r + J·(plane − d_u))²): an edge, a reflection or a
                     // thin part across the window, where the model does not hold.
                     let left = total[WTT] - plane.iter().zip(c).map(|(p, c)| p * c).sum::<f64>();
                     let misfit = (left.max(0.0) / total[COUNT_USED].max(1.0)).sqrt();
-                    if misfit > f64::from(config.max_misfit) {
+                    // The refined value's standard error (px) from the residuals' variance (at least
+                    // a grey level's: the sensor's noise) and the window's gradients: faint
+                    // texture cannot place it to a fraction of a pixel.
+                    let error = misfit.max(1.0) * spread.max(0.0).sqrt();
+                    if misfit > f64::from(config.max_misfit) || error > f64::from(config.max_error_px) {
                         continue;
                     }
                     let s = start[y * w + x];

@@ -265,11 +265,11 @@ pub struct MFuseNetConfig {
     pub border_check: Option<BorderCheck>,
     /// The last step: each estimate refined by Gauss–Newton steps on the views' brightness at
     /// continuous disparities (`fuse::photometric`: a plane fitted over a 15 × 15 window of
-    /// each pixel's own solution, the better view of each opposite pair, moves of at most
-    /// 0.5 px, none where the plane leaves over 3 grey levels unexplained: edges, reflections,
-    /// thin parts). `null` = off. On by default: the slanted planes (`--rectify`) 0.0369 →
-    /// 0.0220 px, BadPix 0.07 13.0 → 2.1 %; the toy and demo captures −17 and −28 %; the
-    /// held-out 32 +1.2 % (docs/experiments.md, 2026-12-07, later).
+    /// each pixel's own solution, both views of each opposite pair unless one does not see,
+    /// moves of at most 0.25 px, none where the plane leaves over 3 grey levels unexplained or
+    /// the texture cannot place it to 0.05 px). `null` = off. On by default: the slanted planes
+    /// BadPix 0.07 16.6 → 4.8 % (`--rectify`: 13.0 → 1 %), the toy capture −25 %, Middlebury
+    /// −0.3 % (docs/methods.md, "Photometric refinement").
     #[serde(default = "default_photometric")]
     pub photometric: Option<crate::photometric::Photometric>,
     /// Thin nearer parts (rods, wires, slats) that the block-summed inputs lose, and the

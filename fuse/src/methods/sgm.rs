@@ -45,6 +45,10 @@ pub struct SgmConfig {
     /// `bm-heuristic`): SGM's integer stays, its fraction is re-read from fused 9×9
     /// Birchfield–Tomasi block costs, which lock to the pixel grid far less than SGM's sums.
     pub block_subpixel: Option<BlockSubpixel>,
+    /// Photometric sub-pixel refinement after the rest (`photometric::Photometric`; `{}` = its
+    /// defaults, `null` = none, the default: about the method's time again at 1080p):
+    /// Gauss–Newton on the views' brightness at continuous disparities, MFuseNet's last step.
+    pub photometric: Option<crate::photometric::Photometric>,
     /// Make the fused costs where each of SGM's passes reads them instead of holding them as
     /// one byte volume (`sgm::select_prepared`): the same result in less memory, for images
     /// whose volume would not fit (1080p with 128 disparities: 0.59 → 0.40 GB peak RSS, about
@@ -85,6 +89,7 @@ impl Default for SgmConfig {
             median: true,
             weighted_median: None,
             block_subpixel: None,
+            photometric: None,
             costs_in_passes: false,
             side_rule: SideRule::Min,
         }
@@ -140,6 +145,9 @@ impl Method for Sgm {
         }
         if let Some(config) = &self.config.block_subpixel {
             refine_with_block_costs(problem, &mut disparity, config)?;
+        }
+        if let Some(config) = &self.config.photometric {
+            crate::photometric::refine_photometric(problem, &mut disparity, config)?;
         }
         crate::postprocess::scale_by_local_consistency(&mut disparity);
         progress(1.0);
