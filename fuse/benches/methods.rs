@@ -344,17 +344,22 @@ fn pixel_costs(c: &mut Criterion) {
     group.finish();
 }
 
-/// MFuseNet's last step: the thin-part recovery on each pixel's own costs and over cross-shaped
+/// An estimate of 20 px everywhere: every pixel is tested by the post-processing benched.
+fn flat_estimate(width: usize, height: usize) -> fuse::DisparityImage {
+    fuse::DisparityImage {
+        width,
+        height,
+        data: vec![20.0; width * height],
+        confidence: None,
+    }
+}
+
+/// MFuseNet's last steps: the thin-part recovery on each pixel's own costs and over cross-shaped
 /// supports (the default), from a flat estimate (every pixel is tested).
 fn thin_parts(c: &mut Criterion) {
     use fuse::thin_parts::{ThinParts, recover_thin_parts};
     let problem = problem(640, 360, 64);
-    let flat = fuse::DisparityImage {
-        width: 640,
-        height: 360,
-        data: vec![20.0; 640 * 360],
-        confidence: None,
-    };
+    let flat = flat_estimate(640, 360);
     let mut group = c.benchmark_group("thin_parts_640x360x64");
     group.sample_size(10);
     let own = ThinParts {
@@ -372,5 +377,31 @@ fn thin_parts(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, methods, mfusenet, graph_cuts, winners, pixel_costs, thin_parts);
+/// MFuseNet's last step: the photometric refinement (two Gauss–Newton steps, 15 × 15 windows) of
+/// a five-view 640×360 set from a flat estimate.
+fn photometric(c: &mut Criterion) {
+    use fuse::photometric::{Photometric, refine_photometric};
+    let problem = problem(640, 360, 64);
+    let flat = flat_estimate(640, 360);
+    let mut group = c.benchmark_group("photometric_640x360");
+    group.sample_size(10);
+    group.bench_function("five_views", |b| {
+        b.iter(|| {
+            let mut disparity = flat.clone();
+            black_box(refine_photometric(&problem, &mut disparity, &Photometric::default()))
+        })
+    });
+    group.finish();
+}
+
+criterion_group!(
+    benches,
+    methods,
+    mfusenet,
+    graph_cuts,
+    winners,
+    pixel_costs,
+    thin_parts,
+    photometric
+);
 criterion_main!(benches);

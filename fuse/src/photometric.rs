@@ -446,63 +446,18 @@ pub fn refine_photometric(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::subpixel::fixtures::{inner_error, quarter_pixels, slanted};
     use crate::volume::Neighbour;
-
-    /// A smooth texture on a slanted plane of disparity `a + b·x` seen by a right neighbour
-    /// (as `subpixel`'s tests), and its exact disparity.
-    fn slanted(w: usize, h: usize, a: f32, b: f32) -> (Problem, Vec<f32>) {
-        let texture = |x: f32, y: f32| -> f32 {
-            128.0 + (x * 0.37).sin() * 60.0 + (y * 0.23 + x * 0.11).cos() * 50.0 + (x * 0.05 - y * 0.07).sin() * 40.0
-        };
-        let image = |source: &dyn Fn(usize) -> f32| {
-            let mut data = Vec::with_capacity(w * h * 3);
-            for y in 0..h {
-                for x in 0..w {
-                    let v = texture(source(x), y as f32).clamp(0.0, 255.0) as u8;
-                    data.extend([v, v / 2 + 40, 255 - v]);
-                }
-            }
-            Image::new(w, h, 3, data).unwrap_or_else(|e| panic!("{e}"))
-        };
-        let problem = Problem {
-            reference: image(&|x| x as f32),
-            neighbours: vec![Neighbour {
-                image: image(&|x| (x as f32 + a) / (1.0 - b)),
-                offset: [1, 0],
-                role: "right".into(),
-                baseline_ratio: 1.0,
-            }],
-            min_disparity: 0,
-            num_disparities: 16,
-        };
-        let truth = (0..h).flat_map(|_| (0..w).map(move |x| a + b * x as f32)).collect();
-        (problem, truth)
-    }
 
     #[test]
     fn a_slanted_plane_converges_from_quarter_pixels() {
         let (w, h) = (96, 40);
         let (problem, truth) = slanted(w, h, 4.0, 4.0 / w as f32);
-        let mut disparity = DisparityImage {
-            width: w,
-            height: h,
-            data: truth.iter().map(|t| (t * 4.0).round() / 4.0).collect(),
-            confidence: None,
-        };
-        let inner = |image: &DisparityImage| -> f32 {
-            let (mut sum, mut n) = (0.0, 0);
-            for y in 6..h - 6 {
-                for x in 14..w - 6 {
-                    sum += (image.data[y * w + x] - truth[y * w + x]).abs();
-                    n += 1;
-                }
-            }
-            sum / n as f32
-        };
-        let was = inner(&disparity);
+        let mut disparity = quarter_pixels(&truth, w, h);
+        let was = inner_error(&disparity, &truth);
         let before = disparity.clone();
         refine_photometric(&problem, &mut disparity, &Photometric::default()).unwrap_or_else(|e| panic!("{e}"));
-        let now = inner(&disparity);
+        let now = inner_error(&disparity, &truth);
         println!("mean error {was:.4} → {now:.4} px");
         assert!(now < 0.3 * was, "mean error {was:.4} → {now:.4} px");
         let config = Photometric::default();

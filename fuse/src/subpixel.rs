@@ -106,16 +106,16 @@ fn reread(estimate: f32, costs: &[u16], config: &BlockSubpixel) -> Option<f32> {
     })
 }
 
+/// Test fixtures shared with `photometric`'s tests.
 #[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::image::Image;
-    use crate::volume::Neighbour;
+pub(crate) mod fixtures {
+    use crate::image::{DisparityImage, Image};
+    use crate::volume::{Neighbour, Problem};
 
     /// A reference of smooth texture and a right neighbour of a slanted plane whose disparity is
     /// `a + b·x` at reference column x: the neighbour's column x shows the reference's
     /// `(x + a) / (1 − b)` (sampled from the same texture function, exact).
-    fn slanted(w: usize, h: usize, a: f32, b: f32) -> (Problem, Vec<f32>) {
+    pub(crate) fn slanted(w: usize, h: usize, a: f32, b: f32) -> (Problem, Vec<f32>) {
         let texture = |x: f32, y: f32| -> f32 {
             128.0 + (x * 0.37).sin() * 60.0 + (y * 0.23 + x * 0.11).cos() * 50.0 + (x * 0.05 - y * 0.07).sin() * 40.0
         };
@@ -144,6 +144,36 @@ mod tests {
         (problem, truth)
     }
 
+    /// `truth` locked to quarter pixels (errors up to 0.125 px, as SGM's sums give).
+    pub(crate) fn quarter_pixels(truth: &[f32], w: usize, h: usize) -> DisparityImage {
+        DisparityImage {
+            width: w,
+            height: h,
+            data: truth.iter().map(|t| (t * 4.0).round() / 4.0).collect(),
+            confidence: None,
+        }
+    }
+
+    /// The mean |error| of `image` against `truth` away from the borders (6 px, 14 px on the
+    /// left where a right neighbour's correspondences leave its image).
+    pub(crate) fn inner_error(image: &DisparityImage, truth: &[f32]) -> f32 {
+        let (w, h) = (image.width, image.height);
+        let (mut sum, mut n) = (0.0, 0);
+        for y in 6..h - 6 {
+            for x in 14..w - 6 {
+                sum += (image.data[y * w + x] - truth[y * w + x]).abs();
+                n += 1;
+            }
+        }
+        sum / n as f32
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::fixtures::{inner_error, quarter_pixels, slanted};
+    use super::*;
+
     #[test]
     fn a_slanted_plane_is_read_closer_to_its_truth_than_the_integers() {
         // Disparity 4 → 8 across the image: from the truth locked to quarter pixels (errors up to
@@ -151,26 +181,11 @@ mod tests {
         // never moves an estimate by more than its limit.
         let (w, h) = (96, 40);
         let (problem, truth) = slanted(w, h, 4.0, 4.0 / w as f32);
-        let mut disparity = DisparityImage {
-            width: w,
-            height: h,
-            data: truth.iter().map(|t| (t * 4.0).round() / 4.0).collect(),
-            confidence: None,
-        };
+        let mut disparity = quarter_pixels(&truth, w, h);
         let before = disparity.clone();
         let config = BlockSubpixel::default();
         let changed = refine_with_block_costs(&problem, &mut disparity, &config).unwrap_or_else(|e| panic!("{e}"));
-        let inner = |image: &DisparityImage| -> f32 {
-            let (mut sum, mut n) = (0.0, 0);
-            for y in 6..h - 6 {
-                for x in 14..w - 6 {
-                    sum += (image.data[y * w + x] - truth[y * w + x]).abs();
-                    n += 1;
-                }
-            }
-            sum / n as f32
-        };
-        let (was, now) = (inner(&before), inner(&disparity));
+        let (was, now) = (inner_error(&before, &truth), inner_error(&disparity, &truth));
         assert!(changed > w * h / 2, "{changed} of {} changed", w * h);
         println!("{changed} of {} changed; mean error {was:.4} → {now:.4} px", w * h);
         assert!(now < 0.6 * was, "mean error {was:.3} → {now:.3} px");
