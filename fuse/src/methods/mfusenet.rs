@@ -1112,7 +1112,9 @@ impl MFuseNet {
                 recover_thin_parts(views, &mut out, config)?;
             }
             if let Some(config) = &self.config.photometric {
-                crate::photometric::refine_photometric(problem, &mut out, config)?;
+                // Every view of the set (a grid's diagonals too); the stereo method's one.
+                let views = if self.stereo { costs_of } else { problem };
+                crate::photometric::refine_photometric(views, &mut out, config)?;
             }
         }
         scale_by_local_consistency(&mut out);
