@@ -80,18 +80,7 @@ struct Plane {
 impl Plane {
     fn new(image: &Image, blur_passes: usize) -> Self {
         let (w, h) = (image.width, image.height);
-        let mut grey: Vec<f32> = if image.channels == 3 {
-            image
-                .data
-                .chunks_exact(3)
-                .map(|p| 0.299 * f32::from(p[0]) + 0.587 * f32::from(p[1]) + 0.114 * f32::from(p[2]))
-                .collect()
-        } else {
-            image.data.iter().map(|v| f32::from(*v)).collect()
-        };
-        for _ in 0..blur_passes {
-            grey = blurred(&grey, (w, h));
-        }
+        let grey = grey_levels(image, blur_passes);
         let mut dx = vec![0f32; w * h];
         let mut dy = vec![0f32; w * h];
         for y in 0..h {
@@ -121,6 +110,24 @@ impl Plane {
         };
         Some([at(&self.grey), at(&self.dx), at(&self.dy)])
     }
+}
+
+/// An image's grey levels (Rec. 601 luma) as `f32`, blurred `blur_passes` times: the
+/// fractions `Image::to_gray` rounds away are what the sub-pixel steps read.
+fn grey_levels(image: &Image, blur_passes: usize) -> Vec<f32> {
+    let mut grey: Vec<f32> = if image.channels == 3 {
+        image
+            .data
+            .chunks_exact(3)
+            .map(|p| 0.299 * f32::from(p[0]) + 0.587 * f32::from(p[1]) + 0.114 * f32::from(p[2]))
+            .collect()
+    } else {
+        image.data.iter().map(|v| f32::from(*v)).collect()
+    };
+    for _ in 0..blur_passes {
+        grey = blurred(&grey, (image.width, image.height));
+    }
+    grey
 }
 
 /// `plane` blurred by [1 2 1]/4 along both axes (borders repeated).
@@ -325,7 +332,7 @@ pub fn refine_photometric(
     if problem.neighbours.is_empty() || config.iterations == 0 {
         return Ok(0);
     }
-    let grey = Plane::new(reference, config.blur_passes).grey;
+    let grey = grey_levels(reference, config.blur_passes);
     let planes: Vec<(Plane, (f32, f32))> = problem
         .neighbours
         .iter()
@@ -368,6 +375,7 @@ pub fn refine_photometric(
                     .iter()
                     .map(|(residual, slope)| window_sums((residual, slope), &current, (w, h), (y0, rows.len() / w), r))
                     .collect();
+                let mut energy = vec![0f64; views.len()];
                 for (i, out) in rows.iter_mut().enumerate() {
                     let (x, y) = (i % w, y0 + i / w);
                     if !current[y * w + x].is_finite() {
@@ -375,16 +383,14 @@ pub fn refine_photometric(
                     }
                     let quantities = |v: usize| &sums[v][i * QUANTITIES..(i + 1) * QUANTITIES];
                     // Each view's mean squared residual over the window at the estimates.
-                    let energy: Vec<f64> = (0..views.len())
-                        .map(|v| {
-                            let q = quantities(v);
-                            if q[COUNT] >= 0.5 * area {
-                                q[SQUARED] / q[COUNT]
-                            } else {
-                                f64::INFINITY
-                            }
-                        })
-                        .collect();
+                    for (v, e) in energy.iter_mut().enumerate() {
+                        let q = quantities(v);
+                        *e = if q[COUNT] >= 0.5 * area {
+                            q[SQUARED] / q[COUNT]
+                        } else {
+                            f64::INFINITY
+                        };
+                    }
                     let best = energy.iter().copied().fold(f64::INFINITY, f64::min);
                     if !best.is_finite() {
                         continue;
