@@ -210,7 +210,8 @@ fn select_from(
     min_disparity: i32,
     subpixel: Option<SubpixelFit>,
 ) -> (Vec<f32>, Vec<f32>) {
-    select_in_bands(costs, geometry, penalties, (min_disparity, subpixel), SELECT_BAND_ROWS)
+    let bands = (SELECT_BAND_ROWS, Some(SELECT_WARMUP_ROWS));
+    select_in_bands(costs, geometry, penalties, (min_disparity, subpixel), bands)
 }
 
 /// Rows per band of [`select_in_bands`]: at 1080p and 128 disparities a band's sums are 63 MB
@@ -218,19 +219,30 @@ fn select_from(
 /// rows took more time there (each band's passes start cold), bands of 256 no less.
 const SELECT_BAND_ROWS: usize = 128;
 
-/// [`select`] without the image's summed volume: a first pass runs the three downward paths
-/// over the whole image and keeps their values at the last row of every band; then, band by
-/// band from the bottom, the horizontal paths, the downward paths resumed from the band above's
-/// saved row, and the upward paths carried from the band below are summed in one band's buffer
-/// and the winners picked. The downward paths are computed twice (11 paths' work instead of
-/// 8), but the sums' pages are faulted in once per band-sized buffer instead of once per
-/// pixel: the same numbers in a fraction of the memory.
+/// Rows above each band over which [`select_in_bands`] starts its downward paths afresh instead
+/// of carrying them from the image's first row. A path forgets where it started within a few
+/// dozen rows: at 1080p with 128 disparities 0.66 % of the winners move by more than 0.01 px and
+/// 0.06 % by more than 1 px against the exact paths (16 rows: 0.92 % and 0.12 %), the AvgErr of
+/// Middlebury's dev scenes 0.4006 → 0.4011 px and of the five-view 1080p capture 0.2868 → 0.2864;
+/// the selection takes 0.235–0.258 s there instead of 0.247–0.323 s (docs/experiments.md).
+const SELECT_WARMUP_ROWS: usize = 32;
+
+/// [`select`] without the image's summed volume: band by band from the bottom, the horizontal
+/// paths, the downward paths resumed at the band's first row, and the upward paths carried from
+/// the band below are summed in one band's buffer and the winners picked. The sums' pages are
+/// faulted in once per band-sized buffer instead of once per pixel.
+///
+/// Where the downward paths resume from: with `warmup_rows` `None`, a first pass runs them over
+/// the whole image and keeps their values at the last row of every band (the exact numbers of
+/// [`aggregate_volume`]'s sums; 11 paths' work instead of 8); with `Some(k)`, each band starts
+/// them afresh `k` rows above its first row (8 paths' work and `3k ⁄ band_rows` more; the paths
+/// at the band differ from the exact ones where their start still shows).
 fn select_in_bands(
     costs: Costs<'_>,
     geometry: Geometry,
     penalties: &Penalties,
     (min_disparity, subpixel): (i32, Option<SubpixelFit>),
-    band_rows: usize,
+    (band_rows, warmup_rows): (usize, Option<usize>),
 ) -> (Vec<f32>, Vec<f32>) {
     let Geometry { width, height, nd } = geometry;
     let mut out = vec![f32::INFINITY; 2 * width * height];
@@ -243,10 +255,15 @@ fn select_in_bands(
         .step_by(band_rows)
         .map(|start| start..(start + band_rows).min(height))
         .collect();
-    // The downward paths at the last row of every band but the last.
-    let mut saved: Vec<PathRow> = (1..bands.len()).map(|_| PathRow::new(width, nd)).collect();
+    // The downward paths at the last row of every band but the last (exact), or of the band
+    // above the one being summed (warmed up).
+    let saved_rows = match warmup_rows {
+        None => bands.len() - 1,
+        Some(_) => usize::from(bands.len() > 1),
+    };
+    let mut saved: Vec<PathRow> = (0..saved_rows).map(|_| PathRow::new(width, nd)).collect();
     let mut scratch = Vec::new();
-    if !saved.is_empty() {
+    if !saved.is_empty() && warmup_rows.is_none() {
         let saves = bands
             .iter()
             .zip(saved.iter_mut())
@@ -270,6 +287,7 @@ fn select_in_bands(
     }
     let mut sums = vec![0u16; band_rows.min(height) * row_len];
     let mut made = Vec::new();
+    let mut warm = Vec::new();
     // The upward paths at the first row of the band below, and the same for this band.
     let (mut below, mut this) = (PathRow::new(width, nd), PathRow::new(width, nd));
     for (index, band) in bands.iter().enumerate().rev() {
@@ -309,8 +327,48 @@ fn select_in_bands(
                 });
             }
         });
+        let above = match warmup_rows {
+            None => index.checked_sub(1),
+            Some(_) => (index > 0).then_some(0),
+        };
+        if let (Some(warmup), Some(state)) = (warmup_rows, above.and_then(|i| saved.get_mut(i))) {
+            // The downward paths at the row above the band, started fresh `warmup` rows higher.
+            let first = band.start.saturating_sub(warmup.max(1));
+            let rows = first..band.start;
+            let warm_costs: &[u8] = match costs {
+                Costs::Stored(volume) => &volume[rows.start * row_len..rows.end * row_len],
+                Costs::Made { prepared, shift } => {
+                    warm.resize(rows.len() * row_len, 0);
+                    let share = rows.len().div_ceil(rayon::current_num_threads().max(1));
+                    warm.par_chunks_mut(share * row_len).enumerate().for_each_init(
+                        BandScratch::default,
+                        |scratch, (k, out)| {
+                            let start = rows.start + k * share;
+                            prepared.fused_quantised_into(
+                                start..start + out.len() / row_len,
+                                0..width,
+                                shift,
+                                out,
+                                scratch,
+                            );
+                        },
+                    );
+                    &warm
+                }
+            };
+            let sweep = Sweep {
+                costs: Costs::Stored(warm_costs),
+                geometry: Geometry {
+                    height: rows.len(),
+                    ..geometry
+                },
+                penalties,
+                downward: true,
+            };
+            vertical_pass(sweep, None, None, (None, vec![(rows.len() - 1, state)]), &mut scratch);
+        }
         let band_costs = Costs::Stored(band_costs);
-        let above = index.checked_sub(1).map(|i| &saved[i]);
+        let above = above.and_then(|i| saved.get(i));
         let resume = (above, Vec::new());
         let sweep = Sweep {
             costs: band_costs,
@@ -1209,13 +1267,57 @@ mod tests {
                         let penalties = Penalties::new(max_cost, 40, 400);
                         let costs = Costs::Stored(&volume);
                         check(
-                            select_in_bands(costs, geometry, &penalties, (3, fit), band_rows),
+                            select_in_bands(costs, geometry, &penalties, (3, fit), (band_rows, None)),
+                            band_rows,
+                        );
+                        // Warmed up from the first row: the exact paths.
+                        check(
+                            select_in_bands(costs, geometry, &penalties, (3, fit), (band_rows, Some(h))),
                             band_rows,
                         );
                     }
                 });
             }
         }
+    }
+
+    #[test]
+    fn paths_warmed_up_above_each_band_pick_the_exact_winners_on_a_noisy_slope() {
+        // A slope of disparities 2 … 14 over 160 rows, costs |d − d*| × 8 plus noise up to 40 and
+        // a few invalid cells: bands of 32 rows warmed up over 32 rows against the exact paths.
+        let (w, h, nd) = (96, 160, 16);
+        let mut state = 11u32;
+        let volume: Vec<u8> = (0..h)
+            .flat_map(|y| (0..w).flat_map(move |x| (0..nd).map(move |d| (x, y, d))))
+            .map(|(x, y, d)| {
+                state = state.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+                let noise = (state >> 24) % 41;
+                if noise == 40 && (state >> 8).is_multiple_of(7) {
+                    return INVALID_QUANTISED;
+                }
+                let truth = 2.0 + 12.0 * (y as f32 + 0.3 * x as f32) / (h as f32 + 0.3 * w as f32);
+                ((d as f32 - truth).abs() * 8.0 + noise as f32).min(250.0) as u8
+            })
+            .collect();
+        let geometry = Geometry {
+            width: w,
+            height: h,
+            nd,
+        };
+        let penalties = Penalties::new(250, 10, 120);
+        let costs = Costs::Stored(&volume);
+        let fit = Some(SubpixelFit::Parabola);
+        let (exact, _) = select_in_bands(costs, geometry, &penalties, (0, fit), (32, None));
+        let (warmed, _) = select_in_bands(costs, geometry, &penalties, (0, fit), (32, Some(32)));
+        let moved = exact
+            .iter()
+            .zip(&warmed)
+            .filter(|(a, b)| (*a - *b).abs() > 0.01)
+            .count();
+        // (Started afresh one row above each band instead, 721 move.)
+        assert!(moved * 100 <= w * h, "{moved} of {} winners moved", w * h);
+        // The first band has no band above: exact.
+        assert_eq!(exact[..32 * w], warmed[..32 * w]);
     }
 
     #[test]
