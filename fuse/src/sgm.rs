@@ -286,8 +286,8 @@ fn select_in_bands(
         vertical_pass(sweep, None, None, (None, saves), &mut scratch);
     }
     let mut sums = vec![0u16; band_rows.min(height) * row_len];
-    let mut made = Vec::new();
-    let mut warm = Vec::new();
+    // Made costs: the rows `made_rows` (the band and the warm-up rows above it).
+    let (mut made, mut made_rows) = (Vec::new(), 0..0);
     // The upward paths at the first row of the band below, and the same for this band.
     let (mut below, mut this) = (PathRow::new(width, nd), PathRow::new(width, nd));
     for (index, band) in bands.iter().enumerate().rev() {
@@ -296,21 +296,35 @@ fn select_in_bands(
             height: band.len(),
             nd,
         };
-        let band_costs: &[u8] = match costs {
-            Costs::Stored(volume) => &volume[band.start * row_len..band.end * row_len],
+        // The downward paths' warm-up rows above the band.
+        let warm_rows = match warmup_rows {
+            Some(warmup) if index > 0 => band.start.saturating_sub(warmup.max(1))..band.start,
+            _ => band.start..band.start,
+        };
+        let (warm_costs, band_costs): (&[u8], &[u8]) = match costs {
+            Costs::Stored(volume) => (
+                &volume[warm_rows.start * row_len..warm_rows.end * row_len],
+                &volume[band.start * row_len..band.end * row_len],
+            ),
             Costs::Made { prepared, shift } => {
-                made.resize(band.len() * row_len, 0);
-                // Shares of the band's rows in parallel, each with its block's 2ρ rows before it.
-                let share = band.len().div_ceil(rayon::current_num_threads().max(1));
-                made.par_chunks_mut(share * row_len).enumerate().for_each_init(
-                    BandScratch::default,
-                    |scratch, (k, out)| {
-                        let first = band.start + k * share;
-                        let rows = first..first + out.len() / row_len;
-                        prepared.fused_quantised_into(rows, 0..width, shift, out, scratch);
-                    },
-                );
-                &made
+                // The rows below the band above's warm-up were made with it: moved, not made again.
+                let need = warm_rows.start..band.end;
+                let kept = need.start.max(made_rows.start)..need.end.min(made_rows.end);
+                let kept = if kept.end == need.end && kept.start < kept.end {
+                    kept
+                } else {
+                    need.end..need.end
+                };
+                let to = kept.start - need.start;
+                made.resize(made.len().max(need.len() * row_len), 0);
+                if !kept.is_empty() {
+                    let from = kept.start - made_rows.start;
+                    made.copy_within(from * row_len..(from + kept.len()) * row_len, to * row_len);
+                }
+                made.truncate(need.len() * row_len);
+                make_rows(prepared, shift, need.start..kept.start, &mut made[..to * row_len]);
+                made_rows = need;
+                made.split_at(warm_rows.len() * row_len)
             }
         };
         let band_sums = &mut sums[..band.len() * row_len];
@@ -331,31 +345,9 @@ fn select_in_bands(
             None => index.checked_sub(1),
             Some(_) => (index > 0).then_some(0),
         };
-        if let (Some(warmup), Some(state)) = (warmup_rows, above.and_then(|i| saved.get_mut(i))) {
-            // The downward paths at the row above the band, started fresh `warmup` rows higher.
-            let first = band.start.saturating_sub(warmup.max(1));
-            let rows = first..band.start;
-            let warm_costs: &[u8] = match costs {
-                Costs::Stored(volume) => &volume[rows.start * row_len..rows.end * row_len],
-                Costs::Made { prepared, shift } => {
-                    warm.resize(rows.len() * row_len, 0);
-                    let share = rows.len().div_ceil(rayon::current_num_threads().max(1));
-                    warm.par_chunks_mut(share * row_len).enumerate().for_each_init(
-                        BandScratch::default,
-                        |scratch, (k, out)| {
-                            let start = rows.start + k * share;
-                            prepared.fused_quantised_into(
-                                start..start + out.len() / row_len,
-                                0..width,
-                                shift,
-                                out,
-                                scratch,
-                            );
-                        },
-                    );
-                    &warm
-                }
-            };
+        if let (Some(_), Some(state)) = (warmup_rows, above.and_then(|i| saved.get_mut(i))) {
+            // The downward paths at the row above the band, started afresh at the warm-up rows.
+            let rows = warm_rows.clone();
             let sweep = Sweep {
                 costs: Costs::Stored(warm_costs),
                 geometry: Geometry {
@@ -398,6 +390,23 @@ fn select_in_bands(
         std::mem::swap(&mut below, &mut this);
     }
     out.chunks_exact(2).map(|pair| (pair[0], pair[1])).unzip()
+}
+
+/// The fused costs of `rows` quantised by `shift` into `out` (`[y][x][d]`), shares of the rows
+/// in parallel, each with its block's 2ρ rows before it.
+fn make_rows(prepared: &PreparedProblem, shift: u32, rows: Range<usize>, out: &mut [u8]) {
+    let row_len = prepared.width() * prepared.num_disparities();
+    if rows.is_empty() || row_len == 0 {
+        return;
+    }
+    let share = rows.len().div_ceil(rayon::current_num_threads().max(1));
+    out.par_chunks_mut(share * row_len)
+        .enumerate()
+        .for_each_init(BandScratch::default, |scratch, (k, out)| {
+            let first = rows.start + k * share;
+            let rows = first..first + out.len() / row_len;
+            prepared.fused_quantised_into(rows, 0..prepared.width(), shift, out, scratch);
+        });
 }
 
 /// [`select_volume`] of `prepared`'s fused volume quantised by `shift`, without that volume

@@ -49,11 +49,11 @@ pub struct SgmConfig {
     /// defaults, `null` = none, the default: about the method's time again at 1080p):
     /// Gauss–Newton on the views' brightness at continuous disparities, MFuseNet's last step.
     pub photometric: Option<crate::photometric::Photometric>,
-    /// Make the fused costs where each of SGM's passes reads them instead of holding them as
-    /// one byte volume (`sgm::select_prepared`): the same result in less memory, for images
-    /// whose volume would not fit (1080p with 128 disparities: 0.59 → 0.40 GB peak RSS, about
-    /// 0.9 → 1.3 s with `sgm-heuristic`).
-    #[serde(default)]
+    /// Make the fused costs a band of rows at a time where SGM's passes read them
+    /// (`sgm::select_prepared`; the default) instead of holding them as one byte volume
+    /// (`false`): the same result without the volume's pages to fault (1080p with 128
+    /// disparities: 0.55 → 0.34 GB peak RSS and 0.50–0.55 → 0.48–0.51 s; docs/methods.md).
+    #[serde(default = "default_costs_in_passes")]
     pub costs_in_passes: bool,
     /// With the heuristic, how the views on one side of the reference along one ray (a line's
     /// −1 and −2) become that side's cost: `min` (the default: a farther view's match counts
@@ -63,6 +63,12 @@ pub struct SgmConfig {
     /// 1.320 → 0.201 px, but the reflective gain is gone; docs/experiments.md).
     #[serde(default)]
     pub side_rule: SideRule,
+}
+
+/// The serde default of [`SgmConfig::costs_in_passes`]: configurations written before it was
+/// the default read as it is now.
+fn default_costs_in_passes() -> bool {
+    true
 }
 
 impl super::FusedConfig for SgmConfig {
@@ -90,7 +96,7 @@ impl Default for SgmConfig {
             weighted_median: None,
             block_subpixel: None,
             photometric: None,
-            costs_in_passes: false,
+            costs_in_passes: true,
             side_rule: SideRule::Min,
         }
     }
