@@ -70,17 +70,21 @@ fn methods(c: &mut Criterion) {
     });
     // The fused, box-aggregated costs alone (the stage block matching and SGM share), handed
     // to a sink that only reads them: the rest of block matching is the winners and filters.
-    // Block matching's costs (Birchfield–Tomasi, 9×9) and SGM's (census 7×7, 7×7).
-    for (name, pixel, block_radius_px) in [
-        ("fused_costs_heuristic", fuse::cost::PixelCost::BirchfieldTomasi, 4),
+    // Block matching's costs (Birchfield–Tomasi, 9×9) and SGM's (census 7×7, 7×7), the census
+    // distances also on the 256-bit kernel where the host would take the 512-bit one (`fuse::wide`).
+    let census = fuse::cost::PixelCost::Census {
+        radius: 3,
+        symmetric: false,
+    };
+    for (name, pixel, block_radius_px, wide) in [
         (
-            "fused_costs_census_heuristic",
-            fuse::cost::PixelCost::Census {
-                radius: 3,
-                symmetric: false,
-            },
-            3,
+            "fused_costs_heuristic",
+            fuse::cost::PixelCost::BirchfieldTomasi,
+            4,
+            true,
         ),
+        ("fused_costs_census_heuristic", census, 3, true),
+        ("fused_costs_census_heuristic_256_bit", census, 3, false),
     ] {
         let spec = fuse::volume::CostSpec { pixel, block_radius_px };
         let prepared = fuse::volume::PreparedProblem::new(&problem, spec, fuse::fusion::Fusion::Heuristic)
@@ -91,6 +95,7 @@ fn methods(c: &mut Criterion) {
                 problem.reference.height,
                 fuse::volume::band_rows(problem.reference.height),
             );
+            fuse::wide::set_enabled(wide);
             b.iter(|| {
                 let firsts: u32 = (0..height.div_ceil(band))
                     .into_par_iter()
@@ -104,7 +109,8 @@ fn methods(c: &mut Criterion) {
                     })
                     .sum();
                 black_box(firsts)
-            })
+            });
+            fuse::wide::set_enabled(true);
         });
     }
     group.finish();

@@ -1,7 +1,8 @@
 //! Whether the hot loops may run on 512-bit vectors: where the host has AVX-512 (detected at run
 //! time; the workspace builds for x86-64-v3) and [`set_enabled`] has not switched them off.
-//! The convolutions' kernel (`nn::wide_kernel`) asks here; its outputs are the same bits
-//! either way, only the speed differs.
+//! The convolutions' kernel (`nn::wide_kernel`) and the census distances
+//! (`lines::census_kernel`) ask here; their outputs are the same bits either way, only the speed
+//! differs.
 
 use std::sync::atomic::{AtomicBool, Ordering};
 
@@ -17,6 +18,18 @@ pub fn set_enabled(enabled: bool) {
 /// AVX-512F (32-bit lanes: the convolutions), enabled.
 pub fn avx512f() -> bool {
     ENABLED.load(Ordering::Relaxed) && detected::avx512f()
+}
+
+/// AVX-512 with byte population counts (`vpopcntb`: AVX512-BITALG and AVX512-BW), enabled: the
+/// census distances' kernel. Intel from Ice Lake, AMD from Zen 4.
+pub fn avx512bitalg() -> bool {
+    ENABLED.load(Ordering::Relaxed) && detected::avx512bitalg()
+}
+
+/// Whether the host has AVX512-BITALG and BW, whatever [`set_enabled`] says: what the census
+/// distances' 512-bit kernel needs to run safely.
+pub fn host_has_avx512bitalg() -> bool {
+    detected::avx512bitalg()
 }
 
 /// Whether the host has AVX-512F, whatever [`set_enabled`] says: what a 512-bit kernel needs
@@ -41,6 +54,12 @@ mod detected {
     pub(super) fn avx512bf16() -> bool {
         std::arch::is_x86_feature_detected!("avx512f") && std::arch::is_x86_feature_detected!("avx512bf16")
     }
+
+    pub(super) fn avx512bitalg() -> bool {
+        std::arch::is_x86_feature_detected!("avx512f")
+            && std::arch::is_x86_feature_detected!("avx512bw")
+            && std::arch::is_x86_feature_detected!("avx512bitalg")
+    }
 }
 
 #[cfg(not(target_arch = "x86_64"))]
@@ -50,6 +69,10 @@ mod detected {
     }
 
     pub(super) fn avx512bf16() -> bool {
+        false
+    }
+
+    pub(super) fn avx512bitalg() -> bool {
         false
     }
 }

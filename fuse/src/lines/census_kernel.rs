@@ -8,6 +8,10 @@
 //! distances (`perf annotate`, docs/experiments.md 2026-12-06). Here the planes are read in
 //! place, the codes broadcast once per pixel and the nibble tables once per tile row.
 //!
+//! Where the host has AVX-512 with byte population counts (AVX512-BITALG: Intel from Ice Lake,
+//! AMD from Zen 4; detected at run time, [`crate::wide::avx512bitalg`]) 64 cells per register
+//! instead, each plane's differing bits counted by `vpopcntb`: the same bytes.
+//!
 //! Built only where the target has AVX2 (this workspace builds for x86-64-v3); elsewhere
 //! [`Planes48::distances`] answers `false` and the portable loop runs.
 
@@ -19,12 +23,18 @@ pub(super) struct Planes48<'a> {
     planes: [&'a [u8]; 6],
     /// The shortest plane's length: a run ending at or before it reads inside every plane.
     len: usize,
+    /// Whether the 512-bit kernel runs ([`crate::wide::avx512bitalg`], asked once per tile row).
+    wide: bool,
 }
 
 impl<'a> Planes48<'a> {
     pub(super) fn new(planes: [&'a [u8]; 6]) -> Self {
         let len = planes.iter().map(|p| p.len()).min().unwrap_or(0);
-        Self { planes, len }
+        Self {
+            planes,
+            len,
+            wide: crate::wide::avx512bitalg(),
+        }
     }
 
     /// Writes the distances of `codes` to the cells `from .. from + out.len()` of the planes into
@@ -45,7 +55,14 @@ impl<'a> Planes48<'a> {
             // `from + 32·k .. from + 32·(k + 1)` with `k < runs` of each plane, which ends at or
             // before `self.len` (checked above), and writes inside `out` (the last partial run
             // through a local buffer).
-            unsafe { avx2::distances(&self.planes, from, codes, out) };
+            if self.wide {
+                // SAFETY: the host has AVX-512F, BW and BITALG (`wide`); every byte read lies in
+                // `from .. from + out.len()` of a plane, inside `self.len` (checked above), and
+                // every byte written inside `out`.
+                unsafe { avx512::distances(&self.planes, from, codes, out) };
+            } else {
+                unsafe { avx2::distances(&self.planes, from, codes, out) };
+            }
             true
         }
         #[cfg(not(all(target_arch = "x86_64", target_feature = "avx2")))]
@@ -146,6 +163,48 @@ mod avx2 {
     }
 }
 
+#[cfg(target_arch = "x86_64")]
+#[allow(unsafe_code)]
+mod avx512 {
+    use std::arch::x86_64::{
+        __m512i, __mmask64, _mm512_add_epi8, _mm512_mask_storeu_epi8, _mm512_maskz_loadu_epi8, _mm512_popcnt_epi8,
+        _mm512_set1_epi8, _mm512_xor_si512,
+    };
+
+    /// Cells per register.
+    const WIDE: usize = 64;
+
+    /// See [`super::Planes48::distances`]: 64 cells at a time, the last run masked, so that only
+    /// the bytes `from .. from + out.len()` of each plane are read.
+    ///
+    /// # Safety
+    /// The host has AVX-512F, BW and BITALG; each plane holds at least `from + out.len()` bytes.
+    #[target_feature(enable = "avx512f,avx512bw,avx512bitalg")]
+    pub(super) unsafe fn distances(planes: &[&[u8]; 6], from: usize, codes: [u8; 6], out: &mut [u8]) {
+        let codes = codes.map(|c| _mm512_set1_epi8(c as i8));
+        let pointers = planes.map(<[u8]>::as_ptr);
+        let mut done = 0;
+        while done < out.len() {
+            let n = (out.len() - done).min(WIDE);
+            let mask: __mmask64 = if n == WIDE { !0 } else { (1u64 << n) - 1 };
+            // SAFETY: the masked loads read only the `n` bytes at `from + done` of each plane
+            // (inside it, the caller's guarantee); the masked store writes `out[done .. done + n]`.
+            unsafe {
+                let count = |k: usize| -> __m512i {
+                    let cells = _mm512_maskz_loadu_epi8(mask, pointers[k].add(from + done).cast());
+                    _mm512_popcnt_epi8(_mm512_xor_si512(cells, codes[k]))
+                };
+                let sum = _mm512_add_epi8(
+                    _mm512_add_epi8(_mm512_add_epi8(count(0), count(1)), _mm512_add_epi8(count(2), count(3))),
+                    _mm512_add_epi8(count(4), count(5)),
+                );
+                _mm512_mask_storeu_epi8(out.as_mut_ptr().add(done).cast(), mask, sum);
+            }
+            done += n;
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -159,6 +218,43 @@ mod tests {
                     .sum()
             })
             .collect()
+    }
+
+    #[test]
+    #[allow(unsafe_code)]
+    fn the_512_bit_kernel_matches_the_plain_definition_reading_only_its_cells() {
+        if !crate::wide::host_has_avx512bitalg() {
+            eprintln!("skipped: this host has no AVX512-BITALG (the 256-bit kernel runs; tested below)");
+            return;
+        }
+        let mut state = 0x9e37_79b9_7f4a_7c15u64;
+        let mut byte = || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state >> 24) as u8
+        };
+        // Planes exactly as long as the cells read: a read past them would leave the slice.
+        for n in [1usize, 31, 63, 64, 65, 128, 130] {
+            for from in [0usize, 5] {
+                let planes: Vec<Vec<u8>> = (0..6).map(|_| (0..from + n).map(|_| byte()).collect()).collect();
+                let view = [
+                    &planes[0][..],
+                    &planes[1],
+                    &planes[2],
+                    &planes[3],
+                    &planes[4],
+                    &planes[5],
+                ];
+                let codes = [byte(), byte(), byte(), byte(), byte(), byte()];
+                // One cell past the run stays as it was.
+                let mut out = vec![0xaa; n + 1];
+                // SAFETY: the host has the features (checked above); each plane holds `from + n` bytes.
+                unsafe { avx512::distances(&view, from, codes, &mut out[..n]) };
+                assert_eq!(out[..n], plain(view, from, codes, n)[..], "n {n} from {from}");
+                assert_eq!(out[n], 0xaa, "n {n} from {from}");
+            }
+        }
     }
 
     #[test]
@@ -191,6 +287,17 @@ mod tests {
                 assert_eq!(answered, built && fits, "n {n} from {from}");
                 if answered {
                     assert_eq!(out, plain(view, from, codes, n), "n {n} from {from}");
+                    // The 256-bit kernel on its own (the 512-bit one may have answered above).
+                    #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
+                    {
+                        let mut narrow = vec![0xaa; n];
+                        // SAFETY: AVX2 (compile-time); the runs fit the planes (`fits`).
+                        #[allow(unsafe_code)]
+                        unsafe {
+                            avx2::distances(&view, from, codes, &mut narrow)
+                        };
+                        assert_eq!(narrow, out, "n {n} from {from}");
+                    }
                 } else {
                     assert!(out.iter().all(|v| *v == 0xaa), "nothing written when refused");
                 }
