@@ -57,8 +57,12 @@ pub const METADATA_NAME: &str = "multiscopic.recording";
 pub const SURFACE_ENCODING: &str = "mono8";
 /// Encoding of depth ground truth: metres along the optical axis, 0 = unknown.
 pub const DEPTH_ENCODING: &str = "32FC1";
-/// Default chunk size (bytes before compression).
-pub const DEFAULT_CHUNK_SIZE: u64 = 8 * 1024 * 1024;
+/// Default chunk size (bytes before compression). A chunk ends after the message that takes it
+/// past this size, so with each view written as calibration, image, surface classes, depth, a
+/// 1080p view's image (6.2 MB) ends one chunk and its ground truth (10.4 MB) another: a reader
+/// that skips the neighbours' ground truth decompresses half of a simulated set's bytes. Sets
+/// under this size (320×240 five-view) stay one chunk each.
+pub const DEFAULT_CHUNK_SIZE: u64 = 4 * 1024 * 1024;
 /// Default zstd level: the fastest. A five-view 1080p set (83 MB of images and ground truth)
 /// is written in 0.16–0.19 s at level 1 against 0.39–0.40 s at level 3, for a log 13 % larger
 /// (30.3 against 26.7 MB); the images' sensor noise leaves little for a slower level to find.
@@ -651,8 +655,9 @@ impl<W: Write + Seek> LogWriter<W> {
         )
     }
 
-    /// Writes one complete set: arm motion, then per view the transforms, image, calibration,
-    /// ground truth, commanded pose and the capture event, all in time order; then ends the
+    /// Writes one complete set: arm motion, then per view the transforms, calibration, image,
+    /// ground truth (surface classes, then depth), commanded pose and the capture event, all in
+    /// time order; then ends the
     /// chunk and flushes it, so that every set written is whole on disk before the next starts
     /// (the chunk size still bounds a huge set's chunks).
     pub fn write_set(
@@ -708,6 +713,10 @@ impl<W: Write + Seek> LogWriter<W> {
             step: width * bytes_per_pixel,
             data,
         };
+        // The calibration first: the image then ends its chunk with it (`DEFAULT_CHUNK_SIZE`).
+        let calibration = calibration_topic(&view.role);
+        let frame = view_frame(&view.role);
+        self.write_message(&calibration, t, &calibration_message(&view.camera, t, &frame))?;
         match self.options.image_format {
             ImageFormat::Raw => self.write_message(&image, t, &raw("rgb8", 3, Bytes::copy_from_slice(&view.rgb)))?,
             ImageFormat::Png => {
@@ -729,24 +738,22 @@ impl<W: Write + Seek> LogWriter<W> {
                 )?
             }
         }
-        let calibration = calibration_topic(&view.role);
-        let frame = view_frame(&view.role);
-        self.write_message(&calibration, t, &calibration_message(&view.camera, t, &frame))?;
+        // The ground truth after the image, the largest last: the two in a chunk of their own.
+        let surface = match &view.surface_class {
+            Some(classes) => {
+                check_buffer_len(set, view, "surface_class", classes.len(), 1)?;
+                let topic = surface_topic(&view.role);
+                self.write_message(&topic, t, &raw(SURFACE_ENCODING, 1, Bytes::copy_from_slice(classes)))?;
+                Some(topic)
+            }
+            None => None,
+        };
         let depth = match &view.depth_m {
             Some(depth_m) => {
                 check_buffer_len(set, view, "depth_m", depth_m.len(), 1)?;
                 let topic = depth_topic(&view.role);
                 let data: Vec<u8> = depth_m.iter().flat_map(|d| d.to_le_bytes()).collect();
                 self.write_message(&topic, t, &raw(DEPTH_ENCODING, 4, Bytes::from(data)))?;
-                Some(topic)
-            }
-            None => None,
-        };
-        let surface = match &view.surface_class {
-            Some(classes) => {
-                check_buffer_len(set, view, "surface_class", classes.len(), 1)?;
-                let topic = surface_topic(&view.role);
-                self.write_message(&topic, t, &raw(SURFACE_ENCODING, 1, Bytes::copy_from_slice(classes)))?;
                 Some(topic)
             }
             None => None,
