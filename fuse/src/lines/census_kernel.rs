@@ -220,6 +220,21 @@ mod tests {
             .collect()
     }
 
+    /// A xorshift stream of bytes from `state`.
+    fn bytes(mut state: u64) -> impl FnMut() -> u8 {
+        move || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state >> 24) as u8
+        }
+    }
+
+    /// The six planes of `planes` as the kernels take them.
+    fn six(planes: &[Vec<u8>]) -> [&[u8]; 6] {
+        std::array::from_fn(|k| &planes[k][..])
+    }
+
     #[test]
     #[allow(unsafe_code)]
     fn the_512_bit_kernel_matches_the_plain_definition_reading_only_its_cells() {
@@ -227,25 +242,12 @@ mod tests {
             eprintln!("skipped: this host has no AVX512-BITALG (the 256-bit kernel runs; tested below)");
             return;
         }
-        let mut state = 0x9e37_79b9_7f4a_7c15u64;
-        let mut byte = || {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            (state >> 24) as u8
-        };
+        let mut byte = bytes(0x9e37_79b9_7f4a_7c15);
         // Planes exactly as long as the cells read: a read past them would leave the slice.
         for n in [1usize, 31, 63, 64, 65, 128, 130] {
             for from in [0usize, 5] {
                 let planes: Vec<Vec<u8>> = (0..6).map(|_| (0..from + n).map(|_| byte()).collect()).collect();
-                let view = [
-                    &planes[0][..],
-                    &planes[1],
-                    &planes[2],
-                    &planes[3],
-                    &planes[4],
-                    &planes[5],
-                ];
+                let view = six(&planes);
                 let codes = [byte(), byte(), byte(), byte(), byte(), byte()];
                 // One cell past the run stays as it was.
                 let mut out = vec![0xaa; n + 1];
@@ -259,23 +261,10 @@ mod tests {
 
     #[test]
     fn distances_match_the_plain_definition_and_refuse_reads_past_a_plane() {
-        let mut state = 0x2545_f491_4f6c_dd1du64;
-        let mut byte = || {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            (state >> 24) as u8
-        };
+        let mut byte = bytes(0x2545_f491_4f6c_dd1d);
         // Planes of different lengths: the shortest bounds the runs.
         let planes: Vec<Vec<u8>> = (0..6).map(|k| (0..300 + 7 * k).map(|_| byte()).collect()).collect();
-        let view = [
-            &planes[0][..],
-            &planes[1],
-            &planes[2],
-            &planes[3],
-            &planes[4],
-            &planes[5],
-        ];
+        let view = six(&planes);
         let kernel = Planes48::new(view);
         let built = cfg!(all(target_arch = "x86_64", target_feature = "avx2"));
         for n in [1usize, 31, 32, 33, 64, 100, 128] {
