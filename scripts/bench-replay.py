@@ -19,6 +19,10 @@ per method, the capture copied into DIR N times, PAUSE_S seconds apart (renamed 
 the recorder does); for each copy the method's time and the latency from the rename to its
 summary.json, the first copy (a fresh process) apart from the median of the rest (warm).
 
+TRUTH=0 replays a copy of the capture without its ground truth (scripts/strip-truth.py: what a
+real camera on the arm logs), so the process does what a workcell's does: no evaluation, no
+ground truth read; OpenCV still reads the capture's images.
+
 OUTPUTS=LIST passes `--outputs LIST` to replay (default: every result file; a workcell that needs
 only the depth: OUTPUTS=depth). BM_CONFIG=JSON and SGM_CONFIG=JSON pass `--config JSON` to the
 method (e.g. BM_CONFIG='{"colour": false}': block matching on luma, as StereoBM).
@@ -53,6 +57,8 @@ CONFIGS = {"bm-heuristic": os.environ.get("BM_CONFIG"), "sgm-heuristic": os.envi
 PAUSE_S = float(os.environ.get("PAUSE_S", "5"))
 # Captures copied into a watched folder per method (WATCH=0 to skip).
 WATCH = int(os.environ.get("WATCH", "6"))
+# Whether replay reads the capture's ground truth (TRUTH=0: a copy without it).
+TRUTH = os.environ.get("TRUTH", "1") != "0"
 
 
 def images(path):
@@ -127,12 +133,20 @@ def main():
     sgbm = cv2.StereoSGBM_create(minDisparity=0, numDisparities=DISPARITIES, blockSize=5, P1=8 * 3 * 25, P2=32 * 3 * 25,
                                  uniquenessRatio=5, speckleWindowSize=50, speckleRange=2, disp12MaxDiff=1,
                                  mode=cv2.STEREO_SGBM_MODE_HH)
+    if not TRUTH:
+        import importlib.util
+        spec = importlib.util.spec_from_file_location("strip_truth", os.path.join(ROOT, "scripts/strip-truth.py"))
+        strip_truth = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(strip_truth)
+        camera = os.path.join(work, "camera.mcap")
+        strip_truth.strip(log, camera)
+        log = camera
     four = pairs(views)
     opencv_bm = best_of(lambda: [bm.compute(l, r) for l, r in four])
     opencv_sgbm = best_of(lambda: sgbm.compute(four[0][0], four[0][1]))
     model = next((line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name")), "?")
     results = {"host": f"{model}, {os.cpu_count()} vCPUs", "replay": REPLAY, "outputs": OUTPUTS, "configs": CONFIGS, "opencv": cv2.__version__, "threads": cv2.getNumThreads(), "opencv_bm_four_pairs_s": opencv_bm,
-               "opencv_sgbm_hh_one_pair_s": opencv_sgbm}
+               "opencv_sgbm_hh_one_pair_s": opencv_sgbm, "ground_truth": TRUTH}
     for method, peer, limit in [("bm-heuristic", opencv_bm, 1.0), ("sgm-heuristic", opencv_sgbm, 0.5)]:
         out = os.path.join(work, method)
         warm = min((run_replay(log, method, out) for _ in range(REPEATS)), key=lambda r: r[0])

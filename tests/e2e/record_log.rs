@@ -150,3 +150,43 @@ fn rerun_opens_the_log_directly_with_images_pinholes_and_transforms() {
         "/tf: {tf}"
     );
 }
+
+#[test]
+fn a_copy_without_ground_truth_replays_like_a_real_camera_s_log_with_the_same_disparities() {
+    // scripts/strip-truth.py (the workcell's log for scripts/bench-replay.py TRUTH=0), run by the
+    // Python mcap client: no ground-truth topic, events without them, the same depth, no metrics.
+    let dir = temp_dir();
+    let log = record_small(dir.path(), "full.mcap", &["--captures", "2"]);
+    let camera = dir.path().join("camera.mcap");
+    let script = multiscopic_tests::workspace_root().join("scripts/strip-truth.py");
+    let output = run(Command::new(python_with_mcap()).arg(script).arg(&log).arg(&camera));
+    assert_success(&output, "scripts/strip-truth.py");
+    let (full, stripped) = (Log::read(&log), Log::read(&camera));
+    assert!(full.messages.iter().any(|m| m.topic.contains("/ground_truth/")));
+    assert!(!stripped.messages.iter().any(|m| m.topic.contains("/ground_truth/")));
+    let truth_messages = full.messages.iter().filter(|m| m.topic.contains("/ground_truth/")).count();
+    assert_eq!(stripped.messages.len() + truth_messages, full.messages.len());
+    let events = stripped.events();
+    assert_eq!(events.len(), full.events().len());
+    assert!(
+        events
+            .iter()
+            .all(|e| e.depth_topic.is_none() && e.surface_topic.is_none() && e.true_world_from_camera.is_none())
+    );
+    let pfm = |summary: &serde_json::Value| {
+        let files = summary["sets"][0]["outputs"]["files"].as_array().cloned().unwrap_or_default();
+        let path = files
+            .iter()
+            .filter_map(serde_json::Value::as_str)
+            .find(|f| f.ends_with("_disparity.pfm"))
+            .map(std::path::PathBuf::from)
+            .unwrap_or_else(|| panic!("no disparity file in {summary}"));
+        std::fs::read(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+    };
+    let args = "--method sgm-heuristic --outputs disparity --sets 1";
+    let with_truth = multiscopic_tests::replay_summary(&log, &dir.path().join("a"), args);
+    let without = multiscopic_tests::replay_summary(&camera, &dir.path().join("b"), args);
+    assert!(with_truth["sets"][0]["outputs"]["metrics"].is_object(), "{with_truth}");
+    assert!(without["sets"][0]["outputs"]["metrics"].is_null(), "{without}");
+    assert!(pfm(&with_truth) == pfm(&without), "the same disparities from the same images");
+}
