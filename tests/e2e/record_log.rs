@@ -164,7 +164,11 @@ fn a_copy_without_ground_truth_replays_like_a_real_camera_s_log_with_the_same_di
     let (full, stripped) = (Log::read(&log), Log::read(&camera));
     assert!(full.messages.iter().any(|m| m.topic.contains("/ground_truth/")));
     assert!(!stripped.messages.iter().any(|m| m.topic.contains("/ground_truth/")));
-    let truth_messages = full.messages.iter().filter(|m| m.topic.contains("/ground_truth/")).count();
+    let truth_messages = full
+        .messages
+        .iter()
+        .filter(|m| m.topic.contains("/ground_truth/"))
+        .count();
     assert_eq!(stripped.messages.len() + truth_messages, full.messages.len());
     let events = stripped.events();
     assert_eq!(events.len(), full.events().len());
@@ -174,7 +178,10 @@ fn a_copy_without_ground_truth_replays_like_a_real_camera_s_log_with_the_same_di
             .all(|e| e.depth_topic.is_none() && e.surface_topic.is_none() && e.true_world_from_camera.is_none())
     );
     let pfm = |summary: &serde_json::Value| {
-        let files = summary["sets"][0]["outputs"]["files"].as_array().cloned().unwrap_or_default();
+        let files = summary["sets"][0]["outputs"]["files"]
+            .as_array()
+            .cloned()
+            .unwrap_or_default();
         let path = files
             .iter()
             .filter_map(serde_json::Value::as_str)
@@ -188,5 +195,8 @@ fn a_copy_without_ground_truth_replays_like_a_real_camera_s_log_with_the_same_di
     let without = multiscopic_tests::replay_summary(&camera, &dir.path().join("b"), args);
     assert!(with_truth["sets"][0]["outputs"]["metrics"].is_object(), "{with_truth}");
     assert!(without["sets"][0]["outputs"]["metrics"].is_null(), "{without}");
-    assert!(pfm(&with_truth) == pfm(&without), "the same disparities from the same images");
+    assert!(
+        pfm(&with_truth) == pfm(&without),
+        "the same disparities from the same images"
+    );
 }
