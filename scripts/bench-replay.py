@@ -108,13 +108,20 @@ def run_replay(log, method, out):
     return summary["sets"][0]["seconds"], wall, peak_kb / 1024
 
 
+def load_script(name):
+    """The module of `scripts/NAME` (a file name with hyphens, not importable by name)."""
+    import importlib.util
+    spec = importlib.util.spec_from_file_location(name.removesuffix(".py").replace("-", "_"),
+                                                  os.path.join(ROOT, "scripts", name))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 def run_watch(log, method, work):
     """`replay watch` on a folder into which `log` is copied WATCH times, PAUSE_S seconds apart
     (scripts/bench-watch.py): per copy (method seconds, latency from the rename to its summary.json)."""
-    import importlib.util
-    spec = importlib.util.spec_from_file_location("bench_watch", os.path.join(ROOT, "scripts/bench-watch.py"))
-    bench_watch = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench_watch)
+    bench_watch = load_script("bench-watch.py")
     bench_watch.REPLAY = REPLAY
     extra = ["--num-disparities", str(DISPARITIES)] + ([] if OUTPUTS == "all" else ["--outputs", OUTPUTS]) \
         + (["--config", CONFIGS[method]] if CONFIGS.get(method) else [])
@@ -134,12 +141,8 @@ def main():
                                  uniquenessRatio=5, speckleWindowSize=50, speckleRange=2, disp12MaxDiff=1,
                                  mode=cv2.STEREO_SGBM_MODE_HH)
     if not TRUTH:
-        import importlib.util
-        spec = importlib.util.spec_from_file_location("strip_truth", os.path.join(ROOT, "scripts/strip-truth.py"))
-        strip_truth = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(strip_truth)
         camera = os.path.join(work, "camera.mcap")
-        strip_truth.strip(log, camera)
+        load_script("strip-truth.py").strip(log, camera)
         log = camera
     four = pairs(views)
     opencv_bm = best_of(lambda: [bm.compute(l, r) for l, r in four])

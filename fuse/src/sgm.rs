@@ -201,19 +201,26 @@ pub(crate) fn select(
         height,
         nd: num_disparities,
     };
-    select_from(Costs::Stored(volume), geometry, &penalties, min_disparity, subpixel)
+    select_from(
+        Costs::Stored(volume),
+        geometry,
+        &penalties,
+        (min_disparity, subpixel),
+        &|_| {},
+    )
 }
 
-/// [`select`] over the costs `costs` of `geometry`, in bands of [`SELECT_BAND_ROWS`].
+/// [`select`] over the costs `costs` of `geometry`, in bands of [`SELECT_BAND_ROWS`];
+/// `on_band` gets the fraction of the rows done after each band.
 fn select_from(
     costs: Costs<'_>,
     geometry: Geometry,
     penalties: &Penalties,
-    min_disparity: i32,
-    subpixel: Option<SubpixelFit>,
+    pick: (i32, Option<SubpixelFit>),
+    on_band: &dyn Fn(f32),
 ) -> (Vec<f32>, Vec<f32>) {
     let bands = (SELECT_BAND_ROWS, Some(SELECT_WARMUP_ROWS));
-    select_in_bands(costs, geometry, penalties, (min_disparity, subpixel), bands)
+    select_in_bands(costs, geometry, penalties, pick, bands, on_band)
 }
 
 /// Rows per band of [`select_in_bands`]: at 1080p and 128 disparities a band's sums are 63 MB
@@ -245,6 +252,7 @@ fn select_in_bands(
     penalties: &Penalties,
     (min_disparity, subpixel): (i32, Option<SubpixelFit>),
     (band_rows, warmup_rows): (usize, Option<usize>),
+    on_band: &dyn Fn(f32),
 ) -> (Vec<f32>, Vec<f32>) {
     let Geometry { width, height, nd } = geometry;
     let mut out = vec![f32::INFINITY; 2 * width * height];
@@ -390,6 +398,7 @@ fn select_in_bands(
         };
         vertical_pass(sweep, Some(band_sums), Some(&mut selection), resume, &mut scratch);
         std::mem::swap(&mut below, &mut this);
+        on_band((height - band.start) as f32 / height as f32);
     }
     out.chunks_exact(2).map(|pair| (pair[0], pair[1])).unzip()
 }
@@ -413,11 +422,13 @@ fn make_rows(prepared: &PreparedProblem, shift: u32, rows: Range<usize>, out: &m
 
 /// [`select_volume`] of `prepared`'s fused volume quantised by `shift`, without that volume
 /// (as [`aggregate_prepared`]): the same disparities and confidences as [`select_volume`].
+/// `on_band` gets the fraction of the rows done after each band of 128 (for a progress bar).
 pub fn select_prepared(
     prepared: &PreparedProblem,
     shift: u32,
     (p1, p2): (u16, u16),
     subpixel: Option<SubpixelFit>,
+    on_band: &dyn Fn(f32),
 ) -> (Vec<f32>, Vec<f32>) {
     let penalties = Penalties::new(prepared.quantised_max_cost(shift), p1, p2);
     let geometry = Geometry {
@@ -429,8 +440,8 @@ pub fn select_prepared(
         Costs::Made { prepared, shift },
         geometry,
         &penalties,
-        prepared.min_disparity(),
-        subpixel,
+        (prepared.min_disparity(), subpixel),
+        on_band,
     )
 }
 
@@ -1278,12 +1289,12 @@ mod tests {
                         let penalties = Penalties::new(max_cost, 40, 400);
                         let costs = Costs::Stored(&volume);
                         check(
-                            select_in_bands(costs, geometry, &penalties, (3, fit), (band_rows, None)),
+                            select_in_bands(costs, geometry, &penalties, (3, fit), (band_rows, None), &|_| {}),
                             band_rows,
                         );
                         // Warmed up from the first row: the exact paths.
                         check(
-                            select_in_bands(costs, geometry, &penalties, (3, fit), (band_rows, Some(h))),
+                            select_in_bands(costs, geometry, &penalties, (3, fit), (band_rows, Some(h)), &|_| {}),
                             band_rows,
                         );
                     }
@@ -1318,8 +1329,8 @@ mod tests {
         let penalties = Penalties::new(250, 10, 120);
         let costs = Costs::Stored(&volume);
         let fit = Some(SubpixelFit::Parabola);
-        let (exact, _) = select_in_bands(costs, geometry, &penalties, (0, fit), (32, None));
-        let (warmed, _) = select_in_bands(costs, geometry, &penalties, (0, fit), (32, Some(32)));
+        let (exact, _) = select_in_bands(costs, geometry, &penalties, (0, fit), (32, None), &|_| {});
+        let (warmed, _) = select_in_bands(costs, geometry, &penalties, (0, fit), (32, Some(32)), &|_| {});
         let moved = exact
             .iter()
             .zip(&warmed)
@@ -1440,7 +1451,7 @@ mod tests {
                 assert!(made.data == expected.data, "sums differ");
             }
             let fit = Some(SubpixelFit::Equiangular);
-            let (disparity, confidence) = select_prepared(&prepared, shift, penalties, fit);
+            let (disparity, confidence) = select_prepared(&prepared, shift, penalties, fit, &|_| {});
             let (expected_disparity, expected_confidence) = select_volume(&stored, penalties, fit);
             assert!(disparity == expected_disparity && confidence == expected_confidence);
             // The scene: a plane at 5 px.

@@ -657,9 +657,8 @@ impl<W: Write + Seek> LogWriter<W> {
 
     /// Writes one complete set: arm motion, then per view the transforms, calibration, image,
     /// ground truth (surface classes, then depth), commanded pose and the capture event, all in
-    /// time order; then ends the
-    /// chunk and flushes it, so that every set written is whole on disk before the next starts
-    /// (the chunk size still bounds a huge set's chunks).
+    /// time order; then ends the chunk and flushes it, so that every set written is whole on disk
+    /// before the next starts (the chunk size still bounds a huge set's chunks).
     pub fn write_set(
         &mut self,
         set: &CapturedSet,

@@ -128,7 +128,7 @@ impl Method for Sgm {
         );
         let subpixel = self.config.subpixel.then_some(self.config.subpixel_fit);
         let (data, confidence) = if self.config.costs_in_passes {
-            select_prepared(&prepared, shift, (p1, p2), subpixel)
+            select_prepared(&prepared, shift, (p1, p2), subpixel, &|done| progress(0.95 * done))
         } else {
             let volume = prepared.fused_volume(shift, &|| {
                 progress(0.5 * (done.fetch_add(1, Ordering::Relaxed) + 1) as f32 / bands as f32);
@@ -232,10 +232,20 @@ mod tests {
                     ..SgmConfig::default()
                 },
             };
-            method.run(&problem, &|_| {}).unwrap_or_else(|e| panic!("{e}"))
+            let reported = std::sync::Mutex::new(Vec::new());
+            let disparity = method
+                .run(&problem, &|p| {
+                    reported.lock().unwrap_or_else(|e| e.into_inner()).push(p)
+                })
+                .unwrap_or_else(|e| panic!("{e}"));
+            (disparity, reported.into_inner().unwrap_or_else(|e| e.into_inner()))
         };
-        let (stored, made) = (run(false), run(true));
+        let ((stored, _), (made, progress)) = (run(false), run(true));
         assert!(stored.data == made.data && stored.confidence == made.confidence);
+        // Made band by band, the progress moves with the bands (two of 128 rows), then ends at 1.
+        assert!(progress.windows(2).all(|p| p[0] <= p[1]), "{progress:?}");
+        assert!(progress.iter().any(|p| *p > 0.0 && *p < 0.95), "{progress:?}");
+        assert_eq!(progress.last(), Some(&1.0), "{progress:?}");
         let inside = stored.data[70 * w + 150];
         assert!((inside - 4.0).abs() < 0.5, "{inside}");
     }
