@@ -394,6 +394,106 @@ fn biweights(points: &[(f64, f64)], a: f64, b: f64) -> Vec<f64> {
         .collect()
 }
 
+/// Block costs of the sample at `(x, y)` at every shift across the search line (rows of
+/// `costs`) and disparity along it (columns): the sum of absolute differences of the template's
+/// block and the image's block displaced by `-offset · d + across · shift`; `f32::MAX` where the
+/// displaced block leaves the image. The sample lies at least the shift search plus a block's
+/// radius inside the image.
+///
+/// For a unit offset along an axis (every direct neighbour) the image strip the search covers is
+/// first copied into `patch` in the search's own frame (rows across the line, columns along it),
+/// so that each block pixel's differences run over consecutive disparities in vector lanes; other
+/// offsets (diagonals, farther views of a line) take each block in turn.
+fn search_costs(
+    template: &Luma<'_>,
+    image: &Luma<'_>,
+    (x, y): (i32, i32),
+    offset: [i32; 2],
+    across: [i32; 2],
+    patch: &mut Vec<f32>,
+    costs: &mut [f32],
+) {
+    let r = IMAGE_BLOCK_RADIUS;
+    let (w, h) = (image.width, image.height);
+    let shifts = 2 * IMAGE_SHIFT_SEARCH_PX + 1;
+    let num_disparities = costs.len() / shifts as usize;
+    let inside = |qx: i32, qy: i32| qx >= r && qy >= r && qx < w - r && qy < h - r;
+    if offset[0].abs() + offset[1].abs() != 1 {
+        search_costs_blockwise(template, image, (x, y), offset, across, costs);
+        return;
+    }
+    let along = [-offset[0], -offset[1]];
+    // The strip: row `a` lies `a - (search + r)` across the line, column `k` lies `k - r` along
+    // it (disparity `d`'s block spans columns `d … d + 2r`).
+    let rows = (shifts + 2 * r) as usize;
+    let columns = num_disparities + 2 * r as usize;
+    patch.clear();
+    patch.resize(rows * columns, 0.0);
+    for (a, strip_row) in patch.chunks_exact_mut(columns).enumerate() {
+        let a = a as i32 - (IMAGE_SHIFT_SEARCH_PX + r);
+        for (k, value) in strip_row.iter_mut().enumerate() {
+            let k = k as i32 - r;
+            *value = image.pixel(x + across[0] * a + along[0] * k, y + across[1] * a + along[1] * k);
+        }
+    }
+    // The template's block in the same frame.
+    let side = (2 * r + 1) as usize;
+    let mut block = [0.0f32; 49];
+    for (a, block_row) in block.chunks_exact_mut(side).enumerate() {
+        let a = a as i32 - r;
+        for (b, value) in block_row.iter_mut().enumerate() {
+            let b = b as i32 - r;
+            *value = template.pixel(x + across[0] * a + along[0] * b, y + across[1] * a + along[1] * b);
+        }
+    }
+    for (row, sums) in costs.chunks_exact_mut(num_disparities).enumerate() {
+        sums.fill(0.0);
+        for (a, block_row) in block.chunks_exact(side).enumerate() {
+            let strip_row = &patch[(row + a) * columns..(row + a + 1) * columns];
+            for (b, t) in block_row.iter().enumerate() {
+                for (sum, v) in sums.iter_mut().zip(&strip_row[b..b + num_disparities]) {
+                    *sum += (t - v).abs();
+                }
+            }
+        }
+    }
+    // Disparities whose block leaves the image (the shift keeps it inside across the line).
+    for d in 0..num_disparities {
+        let (qx, qy) = (x + along[0] * d as i32, y + along[1] * d as i32);
+        if !inside(qx, qy) {
+            for row in 0..shifts as usize {
+                costs[row * num_disparities + d] = f32::MAX;
+            }
+        }
+    }
+}
+
+/// [`search_costs`] one block at a time, for any offset.
+fn search_costs_blockwise(
+    template: &Luma<'_>,
+    image: &Luma<'_>,
+    (x, y): (i32, i32),
+    offset: [i32; 2],
+    across: [i32; 2],
+    costs: &mut [f32],
+) {
+    let r = IMAGE_BLOCK_RADIUS;
+    let (w, h) = (image.width, image.height);
+    let num_disparities = costs.len() / (2 * IMAGE_SHIFT_SEARCH_PX + 1) as usize;
+    costs.fill(f32::MAX);
+    for (row, shift) in (-IMAGE_SHIFT_SEARCH_PX..=IMAGE_SHIFT_SEARCH_PX).enumerate() {
+        for d in 0..num_disparities as i32 {
+            let (qx, qy) = (
+                x - offset[0] * d + across[0] * shift,
+                y - offset[1] * d + across[1] * shift,
+            );
+            if qx >= r && qy >= r && qx < w - r && qy < h - r {
+                costs[row * num_disparities + d as usize] = template.block_sad(image, (x, y), (qx, qy));
+            }
+        }
+    }
+}
+
 /// The worst perpendicular shift (px) between a neighbour and the reference over the disparities
 /// of `depth_range`, measured in the images with the disparity along the search line free.
 ///
@@ -426,6 +526,7 @@ fn image_shift(
     // image.
     let shifts = (2 * IMAGE_SHIFT_SEARCH_PX + 1) as usize;
     let mut costs = vec![f32::MAX; shifts * num_disparities];
+    let mut patch = Vec::new();
     for sy in 0..IMAGE_SAMPLES_PER_AXIS {
         for sx in 0..IMAGE_SAMPLES_PER_AXIS {
             let x = margin + ((w - 2 * margin) as usize * sx / IMAGE_SAMPLES_PER_AXIS) as i32;
@@ -435,20 +536,7 @@ fn image_shift(
             if gradient < 8.0 {
                 continue;
             }
-            costs.fill(f32::MAX);
-            for (row, shift) in (-IMAGE_SHIFT_SEARCH_PX..=IMAGE_SHIFT_SEARCH_PX).enumerate() {
-                for d in 0..num_disparities as i32 {
-                    let (qx, qy) = (x - ox * d + px * shift, y - oy * d + py * shift);
-                    if qx < IMAGE_BLOCK_RADIUS
-                        || qy < IMAGE_BLOCK_RADIUS
-                        || qx >= w - IMAGE_BLOCK_RADIUS
-                        || qy >= h - IMAGE_BLOCK_RADIUS
-                    {
-                        continue;
-                    }
-                    costs[row * num_disparities + d as usize] = template.block_sad(&image, (x, y), (qx, qy));
-                }
-            }
+            search_costs(&template, &image, (x, y), [ox, oy], [px, py], &mut patch, &mut costs);
             let best_per_shift: Vec<f32> = costs
                 .chunks_exact(num_disparities)
                 .map(|row| row.iter().copied().fold(f32::MAX, f32::min))
@@ -693,6 +781,52 @@ mod tests {
             refine_match(&image, &image, (30, 20), ([-1, 0], [0, 1]), (0.0, 0.0)),
             None
         );
+    }
+
+    #[test]
+    fn strip_search_matches_the_block_by_block_search() {
+        let (w, h): (usize, usize) = (96, 80);
+        let image = |phase: f64| -> Vec<f32> {
+            (0..w * h)
+                .map(|i| {
+                    let (x, y) = ((i % w) as f64, (i / w) as f64);
+                    texture(x + phase, y - 0.5 * phase) + (((i * 7919) % 13) as f32)
+                })
+                .collect()
+        };
+        let (reference, other) = (image(0.0), image(2.3));
+        let template = Luma::new(&reference, w as i32, h as i32);
+        let neighbour = Luma::new(&other, w as i32, h as i32);
+        let shifts = (2 * IMAGE_SHIFT_SEARCH_PX + 1) as usize;
+        let mut patch = Vec::new();
+        let mut off_image = 0;
+        for (offset, across) in [
+            ([1, 0], [0, 1]),
+            ([-1, 0], [0, -1]),
+            ([0, 1], [-1, 0]),
+            ([0, -1], [1, 0]),
+        ] {
+            for (x, y, num_disparities) in [(20, 30, 24), (50, 12, 40), (12, 60, 70), (70, 70, 9)] {
+                let mut fast = vec![0.0f32; shifts * num_disparities];
+                let mut plain = fast.clone();
+                search_costs(&template, &neighbour, (x, y), offset, across, &mut patch, &mut fast);
+                search_costs_blockwise(&template, &neighbour, (x, y), offset, across, &mut plain);
+                off_image += plain.iter().filter(|c| **c == f32::MAX).count();
+                for (i, (a, b)) in fast.iter().zip(&plain).enumerate() {
+                    let close = if *b == f32::MAX {
+                        *a == f32::MAX
+                    } else {
+                        (a - b).abs() <= 1e-3 * b.max(1.0)
+                    };
+                    assert!(
+                        close,
+                        "offset {offset:?} at ({x}, {y}), cell {i}: strip {a} against blockwise {b}"
+                    );
+                }
+            }
+        }
+        // Some searches ran off the image, so the edge handling was compared too.
+        assert!(off_image > 0);
     }
 
     #[test]

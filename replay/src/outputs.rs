@@ -151,6 +151,10 @@ pub fn write_set_outputs_evaluating(
     // ones): the files of a 1080p set in about the time of the slowest.
     type Writer<'w> = Box<dyn FnOnce() -> Result<Vec<PathBuf>, viz::files::FileError> + Send + 'w>;
     let set_dir = &set_dir;
+    // The depth map, made by whichever of its two files' tasks comes first.
+    let depth = std::sync::OnceLock::new();
+    let depth = &depth;
+    let depth_of = move || -> &Vec<f32> { depth.get_or_init(|| depth_map(set, disparity, f32::INFINITY)) };
     let mut writers: Vec<Writer<'_>> = Vec::new();
     if wanted.disparity {
         writers.push(Box::new(move || {
@@ -160,13 +164,16 @@ pub fn write_set_outputs_evaluating(
         }));
     }
     if wanted.depth {
+        // The PNG's compression and the PFM's write side by side.
         writers.push(Box::new(move || {
-            let depth = depth_map(set, disparity, f32::INFINITY);
             let pfm = set_dir.join(format!("{method}_depth_m.pfm"));
-            viz::files::write_pfm(&pfm, w, h, &depth)?;
+            viz::files::write_pfm(&pfm, w, h, depth_of())?;
+            Ok(vec![pfm])
+        }));
+        writers.push(Box::new(move || {
             let png = set_dir.join(format!("{method}_depth_mm.png"));
-            viz::files::write_depth_png_mm(&png, w, h, &depth)?;
-            Ok(vec![pfm, png])
+            viz::files::write_depth_png_mm(&png, w, h, depth_of())?;
+            Ok(vec![png])
         }));
     }
     if let Some(confidence) = disparity.confidence.as_ref().filter(|_| wanted.confidence) {
