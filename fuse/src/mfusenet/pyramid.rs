@@ -25,6 +25,29 @@ pub const NETWORK_DISPARITIES: usize = 32;
 /// The default widest range the network is run on at full size; wider ranges go coarse to fine.
 pub const DEFAULT_MAX_DIRECT_DISPARITIES: usize = 48;
 
+/// The default budget of the network at full size beyond [`DEFAULT_MAX_DIRECT_DISPARITIES`]:
+/// a range up to twice that still runs at full size when the reference's pixels times the
+/// range's disparities stay within it (24 M: 640×360 or 430×370 at 64 disparities, 640×360 at
+/// 96; not 960×540 at 64). Small images are where a reduced level loses most (parts 1–6 px wide
+/// become sub-pixel), and there the full-size network costs about what the demo's capture costs.
+pub const DEFAULT_MAX_DIRECT_VOXELS: usize = 24_000_000;
+
+/// [`pyramid_factor`] for a `width × height` reference: full size also for a range up to twice
+/// `max_direct` whose `width · height · num_disparities` is at most `max_direct_voxels`.
+pub fn pyramid_factor_for(
+    (width, height): (usize, usize),
+    num_disparities: usize,
+    max_direct: usize,
+    max_direct_voxels: usize,
+) -> usize {
+    let voxels = width.saturating_mul(height).saturating_mul(num_disparities);
+    if num_disparities <= 2 * max_direct && voxels <= max_direct_voxels {
+        1
+    } else {
+        pyramid_factor(num_disparities, max_direct)
+    }
+}
+
 /// The reduction for a range of `num_disparities`: 1 (full size) up to `max_direct`, else the
 /// smallest integer that brings the range to at most [`NETWORK_DISPARITIES`] (64 → 2, 96 → 3,
 /// 128 → 4).
@@ -186,6 +209,23 @@ mod tests {
         assert_eq!(pyramid_factor(256, 48), 8);
         // No direct run at all: every range goes through a level of at least half size.
         assert_eq!(pyramid_factor(16, 0), 2);
+    }
+
+    #[test]
+    fn a_small_image_runs_a_wider_range_at_full_size_within_the_budget() {
+        let budget = DEFAULT_MAX_DIRECT_VOXELS;
+        // Within the range alone: full size whatever the size.
+        assert_eq!(pyramid_factor_for((1920, 1080), 48, 48, budget), 1);
+        // Up to twice the range when the volume fits the budget.
+        assert_eq!(pyramid_factor_for((640, 360), 64, 48, budget), 1);
+        assert_eq!(pyramid_factor_for((640, 360), 96, 48, budget), 1);
+        assert_eq!(pyramid_factor_for((960, 540), 64, 48, budget), 2);
+        assert_eq!(pyramid_factor_for((1920, 1080), 128, 48, budget), 4);
+        // Never past twice the range, however small the image.
+        assert_eq!(pyramid_factor_for((64, 48), 128, 48, budget), 4);
+        // A budget of 0 or no direct range keeps the range rule.
+        assert_eq!(pyramid_factor_for((640, 360), 64, 48, 0), 2);
+        assert_eq!(pyramid_factor_for((64, 48), 16, 0, budget), 2);
     }
 
     #[test]
