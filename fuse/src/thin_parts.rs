@@ -96,9 +96,7 @@ pub struct ThinParts {
     /// The shortest part (px) a move may belong to: moves whose connected patch (8-neighbours
     /// moved to within a pixel of each other) spans fewer pixels than this both across and down
     /// the image are undone. A lost rod, wire or slat is a long line; a chance match of the
-    /// per-pixel costs is a small blob. 0 = no limit. 10 since the network runs at full size
-    /// on the held-out `thin` crosses (20 before: 0.392 → 0.357 px there, the `thin` rows of five
-    /// 0.456 → 0.421, every other set measured within +2.2 %).
+    /// per-pixel costs is a small blob. 0 = no limit.
     pub min_length_px: usize,
     /// The widest a patch of moves may be on average (px: its pixels over the diagonal of its
     /// bounding box): a lost part is thin, chance matches over a textured surface spread (a
@@ -143,7 +141,7 @@ impl Default for ThinParts {
             farther_seen_px: 32,
             farther_max_extension: 0.15,
             farther_shape_test: true,
-            min_length_px: 10,
+            min_length_px: 20,
             max_width_px: 8.0,
         }
     }
