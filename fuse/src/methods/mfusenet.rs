@@ -167,17 +167,19 @@ pub struct MFuseNetConfig {
     /// logits are averaged, at twice the network's time (`mfusenet::input::flip_axes`,
     /// `mfusenet::infer::Estimate`).
     pub flips: bool,
-    /// The widest range (disparities) the network is run on at full size. A wider one goes
-    /// coarse to fine (`mfusenet::pyramid`): the network on the set reduced by the smallest
-    /// integer factor that brings the range to 32 disparities, the depth it was trained on
-    /// (64 → 1/2, 96 → 1/3, 128 → 1/4), then the minimum of the summed input costs at full size
-    /// within ± factor px of its answer. `replay` logs the level and range the network saw.
+    /// The widest range (disparities) the network is run on at full size (96), when the
+    /// reference's pixels times the range's disparities are at most `max_direct_voxels` (32 M).
+    /// Otherwise coarse to fine (`mfusenet::pyramid`): the network on the set reduced by the
+    /// smallest integer factor (at least 2) that brings the range to 32 disparities, the depth it
+    /// was trained on (64 → 1/2, 96 → 1/3, 128 → 1/4), then the minimum of the summed input costs
+    /// at full size within ± factor px of its answer. `replay` logs the level and range the
+    /// network saw. `{"max_direct_disparities": 0}` always goes coarse to fine.
     pub max_direct_disparities: usize,
-    /// The budget (the reference's pixels × the range's disparities) within which a range up to
-    /// twice `max_direct_disparities` still runs at full size: small images at wider ranges,
-    /// where a reduced level loses thin parts (the held-out `thin` crosses at 640×360 over 64
-    /// disparities −6 % AvgErr, Middlebury's dev scenes over 64 disparities 0.288 → 0.268 px).
-    /// 0 keeps the range rule alone.
+    /// The network's budget at full size: the reference's pixels × the range's disparities
+    /// (32 M: 640×360 at 96, 960×540 at 61; a 1080p set goes coarse to fine, at a third of the
+    /// time and half the memory for +1 to +4 % AvgErr). Small images at wide ranges are where a
+    /// reduced level loses most (the held-out `thin` crosses at 640×360 over 64 disparities
+    /// 0.419 → 0.392 px at full size, Middlebury's dev scenes over 64 disparities 0.288 → 0.268).
     #[serde(default = "max_direct_voxels")]
     pub max_direct_voxels: usize,
     /// The fewest disparities the network is run on: a narrower search range is widened
@@ -1311,7 +1313,7 @@ mod tests {
     #[test]
     fn a_wide_range_goes_coarse_to_fine_and_finds_a_plane_far_up_it() {
         // 0..96 → the network at 1/3 size over 0..33, then ± 3 px at full size (an image this
-        // small would run at full size within the default voxel budget: no budget here).
+        // small runs at full size within the default voxel budget: no budget here).
         let offsets = [[-1, 0], [1, 0]];
         let problem = plane_sized(&offsets, 61, (0, 96), (240, 120));
         let no_budget = serde_json::json!({"max_direct_voxels": 0});
@@ -1340,7 +1342,7 @@ mod tests {
         );
         // Within the direct limit, the network runs at full size and says so.
         let narrow = plane(&offsets, 10, 0);
-        assert_eq!(method.details(&narrow)["scale"], "1/1");
+        assert_eq!(default.details(&narrow)["scale"], "1/1");
         // An L over the same range: the filled cross at 1/3 size, then the band at full size
         // over both of its views' costs (60 px from the borders each view shifts).
         let l = plane_sized(&[[-1, 0], [0, -1]], 30, (0, 96), (180, 150));

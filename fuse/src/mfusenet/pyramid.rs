@@ -22,18 +22,24 @@ use crate::wta::{LockingCurve, SubpixelFit};
 /// trained on.
 pub const NETWORK_DISPARITIES: usize = 32;
 
-/// The default widest range the network is run on at full size; wider ranges go coarse to fine.
-pub const DEFAULT_MAX_DIRECT_DISPARITIES: usize = 48;
+/// The default widest range the network is run on at full size (within
+/// [`DEFAULT_MAX_DIRECT_VOXELS`]); wider ranges go coarse to fine. The networks were trained on
+/// 32–48 disparities; over 64 and 96 at full size they score as over 32 (Middlebury's dev scenes
+/// 0.268, 0.269, 0.270 px).
+pub const DEFAULT_MAX_DIRECT_DISPARITIES: usize = 96;
 
-/// The default budget of the network at full size beyond [`DEFAULT_MAX_DIRECT_DISPARITIES`]:
-/// a range up to twice that still runs at full size when the reference's pixels times the
-/// range's disparities stay within it (24 M: 640×360 or 430×370 at 64 disparities, 640×360 at
-/// 96; not 960×540 at 64). Small images are where a reduced level loses most (parts 1–6 px wide
-/// become sub-pixel), and there the full-size network costs about what the demo's capture costs.
-pub const DEFAULT_MAX_DIRECT_VOXELS: usize = 24_000_000;
+/// The default budget of the network at full size: the reference's pixels times the range's
+/// disparities (32 M: 640×360 at 96 disparities, 960×540 at 61, 1280×720 at 34; not 1920×1080
+/// at 16). Past it a reduced level costs little accuracy (a large image's parts are wide in
+/// pixels: two 1080p captures over 32 disparities +1 % and +4 % AvgErr) for a third of the time
+/// and half the memory (24 s and 1.58 GB at full size, over the 1.5 GB a 1080p set may take);
+/// below it a reduced level loses parts a few pixels wide (the held-out `thin` crosses at
+/// 640×360 over 64 disparities 0.392 px at full size, 0.419 at half size).
+pub const DEFAULT_MAX_DIRECT_VOXELS: usize = 32_000_000;
 
-/// [`pyramid_factor`] for a `width × height` reference: full size also for a range up to twice
-/// `max_direct` whose `width · height · num_disparities` is at most `max_direct_voxels`.
+/// The reduction for a `width × height` reference and a range of `num_disparities`: 1 (full size)
+/// when the range is at most `max_direct` and `width · height · num_disparities` at most
+/// `max_direct_voxels`, else [`pyramid_factor`]'s (at least 2).
 pub fn pyramid_factor_for(
     (width, height): (usize, usize),
     num_disparities: usize,
@@ -41,10 +47,10 @@ pub fn pyramid_factor_for(
     max_direct_voxels: usize,
 ) -> usize {
     let voxels = width.saturating_mul(height).saturating_mul(num_disparities);
-    if num_disparities <= 2 * max_direct && voxels <= max_direct_voxels {
+    if num_disparities <= max_direct && voxels <= max_direct_voxels {
         1
     } else {
-        pyramid_factor(num_disparities, max_direct)
+        num_disparities.div_ceil(NETWORK_DISPARITIES).max(2)
     }
 }
 
@@ -212,20 +218,22 @@ mod tests {
     }
 
     #[test]
-    fn a_small_image_runs_a_wider_range_at_full_size_within_the_budget() {
-        let budget = DEFAULT_MAX_DIRECT_VOXELS;
-        // Within the range alone: full size whatever the size.
-        assert_eq!(pyramid_factor_for((1920, 1080), 48, 48, budget), 1);
-        // Up to twice the range when the volume fits the budget.
-        assert_eq!(pyramid_factor_for((640, 360), 64, 48, budget), 1);
-        assert_eq!(pyramid_factor_for((640, 360), 96, 48, budget), 1);
-        assert_eq!(pyramid_factor_for((960, 540), 64, 48, budget), 2);
-        assert_eq!(pyramid_factor_for((1920, 1080), 128, 48, budget), 4);
-        // Never past twice the range, however small the image.
-        assert_eq!(pyramid_factor_for((64, 48), 128, 48, budget), 4);
-        // A budget of 0 or no direct range keeps the range rule.
-        assert_eq!(pyramid_factor_for((640, 360), 64, 48, 0), 2);
+    fn the_network_runs_at_full_size_within_the_range_and_the_volume_budget() {
+        let (range, budget) = (DEFAULT_MAX_DIRECT_DISPARITIES, DEFAULT_MAX_DIRECT_VOXELS);
+        assert_eq!(pyramid_factor_for((640, 360), 16, range, budget), 1);
+        assert_eq!(pyramid_factor_for((960, 540), 48, range, budget), 1);
+        assert_eq!(pyramid_factor_for((640, 360), 64, range, budget), 1);
+        assert_eq!(pyramid_factor_for((640, 360), 96, range, budget), 1);
+        // Past the budget: a reduced level, at least half size.
+        assert_eq!(pyramid_factor_for((1920, 1080), 16, range, budget), 2);
+        assert_eq!(pyramid_factor_for((1920, 1080), 32, range, budget), 2);
+        assert_eq!(pyramid_factor_for((960, 540), 64, range, budget), 2);
+        assert_eq!(pyramid_factor_for((1920, 1080), 128, range, budget), 4);
+        // Past the range, however small the image.
+        assert_eq!(pyramid_factor_for((64, 48), 128, range, budget), 4);
+        // No direct range, or no budget: never full size.
         assert_eq!(pyramid_factor_for((64, 48), 16, 0, budget), 2);
+        assert_eq!(pyramid_factor_for((64, 48), 16, range, 0), 2);
     }
 
     #[test]
