@@ -929,7 +929,8 @@ fn training_can_give_its_network_context_below_the_range() {
 
 #[test]
 fn a_wide_range_goes_coarse_to_fine_and_the_summary_says_what_the_network_saw() {
-    // A 60 mm baseline at 320×240 puts the toy scene at about 27–40 px; searched over 0..64, the
+    // A 60 mm baseline at 320×240 puts the toy scene at about 27–40 px, searched over 0..64. So
+    // small a volume (4.9 M voxels) runs at full size by default; without the volume budget the
     // network (the lite five-view one) runs at half size over 0..33 with the 8 slices of context
     // below its file asks for (−8..33) and the full-size band is ± 2 px.
     let (dir, log) = recorded(
@@ -947,6 +948,28 @@ fn a_wide_range_goes_coarse_to_fine_and_the_summary_says_what_the_network_saw() 
         out.to_str().unwrap_or_default(),
     ]);
     assert_success(&output, "replay --method mfusenet,sgm-heuristic --num-disparities 64");
+    let summary = read_summary(&out);
+    let sets = summary["sets"].as_array().cloned().unwrap_or_default();
+    assert_eq!(sets.len(), 2, "{summary}");
+    assert_eq!(sets[0]["details"]["scale"], "1/1", "{summary}");
+    // SGM has nothing to add.
+    assert!(sets[1].get("details").is_none(), "{summary}");
+    let coarse_out = dir.path().join("results-coarse");
+    let output = replay(&[
+        log.to_str().unwrap_or_default(),
+        "--method",
+        "mfusenet",
+        "--num-disparities",
+        "64",
+        "--config",
+        r#"{"max_direct_voxels": 0}"#,
+        "--out",
+        coarse_out.to_str().unwrap_or_default(),
+    ]);
+    assert_success(
+        &output,
+        "replay --method mfusenet --num-disparities 64 (no volume budget)",
+    );
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(
         stderr.contains("architecture lite")
@@ -954,33 +977,34 @@ fn a_wide_range_goes_coarse_to_fine_and_the_summary_says_what_the_network_saw() 
             && stderr.contains("network_min_disparity -8, network_num_disparities 41"),
         "the log names the level and range the network saw: {stderr}"
     );
-    let summary = read_summary(&out);
-    let sets = summary["sets"].as_array().cloned().unwrap_or_default();
-    assert_eq!(sets.len(), 2, "{summary}");
-    let details = &sets[0]["details"];
-    assert_eq!(details["scale"], "1/2", "{summary}");
-    assert_eq!(details["network_width"], 160, "{summary}");
-    assert_eq!(details["full_size_band_px"], 2, "{summary}");
+    let coarse = read_summary(&coarse_out);
+    let coarse_sets = coarse["sets"].as_array().cloned().unwrap_or_default();
+    assert_eq!(coarse_sets.len(), 1, "{coarse}");
+    let details = &coarse_sets[0]["details"];
+    assert_eq!(details["scale"], "1/2", "{coarse}");
+    assert_eq!(details["network_width"], 160, "{coarse}");
+    assert_eq!(details["full_size_band_px"], 2, "{coarse}");
     // A fixed network names the neighbours it took, in its input order.
     assert_eq!(
         details["views"],
         serde_json::json!(["left", "right", "top", "bottom"]),
-        "{summary}"
+        "{coarse}"
     );
-    // SGM has nothing to add.
-    assert!(sets[1].get("details").is_none(), "{summary}");
     let avg = |set: &serde_json::Value| {
         set["outputs"]["metrics"]["all"]["avg_err_px"]
             .as_f64()
             .unwrap_or(f64::NAN)
     };
     println!(
-        "0..64: mfusenet AvgErr {:.3} px, sgm-heuristic {:.3} px",
+        "0..64: mfusenet AvgErr {:.3} px at full size, {:.3} px coarse to fine, sgm-heuristic {:.3} px",
         avg(&sets[0]),
+        avg(&coarse_sets[0]),
         avg(&sets[1])
     );
-    assert!(avg(&sets[0]) < 1.0, "{summary}");
-    assert!(avg(&sets[0]) <= avg(&sets[1]) + 0.05, "{summary}");
+    for mfusenet in [&sets[0], &coarse_sets[0]] {
+        assert!(avg(mfusenet) < 1.0, "{summary}\n{coarse}");
+        assert!(avg(mfusenet) <= avg(&sets[1]) + 0.05, "{summary}\n{coarse}");
+    }
 }
 
 /// A Python with `torch` and `safetensors`: `$TORCH_PYTHON`, else the checkout's `.venv-torch`
