@@ -102,6 +102,15 @@ pub struct ThinParts {
     /// bounding box): a lost part is thin, chance matches over a textured surface spread (a
     /// periodic texture's alias). 0 = no limit.
     pub max_width_px: f32,
+    /// A patch shorter than `min_length_px` but spanning at least this many pixels across or down
+    /// stays when it is slender: its mean width (pixels over its bounding box's diagonal) at
+    /// most its diagonal over `slender_ratio` (a 12 px patch 2 px wide, an 18 px one 3 px wide).
+    /// The short pieces of a rod or a wire that the network read only in part are slender;
+    /// a mirror's chance matches of that length are blobs. 0 = none.
+    pub min_slender_length_px: usize,
+    /// How many times its mean width a short patch must be long to stay (see
+    /// `min_slender_length_px`).
+    pub slender_ratio: f32,
 }
 
 /// Adaptive cross-shaped support (Zhang, Lu and Lafruit 2009, as in AD-Census): each pixel's
@@ -143,6 +152,8 @@ impl Default for ThinParts {
             farther_shape_test: true,
             min_length_px: 20,
             max_width_px: 8.0,
+            min_slender_length_px: 10,
+            slender_ratio: 6.0,
         }
     }
 }
@@ -245,10 +256,9 @@ pub fn recover_thin_parts(
                 }
             })
             .collect();
-        for (keep, unlike) in
-            supported
-                .iter_mut()
-                .zip(unlike_parts(&moved_to, w, h, config.min_length_px, config.max_width_px))
+        for (keep, unlike) in supported
+            .iter_mut()
+            .zip(unlike_parts(&moved_to, (w, h), &PartShape::of(config)))
         {
             *keep &= !unlike;
         }
@@ -718,7 +728,33 @@ fn window_reduce<T: Copy + Send + Sync>(
 /// than `min_length` pixels both across and down, or holds more than `max_width` (0 = any)
 /// times its bounding box's diagonal in pixels. A patch is connected through 8-neighbours
 /// within a pixel of each other.
-fn unlike_parts(disparity: &[f32], w: usize, h: usize, min_length: usize, max_width: f32) -> Vec<bool> {
+/// The shape test's limits ([`ThinParts::min_length_px`] and the rest).
+#[derive(Debug, Clone, Copy)]
+struct PartShape {
+    min_length: usize,
+    max_width: f32,
+    min_slender_length: usize,
+    slender_ratio: f32,
+}
+
+impl PartShape {
+    fn of(config: &ThinParts) -> Self {
+        Self {
+            min_length: config.min_length_px,
+            max_width: config.max_width_px,
+            min_slender_length: config.min_slender_length_px,
+            slender_ratio: config.slender_ratio,
+        }
+    }
+}
+
+fn unlike_parts(disparity: &[f32], (w, h): (usize, usize), shape: &PartShape) -> Vec<bool> {
+    let PartShape {
+        min_length,
+        max_width,
+        min_slender_length,
+        slender_ratio,
+    } = *shape;
     let mut unlike = vec![false; w * h];
     let mut seen = vec![false; w * h];
     let mut patch = Vec::new();
@@ -749,7 +785,11 @@ fn unlike_parts(disparity: &[f32], w: usize, h: usize, min_length: usize, max_wi
         let (across, down) = (x_range.1 - x_range.0 + 1, y_range.1 - y_range.0 + 1);
         let diagonal = ((across * across + down * down) as f32).sqrt();
         let wide = max_width > 0.0 && patch.len() as f32 > max_width * diagonal;
-        if (across < min_length && down < min_length) || wide {
+        let length = across.max(down);
+        let slender = min_slender_length > 0
+            && length >= min_slender_length
+            && patch.len() as f32 * slender_ratio <= diagonal * diagonal;
+        if (length < min_length && !slender) || wide {
             for &i in &patch {
                 unlike[i] = true;
             }
@@ -1222,10 +1262,18 @@ mod tests {
         // px thick: it comes back within the default limits, not under tighter ones.
         let (w, h) = (80, 44);
         let (problem, _) = rod_before_a_plane(w, h, false);
-        for (min_length_px, max_width_px, back) in [(20, 8.0, true), (100, 0.0, false), (0, 1.0, false)] {
+        // Shorter than a limit of 100 px, it stays lost unless slender ones may stay (2 px
+        // thick, 80 long).
+        for (min_length_px, max_width_px, min_slender_length_px, back) in [
+            (20, 8.0, 10, true),
+            (100, 0.0, 0, false),
+            (100, 0.0, 10, true),
+            (0, 1.0, 10, false),
+        ] {
             let config = ThinParts {
                 min_length_px,
                 max_width_px,
+                min_slender_length_px,
                 ..ThinParts::default()
             };
             let mut disparity = far_everywhere(w, h);
@@ -1273,21 +1321,44 @@ mod tests {
         for y in 20..36 {
             paint(86, y, if y < 28 { 4.0 } else { 7.0 });
         }
-        let unlike = unlike_parts(&moved, w, h, 20, 8.0);
+        // Short but slender, kept with the slender limits: a row 14 px long and 1 px thick.
+        // Short and not slender enough: a 14 × 4 block (its mean width 3.8 px > 14.6 / 6).
+        for x in 60..74 {
+            paint(x, 30, 3.0);
+        }
+        for x in 10..24 {
+            for y in 62..66 {
+                paint(x, y, 3.0);
+            }
+        }
+        let shape = |min_length, max_width, min_slender_length| PartShape {
+            min_length,
+            max_width,
+            min_slender_length,
+            slender_ratio: 6.0,
+        };
+        let unlike = unlike_parts(&moved, (w, h), &shape(20, 8.0, 0));
+        let slender = unlike_parts(&moved, (w, h), &shape(20, 8.0, 10));
+        for (i, (u, s)) in unlike.iter().zip(&slender).enumerate() {
+            let (x, y) = (i % w, i / w);
+            let expected = if y == 30 && (60..74).contains(&x) { false } else { *u };
+            assert_eq!(*s, expected, "({x}, {y}) with the slender limits");
+        }
         for y in 0..h {
             for x in 0..w {
                 let i = y * w + x;
                 if !moved[i].is_finite() {
                     assert!(!unlike[i], "({x}, {y}) is no move");
                 } else {
-                    // The line is the only patch left of x = 50, the row the only one above y = 4.
-                    let expected_kept = x < 50 || y < 4;
+                    // The line is the only patch left of x = 50 but the 14 × 4 block, the row the
+                    // only one above y = 4.
+                    let expected_kept = (x < 50 && y < 62) || y < 4;
                     assert_eq!(!unlike[i], expected_kept, "({x}, {y}) at {}", moved[i]);
                 }
             }
         }
         // Without limits every move stays.
-        assert!(unlike_parts(&moved, w, h, 0, 0.0).iter().all(|u| !u));
+        assert!(unlike_parts(&moved, (w, h), &shape(0, 0.0, 0)).iter().all(|u| !u));
     }
 
     #[test]
