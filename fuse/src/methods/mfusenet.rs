@@ -583,7 +583,7 @@ impl MFuseNet {
             });
         // The views the thin-part recovery reads (`thin_parts_every_view`), where they are more
         // than the network's nearest group.
-        let thin_parts_views = (self.config.thin_parts.is_some() && self.config.thin_parts_every_view)
+        let thin_parts_views = (self.config.thin_parts.is_some() && self.config.thin_parts_every_view && !self.stereo)
             .then(|| post.as_ref().map_or(0, |(used, _)| used.len()))
             .filter(|used| *used < problem.neighbours.len())
             .map(|_| problem.neighbours.iter().map(|n| n.role.as_str()).collect::<Vec<_>>());
@@ -1125,7 +1125,9 @@ impl MFuseNet {
                 refine_with_block_costs(costs_of, &mut out, config)?;
             }
             if let Some(config) = &self.config.thin_parts {
-                let views = if self.config.thin_parts_every_view {
+                // The stereo method's one view only: a stereo baseline that read the set's other
+                // views would change with views it does not take.
+                let views = if self.config.thin_parts_every_view && !self.stereo {
                     problem
                 } else {
                     costs_of
