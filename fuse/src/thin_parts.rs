@@ -724,10 +724,6 @@ fn window_reduce<T: Copy + Send + Sync>(
     out
 }
 
-/// The pixels of `disparity` (NaN = none) whose patch is unlike a thin part: it spans fewer
-/// than `min_length` pixels both across and down, or holds more than `max_width` (0 = any)
-/// times its bounding box's diagonal in pixels. A patch is connected through 8-neighbours
-/// within a pixel of each other.
 /// The shape test's limits ([`ThinParts::min_length_px`] and the rest).
 #[derive(Debug, Clone, Copy)]
 struct PartShape {
@@ -748,6 +744,11 @@ impl PartShape {
     }
 }
 
+/// The pixels of `disparity` (NaN = none) whose patch is unlike a thin part: it spans fewer
+/// than `min_length` pixels both across and down and is not a slender piece (at least
+/// `min_slender_length` long, its pixels at most its bounding box's squared diagonal over
+/// `slender_ratio`), or holds more than `max_width` (0 = any) times its bounding box's diagonal
+/// in pixels. A patch is connected through 8-neighbours within a pixel of each other.
 fn unlike_parts(disparity: &[f32], (w, h): (usize, usize), shape: &PartShape) -> Vec<bool> {
     let PartShape {
         min_length,

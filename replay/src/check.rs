@@ -276,6 +276,12 @@ impl<'a> Luma<'a> {
         sad
     }
 
+    /// Whether the block around `(x, y)` lies within the image.
+    fn holds_block(&self, x: i32, y: i32) -> bool {
+        let r = IMAGE_BLOCK_RADIUS;
+        x >= r && y >= r && x < self.width - r && y < self.height - r
+    }
+
     fn pixel(&self, x: i32, y: i32) -> f32 {
         self.data[(y.clamp(0, self.height - 1) * self.width + x.clamp(0, self.width - 1)) as usize]
     }
@@ -414,10 +420,8 @@ fn search_costs(
     costs: &mut [f32],
 ) {
     let r = IMAGE_BLOCK_RADIUS;
-    let (w, h) = (image.width, image.height);
     let shifts = 2 * IMAGE_SHIFT_SEARCH_PX + 1;
     let num_disparities = costs.len() / shifts as usize;
-    let inside = |qx: i32, qy: i32| qx >= r && qy >= r && qx < w - r && qy < h - r;
     if offset[0].abs() + offset[1].abs() != 1 {
         search_costs_blockwise(template, image, (x, y), offset, across, costs);
         return;
@@ -437,8 +441,9 @@ fn search_costs(
         }
     }
     // The template's block in the same frame.
-    let side = (2 * r + 1) as usize;
-    let mut block = [0.0f32; 49];
+    const SIDE: usize = (2 * IMAGE_BLOCK_RADIUS + 1) as usize;
+    let side = SIDE;
+    let mut block = [0.0f32; SIDE * SIDE];
     for (a, block_row) in block.chunks_exact_mut(side).enumerate() {
         let a = a as i32 - r;
         for (b, value) in block_row.iter_mut().enumerate() {
@@ -460,7 +465,7 @@ fn search_costs(
     // Disparities whose block leaves the image (the shift keeps it inside across the line).
     for d in 0..num_disparities {
         let (qx, qy) = (x + along[0] * d as i32, y + along[1] * d as i32);
-        if !inside(qx, qy) {
+        if !image.holds_block(qx, qy) {
             for row in 0..shifts as usize {
                 costs[row * num_disparities + d] = f32::MAX;
             }
@@ -477,8 +482,6 @@ fn search_costs_blockwise(
     across: [i32; 2],
     costs: &mut [f32],
 ) {
-    let r = IMAGE_BLOCK_RADIUS;
-    let (w, h) = (image.width, image.height);
     let num_disparities = costs.len() / (2 * IMAGE_SHIFT_SEARCH_PX + 1) as usize;
     costs.fill(f32::MAX);
     for (row, shift) in (-IMAGE_SHIFT_SEARCH_PX..=IMAGE_SHIFT_SEARCH_PX).enumerate() {
@@ -487,7 +490,7 @@ fn search_costs_blockwise(
                 x - offset[0] * d + across[0] * shift,
                 y - offset[1] * d + across[1] * shift,
             );
-            if qx >= r && qy >= r && qx < w - r && qy < h - r {
+            if image.holds_block(qx, qy) {
                 costs[row * num_disparities + d as usize] = template.block_sad(image, (x, y), (qx, qy));
             }
         }

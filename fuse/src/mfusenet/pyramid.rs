@@ -4,7 +4,7 @@
 //!
 //! 1. The set is reduced by an integer `factor` (box averages of `factor × factor` pixels, every
 //!    view alike): disparities shrink by the same factor, so the network sees a range that fits
-//!    its training ([`pyramid_factor`], [`downsampled`]).
+//!    its training ([`pyramid_factor_for`], [`downsampled`]).
 //! 2. At full size, each pixel's disparity is the minimum of the neighbours' summed input costs
 //!    (the network's own inputs, computed at full size) within a band of `± factor` px around the
 //!    coarse answers of its 3 × 3 nearest coarse pixels (so that a depth edge may take either
@@ -39,7 +39,8 @@ pub const DEFAULT_MAX_DIRECT_VOXELS: usize = 32_000_000;
 
 /// The reduction for a `width × height` reference and a range of `num_disparities`: 1 (full size)
 /// when the range is at most `max_direct` and `width · height · num_disparities` at most
-/// `max_direct_voxels`, else [`pyramid_factor`]'s (at least 2).
+/// `max_direct_voxels`, else the smallest integer (at least 2) that brings the range to at most
+/// [`NETWORK_DISPARITIES`] (64 → 2, 96 → 3, 128 → 4).
 pub fn pyramid_factor_for(
     (width, height): (usize, usize),
     num_disparities: usize,
@@ -48,17 +49,6 @@ pub fn pyramid_factor_for(
 ) -> usize {
     let voxels = width.saturating_mul(height).saturating_mul(num_disparities);
     if num_disparities <= max_direct && voxels <= max_direct_voxels {
-        1
-    } else {
-        num_disparities.div_ceil(NETWORK_DISPARITIES).max(2)
-    }
-}
-
-/// The reduction for a range of `num_disparities`: 1 (full size) up to `max_direct`, else the
-/// smallest integer that brings the range to at most [`NETWORK_DISPARITIES`] (64 → 2, 96 → 3,
-/// 128 → 4).
-pub fn pyramid_factor(num_disparities: usize, max_direct: usize) -> usize {
-    if num_disparities <= max_direct.max(1) {
         1
     } else {
         num_disparities.div_ceil(NETWORK_DISPARITIES).max(2)
@@ -206,15 +196,18 @@ mod tests {
 
     #[test]
     fn wide_ranges_are_brought_to_the_networks_depth() {
-        assert_eq!(pyramid_factor(24, 48), 1);
-        assert_eq!(pyramid_factor(48, 48), 1);
-        assert_eq!(pyramid_factor(49, 48), 2);
-        assert_eq!(pyramid_factor(64, 48), 2);
-        assert_eq!(pyramid_factor(96, 48), 3);
-        assert_eq!(pyramid_factor(128, 48), 4);
-        assert_eq!(pyramid_factor(256, 48), 8);
+        // Without a volume budget only the range decides.
+        let range_only =
+            |num_disparities, max_direct| pyramid_factor_for((64, 48), num_disparities, max_direct, usize::MAX);
+        assert_eq!(range_only(24, 48), 1);
+        assert_eq!(range_only(48, 48), 1);
+        assert_eq!(range_only(49, 48), 2);
+        assert_eq!(range_only(64, 48), 2);
+        assert_eq!(range_only(96, 48), 3);
+        assert_eq!(range_only(128, 48), 4);
+        assert_eq!(range_only(256, 48), 8);
         // No direct run at all: every range goes through a level of at least half size.
-        assert_eq!(pyramid_factor(16, 0), 2);
+        assert_eq!(range_only(16, 0), 2);
     }
 
     #[test]
