@@ -638,12 +638,23 @@ pub fn to_tensor(
     if h == 0 || w == 0 || nd == 0 {
         return t;
     }
+    // A row's pixels in chunks whose costs stay in L1, each slice written as a run of columns:
+    // the tensor is slice-major and the volume pixel-major, so one side is always strided.
+    const CHUNK: usize = 64;
+    let plane = rows * columns;
+    let scale = 1.0 / STEPS_PER_UNIT; // a power of two: the same numbers as a division
     for yy in 0..rows {
         let y = (y0 + yy).min(h - 1);
-        for xx in 0..columns {
-            let costs = volume.costs((x0 + xx).min(w - 1), y);
+        let row = &volume.data[y * w * nd..(y + 1) * w * nd];
+        for xs in (0..columns).step_by(CHUNK) {
+            let xe = (xs + CHUNK).min(columns);
             for d in 0..depth {
-                t.data[(d * rows + yy) * columns + xx] = f32::from(costs[d.min(nd - 1)]) / STEPS_PER_UNIT;
+                let dd = d.min(nd - 1);
+                let at = d * plane + yy * columns;
+                for (xx, o) in (xs..xe).zip(&mut t.data[at + xs..at + xe]) {
+                    let x = (x0 + xx).min(w - 1);
+                    *o = f32::from(row[x * nd + dd]) * scale;
+                }
             }
         }
     }
@@ -653,6 +664,29 @@ pub fn to_tensor(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_tensor_holds_each_pixels_costs_slice_by_slice_with_the_edges_repeated() {
+        let volume = CostVolume::from_fn([70, 9, 5], 0, ("right", [1, 0]), |x, y, d| {
+            ((x * 7 + y * 13 + d * 29) % 251) as u8
+        });
+        // Past the right and bottom edges, and 8 slices for the volume's 5: every clamp.
+        let (y0, x0, rows, columns, depth) = (3, 5, 8, 69, 8);
+        let t = to_tensor(&volume, (y0, x0), (rows, columns), depth);
+        assert_eq!(t.shape, [1, depth, rows, columns]);
+        for d in 0..depth {
+            for yy in 0..rows {
+                for xx in 0..columns {
+                    let c = volume.costs((x0 + xx).min(69), (y0 + yy).min(8))[d.min(4)];
+                    assert_eq!(
+                        t.data[(d * rows + yy) * columns + xx],
+                        f32::from(c) / STEPS_PER_UNIT,
+                        "{d} {yy} {xx}"
+                    );
+                }
+            }
+        }
+    }
 
     #[test]
     fn a_side_holds_the_views_along_its_ray_nearest_first() {
