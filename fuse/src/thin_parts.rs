@@ -51,7 +51,8 @@ pub struct ThinParts {
     /// The per-pixel cost at the new disparity is at most this share of the lowest cost within
     /// ±1 of the estimate.
     pub ratio: f32,
-    /// … and at most this share of the lowest cost farther than ±1 from the new disparity.
+    /// … and at most this share of the lowest cost farther than ±1 from the new disparity (a
+    /// clear minimum: a mirror's chance matches have rivals, so the shape test can be looser).
     pub uniqueness: f32,
     /// … and lower than the cost at the estimate by at least this much (cost levels, for colour
     /// views the channels' halves summed, about 1.5 grey levels of their mean: flat regions,
@@ -104,7 +105,7 @@ pub struct ThinParts {
     pub max_width_px: f32,
     /// A patch shorter than `min_length_px` but spanning at least this many pixels across or down
     /// stays when it is slender: its mean width (pixels over its bounding box's diagonal) at
-    /// most its diagonal over `slender_ratio` (a 12 px patch 2 px wide, an 18 px one 3 px wide).
+    /// most its diagonal over `slender_ratio` (an 8 px patch 2 px wide, a 12 px one 3 px wide).
     /// The short pieces of a rod or a wire that the network read only in part are slender;
     /// a mirror's chance matches of that length are blobs. 0 = none.
     pub min_slender_length_px: usize,
@@ -140,7 +141,7 @@ impl Default for ThinParts {
         Self {
             min_jump_px: 2.0,
             ratio: 0.8,
-            uniqueness: 0.9,
+            uniqueness: 0.75,
             min_margin: 1.0,
             min_support: 1,
             farther: true,
@@ -152,8 +153,8 @@ impl Default for ThinParts {
             farther_shape_test: true,
             min_length_px: 20,
             max_width_px: 8.0,
-            min_slender_length_px: 10,
-            slender_ratio: 6.0,
+            min_slender_length_px: 6,
+            slender_ratio: 4.0,
         }
     }
 }
