@@ -57,6 +57,8 @@ pub const DEFAULT_DEPTH_RANGE_M: (f64, f64) = (0.3, 2.0);
 const IMAGE_SHIFT_SEARCH_PX: i32 = 3;
 /// Block radius of the image-based estimate.
 const IMAGE_BLOCK_RADIUS: i32 = 3;
+/// The side of those blocks (px).
+const IMAGE_BLOCK_SIDE: usize = (2 * IMAGE_BLOCK_RADIUS + 1) as usize;
 /// Sample pixels per axis of the image-based estimate.
 const IMAGE_SAMPLES_PER_AXIS: usize = 40;
 /// Smallest standard deviation (px) of the samples' disparities for the image-based estimate to
@@ -262,14 +264,13 @@ impl<'a> Luma<'a> {
     /// around `other_at` ([`IMAGE_BLOCK_RADIUS`]), in row-major order. Both blocks lie within
     /// the images: rows are sliced straight, without clamping each pixel.
     fn block_sad(&self, other: &Luma<'_>, at: (i32, i32), other_at: (i32, i32)) -> f32 {
-        let side = (2 * IMAGE_BLOCK_RADIUS + 1) as usize;
-        fn row<'d>(luma: &Luma<'d>, (x, y): (i32, i32), by: i32, side: usize) -> &'d [f32] {
+        fn row<'d>(luma: &Luma<'d>, (x, y): (i32, i32), by: i32) -> &'d [f32] {
             let start = ((y + by) * luma.width + x - IMAGE_BLOCK_RADIUS) as usize;
-            &luma.data[start..start + side]
+            &luma.data[start..start + IMAGE_BLOCK_SIDE]
         }
         let mut sad = 0.0f32;
         for by in -IMAGE_BLOCK_RADIUS..=IMAGE_BLOCK_RADIUS {
-            for (a, b) in row(self, at, by, side).iter().zip(row(other, other_at, by, side)) {
+            for (a, b) in row(self, at, by).iter().zip(row(other, other_at, by)) {
                 sad += (a - b).abs();
             }
         }
@@ -441,10 +442,8 @@ fn search_costs(
         }
     }
     // The template's block in the same frame.
-    const SIDE: usize = (2 * IMAGE_BLOCK_RADIUS + 1) as usize;
-    let side = SIDE;
-    let mut block = [0.0f32; SIDE * SIDE];
-    for (a, block_row) in block.chunks_exact_mut(side).enumerate() {
+    let mut block = [0.0f32; IMAGE_BLOCK_SIDE * IMAGE_BLOCK_SIDE];
+    for (a, block_row) in block.chunks_exact_mut(IMAGE_BLOCK_SIDE).enumerate() {
         let a = a as i32 - r;
         for (b, value) in block_row.iter_mut().enumerate() {
             let b = b as i32 - r;
@@ -453,7 +452,7 @@ fn search_costs(
     }
     for (row, sums) in costs.chunks_exact_mut(num_disparities).enumerate() {
         sums.fill(0.0);
-        for (a, block_row) in block.chunks_exact(side).enumerate() {
+        for (a, block_row) in block.chunks_exact(IMAGE_BLOCK_SIDE).enumerate() {
             let strip_row = &patch[(row + a) * columns..(row + a + 1) * columns];
             for (b, t) in block_row.iter().enumerate() {
                 for (sum, v) in sums.iter_mut().zip(&strip_row[b..b + num_disparities]) {
