@@ -172,6 +172,28 @@ fn mfusenet(c: &mut Criterion) {
             b.iter(|| black_box(conv3d_same(&x4, &weight3, 4, 3, None)))
         })
     });
+    // In bfloat16 products (`fuse::nn::bf16_kernel`, where the host has AVX512-BF16; f32
+    // elsewhere): channel pairs at an even input count, the 7³ layer, the 3³ one and the 3³
+    // concatenation of four views' 4 channels.
+    let bf16 = |x: &Tensor, weight: &[f32], k: usize| {
+        fuse::nn::conv::with_precision(fuse::nn::conv::Precision::Bf16, || conv3d_same(x, weight, 4, k, None))
+    };
+    group.bench_function("conv_k7_8to4_forward_bf16", |b| {
+        b.iter(|| black_box(bf16(&x, &weight, 7)))
+    });
+    group.bench_function("conv_k3_4to4_forward_bf16", |b| {
+        b.iter(|| black_box(bf16(&x4, &weight3, 3)))
+    });
+    let x16 = Tensor {
+        shape: [16, shape[1], shape[2], shape[3]],
+        data: x.data.iter().chain(&x.data).copied().collect(),
+    };
+    let weight16: Vec<f32> = (0..4 * 16 * 27)
+        .map(|i| ((i * 31) % 17) as f32 / 170.0 - 0.05)
+        .collect();
+    group.bench_function("conv_k3_16to4_forward_bf16", |b| {
+        b.iter(|| black_box(bf16(&x16, &weight16, 3)))
+    });
     group.bench_function("conv_k7_8to4_input_grad", |b| {
         b.iter(|| black_box(conv3d_same_input_grad(&grad, &weight, 8, 7)))
     });

@@ -12,6 +12,12 @@
 //! block is the wide kernel's: 4 channels × 48 columns in 12 accumulators, three loads and
 //! four broadcasts per pair of taps.
 //!
+//! A layer of an even number of input channels pairs **channels** instead ([`channel_rows`]):
+//! slot `i` of row `2p` of the padded input holds `(x_2p[i], x_2p+1[i])` in bfloat16 (the layout
+//! of [`super::int16_kernel`]'s integer pairs), the weights `(w[2p], w[2p + 1])` per tap, and every
+//! product is a kernel's: a 3³ layer's pairs of taps are a quarter zero (two pairs for three
+//! taps), a 5³ layer's a sixth, a 7³ layer's an eighth.
+//!
 //! Inputs and weights are rounded to bfloat16 (8 bits of mantissa, round to nearest even), the
 //! sums kept in f32: relative errors of about 2⁻⁹ per product that average out over a layer's
 //! hundreds of products. Inference only, where the caller asks for it
@@ -104,6 +110,94 @@ pub(super) fn pack_weights<const K: usize>(weights: &[f32]) -> Vec<f32> {
         }
     }
     packed
+}
+
+/// Rewrites a padded input of `channels` rows of `row` values side by side (the convolutions'
+/// `[tile][z][y][c][row]` layout) in place as bfloat16 channel pairs: afterwards slot `i` of row
+/// `2p` holds `(x_2p[i], x_2p+1[i])` (low half first, the second zero past the last channel); the
+/// odd rows keep their old values, unread.
+pub(super) fn to_channel_pairs(data: &mut [f32], channels: usize, row: usize) {
+    super::int16_kernel::to_channel_pairs_by(data, channels, row, pair);
+}
+
+/// One group's weights, `[i][td][th][tw][o]` over `cin` input channels and 4 output channels
+/// (the f32 kernels' order), as bfloat16 channel pairs `[pair][td][th][tw][o]`: `(w[2p],
+/// w[2p + 1])`, the second zero past the input channels.
+pub(super) fn pack_channel_weights<const K: usize>(weights: &[f32], cin: usize) -> Vec<f32> {
+    let taps = K * K * K;
+    let at = |i: usize, t: usize, o: usize| {
+        if i < cin {
+            weights.get((i * taps + t) * 4 + o).copied().unwrap_or(0.0)
+        } else {
+            0.0
+        }
+    };
+    let mut packed = Vec::with_capacity(cin.div_ceil(2) * taps * 4);
+    for p in 0..cin.div_ceil(2) {
+        for t in 0..taps {
+            for o in 0..4 {
+                packed.push(pair(at(2 * p, t, o), at(2 * p + 1, t, o)));
+            }
+        }
+    }
+    packed
+}
+
+/// `out[o][c] = Σ_r Σ_tw ⟨pairs[base + rows[r] + tw + c], weights[r][tw][o]⟩` (each term a
+/// channel pair's two products) for the 48 columns `c` of one wide block, every value written.
+/// `rows` lists each channel pair's `K²` rows `(td, th)` in turn (the order of `weights`);
+/// `pairs` holds [`to_channel_pairs`]'s slots, `weights` [`pack_channel_weights`]'s. Answers
+/// `false`, doing nothing, where the host lacks AVX512-BF16, or where a read would leave `pairs`
+/// or `weights` (the caller then runs [`channel_rows_portable`]).
+#[allow(unsafe_code)]
+pub(super) fn channel_rows<const K: usize>(
+    pairs: &[f32],
+    base: usize,
+    rows: &RowTable,
+    weights: &[f32],
+    out: &mut [f32; 4 * COLUMNS],
+) -> bool {
+    if !rows.fits(base, (K, COLUMNS), pairs.len(), weights.len()) || !crate::wide::host_has_avx512bf16() {
+        return false;
+    }
+    #[cfg(target_arch = "x86_64")]
+    {
+        // SAFETY: the host has AVX-512F and AVX512-BF16 (`host_has_avx512bf16`). Every row read is
+        // `pairs[base + r .. base + r + K − 1 + 48]` with `r` at most the table's largest entry,
+        // inside `pairs`, and the weights read are `weights[.. rows · K · 4]` (`fits`).
+        unsafe { channel_sums::<K>(pairs.as_ptr().add(base), rows.offsets(), weights.as_ptr(), out) };
+        true
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        let _ = out;
+        false
+    }
+}
+
+/// [`channel_rows`] by plain loops, for where the kernel declines (no AVX512-BF16 on this host,
+/// or a read that would leave `pairs`, read here as zero). Slow; the same products.
+pub(super) fn channel_rows_portable<const K: usize>(
+    pairs: &[f32],
+    base: usize,
+    rows: &RowTable,
+    weights: &[f32],
+    out: &mut [f32; 4 * COLUMNS],
+) {
+    out.fill(0.0);
+    let low = |bits: u32| f32::from_bits(bits << 16);
+    let high = |bits: u32| f32::from_bits(bits & 0xffff_0000);
+    for (r, &offset) in rows.offsets().iter().enumerate() {
+        for tw in 0..K {
+            for o in 0..4 {
+                let w = weights.get((r * K + tw) * 4 + o).map_or(0, |v| v.to_bits());
+                for c in 0..COLUMNS {
+                    let x = pairs.get(base + offset + tw + c).map_or(0, |v| v.to_bits());
+                    out[o * COLUMNS + c] += low(w) * low(x) + high(w) * high(x);
+                }
+            }
+        }
+    }
 }
 
 /// `out[o][c] = Σ_r Σ_q pairs[base + rows[r] + 2q + c] · weights[r][q][o]` (each a bfloat16 pair's
@@ -228,6 +322,60 @@ unsafe fn sums<const K: usize>(pairs: *const f32, rows: &[usize], weights: *cons
     }
 }
 
+/// The sums of one wide block over channel pairs, `[o][column]`, started from zero. Per row, per
+/// tap: three 16-lane loads of pairs at the tap's column, then per output channel the weights'
+/// pair broadcast into three `vdpbf16ps`.
+///
+/// # Safety
+/// The host has AVX-512F and AVX512-BF16; `pairs + offset + K − 1 + 48` stays inside the
+/// caller's slice for every offset in `rows`; `weights` holds `rows.len() · K · 4` values.
+#[cfg(target_arch = "x86_64")]
+#[allow(unsafe_code)]
+#[target_feature(enable = "avx512f,avx512bf16")]
+unsafe fn channel_sums<const K: usize>(
+    pairs: *const f32,
+    rows: &[usize],
+    weights: *const f32,
+    out: &mut [f32; 4 * COLUMNS],
+) {
+    use std::arch::x86_64::{
+        __m512, __m512bh, _mm512_castps_si512, _mm512_dpbf16_ps, _mm512_loadu_ps, _mm512_set1_ps, _mm512_setzero_ps,
+        _mm512_storeu_ps,
+    };
+    #[inline(always)]
+    fn bh(v: __m512) -> __m512bh {
+        // SAFETY: both types are 512 bits of plain data, every bit pattern valid.
+        unsafe { std::mem::transmute::<std::arch::x86_64::__m512i, __m512bh>(_mm512_castps_si512(v)) }
+    }
+    let mut acc: [[__m512; 3]; 4] = [[_mm512_setzero_ps(); 3]; 4];
+    for (r, &offset) in rows.iter().enumerate() {
+        // SAFETY: inside the caller's slices (this function's contract).
+        unsafe {
+            let row = pairs.add(offset);
+            let w = weights.add(r * K * 4);
+            for tw in 0..K {
+                let x = [
+                    bh(_mm512_loadu_ps(row.add(tw))),
+                    bh(_mm512_loadu_ps(row.add(tw + 16))),
+                    bh(_mm512_loadu_ps(row.add(tw + 32))),
+                ];
+                for (o, acc_o) in acc.iter_mut().enumerate() {
+                    let wv = bh(_mm512_set1_ps(*w.add(tw * 4 + o)));
+                    for (a, xv) in acc_o.iter_mut().zip(&x) {
+                        *a = _mm512_dpbf16_ps(*a, *xv, wv);
+                    }
+                }
+            }
+        }
+    }
+    for (o, acc_o) in acc.iter().enumerate() {
+        for (j, a) in acc_o.iter().enumerate() {
+            // SAFETY: `out` holds 4 · 48 floats; this writes 16 of them at `o · 48 + 16j`.
+            unsafe { _mm512_storeu_ps(out.as_mut_ptr().add(o * COLUMNS + 16 * j), *a) };
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -333,6 +481,111 @@ mod tests {
             &packed[..packed.len() - 1],
             &mut untouched
         ));
+    }
+
+    fn check_channel_pairs<const K: usize>(channels: usize) {
+        let (data, row, f32_rows, pair_rows, weights) = crate::nn::int16_kernel::tests::case::<K>(channels);
+        let base = 3;
+        let mut pairs = data.clone();
+        to_channel_pairs(&mut pairs, channels, row);
+        let packed = pack_channel_weights::<K>(&weights, channels);
+        let table = RowTable::new(pair_rows);
+        let mut out = [f32::NAN; 4 * COLUMNS];
+        let ran = channel_rows::<K>(&pairs, base, &table, &packed, &mut out);
+        assert_eq!(
+            ran,
+            crate::wide::host_has_avx512bf16(),
+            "K = {K}: runs exactly where the host has AVX512-BF16"
+        );
+        let mut portable = [f32::NAN; 4 * COLUMNS];
+        channel_rows_portable::<K>(&pairs, base, &table, &packed, &mut portable);
+        if ran {
+            for (i, (p, k)) in portable.iter().zip(&out).enumerate() {
+                assert!(
+                    (p - k).abs() <= 1e-4 * (1.0 + k.abs()),
+                    "K = {K}, value {i}: portable {p}, kernel {k}"
+                );
+            }
+        } else {
+            println!("skipped the kernel: this host has no AVX512-BF16 (the portable loops checked)");
+            out = portable;
+        }
+        // Against the plain loops on the rounded values (the same products, summed in another
+        // order), and on the f32 values within bfloat16's rounding.
+        let rounded: Vec<f32> = data.iter().map(|&v| round_to_bf16(v)).collect();
+        let rounded_weights: Vec<f32> = weights.iter().map(|&v| round_to_bf16(v)).collect();
+        let magnitude: Vec<f32> = data.iter().map(|v| v.abs()).collect();
+        let magnitude_weights: Vec<f32> = weights.iter().map(|v| v.abs()).collect();
+        for b in [0, 1] {
+            let at = base + 24 * b;
+            let want = plain::<K>(&rounded, at, &f32_rows, &rounded_weights);
+            let exact = plain::<K>(&data, at, &f32_rows, &weights);
+            let scale = plain::<K>(&magnitude, at, &f32_rows, &magnitude_weights);
+            for o in 0..4 {
+                for c in 0..24 {
+                    let i = o * 24 + c;
+                    let got = out[o * COLUMNS + 24 * b + c];
+                    assert!(
+                        (got - want[i]).abs() <= 1e-5 * (1.0 + scale[i]),
+                        "K = {K}, {channels} channels, block {b}, channel {o}, column {c}: {got} against {} in bfloat16",
+                        want[i]
+                    );
+                    assert!(
+                        (got - exact[i]).abs() <= 2.0 * scale[i] / 256.0,
+                        "K = {K}, {channels} channels, block {b}, channel {o}, column {c}: {got} against {} in f32",
+                        exact[i]
+                    );
+                }
+            }
+        }
+        // A table reaching past the data, or too few weights: refused, the sums left alone.
+        let mut untouched = [1f32; 4 * COLUMNS];
+        let far = RowTable::new(vec![pairs.len() - base - (K - 1 + COLUMNS) + 1; K * K]);
+        assert!(!channel_rows::<K>(&pairs, base, &far, &packed, &mut untouched));
+        assert!(!channel_rows::<K>(
+            &pairs,
+            base,
+            &table,
+            &packed[..packed.len() - 1],
+            &mut untouched
+        ));
+        assert!(untouched.iter().all(|&v| v == 1.0));
+    }
+
+    #[test]
+    fn the_channel_pair_kernel_sums_the_rounded_products_of_the_plain_loops() {
+        check_channel_pairs::<3>(4);
+        check_channel_pairs::<3>(5);
+        check_channel_pairs::<5>(4);
+        check_channel_pairs::<7>(8);
+        check_channel_pairs::<3>(16);
+    }
+
+    #[test]
+    fn channel_pairs_hold_both_channels_in_bfloat16() {
+        let (channels, row) = (3, 5);
+        let data: Vec<f32> = (0..2 * channels * row).map(|i| i as f32 * 0.37 - 4.1).collect();
+        let mut pairs = data.clone();
+        to_channel_pairs(&mut pairs, channels, row);
+        let halves = |v: f32| {
+            (
+                f32::from_bits(v.to_bits() << 16),
+                f32::from_bits(v.to_bits() & 0xffff_0000),
+            )
+        };
+        for g in 0..2 {
+            for i in 0..row {
+                let first = g * channels * row + i;
+                assert_eq!(
+                    halves(pairs[first]),
+                    (round_to_bf16(data[first]), round_to_bf16(data[first + row]))
+                );
+                // The odd count's last channel pairs with zero; the odd rows are left alone.
+                let last = first + 2 * row;
+                assert_eq!(halves(pairs[last]), (round_to_bf16(data[last]), 0.0));
+                assert_eq!(pairs[first + row], data[first + row]);
+            }
+        }
     }
 
     #[test]

@@ -100,6 +100,18 @@ fn unpack(slot: f32) -> (i32, i32) {
 /// quantised channel pairs: afterwards slot `i` of row `2p` holds `(q(x_2p[i]), q(x_2p+1[i]))`
 /// (the second zero past the last channel); the odd rows keep their old values, unread.
 pub(super) fn to_channel_pairs(data: &mut [f32], channels: usize, row: usize, scale: f32) {
+    to_channel_pairs_by(data, channels, row, |a, b| pack(quantise(a, scale), quantise(b, scale)));
+}
+
+/// [`to_channel_pairs`]' layout with each slot made by `pair(x_2p[i], x_2p+1[i])` (the second
+/// 0 past the last channel): the bfloat16 channel pairs share it
+/// ([`super::bf16_kernel::to_channel_pairs`]).
+pub(super) fn to_channel_pairs_by(
+    data: &mut [f32],
+    channels: usize,
+    row: usize,
+    pair: impl Fn(f32, f32) -> f32 + Sync,
+) {
     use rayon::prelude::*;
     let group = channels * row;
     if group == 0 {
@@ -112,11 +124,11 @@ pub(super) fn to_channel_pairs(data: &mut [f32], channels: usize, row: usize, sc
                 let (first, second) = rows[2 * p * row..].split_at_mut(row);
                 if 2 * p + 1 < channels {
                     for (a, b) in first.iter_mut().zip(&second[..row]) {
-                        *a = pack(quantise(*a, scale), quantise(*b, scale));
+                        *a = pair(*a, *b);
                     }
                 } else {
                     for a in first.iter_mut() {
-                        *a = pack(quantise(*a, scale), 0);
+                        *a = pair(*a, 0.0);
                     }
                 }
             }
@@ -468,14 +480,14 @@ pair_kernel!(
 );
 
 #[cfg(test)]
-mod tests {
+pub(super) mod tests {
     use super::*;
 
     use crate::nn::fma_kernel::tests::plain;
 
     /// Data of `channels` rows side by side per group, as the padded layout holds them, with a
     /// table of every pair's `K²` rows and the f32 weights `[i][td][th][tw][o]`.
-    fn case<const K: usize>(channels: usize) -> (Vec<f32>, usize, Vec<usize>, Vec<usize>, Vec<f32>) {
+    pub(in crate::nn) fn case<const K: usize>(channels: usize) -> (Vec<f32>, usize, Vec<usize>, Vec<usize>, Vec<f32>) {
         let row = 48 + K - 1 + 9;
         // K rows (td) of K rows (th) per plane: a group of channel rows per (td, th).
         let groups = K * K + 2;
