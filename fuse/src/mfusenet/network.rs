@@ -27,8 +27,8 @@ use super::Error;
 use crate::nn::Tensor;
 use crate::nn::batch_norm::{BatchNorm, BatchNormCache};
 use crate::nn::conv::{
-    ConvInput, Epilogue, PaddedTensor, conv3d_accumulate_input, conv3d_input, conv3d_padded, conv3d_same,
-    conv3d_same_input_grad, conv3d_same_weight_grad, conv3d_with, input_channels, transposed_as_conv,
+    ConvInput, Epilogue, PaddedTensor, conv3d_accumulate_input, conv3d_input, conv3d_padded, conv3d_padded_pairs,
+    conv3d_same, conv3d_same_input_grad, conv3d_same_weight_grad, conv3d_with, input_channels, transposed_as_conv,
     transposed_weight_grad,
 };
 use crate::nn::regression::{smooth_l1, soft_argmin, soft_argmin_backward};
@@ -276,8 +276,10 @@ impl ConvBn {
 
     /// [`ConvBn::forward_eval`] of any input, written straight into the padded tiles that a layer
     /// with kernel `next_k` reads (a chain of "same" layers: each skips the padded copy of its
-    /// input). Other kinds compute their tensor and pad it.
-    pub fn forward_eval_padded(&self, x: ConvInput<'_>, next_k: usize) -> PaddedTensor {
+    /// input). Other kinds compute their tensor and pad it. With `pairs`, as the bfloat16
+    /// channel pairs of a next layer that pairs channels ([`conv3d_padded_pairs`]): only for a
+    /// layer's input.
+    pub fn forward_eval_padded(&self, x: ConvInput<'_>, next_k: usize, pairs: bool) -> PaddedTensor {
         if self.kind != ConvKind::Same {
             let y = match x {
                 ConvInput::Borrowed(x) => self.forward_eval(x),
@@ -288,7 +290,11 @@ impl ConvBn {
             return PaddedTensor::of(&y, next_k);
         }
         let (weight, bias) = self.bn.fold_into(&self.conv_weight());
-        conv3d_padded(x, &weight, self.cout, self.k, Some(&bias), true, next_k)
+        if pairs {
+            conv3d_padded_pairs(x, &weight, self.cout, self.k, Some(&bias), true, next_k)
+        } else {
+            conv3d_padded(x, &weight, self.cout, self.k, Some(&bias), true, next_k)
+        }
     }
 
     /// Train mode: `ReLU(BN(conv(x)))` with batch statistics (running statistics updated) or
@@ -689,11 +695,16 @@ impl Network {
         // The feature tower, each layer writing the next one's padded tiles (the last one's for
         // `concat`), so that no layer copies its input.
         let concat_k = self.fuse[CONCAT].k;
+        // Every layer's output is a convolution's input, in bfloat16 channel pairs where that
+        // layer pairs channels, but for the last one's when the views' features are pooled
+        // (values then).
+        let last = self.feature.len().saturating_sub(1);
+        let pairs = |i: usize| i < last || self.views != 0;
         let tower = |x: &Tensor| -> PaddedTensor {
             let next_k = |i: usize| self.feature.get(i + 1).map_or(concat_k, |l| l.k);
-            let mut y = self.feature[0].forward_eval_padded(ConvInput::Borrowed(x), next_k(0));
+            let mut y = self.feature[0].forward_eval_padded(ConvInput::Borrowed(x), next_k(0), pairs(0));
             for (i, layer) in self.feature.iter().enumerate().skip(1) {
-                y = layer.forward_eval_padded(ConvInput::Padded(y), next_k(i));
+                y = layer.forward_eval_padded(ConvInput::Padded(y), next_k(i), pairs(i));
             }
             y
         };

@@ -120,6 +120,27 @@ pub(super) fn to_channel_pairs(data: &mut [f32], channels: usize, row: usize) {
     super::int16_kernel::to_channel_pairs_by(data, channels, row, pair);
 }
 
+/// `low[i]` becomes the bfloat16 pair `(low[i], high[i])` (low half first), as
+/// [`to_channel_pairs`] makes each slot of an even row: a layer writes its output's channel
+/// pairs for the next one ([`super::conv::conv3d_padded_pairs`]).
+pub(super) fn pair_rows_into(low: &mut [f32], high: &[f32]) {
+    // Fixed-size runs, so that the loop compiles to vector code.
+    let mut lows = low.chunks_exact_mut(16);
+    let mut highs = high.chunks_exact(16);
+    for (l, h) in lows.by_ref().zip(highs.by_ref()) {
+        let mut bits = [0u32; 16];
+        for ((b, a), c) in bits.iter_mut().zip(l.iter()).zip(h) {
+            *b = bf16_bits(*a) | (bf16_bits(*c) << 16);
+        }
+        for (v, b) in l.iter_mut().zip(bits) {
+            *v = f32::from_bits(b);
+        }
+    }
+    for (l, h) in lows.into_remainder().iter_mut().zip(highs.remainder()) {
+        *l = pair(*l, *h);
+    }
+}
+
 /// One group's weights, `[i][td][th][tw][o]` over `cin` input channels and 4 output channels
 /// (the f32 kernels' order), as bfloat16 channel pairs `[pair][td][th][tw][o]`: `(w[2p],
 /// w[2p + 1])`, the second zero past the input channels.

@@ -76,6 +76,9 @@ struct Padded {
     /// of taps, or channel pairs): no longer the tensor's values, and the border no longer zero
     /// (a zero beside a value pairs with it).
     pairs: bool,
+    /// Written by the layer before as bfloat16 channel pairs for a layer that pairs channels
+    /// ([`conv3d_padded_pairs`]): that layer's rewrite is already done (`pairs` is set too).
+    channel_pairs: bool,
 }
 
 impl Padded {
@@ -161,6 +164,7 @@ impl Padded {
             p,
             step,
             pairs: false,
+            channel_pairs: false,
         }
     }
 
@@ -188,11 +192,16 @@ impl Padded {
             p,
             step,
             pairs: false,
+            channel_pairs: false,
         }
     }
 
-    /// The tensor itself, its padding and halos dropped.
+    /// The tensor itself, its padding and halos dropped (from channel pairs, each value as its
+    /// pair holds it, in bfloat16).
     fn to_tensor(&self) -> Tensor {
+        if self.channel_pairs {
+            return self.channel_pairs_to_tensor();
+        }
         let [_, d, h, w] = self.shape;
         let mut out = Tensor::zeros(self.shape);
         out.data
@@ -205,6 +214,34 @@ impl Padded {
                         let columns = self.step.min(w - x0);
                         let at = self.tile_row_start(t, cc, z + self.p, y + self.p) + self.p;
                         dst[y * w + x0..y * w + x0 + columns].copy_from_slice(&self.data[at..at + columns]);
+                    }
+                }
+            });
+        out
+    }
+
+    /// [`Padded::to_tensor`] of channel pairs: channel `2p` from the low halves of row `2p`'s
+    /// slots, `2p + 1` from their high halves.
+    fn channel_pairs_to_tensor(&self) -> Tensor {
+        let [_, d, h, w] = self.shape;
+        let mut out = Tensor::zeros(self.shape);
+        out.data
+            .par_chunks_mut((h * w).max(1))
+            .enumerate()
+            .for_each(|(plane, dst)| {
+                let (cc, z) = (plane / d.max(1), plane % d.max(1));
+                let high = cc % 2 == 1;
+                for y in 0..h {
+                    for (t, x0) in (0..w).step_by(self.step.max(1)).enumerate() {
+                        let columns = self.step.min(w - x0);
+                        let at = self.tile_row_start(t, cc - cc % 2, z + self.p, y + self.p) + self.p;
+                        for (v, slot) in dst[y * w + x0..y * w + x0 + columns]
+                            .iter_mut()
+                            .zip(&self.data[at..at + columns])
+                        {
+                            let bits = slot.to_bits();
+                            *v = f32::from_bits(if high { bits & 0xffff_0000 } else { bits << 16 });
+                        }
                     }
                 }
             });
@@ -529,7 +566,29 @@ pub fn conv3d_padded(
     next_k: usize,
 ) -> PaddedTensor {
     let epilogue = Epilogue { stride: 1, relu };
-    match conv_source(x, weight, cout, k, bias, epilogue, Output::Padded(next_k)) {
+    match conv_source(x, weight, cout, k, bias, epilogue, Output::Padded(next_k, false)) {
+        Written::Padded(p) => PaddedTensor(p),
+        Written::Tensor(t) => PaddedTensor::of(&t, next_k),
+    }
+}
+
+/// [`conv3d_padded`] for a convolution that pairs channels in bfloat16 (this thread's precision
+/// bfloat16, the host with AVX512-BF16, an even `cout`): the padded tiles are written as its
+/// channel pairs, so that it skips rewriting them (a pass over its whole input) and the odd
+/// channels' rows are never written. Elsewhere the same as [`conv3d_padded`]. Only for a
+/// convolution's input: [`PaddedTensor::combine`] refuses channel pairs, and
+/// [`PaddedTensor::to_tensor`] reads them back in bfloat16.
+pub fn conv3d_padded_pairs(
+    x: ConvInput<'_>,
+    weight: &[f32],
+    cout: usize,
+    k: usize,
+    bias: Option<&[f32]>,
+    relu: bool,
+    next_k: usize,
+) -> PaddedTensor {
+    let epilogue = Epilogue { stride: 1, relu };
+    match conv_source(x, weight, cout, k, bias, epilogue, Output::Padded(next_k, true)) {
         Written::Padded(p) => PaddedTensor(p),
         Written::Tensor(t) => PaddedTensor::of(&t, next_k),
     }
@@ -600,6 +659,8 @@ impl PaddedTensor {
     pub fn same_layout(&self, other: &Self) -> bool {
         let (a, b) = (&self.0, &other.0);
         (a.shape, a.p, a.step, a.row, a.data.len()) == (b.shape, b.p, b.step, b.row, b.data.len())
+            && !a.channel_pairs
+            && !b.channel_pairs
     }
 
     /// A copy in the same layout (a spare buffer when one is kept).
@@ -625,6 +686,7 @@ impl PaddedTensor {
             p: a.p,
             step: a.step,
             pairs: a.pairs,
+            channel_pairs: a.channel_pairs,
         })
     }
 
@@ -685,8 +747,9 @@ impl ConvInput<'_> {
 enum Output {
     /// A new tensor, or the sum into `into` where it has the output's shape.
     Tensor(Option<Tensor>),
-    /// The padded tiles of a convolution with this kernel size (stride 1 only).
-    Padded(usize),
+    /// The padded tiles of a convolution with this kernel size (stride 1 only); with `true`, as
+    /// bfloat16 channel pairs where that convolution pairs channels.
+    Padded(usize, bool),
 }
 
 /// What a convolution wrote.
@@ -842,8 +905,14 @@ fn conv_k<const K: usize>(
     // (Channel pairs against pairs of taps, the same layers in bfloat16: 3³ 4 → 4 and 16 → 4 and
     // 7³ 8 → 4 about 13 % faster, `cargo bench -p fuse --bench methods -- bf16`.)
     let bf16_channels = bf16 && cin.is_multiple_of(2);
+    if padded.channel_pairs && !bf16_channels {
+        // (Written for a layer that pairs channels, read by one that does not: values again.)
+        padded = Padded::tiled(&padded.to_tensor(), p, step, step + K - 1);
+    }
     if bf16_channels {
-        bf16_kernel::to_channel_pairs(&mut padded.data, cin, padded.row);
+        if !padded.channel_pairs {
+            bf16_kernel::to_channel_pairs(&mut padded.data, cin, padded.row);
+        }
         padded.pairs = true;
     } else if bf16 {
         bf16_kernel::to_shifted_pairs(&mut padded.data);
@@ -929,19 +998,30 @@ fn conv_k<const K: usize>(
     let tiles = blocks.div_ceil(TILE_BLOCKS);
     let wide = wide_kernel::available();
     let plane = oh * ow;
+    let output_pairs = match output {
+        Output::Padded(next_k, true) => Some(next_k),
+        _ => None,
+    };
     let (into, padded_for) = match output {
         Output::Tensor(into) => (into, None),
         // Padded output at stride 1 and of one channel group only (a strided layer's output, or
         // a wider one, is a tensor, padded by its reader).
-        Output::Padded(next_k) if stride == 1 && groups == 1 => (None, Some(next_k)),
-        Output::Padded(_) => (None, None),
+        Output::Padded(next_k, _) if stride == 1 && groups == 1 => (None, Some(next_k)),
+        Output::Padded(..) => (None, None),
     };
+    // Channel pairs for the next layer where it pairs channels (the rule of its own choice).
+    let pairs_out = matches!(output_pairs, Some(next_k) if padded_for == Some(next_k))
+        && cout.is_multiple_of(2)
+        && padded_for.is_some_and(|next_k| effective_precision_for(next_k, cout) == Precision::Bf16);
     // Added into `into` when it has the output's shape (stride 1).
     let accumulate = stride == 1 && into.as_ref().is_some_and(|t| t.shape == [cout, od, oh, ow]);
     let mut written = match padded_for {
         Some(next_k) => {
             let np = next_k / 2;
-            Written::Padded(Padded::for_writing([cout, od, oh, ow], np, step, step + 2 * np))
+            let mut padded = Padded::for_writing([cout, od, oh, ow], np, step, step + 2 * np);
+            padded.pairs = pairs_out;
+            padded.channel_pairs = pairs_out;
+            Written::Padded(padded)
         }
         // A new tensor is written whole: a spare buffer's old values need no zeroing.
         None => Written::Tensor(into.filter(|_| accumulate).unwrap_or_else(|| Tensor {
@@ -1049,6 +1129,18 @@ fn conv_k<const K: usize>(
                     let columns = (TILE_BLOCKS * BLOCK).min(w - c0);
                     let add_of = |o: usize| bias.map_or(0.0, |bias| bias[g * GROUP + o]);
                     match &mut dst {
+                        Destination::Tiles(tiles) if pairs_out => {
+                            // Channels 2q and 2q + 1 as one row of bfloat16 pairs, in row 2q.
+                            let width = TILE_BLOCKS * BLOCK;
+                            for o in 0..cout.min(GROUP) {
+                                finish_row(&mut pair[o * width..(o + 1) * width], None, add_of(o), relu);
+                            }
+                            for o in (0..cout.min(GROUP)).step_by(2) {
+                                let (low, high) = pair[o * width..(o + 2) * width].split_at_mut(width);
+                                bf16_kernel::pair_rows_into(low, high);
+                                write_tiles(tiles, o, &low[..columns], c0, y, tile_plane);
+                            }
+                        }
                         Destination::Tiles(tiles) => {
                             for o in 0..cout.min(GROUP) {
                                 let row = &mut pair[o * TILE_BLOCKS * BLOCK..(o + 1) * TILE_BLOCKS * BLOCK];
@@ -1533,6 +1625,90 @@ pub(crate) mod tests {
             let padded = conv3d_padded(ConvInput::Borrowed(&x), &weights[0], 4, 5, Some(&biases[0]), true, 3);
             let first = conv3d_with(&x, &weights[0], 4, 5, Some(&biases[0]), relu);
             assert_eq!(padded.to_tensor().data, first.data, "{d}x{h}x{w}");
+        }
+    }
+
+    #[test]
+    fn layers_that_write_the_next_ones_channel_pairs_give_the_same_bits() {
+        // In bfloat16, a chain whose layers write the next one's channel pairs against the same
+        // chain writing values (each layer then pairing its input itself): the same pairs, so
+        // the same bits; the last paired output read by a layer of another kernel (values again,
+        // as the pairs hold them) and back as a tensor; pairs refused by `combine`.
+        if with_precision(Precision::Bf16, || effective_precision_for(3, 4)) != Precision::Bf16 {
+            println!("skipped: this host has no AVX512-BF16 (no layer pairs channels)");
+            return;
+        }
+        for (seed, &[d, h, w]) in [[3usize, 4, 101], [2, 3, 49], [2, 5, 9]].iter().enumerate() {
+            let seed = seed as u64 * 10 + 3;
+            let x = random([1, d, h, w], seed);
+            let layers: [(usize, usize, usize); 4] = [(1, 4, 5), (4, 4, 3), (4, 4, 3), (4, 2, 3)];
+            let weights: Vec<Vec<f32>> = layers
+                .iter()
+                .enumerate()
+                .map(|(i, &(cin, cout, k))| random_values(cout * cin * k * k * k, seed + 1 + i as u64))
+                .collect();
+            let biases: Vec<Vec<f32>> = layers
+                .iter()
+                .enumerate()
+                .map(|(i, &(_, cout, _))| random_values(cout, seed + 5 + i as u64))
+                .collect();
+            let relu = Epilogue { stride: 1, relu: true };
+            let run = |pairs: bool| {
+                with_precision(Precision::Bf16, || {
+                    let mut chained = ConvInput::Borrowed(&x);
+                    for i in 0..3 {
+                        let (_, cout, k) = layers[i];
+                        let next_k = layers[i + 1].2;
+                        let padded = if pairs {
+                            conv3d_padded_pairs(chained, &weights[i], cout, k, Some(&biases[i]), true, next_k)
+                        } else {
+                            conv3d_padded(chained, &weights[i], cout, k, Some(&biases[i]), true, next_k)
+                        };
+                        assert_eq!(padded.0.channel_pairs, pairs, "layer {i}");
+                        chained = ConvInput::Padded(padded);
+                    }
+                    let (_, cout, k) = layers[3];
+                    conv3d_input(chained, &weights[3], cout, k, Some(&biases[3]), relu)
+                })
+            };
+            let (paired, plain) = (run(true), run(false));
+            assert_eq!(bits_differing(&paired, &plain), 0, "{d}x{h}x{w}");
+            with_precision(Precision::Bf16, || {
+                let made = |next_k: usize| {
+                    conv3d_padded_pairs(
+                        ConvInput::Borrowed(&x),
+                        &weights[0],
+                        4,
+                        5,
+                        Some(&biases[0]),
+                        true,
+                        next_k,
+                    )
+                };
+                // Back as a tensor: each value in bfloat16.
+                let first = conv3d_with(&x, &weights[0], 4, 5, Some(&biases[0]), relu);
+                let rounded: Vec<f32> = first.data.iter().map(|&v| bf16_kernel::round_to_bf16(v)).collect();
+                assert_eq!(made(3).to_tensor().data, rounded, "{d}x{h}x{w}");
+                // Read by a 3³ layer from tiles made for 5, or by one in f32: the values as the
+                // pairs hold them.
+                let values = Tensor {
+                    shape: first.shape,
+                    data: rounded.clone(),
+                };
+                let by_other = conv3d_input(ConvInput::Padded(made(5)), &weights[1], 4, 3, None, relu);
+                let from_values = conv3d_input(ConvInput::Borrowed(&values), &weights[1], 4, 3, None, relu);
+                assert_eq!(bits_differing(&by_other, &from_values), 0, "{d}x{h}x{w}");
+                let paired = made(3);
+                let in_f32 = with_precision(Precision::F32, || {
+                    (
+                        conv3d_input(ConvInput::Padded(paired), &weights[1], 4, 3, None, relu),
+                        conv3d_input(ConvInput::Borrowed(&values), &weights[1], 4, 3, None, relu),
+                    )
+                });
+                assert_eq!(bits_differing(&in_f32.0, &in_f32.1), 0, "{d}x{h}x{w} in f32");
+                let mut a = made(3);
+                assert!(!a.combine(&made(3), |s, x| s + x), "pairs are not values to combine");
+            });
         }
     }
 
