@@ -164,13 +164,22 @@ pub(super) fn pack_channel_weights<const K: usize>(weights: &[f32], cin: usize) 
     packed
 }
 
+/// Pairs of taps along a row ([`rows`]): each pair's first tap two columns after the last's.
+const TAP_PAIRS: usize = 2;
+/// Pairs of channels at one tap ([`channel_rows`]): one column apart.
+const CHANNEL_PAIRS: usize = 1;
+
+/// The pairs of one kernel row: ⌈K/2⌉ pairs of taps, or `K` taps of a channel pair.
+const fn steps_per_row(k: usize, stride: usize) -> usize {
+    if stride == TAP_PAIRS { pairs_per_row(k) } else { k }
+}
+
 /// `out[o][c] = Σ_r Σ_tw ⟨pairs[base + rows[r] + tw + c], weights[r][tw][o]⟩` (each term a
 /// channel pair's two products) for the 48 columns `c` of one wide block, every value written.
 /// `rows` lists each channel pair's `K²` rows `(td, th)` in turn (the order of `weights`);
 /// `pairs` holds [`to_channel_pairs`]'s slots, `weights` [`pack_channel_weights`]'s. Answers
 /// `false`, doing nothing, where the host lacks AVX512-BF16, or where a read would leave `pairs`
 /// or `weights` (the caller then runs [`channel_rows_portable`]).
-#[allow(unsafe_code)]
 pub(super) fn channel_rows<const K: usize>(
     pairs: &[f32],
     base: usize,
@@ -178,22 +187,7 @@ pub(super) fn channel_rows<const K: usize>(
     weights: &[f32],
     out: &mut [f32; 4 * COLUMNS],
 ) -> bool {
-    if !rows.fits(base, (K, COLUMNS), pairs.len(), weights.len()) || !crate::wide::host_has_avx512bf16() {
-        return false;
-    }
-    #[cfg(target_arch = "x86_64")]
-    {
-        // SAFETY: the host has AVX-512F and AVX512-BF16 (`host_has_avx512bf16`). Every row read is
-        // `pairs[base + r .. base + r + K − 1 + 48]` with `r` at most the table's largest entry,
-        // inside `pairs`, and the weights read are `weights[.. rows · K · 4]` (`fits`).
-        unsafe { channel_sums::<K>(pairs.as_ptr().add(base), rows.offsets(), weights.as_ptr(), out) };
-        true
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    {
-        let _ = out;
-        false
-    }
+    strided_rows::<K, CHANNEL_PAIRS>(pairs, base, rows, weights, out)
 }
 
 /// [`channel_rows`] by plain loops, for where the kernel declines (no AVX512-BF16 on this host,
@@ -205,20 +199,7 @@ pub(super) fn channel_rows_portable<const K: usize>(
     weights: &[f32],
     out: &mut [f32; 4 * COLUMNS],
 ) {
-    out.fill(0.0);
-    let low = |bits: u32| f32::from_bits(bits << 16);
-    let high = |bits: u32| f32::from_bits(bits & 0xffff_0000);
-    for (r, &offset) in rows.offsets().iter().enumerate() {
-        for tw in 0..K {
-            for o in 0..4 {
-                let w = weights.get((r * K + tw) * 4 + o).map_or(0, |v| v.to_bits());
-                for c in 0..COLUMNS {
-                    let x = pairs.get(base + offset + tw + c).map_or(0, |v| v.to_bits());
-                    out[o * COLUMNS + c] += low(w) * low(x) + high(w) * high(x);
-                }
-            }
-        }
-    }
+    strided_rows_portable::<K, CHANNEL_PAIRS>(pairs, base, rows, weights, out);
 }
 
 /// `out[o][c] = Σ_r Σ_q pairs[base + rows[r] + 2q + c] · weights[r][q][o]` (each a bfloat16 pair's
@@ -226,7 +207,6 @@ pub(super) fn channel_rows_portable<const K: usize>(
 /// [`super::wide_kernel::rows`] with inputs and weights in bfloat16. `pairs` holds shifted pairs
 /// ([`to_shifted_pairs`]), `weights` [`pack_weights`]'s. Answers `false`, doing nothing, where
 /// the host lacks AVX512-BF16, or where a read would leave `pairs` or `weights`.
-#[allow(unsafe_code)]
 pub(super) fn rows<const K: usize>(
     pairs: &[f32],
     base: usize,
@@ -234,12 +214,38 @@ pub(super) fn rows<const K: usize>(
     weights: &[f32],
     out: &mut [f32; 4 * COLUMNS],
 ) -> bool {
-    // The last pair read from a row is column 2(⌈K/2⌉ − 1) + 47 = (K − 1) + 47 for odd K, as
-    // the f32 kernel's last float.
-    let q = pairs_per_row(K);
-    let weights_needed = rows.offsets().len().checked_mul(q * 4);
-    if K.is_multiple_of(2)
-        || !rows.fits(base, (K, COLUMNS), pairs.len(), usize::MAX)
+    // (For odd K the last pair read from a row ends at column (K − 1) + 47, as for the channel
+    // pairs; an even K would read one column more.)
+    !K.is_multiple_of(2) && strided_rows::<K, TAP_PAIRS>(pairs, base, rows, weights, out)
+}
+
+/// [`rows`] by plain loops, for where the kernel declines (no AVX512-BF16 on this host, or a
+/// read that would leave `pairs`, read here as zero): each pair's low half is the input value
+/// in bfloat16, its high half the next one, each packed weight's halves two taps' weights. Slow;
+/// the same products.
+pub(super) fn rows_portable<const K: usize>(
+    pairs: &[f32],
+    base: usize,
+    rows: &RowTable,
+    weights: &[f32],
+    out: &mut [f32; 4 * COLUMNS],
+) {
+    strided_rows_portable::<K, TAP_PAIRS>(pairs, base, rows, weights, out);
+}
+
+/// [`rows`] (`STRIDE` 2) and [`channel_rows`] (`STRIDE` 1): per row `r`, the pairs at columns
+/// `STRIDE · i + c` times the weights `[r][i][o]`.
+#[allow(unsafe_code)]
+fn strided_rows<const K: usize, const STRIDE: usize>(
+    pairs: &[f32],
+    base: usize,
+    rows: &RowTable,
+    weights: &[f32],
+    out: &mut [f32; 4 * COLUMNS],
+) -> bool {
+    let steps = const { steps_per_row(K, STRIDE) };
+    let weights_needed = rows.offsets().len().checked_mul(steps * 4);
+    if !rows.fits(base, (K, COLUMNS), pairs.len(), usize::MAX)
         || weights_needed.is_none_or(|n| n > weights.len())
         || !crate::wide::host_has_avx512bf16()
     {
@@ -249,9 +255,10 @@ pub(super) fn rows<const K: usize>(
     {
         // SAFETY: the host has AVX-512F and AVX512-BF16 (`host_has_avx512bf16`). Every row read is
         // `pairs[base + r .. base + r + K − 1 + 48]` with `r` at most the table's largest entry,
-        // inside `pairs` (checked above, K odd); the weights read are `weights[.. rows · ⌈K/2⌉ · 4]`
-        // (checked above).
-        unsafe { sums::<K>(pairs.as_ptr().add(base), rows.offsets(), weights.as_ptr(), out) };
+        // inside `pairs` (`fits`; the last pair read starts at `STRIDE · (steps − 1) ≤ K − 1`,
+        // odd K for pairs of taps); the weights read are `weights[.. rows · steps · 4]` (checked
+        // above).
+        unsafe { sums::<K, STRIDE>(pairs.as_ptr().add(base), rows.offsets(), weights.as_ptr(), out) };
         true
     }
     #[cfg(not(target_arch = "x86_64"))]
@@ -261,47 +268,50 @@ pub(super) fn rows<const K: usize>(
     }
 }
 
-/// [`rows`] by plain loops, for where the kernel declines (no AVX512-BF16 on this host, or a
-/// read that would leave `pairs`, read here as zero): each pair's low half is the input value
-/// in bfloat16, each packed weight's halves two taps' weights. Slow; the same products.
-pub(super) fn rows_portable<const K: usize>(
+/// [`strided_rows`] by plain loops: each term the products of both halves of a weight's pair
+/// and an input slot's (a shifted pair's high half is the next value; a channel pair's the
+/// next channel's).
+fn strided_rows_portable<const K: usize, const STRIDE: usize>(
     pairs: &[f32],
     base: usize,
     rows: &RowTable,
     weights: &[f32],
     out: &mut [f32; 4 * COLUMNS],
 ) {
-    let q = pairs_per_row(K);
+    let steps = steps_per_row(K, STRIDE);
     out.fill(0.0);
     let low = |bits: u32| f32::from_bits(bits << 16);
     let high = |bits: u32| f32::from_bits(bits & 0xffff_0000);
-    let value = |i: usize| pairs.get(i).map_or(0.0, |v| low(v.to_bits()));
     for (r, &offset) in rows.offsets().iter().enumerate() {
-        for p in 0..q {
+        for i in 0..steps {
             for o in 0..4 {
-                let w = weights.get((r * q + p) * 4 + o).map_or(0, |v| v.to_bits());
-                let (w_low, w_high) = (low(w), high(w));
+                let w = weights.get((r * steps + i) * 4 + o).map_or(0, |v| v.to_bits());
                 for c in 0..COLUMNS {
-                    let at = base + offset + 2 * p + c;
-                    out[o * COLUMNS + c] += w_low * value(at) + w_high * value(at + 1);
+                    let x = pairs.get(base + offset + STRIDE * i + c).map_or(0, |v| v.to_bits());
+                    out[o * COLUMNS + c] += low(w) * low(x) + high(w) * high(x);
                 }
             }
         }
     }
 }
 
-/// The sums of one wide block, `[o][column]`, started from zero. Per row, per pair of taps: three
-/// 16-lane loads of pairs at the pair's first column, then per output channel the weights' pair
-/// broadcast into three `vdpbf16ps`.
+/// The sums of one wide block, `[o][column]`, started from zero. Per row, per pair: three 16-lane
+/// loads of pairs at the pair's first column (`STRIDE · i`), then per output channel the weights'
+/// pair broadcast into three `vdpbf16ps`.
 ///
 /// # Safety
 /// The host has AVX-512F and AVX512-BF16; `pairs + offset + K − 1 + 48` stays inside the
-/// caller's slice for every offset in `rows`, K odd; `weights` holds `rows.len() · ⌈K/2⌉ · 4`
-/// values.
+/// caller's slice for every offset in `rows`, and so does every pair read (`STRIDE · (steps − 1)
+/// ≤ K − 1`); `weights` holds `rows.len() · steps · 4` values.
 #[cfg(target_arch = "x86_64")]
 #[allow(unsafe_code)]
 #[target_feature(enable = "avx512f,avx512bf16")]
-unsafe fn sums<const K: usize>(pairs: *const f32, rows: &[usize], weights: *const f32, out: &mut [f32; 4 * COLUMNS]) {
+unsafe fn sums<const K: usize, const STRIDE: usize>(
+    pairs: *const f32,
+    rows: &[usize],
+    weights: *const f32,
+    out: &mut [f32; 4 * COLUMNS],
+) {
     use std::arch::x86_64::{
         __m512, __m512bh, _mm512_castps_si512, _mm512_dpbf16_ps, _mm512_loadu_ps, _mm512_set1_ps, _mm512_setzero_ps,
         _mm512_storeu_ps,
@@ -312,76 +322,22 @@ unsafe fn sums<const K: usize>(pairs: *const f32, rows: &[usize], weights: *cons
         // SAFETY: both types are 512 bits of plain data, every bit pattern valid.
         unsafe { std::mem::transmute::<std::arch::x86_64::__m512i, __m512bh>(_mm512_castps_si512(v)) }
     }
-    let q = const { pairs_per_row(K) };
+    let steps = const { steps_per_row(K, STRIDE) };
     let mut acc: [[__m512; 3]; 4] = [[_mm512_setzero_ps(); 3]; 4];
     for (r, &offset) in rows.iter().enumerate() {
         // SAFETY: inside the caller's slices (this function's contract).
         unsafe {
             let row = pairs.add(offset);
-            let w = weights.add(r * q * 4);
-            for p in 0..q {
-                let tw = 2 * p;
+            let w = weights.add(r * steps * 4);
+            for i in 0..steps {
+                let at = STRIDE * i;
                 let x = [
-                    bh(_mm512_loadu_ps(row.add(tw))),
-                    bh(_mm512_loadu_ps(row.add(tw + 16))),
-                    bh(_mm512_loadu_ps(row.add(tw + 32))),
+                    bh(_mm512_loadu_ps(row.add(at))),
+                    bh(_mm512_loadu_ps(row.add(at + 16))),
+                    bh(_mm512_loadu_ps(row.add(at + 32))),
                 ];
                 for (o, acc_o) in acc.iter_mut().enumerate() {
-                    let wv = bh(_mm512_set1_ps(*w.add(p * 4 + o)));
-                    for (a, xv) in acc_o.iter_mut().zip(&x) {
-                        *a = _mm512_dpbf16_ps(*a, *xv, wv);
-                    }
-                }
-            }
-        }
-    }
-    for (o, acc_o) in acc.iter().enumerate() {
-        for (j, a) in acc_o.iter().enumerate() {
-            // SAFETY: `out` holds 4 · 48 floats; this writes 16 of them at `o · 48 + 16j`.
-            unsafe { _mm512_storeu_ps(out.as_mut_ptr().add(o * COLUMNS + 16 * j), *a) };
-        }
-    }
-}
-
-/// The sums of one wide block over channel pairs, `[o][column]`, started from zero. Per row, per
-/// tap: three 16-lane loads of pairs at the tap's column, then per output channel the weights'
-/// pair broadcast into three `vdpbf16ps`.
-///
-/// # Safety
-/// The host has AVX-512F and AVX512-BF16; `pairs + offset + K − 1 + 48` stays inside the
-/// caller's slice for every offset in `rows`; `weights` holds `rows.len() · K · 4` values.
-#[cfg(target_arch = "x86_64")]
-#[allow(unsafe_code)]
-#[target_feature(enable = "avx512f,avx512bf16")]
-unsafe fn channel_sums<const K: usize>(
-    pairs: *const f32,
-    rows: &[usize],
-    weights: *const f32,
-    out: &mut [f32; 4 * COLUMNS],
-) {
-    use std::arch::x86_64::{
-        __m512, __m512bh, _mm512_castps_si512, _mm512_dpbf16_ps, _mm512_loadu_ps, _mm512_set1_ps, _mm512_setzero_ps,
-        _mm512_storeu_ps,
-    };
-    #[inline(always)]
-    fn bh(v: __m512) -> __m512bh {
-        // SAFETY: both types are 512 bits of plain data, every bit pattern valid.
-        unsafe { std::mem::transmute::<std::arch::x86_64::__m512i, __m512bh>(_mm512_castps_si512(v)) }
-    }
-    let mut acc: [[__m512; 3]; 4] = [[_mm512_setzero_ps(); 3]; 4];
-    for (r, &offset) in rows.iter().enumerate() {
-        // SAFETY: inside the caller's slices (this function's contract).
-        unsafe {
-            let row = pairs.add(offset);
-            let w = weights.add(r * K * 4);
-            for tw in 0..K {
-                let x = [
-                    bh(_mm512_loadu_ps(row.add(tw))),
-                    bh(_mm512_loadu_ps(row.add(tw + 16))),
-                    bh(_mm512_loadu_ps(row.add(tw + 32))),
-                ];
-                for (o, acc_o) in acc.iter_mut().enumerate() {
-                    let wv = bh(_mm512_set1_ps(*w.add(tw * 4 + o)));
+                    let wv = bh(_mm512_set1_ps(*w.add(i * 4 + o)));
                     for (a, xv) in acc_o.iter_mut().zip(&x) {
                         *a = _mm512_dpbf16_ps(*a, *xv, wv);
                     }
@@ -455,31 +411,7 @@ mod tests {
         }
         // The plain loops on the inputs and weights rounded to bfloat16 give the same sums but for
         // the order of the f32 additions; against the f32 inputs, within bfloat16's rounding.
-        let rounded: Vec<f32> = data.iter().map(|&v| round_to_bf16(v)).collect();
-        let rounded_weights: Vec<f32> = weights.iter().map(|&v| round_to_bf16(v)).collect();
-        let magnitude: Vec<f32> = data.iter().map(|v| v.abs()).collect();
-        let magnitude_weights: Vec<f32> = weights.iter().map(|v| v.abs()).collect();
-        for b in [0, 1] {
-            let want = plain::<K>(&rounded, base + 24 * b, &offsets, &rounded_weights);
-            let exact = plain::<K>(&data, base + 24 * b, &offsets, &weights);
-            let scale = plain::<K>(&magnitude, base + 24 * b, &offsets, &magnitude_weights);
-            for o in 0..4 {
-                for c in 0..24 {
-                    let i = o * 24 + c;
-                    let got = out[o * COLUMNS + 24 * b + c];
-                    assert!(
-                        (got - want[i]).abs() <= 1e-5 * (1.0 + scale[i]),
-                        "K = {K}, block {b}, channel {o}, column {c}: {got} against {} in bfloat16",
-                        want[i]
-                    );
-                    assert!(
-                        (got - exact[i]).abs() <= 2.0 * scale[i] / 256.0,
-                        "K = {K}, block {b}, channel {o}, column {c}: {got} against {} in f32",
-                        exact[i]
-                    );
-                }
-            }
-        }
+        against_plain::<K>(&out, &data, &weights, (base, &offsets), &format!("K = {K}"));
         // The portable loops over the same pairs: the same products, summed in another order.
         let mut portable = [f32::NAN; 4 * COLUMNS];
         rows_portable::<K>(&pairs, base, &table, &packed, &mut portable);
@@ -502,6 +434,44 @@ mod tests {
             &packed[..packed.len() - 1],
             &mut untouched
         ));
+    }
+
+    /// `out` (two blocks of 24 columns from `base`) against the plain loops over `rows` on the
+    /// values and weights rounded to bfloat16 (the same products, summed in another order), and
+    /// on the f32 values within bfloat16's rounding.
+    fn against_plain<const K: usize>(
+        out: &[f32; 4 * COLUMNS],
+        data: &[f32],
+        weights: &[f32],
+        (base, rows): (usize, &[usize]),
+        what: &str,
+    ) {
+        let rounded: Vec<f32> = data.iter().map(|&v| round_to_bf16(v)).collect();
+        let rounded_weights: Vec<f32> = weights.iter().map(|&v| round_to_bf16(v)).collect();
+        let magnitude: Vec<f32> = data.iter().map(|v| v.abs()).collect();
+        let magnitude_weights: Vec<f32> = weights.iter().map(|v| v.abs()).collect();
+        for b in [0, 1] {
+            let at = base + 24 * b;
+            let want = plain::<K>(&rounded, at, rows, &rounded_weights);
+            let exact = plain::<K>(data, at, rows, weights);
+            let scale = plain::<K>(&magnitude, at, rows, &magnitude_weights);
+            for o in 0..4 {
+                for c in 0..24 {
+                    let i = o * 24 + c;
+                    let got = out[o * COLUMNS + 24 * b + c];
+                    assert!(
+                        (got - want[i]).abs() <= 1e-5 * (1.0 + scale[i]),
+                        "{what}, block {b}, channel {o}, column {c}: {got} against {} in bfloat16",
+                        want[i]
+                    );
+                    assert!(
+                        (got - exact[i]).abs() <= 2.0 * scale[i] / 256.0,
+                        "{what}, block {b}, channel {o}, column {c}: {got} against {} in f32",
+                        exact[i]
+                    );
+                }
+            }
+        }
     }
 
     fn check_channel_pairs<const K: usize>(channels: usize) {
@@ -533,32 +503,13 @@ mod tests {
         }
         // Against the plain loops on the rounded values (the same products, summed in another
         // order), and on the f32 values within bfloat16's rounding.
-        let rounded: Vec<f32> = data.iter().map(|&v| round_to_bf16(v)).collect();
-        let rounded_weights: Vec<f32> = weights.iter().map(|&v| round_to_bf16(v)).collect();
-        let magnitude: Vec<f32> = data.iter().map(|v| v.abs()).collect();
-        let magnitude_weights: Vec<f32> = weights.iter().map(|v| v.abs()).collect();
-        for b in [0, 1] {
-            let at = base + 24 * b;
-            let want = plain::<K>(&rounded, at, &f32_rows, &rounded_weights);
-            let exact = plain::<K>(&data, at, &f32_rows, &weights);
-            let scale = plain::<K>(&magnitude, at, &f32_rows, &magnitude_weights);
-            for o in 0..4 {
-                for c in 0..24 {
-                    let i = o * 24 + c;
-                    let got = out[o * COLUMNS + 24 * b + c];
-                    assert!(
-                        (got - want[i]).abs() <= 1e-5 * (1.0 + scale[i]),
-                        "K = {K}, {channels} channels, block {b}, channel {o}, column {c}: {got} against {} in bfloat16",
-                        want[i]
-                    );
-                    assert!(
-                        (got - exact[i]).abs() <= 2.0 * scale[i] / 256.0,
-                        "K = {K}, {channels} channels, block {b}, channel {o}, column {c}: {got} against {} in f32",
-                        exact[i]
-                    );
-                }
-            }
-        }
+        against_plain::<K>(
+            &out,
+            &data,
+            &weights,
+            (base, &f32_rows),
+            &format!("K = {K}, {channels} channels"),
+        );
         // A table reaching past the data, or too few weights: refused, the sums left alone.
         let mut untouched = [1f32; 4 * COLUMNS];
         let far = RowTable::new(vec![pairs.len() - base - (K - 1 + COLUMNS) + 1; K * K]);

@@ -565,8 +565,19 @@ pub fn conv3d_padded(
     relu: bool,
     next_k: usize,
 ) -> PaddedTensor {
+    padded_output(x, (weight, cout, k, bias), relu, next_k, false)
+}
+
+/// [`conv3d_padded`] (`pairs` false) and [`conv3d_padded_pairs`] (true).
+fn padded_output(
+    x: ConvInput<'_>,
+    (weight, cout, k, bias): (&[f32], usize, usize, Option<&[f32]>),
+    relu: bool,
+    next_k: usize,
+    pairs: bool,
+) -> PaddedTensor {
     let epilogue = Epilogue { stride: 1, relu };
-    match conv_source(x, weight, cout, k, bias, epilogue, Output::Padded(next_k, false)) {
+    match conv_source(x, weight, cout, k, bias, epilogue, Output::Padded(next_k, pairs)) {
         Written::Padded(p) => PaddedTensor(p),
         Written::Tensor(t) => PaddedTensor::of(&t, next_k),
     }
@@ -587,11 +598,7 @@ pub fn conv3d_padded_pairs(
     relu: bool,
     next_k: usize,
 ) -> PaddedTensor {
-    let epilogue = Epilogue { stride: 1, relu };
-    match conv_source(x, weight, cout, k, bias, epilogue, Output::Padded(next_k, true)) {
-        Written::Padded(p) => PaddedTensor(p),
-        Written::Tensor(t) => PaddedTensor::of(&t, next_k),
-    }
+    padded_output(x, (weight, cout, k, bias), relu, next_k, true)
 }
 
 /// The kernel `weight` (`[cout][cin][k³]`) restricted to the input channels `channels`:
@@ -1596,25 +1603,35 @@ pub(crate) mod tests {
         }
     }
 
+    /// A one-channel input of `d × h × w` and random weights and biases for the chain `layers`
+    /// (`(cin, cout, k)` each).
+    fn chain_case(
+        layers: &[(usize, usize, usize)],
+        [d, h, w]: [usize; 3],
+        seed: u64,
+    ) -> (Tensor, Vec<Vec<f32>>, Vec<Vec<f32>>) {
+        let x = random([1, d, h, w], seed);
+        let weights = layers
+            .iter()
+            .enumerate()
+            .map(|(i, &(cin, cout, k))| random_values(cout * cin * k * k * k, seed + 1 + i as u64))
+            .collect();
+        let biases = layers
+            .iter()
+            .enumerate()
+            .map(|(i, &(_, cout, _))| random_values(cout, seed + 5 + i as u64))
+            .collect();
+        (x, weights, biases)
+    }
+
     #[test]
     fn layers_that_write_the_next_ones_padded_tiles_give_the_plain_chain() {
         // Widths around the 48-column tile (halos on both sides of a boundary, a last tile of a
         // few columns), kernels 5 → 3 → 3 → 7 as a tower then a wider layer, and a padded
         // output read by a kernel it was not made for (copied again).
         for (seed, &[d, h, w]) in [[3usize, 4, 101], [2, 3, 49], [4, 2, 47], [2, 5, 9]].iter().enumerate() {
-            let seed = seed as u64 * 10;
-            let x = random([1, d, h, w], seed);
             let layers: [(usize, usize, usize); 4] = [(1, 4, 5), (4, 4, 3), (4, 4, 3), (4, 2, 7)];
-            let weights: Vec<Vec<f32>> = layers
-                .iter()
-                .enumerate()
-                .map(|(i, &(cin, cout, k))| random_values(cout * cin * k * k * k, seed + 1 + i as u64))
-                .collect();
-            let biases: Vec<Vec<f32>> = layers
-                .iter()
-                .enumerate()
-                .map(|(i, &(_, cout, _))| random_values(cout, seed + 5 + i as u64))
-                .collect();
+            let (x, weights, biases) = chain_case(&layers, [d, h, w], seed as u64 * 10);
             let relu = Epilogue { stride: 1, relu: true };
             let mut plain = x.clone();
             for (((_, cout, k), weight), bias) in layers.iter().zip(&weights).zip(&biases) {
@@ -1650,19 +1667,8 @@ pub(crate) mod tests {
             return;
         }
         for (seed, &[d, h, w]) in [[3usize, 4, 101], [2, 3, 49], [2, 5, 9]].iter().enumerate() {
-            let seed = seed as u64 * 10 + 3;
-            let x = random([1, d, h, w], seed);
             let layers: [(usize, usize, usize); 4] = [(1, 4, 5), (4, 4, 3), (4, 4, 3), (4, 2, 3)];
-            let weights: Vec<Vec<f32>> = layers
-                .iter()
-                .enumerate()
-                .map(|(i, &(cin, cout, k))| random_values(cout * cin * k * k * k, seed + 1 + i as u64))
-                .collect();
-            let biases: Vec<Vec<f32>> = layers
-                .iter()
-                .enumerate()
-                .map(|(i, &(_, cout, _))| random_values(cout, seed + 5 + i as u64))
-                .collect();
+            let (x, weights, biases) = chain_case(&layers, [d, h, w], seed as u64 * 10 + 3);
             let relu = Epilogue { stride: 1, relu: true };
             let run = |pairs: bool| {
                 with_precision(Precision::Bf16, || {
