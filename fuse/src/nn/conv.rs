@@ -1179,8 +1179,7 @@ fn conv_k<const K: usize>(
                                     let whole = columns / BLOCK * BLOCK;
                                     let (row_whole, row_rest) = row.split_at_mut(whole);
                                     let (out_whole, out_rest) = out.split_at_mut(whole);
-                                    finish_row(row_whole, accumulate.then_some(&*out_whole), add, relu);
-                                    out_whole.copy_from_slice(row_whole);
+                                    finish_row_into(out_whole, row_whole, accumulate, add, relu);
                                     for (v, sum) in out_rest.iter_mut().zip(row_rest.iter()) {
                                         *v = activate(if accumulate { *v + sum + add } else { sum + add }, relu);
                                     }
@@ -1283,6 +1282,22 @@ fn finish_row(row: &mut [f32], prior: Option<&[f32]>, add: f32, relu: bool) {
             value = value.max(f32x8::ZERO);
         }
         chunk.copy_from_slice(&value.to_array());
+    }
+}
+
+/// [`finish_row`] of `row` written into `out` in the same pass (`out`'s own values the prior
+/// with `accumulate`): the same values, without a copy of the row afterwards.
+fn finish_row_into(out: &mut [f32], row: &[f32], accumulate: bool, add: f32, relu: bool) {
+    let add = f32x8::splat(add);
+    for (o, r) in out.chunks_exact_mut(LANES).zip(row.chunks_exact(LANES)) {
+        let mut value = load(r) + add;
+        if accumulate {
+            value += load(o);
+        }
+        if relu {
+            value = value.max(f32x8::ZERO);
+        }
+        o.copy_from_slice(&value.to_array());
     }
 }
 
