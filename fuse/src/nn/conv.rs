@@ -199,9 +199,6 @@ impl Padded {
     /// The tensor itself, its padding and halos dropped (from channel pairs, each value as its
     /// pair holds it, in bfloat16).
     fn to_tensor(&self) -> Tensor {
-        if self.channel_pairs {
-            return self.channel_pairs_to_tensor();
-        }
         let [_, d, h, w] = self.shape;
         let mut out = Tensor::zeros(self.shape);
         out.data
@@ -209,36 +206,23 @@ impl Padded {
             .enumerate()
             .for_each(|(plane, dst)| {
                 let (cc, z) = (plane / d.max(1), plane % d.max(1));
+                // Channel pairs: channel `2p` in the low halves of row `2p`'s slots, `2p + 1` in
+                // their high halves.
+                let (row_of, high) = if self.channel_pairs {
+                    (cc - cc % 2, cc % 2 == 1)
+                } else {
+                    (cc, false)
+                };
                 for y in 0..h {
                     for (t, x0) in (0..w).step_by(self.step.max(1)).enumerate() {
                         let columns = self.step.min(w - x0);
-                        let at = self.tile_row_start(t, cc, z + self.p, y + self.p) + self.p;
-                        dst[y * w + x0..y * w + x0 + columns].copy_from_slice(&self.data[at..at + columns]);
-                    }
-                }
-            });
-        out
-    }
-
-    /// [`Padded::to_tensor`] of channel pairs: channel `2p` from the low halves of row `2p`'s
-    /// slots, `2p + 1` from their high halves.
-    fn channel_pairs_to_tensor(&self) -> Tensor {
-        let [_, d, h, w] = self.shape;
-        let mut out = Tensor::zeros(self.shape);
-        out.data
-            .par_chunks_mut((h * w).max(1))
-            .enumerate()
-            .for_each(|(plane, dst)| {
-                let (cc, z) = (plane / d.max(1), plane % d.max(1));
-                let high = cc % 2 == 1;
-                for y in 0..h {
-                    for (t, x0) in (0..w).step_by(self.step.max(1)).enumerate() {
-                        let columns = self.step.min(w - x0);
-                        let at = self.tile_row_start(t, cc - cc % 2, z + self.p, y + self.p) + self.p;
-                        for (v, slot) in dst[y * w + x0..y * w + x0 + columns]
-                            .iter_mut()
-                            .zip(&self.data[at..at + columns])
-                        {
+                        let at = self.tile_row_start(t, row_of, z + self.p, y + self.p) + self.p;
+                        let (to, from) = (&mut dst[y * w + x0..y * w + x0 + columns], &self.data[at..at + columns]);
+                        if !self.channel_pairs {
+                            to.copy_from_slice(from);
+                            continue;
+                        }
+                        for (v, slot) in to.iter_mut().zip(from) {
                             let bits = slot.to_bits();
                             *v = f32::from_bits(if high { bits & 0xffff_0000 } else { bits << 16 });
                         }
@@ -1009,10 +993,7 @@ fn conv_k<const K: usize>(
     let tiles = blocks.div_ceil(TILE_BLOCKS);
     let wide = wide_kernel::available();
     let plane = oh * ow;
-    let output_pairs = match output {
-        Output::Padded(next_k, true) => Some(next_k),
-        _ => None,
-    };
+    let pairs_wanted = matches!(output, Output::Padded(_, true));
     let (into, padded_for) = match output {
         Output::Tensor(into) => (into, None),
         // Padded output at stride 1 and of one channel group only (a strided layer's output, or
@@ -1021,7 +1002,7 @@ fn conv_k<const K: usize>(
         Output::Padded(..) => (None, None),
     };
     // Channel pairs for the next layer where it pairs channels (the rule of its own choice).
-    let pairs_out = matches!(output_pairs, Some(next_k) if padded_for == Some(next_k))
+    let pairs_out = pairs_wanted
         && cout.is_multiple_of(2)
         && padded_for.is_some_and(|next_k| effective_precision_for(next_k, cout) == Precision::Bf16);
     // Added into `into` when it has the output's shape (stride 1).
@@ -1105,7 +1086,8 @@ fn conv_k<const K: usize>(
                 // in bfloat16 every tile (a partial one's columns past the tensor are computed and
                 // dropped), the portable loop over the pairs where the kernel declines.
                 let base = padded.tile_row_start(t, 0, z, y);
-                // The input rows an output row `ahead_rows` on reads first, asked for now.
+                // The input rows an output row `PREFETCH_ROWS_AHEAD` rows on reads first, asked
+                // for now.
                 fma_kernel::prefetch_last_rows::<K>(
                     &padded.data,
                     base + PREFETCH_ROWS_AHEAD * stride * padded.channels * padded.row,
