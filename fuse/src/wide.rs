@@ -45,8 +45,21 @@ pub fn host_has_avx512bf16() -> bool {
     detected::avx512bf16()
 }
 
+/// Whether the processor says it is AMD's (CPUID's vendor string `AuthenticAMD`): where a
+/// kernel's best instruction mix differs between vendors of the same instruction set.
+pub fn host_is_amd() -> bool {
+    detected::amd()
+}
+
 #[cfg(target_arch = "x86_64")]
 mod detected {
+    pub(super) fn amd() -> bool {
+        // (CPUID leaf 0 exists on every x86-64 processor.)
+        let id = std::arch::x86_64::__cpuid(0);
+        let vendor = [id.ebx, id.edx, id.ecx].map(u32::to_le_bytes).concat();
+        vendor == *b"AuthenticAMD"
+    }
+
     pub(super) fn avx512f() -> bool {
         std::arch::is_x86_feature_detected!("avx512f")
     }
@@ -64,6 +77,10 @@ mod detected {
 
 #[cfg(not(target_arch = "x86_64"))]
 mod detected {
+    pub(super) fn amd() -> bool {
+        false
+    }
+
     pub(super) fn avx512f() -> bool {
         false
     }

@@ -299,17 +299,19 @@ pub struct MFuseNetConfig {
     /// fraction off (the `bin` grid 0.110 → 0.116 px).
     #[serde(default = "yes")]
     pub thin_parts_every_view: bool,
-    /// The convolutions' products: `"bf16"` (the default: inputs and weights rounded to
-    /// bfloat16, sums in f32, for the 3³–7³ layers where the host has AVX512-BF16, Intel from
-    /// Cooper Lake and AMD from Zen 4; f32 elsewhere), `"int16"` (inputs and weights quantised
-    /// to 16-bit integers, pairs of input channels multiplied by AVX2's `vpmaddwd`, for the
-    /// 3³–7³ layers of two or more input channels, f32 for the rest; `fuse::nn::int16_kernel`:
-    /// the same figures as f32 to the fourth decimal, but no faster than f32 on an AVX2 path,
-    /// whose 3³ layers wait on memory) or `"f32"`. The run's details say which ran. On the
-    /// Middlebury dev scenes and the held-out simulated captures AvgErr and Bad1 are the same
-    /// to the third decimal in bfloat16, the paper's networks 25 % faster
-    /// (`scripts/eval-precision.sh`, docs/benchmarks.md).
-    #[serde(default = "bf16")]
+    /// The convolutions' products: `"auto"` (the default: bfloat16 where the host's bfloat16
+    /// products beat its f32 ones, AMD from Zen 4; f32 elsewhere, Intel's included:
+    /// `fuse::nn::bf16_kernel::preferred`), `"bf16"` (inputs and weights rounded to bfloat16,
+    /// sums in f32, for the 3³–7³ layers wherever the host has AVX512-BF16, Intel from Cooper
+    /// Lake and AMD from Zen 4; f32 elsewhere), `"int16"` (inputs and weights quantised to
+    /// 16-bit integers, pairs of input channels multiplied by AVX2's `vpmaddwd`, for the 3³–7³
+    /// layers of two or more input channels, f32 for the rest; `fuse::nn::int16_kernel`: the
+    /// same figures as f32 to the fourth decimal, but no faster than f32 on an AVX2 path, whose
+    /// 3³ layers wait on memory) or `"f32"`. The run's details say which ran. On the Middlebury
+    /// dev scenes and the held-out simulated captures AvgErr and Bad1 are the same to the third
+    /// decimal in bfloat16, the paper's networks 25 % faster on AMD Zen 4 and 5, 25 % slower on
+    /// a Xeon with AVX512-BF16 (`scripts/eval-precision.sh`, docs/benchmarks.md).
+    #[serde(default = "auto_precision")]
     pub precision: Precision,
 }
 
@@ -346,7 +348,7 @@ impl Default for MFuseNetConfig {
             photometric: Some(crate::photometric::Photometric::default()),
             thin_parts: Some(ThinParts::default()),
             thin_parts_every_view: true,
-            precision: Precision::Bf16,
+            precision: Precision::Auto,
         }
     }
 }
@@ -670,8 +672,8 @@ fn summed_or_error(volumes: &[CostVolume<u8>]) -> Result<CostVolume<u16>, FuseEr
 }
 
 /// [`MFuseNetConfig::precision`]'s default.
-fn bf16() -> Precision {
-    Precision::Bf16
+fn auto_precision() -> Precision {
+    Precision::Auto
 }
 
 /// [`MFuseNetConfig::side_inputs`]' default.
@@ -1385,6 +1387,21 @@ mod tests {
             "f32"
         };
         assert_eq!(bf16_ran, host, "bfloat16 runs where the host has it, f32 elsewhere");
+        // The default takes bfloat16 only where the host prefers it, and says so.
+        let (auto_ran, auto) = run("auto");
+        let preferred = if crate::nn::bf16_kernel::preferred() {
+            "bf16"
+        } else {
+            "f32"
+        };
+        assert_eq!(auto_ran, preferred, "auto: bfloat16 where this host prefers it");
+        assert_eq!(
+            auto.data,
+            if preferred == "bf16" { &rounded } else { &exact }.data,
+            "auto gives what the precision it chose gives"
+        );
+        let default = crate::methods::build("mfusenet", None).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(default.details(&problem)["precision"], preferred);
         let mean = |out: &DisparityImage| {
             let errors = interior_errors(out, 8, 7.0);
             errors.iter().sum::<f32>() / errors.len() as f32

@@ -410,9 +410,15 @@ pub fn release_spares() {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Precision {
-    /// Inputs and weights in f32 (the default; training always).
+    /// Inputs and weights in f32 (training always).
     #[default]
     F32,
+    /// [`Precision::Bf16`] where the host's bfloat16 products are faster than its f32 ones
+    /// ([`bf16_kernel::preferred`]: AMD from Zen 4), else f32 (Intel's `vdpbf16ps` issues
+    /// on one port, so its pairs make no more products per cycle than two FMAs, and the
+    /// rounding costs the rest: the lite network 1.27 s in bfloat16 against 0.95 s in f32 on
+    /// a Xeon with AVX512-BF16; docs/benchmarks.md).
+    Auto,
     /// Inputs and weights rounded to bfloat16, the sums in f32 ([`super::bf16_kernel`]), for the
     /// 3³, 5³ and 7³ layers where the host has AVX512-BF16; elsewhere (and for 1³ layers) f32.
     Bf16,
@@ -448,7 +454,7 @@ pub fn precision() -> Precision {
 }
 
 /// The precision a layer with kernel `k` and `cin` input channels runs in here: bfloat16 where
-/// asked, the kernel has pairs of taps to share (3, 5, 7) and the host has the instructions;
+/// asked (or asked `Auto` on a host that prefers it), the kernel has pairs of taps to share (3, 5, 7) and the host has the instructions;
 /// 16-bit integers where asked, the kernel is 3, 5 or 7 and there are channels to pair.
 pub fn effective_precision_for(k: usize, cin: usize) -> Precision {
     let odd = k >= 3 && k % 2 == 1;
@@ -456,6 +462,7 @@ pub fn effective_precision_for(k: usize, cin: usize) -> Precision {
     let int16 = odd && cin >= 2 && int16_kernel::available();
     match precision() {
         Precision::Bf16 if bf16 => Precision::Bf16,
+        Precision::Auto if bf16 && bf16_kernel::preferred() => Precision::Bf16,
         Precision::Int16 if int16 => Precision::Int16,
         _ => Precision::F32,
     }
