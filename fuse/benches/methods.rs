@@ -422,8 +422,43 @@ fn photometric(c: &mut Criterion) {
     group.finish();
 }
 
+/// MFuseNet's weighted median with votes (its defaults: an 11 × 11 window at step 2) on the
+/// slanted plane's disparities with a little noise (so that the windows' values spread over
+/// bins, as a network's sub-pixel answers do) and a quarter of the votes low.
+fn weighted_median(c: &mut Criterion) {
+    use fuse::postprocess::{WeightedMedian, weighted_median_with_votes};
+    let (width, height) = (640, 360);
+    let problem = problem(width, height, 64);
+    let noise = |i: usize| ((i as f64 * 12.9898).sin() * 43758.5453).fract() as f32 * 0.25;
+    let disparity = fuse::DisparityImage {
+        width,
+        height,
+        data: (0..width * height)
+            .map(|i| 8.0 + 40.0 * (i % width) as f32 / width as f32 + noise(i))
+            .collect(),
+        confidence: None,
+    };
+    let votes: Vec<f32> = (0..width * height)
+        .map(|i| if i % 4 == 0 { 0.05 } else { 1.0 })
+        .collect();
+    let mut group = c.benchmark_group("weighted_median_640x360");
+    group.sample_size(20);
+    group.bench_function("with_votes", |b| {
+        b.iter(|| {
+            black_box(weighted_median_with_votes(
+                &disparity,
+                &problem.reference,
+                &WeightedMedian::default(),
+                Some(&votes),
+            ))
+        })
+    });
+    group.finish();
+}
+
 criterion_group!(
     benches,
+    weighted_median,
     methods,
     mfusenet,
     graph_cuts,

@@ -308,7 +308,7 @@ fn weighted_median_of(
     // eighths of a pixel left dozens of them to sort).
     const BINS_PER_PX: f32 = 64.0;
     const MAX_BINS: f32 = 4096.0;
-    const BLOCK: usize = 32;
+    const BLOCK: usize = MEDIAN_BLOCK;
     let finite = || disparity.data.iter().copied().filter(|v| v.is_finite());
     let (low, high) = (
         finite().fold(f32::INFINITY, f32::min),
@@ -330,8 +330,6 @@ fn weighted_median_of(
         .collect();
     let mut data = disparity.data.clone();
     data.par_chunks_mut(w).enumerate().for_each(|(y, out)| {
-        // The window's (value, weight, bin), in the window's order.
-        let mut window: Vec<(f32, f32, u16)> = Vec::with_capacity(side * side);
         let mut sums = vec![0.0f32; bins];
         let mut block_sums = vec![0.0f32; bins.div_ceil(BLOCK)];
         let mut chosen: Vec<(f32, f32)> = Vec::new();
@@ -352,39 +350,59 @@ fn weighted_median_of(
             }
             let (left, right) = ks(x, w);
             let centre = &centre_row[x * c..(x + 1) * c];
-            window.clear();
-            for ky in reach - up..=reach + down {
+            // The weights summed into their bins and blocks as they are gathered (in the
+            // window's order), with the lowest and highest bin: the blocks below the lowest are
+            // empty, so the search for the median starts there, and the bins between the two
+            // are all that is cleared after.
+            let mut acc = Accumulated {
+                sums: &mut sums,
+                block_sums: &mut block_sums,
+                total: 0.0,
+                lowest: u16::MAX,
+                highest: 0,
+            };
+            let rows = reach - up..=reach + down;
+            let row = |ky: usize| {
                 let yy = y + ky * step - reach * step;
                 let first = yy * w + x - left * step;
-                let spaced = &space[ky * side + reach - left..=ky * side + reach + right];
+                (first, &space[ky * side + reach - left..=ky * side + reach + right])
+            };
+            for ky in rows.clone() {
+                let (first, spaced) = row(ky);
+                let add = |_: f32, weight: f32, b: u16| acc.add(weight, b);
                 match c {
-                    3 => gather::<3>(centre, &sources, first, step, spaced, &mut window),
-                    _ => gather::<1>(centre, &sources, first, step, spaced, &mut window),
+                    3 => visit::<3>(centre, &sources, (first, step), spaced, None, add),
+                    _ => visit::<1>(centre, &sources, (first, step), spaced, None, add),
                 }
             }
-            let mut total = 0.0f32;
-            for &(_, weight, b) in &window {
-                let b = usize::from(b);
-                total += weight;
-                sums[b] += weight;
-                block_sums[b / BLOCK] += weight;
-            }
+            let (total, lowest, highest) = (acc.total, usize::from(acc.lowest), usize::from(acc.highest));
             // The bin where the running sum reaches half the total, and the sum below it; none
             // when the window has no weight (every vote 0): the pixel keeps its value.
             let half = 0.5 * total;
             let median = (total > 0.0).then(|| {
-                let (block, below) = reaching(&block_sums, 0.0, half);
+                let skipped = lowest / BLOCK;
+                let (block, below) = reaching(&block_sums[skipped..], 0.0, half);
+                let block = skipped + block;
                 let first = block * BLOCK;
                 let (b, below) = reaching(&sums[first..(first + BLOCK).min(bins)], below, half);
                 (first + b, below)
             });
+            if lowest <= highest {
+                sums[lowest..=highest].fill(0.0);
+                block_sums[lowest / BLOCK..=highest / BLOCK].fill(0.0);
+            }
+            // The median bin's values with their weights, gathered again in the window's order
+            // (the same weights: the same arithmetic).
             chosen.clear();
-            for &(v, weight, b) in &window {
-                let b = usize::from(b);
-                sums[b] = 0.0;
-                block_sums[b / BLOCK] = 0.0;
-                if median.is_some_and(|(m, _)| m == b) {
-                    chosen.push((v, weight));
+            if let Some((m, _)) = median {
+                let m = m as u16;
+                for ky in rows {
+                    let (first, spaced) = row(ky);
+                    let keep = |v: f32, weight: f32, _: u16| chosen.push((v, weight));
+                    match c {
+                        3 => visit::<3>(centre, &sources, (first, step), spaced, Some(m), keep),
+                        _ => visit::<1>(centre, &sources, (first, step), spaced, Some(m), keep),
+                    }
                 }
             }
             if let Some((_, mut sum)) = median {
@@ -438,17 +456,41 @@ struct Sources<'a> {
     colour: &'a [f32],
 }
 
-/// Appends one window row's finite values with their weights (the colour table at the summed
-/// channel difference from `centre`, times the row's spatial weights, times the votes) and bins
-/// to `window`: pixels `first`, `first + step`, … (one per entry of `spaced`).
-#[inline]
-fn gather<const C: usize>(
+/// A weighted median window's weights summed by bin and by block of bins as they are gathered,
+/// their total and the lowest and highest bins holding one.
+struct Accumulated<'a> {
+    sums: &'a mut [f32],
+    block_sums: &'a mut [f32],
+    total: f32,
+    lowest: u16,
+    highest: u16,
+}
+
+impl Accumulated<'_> {
+    /// Adds `weight` to bin `b`.
+    #[inline(always)]
+    fn add(&mut self, weight: f32, b: u16) {
+        let i = usize::from(b);
+        self.total += weight;
+        self.sums[i] += weight;
+        self.block_sums[i / MEDIAN_BLOCK] += weight;
+        self.lowest = self.lowest.min(b);
+        self.highest = self.highest.max(b);
+    }
+}
+
+/// Calls `f(value, weight, bin)` for one window row's finite values (those of bin `only` where
+/// given), in order: pixels `first`, `first + step`, … (one per entry of `spaced`), each weight
+/// the colour table at the summed channel difference from `centre`, times the row's spatial
+/// weight, times the vote.
+#[inline(always)]
+fn visit<const C: usize>(
     centre: &[u8],
     sources: &Sources<'_>,
-    first: usize,
-    step: usize,
+    (first, step): (usize, usize),
     spaced: &[f32],
-    window: &mut Vec<(f32, f32, u16)>,
+    only: Option<u16>,
+    mut f: impl FnMut(f32, f32, u16),
 ) {
     let centre: [u8; C] = std::array::from_fn(|k| centre[k]);
     let n = spaced.len();
@@ -465,14 +507,17 @@ fn gather<const C: usize>(
     let colours = &sources.colours[first * C..(last + 1) * C];
     for (j, &space) in spaced.iter().enumerate() {
         let i = j * step;
-        let v = values[i];
-        if v.is_finite() {
+        let (v, b) = (values[i], bins[i]);
+        if v.is_finite() && only.is_none_or(|only| only == b) {
             let pixel = &colours[i * C..i * C + C];
             let diff: usize = (0..C).map(|k| centre[k].abs_diff(pixel[k]) as usize).sum();
-            window.push((v, sources.colour[diff] * space * votes[i], bins[i]));
+            f(v, sources.colour[diff] * space * votes[i], b);
         }
     }
 }
+
+/// Bins per block of the weighted median's two-level search for its bin.
+const MEDIAN_BLOCK: usize = 32;
 
 /// Pixels a lane-wise median network handles at once (8 f32 lanes: one AVX2 register).
 const MEDIAN_LANES: usize = 8;
