@@ -1381,19 +1381,12 @@ mod tests {
         let (f32_ran, exact) = run("f32");
         assert_eq!(f32_ran, "f32");
         let (bf16_ran, rounded) = run("bf16");
-        let host = if crate::nn::bf16_kernel::available() {
-            "bf16"
-        } else {
-            "f32"
-        };
+        let bf16_if = |yes: bool| if yes { "bf16" } else { "f32" };
+        let host = bf16_if(crate::nn::bf16_kernel::available());
         assert_eq!(bf16_ran, host, "bfloat16 runs where the host has it, f32 elsewhere");
         // The default takes bfloat16 only where the host prefers it, and says so.
         let (auto_ran, auto) = run("auto");
-        let preferred = if crate::nn::bf16_kernel::preferred() {
-            "bf16"
-        } else {
-            "f32"
-        };
+        let preferred = bf16_if(crate::nn::bf16_kernel::preferred());
         assert_eq!(auto_ran, preferred, "auto: bfloat16 where this host prefers it");
         assert_eq!(
             auto.data,
