@@ -54,10 +54,14 @@ pub fn host_is_amd() -> bool {
 #[cfg(target_arch = "x86_64")]
 mod detected {
     pub(super) fn amd() -> bool {
-        // (CPUID leaf 0 exists on every x86-64 processor.)
-        let id = std::arch::x86_64::__cpuid(0);
-        let vendor = [id.ebx, id.edx, id.ecx].map(u32::to_le_bytes).concat();
-        vendor == *b"AuthenticAMD"
+        // Asked once: every convolution asks, and on a virtual machine each CPUID traps to the
+        // hypervisor. (Leaf 0 exists on every x86-64 processor.)
+        static AMD: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+        *AMD.get_or_init(|| {
+            let id = std::arch::x86_64::__cpuid(0);
+            let vendor = [id.ebx, id.edx, id.ecx].map(u32::to_le_bytes).concat();
+            vendor == *b"AuthenticAMD"
+        })
     }
 
     pub(super) fn avx512f() -> bool {

@@ -454,8 +454,9 @@ pub fn precision() -> Precision {
 }
 
 /// The precision a layer with kernel `k` and `cin` input channels runs in here: bfloat16 where
-/// asked (or asked `Auto` on a host that prefers it), the kernel has pairs of taps to share (3, 5, 7) and the host has the instructions;
-/// 16-bit integers where asked, the kernel is 3, 5 or 7 and there are channels to pair.
+/// asked (or asked `Auto` on a host that prefers it), the kernel has pairs of taps to share (3,
+/// 5, 7) and the host has the instructions; 16-bit integers where asked, the kernel is 3, 5 or 7
+/// and there are channels to pair.
 pub fn effective_precision_for(k: usize, cin: usize) -> Precision {
     let odd = k >= 3 && k % 2 == 1;
     let bf16 = odd && bf16_kernel::available();
