@@ -20,7 +20,7 @@ use rayon::prelude::*;
 
 use crate::cost::INVALID_COST;
 use crate::volume::{BandScratch, CostVolume, PreparedProblem, VolumeSource};
-use crate::wta::{SubpixelFit, winner_take_all_confident};
+use crate::wta::{SubpixelFit, winner_take_all, winner_take_all_confident};
 
 /// Scales costs so that the sum of eight paths fits `u16`: returns the right shift to apply.
 pub fn cost_shift(max_cost: u32, p2: u32) -> u32 {
@@ -201,13 +201,22 @@ pub(crate) fn select(
         height,
         nd: num_disparities,
     };
-    select_from(
-        Costs::Stored(volume),
-        geometry,
-        &penalties,
-        (min_disparity, subpixel),
-        &|_| {},
-    )
+    let pick = Pick {
+        min_disparity,
+        subpixel,
+        confidence: true,
+    };
+    select_from(Costs::Stored(volume), geometry, &penalties, pick, &|_| {})
+}
+
+/// How the last pass picks each pixel's winner: the first slice's disparity, the sub-pixel fit,
+/// and whether it also rates the winner ([`crate::wta::peak_confidence`]; without, the
+/// confidences returned are all 0).
+#[derive(Debug, Clone, Copy)]
+struct Pick {
+    min_disparity: i32,
+    subpixel: Option<SubpixelFit>,
+    confidence: bool,
 }
 
 /// [`select`] over the costs `costs` of `geometry`, in bands of [`SELECT_BAND_ROWS`];
@@ -216,7 +225,7 @@ fn select_from(
     costs: Costs<'_>,
     geometry: Geometry,
     penalties: &Penalties,
-    pick: (i32, Option<SubpixelFit>),
+    pick: Pick,
     on_band: &dyn Fn(f32),
 ) -> (Vec<f32>, Vec<f32>) {
     let bands = (SELECT_BAND_ROWS, Some(SELECT_WARMUP_ROWS));
@@ -250,7 +259,7 @@ fn select_in_bands(
     costs: Costs<'_>,
     geometry: Geometry,
     penalties: &Penalties,
-    (min_disparity, subpixel): (i32, Option<SubpixelFit>),
+    pick: Pick,
     (band_rows, warmup_rows): (usize, Option<usize>),
     on_band: &dyn Fn(f32),
 ) -> (Vec<f32>, Vec<f32>) {
@@ -380,8 +389,7 @@ fn select_in_bands(
         };
         vertical_pass(sweep, Some(&mut *band_sums), None, resume, &mut scratch);
         let mut selection = Selection {
-            min_disparity,
-            subpixel,
+            pick,
             out: &mut out[2 * band.start * width..2 * band.end * width],
         };
         let resume = (index + 1 < bands.len()).then_some(&below);
@@ -421,13 +429,15 @@ fn make_rows(prepared: &PreparedProblem, shift: u32, rows: Range<usize>, out: &m
 }
 
 /// [`select_volume`] of `prepared`'s fused volume quantised by `shift`, without that volume
-/// (as [`aggregate_prepared`]): the same disparities and confidences as [`select_volume`].
+/// (as [`aggregate_prepared`]): the same disparities and confidences as [`select_volume`], or
+/// with `confidence` false the same disparities and every confidence 0 (the winners not rated).
 /// `on_band` gets the fraction of the rows done after each band of 128 (for a progress bar).
 pub fn select_prepared(
     prepared: &PreparedProblem,
     shift: u32,
     (p1, p2): (u16, u16),
     subpixel: Option<SubpixelFit>,
+    confidence: bool,
     on_band: &dyn Fn(f32),
 ) -> (Vec<f32>, Vec<f32>) {
     let penalties = Penalties::new(prepared.quantised_max_cost(shift), p1, p2);
@@ -436,13 +446,12 @@ pub fn select_prepared(
         height: prepared.height(),
         nd: prepared.num_disparities(),
     };
-    select_from(
-        Costs::Made { prepared, shift },
-        geometry,
-        &penalties,
-        (prepared.min_disparity(), subpixel),
-        on_band,
-    )
+    let pick = Pick {
+        min_disparity: prepared.min_disparity(),
+        subpixel,
+        confidence,
+    };
+    select_from(Costs::Made { prepared, shift }, geometry, &penalties, pick, on_band)
 }
 
 /// SGM's winners on a [`CostVolume`] (quantised costs; its `max_cost` bounds the valid ones, its
@@ -466,8 +475,7 @@ pub fn select_volume(
 
 /// Where the last pass puts the winners instead of the sums.
 struct Selection<'a> {
-    min_disparity: i32,
-    subpixel: Option<SubpixelFit>,
+    pick: Pick,
     /// Per pixel (`[y][x]`), its disparity and its confidence.
     out: &'a mut [f32],
 }
@@ -674,7 +682,7 @@ fn vertical_pass(
             blocks.push((row_index, saved));
         }
     }
-    let pick = selection.as_ref().map(|s| (s.min_disparity, s.subpixel));
+    let pick = selection.as_ref().map(|s| s.pick);
     let mut winner_blocks: Vec<Vec<&mut [f32]>> = (0..workers).map(|_| Vec::new()).collect();
     if let Some(selection) = selection {
         for row in selection.out.chunks_mut(2 * width) {
@@ -770,7 +778,7 @@ struct BlockJob<'a> {
     geometry: Geometry,
     penalties: &'a Penalties,
     downward: bool,
-    pick: Option<(i32, Option<SubpixelFit>)>,
+    pick: Option<Pick>,
     columns: Range<usize>,
     worker: usize,
     exchange: &'a Exchange,
@@ -872,12 +880,18 @@ impl BlockJob<'_> {
                 };
                 let sum_cell = &mut sum_row[i * nd..(i + 1) * nd];
                 match self.pick {
-                    Some((min_disparity, subpixel)) => {
+                    Some(pick) => {
                         for ((((t, s), a), b), c) in total.iter_mut().zip(&*sum_cell).zip(a).zip(b).zip(c) {
                             *t = s.saturating_add(*a + *b + *c);
                         }
                         let (disparity, confidence) = winners[y][2 * i..2 * i + 2].split_at_mut(1);
-                        winner_take_all_confident(&total, nd, min_disparity, subpixel, disparity, confidence);
+                        let (min_disparity, subpixel) = (pick.min_disparity, pick.subpixel);
+                        if pick.confidence {
+                            winner_take_all_confident(&total, nd, min_disparity, subpixel, disparity, confidence);
+                        } else {
+                            winner_take_all(&total, nd, min_disparity, subpixel, disparity);
+                            confidence[0] = 0.0;
+                        }
                     }
                     None => {
                         for (((s, a), b), c) in sum_cell.iter_mut().zip(a).zip(b).zip(c) {
@@ -1289,12 +1303,34 @@ mod tests {
                         let penalties = Penalties::new(max_cost, 40, 400);
                         let costs = Costs::Stored(&volume);
                         check(
-                            select_in_bands(costs, geometry, &penalties, (3, fit), (band_rows, None), &|_| {}),
+                            select_in_bands(
+                                costs,
+                                geometry,
+                                &penalties,
+                                Pick {
+                                    min_disparity: 3,
+                                    subpixel: fit,
+                                    confidence: true,
+                                },
+                                (band_rows, None),
+                                &|_| {},
+                            ),
                             band_rows,
                         );
                         // Warmed up from the first row: the exact paths.
                         check(
-                            select_in_bands(costs, geometry, &penalties, (3, fit), (band_rows, Some(h)), &|_| {}),
+                            select_in_bands(
+                                costs,
+                                geometry,
+                                &penalties,
+                                Pick {
+                                    min_disparity: 3,
+                                    subpixel: fit,
+                                    confidence: true,
+                                },
+                                (band_rows, Some(h)),
+                                &|_| {},
+                            ),
                             band_rows,
                         );
                     }
@@ -1329,8 +1365,30 @@ mod tests {
         let penalties = Penalties::new(250, 10, 120);
         let costs = Costs::Stored(&volume);
         let fit = Some(SubpixelFit::Parabola);
-        let (exact, _) = select_in_bands(costs, geometry, &penalties, (0, fit), (32, None), &|_| {});
-        let (warmed, _) = select_in_bands(costs, geometry, &penalties, (0, fit), (32, Some(32)), &|_| {});
+        let (exact, _) = select_in_bands(
+            costs,
+            geometry,
+            &penalties,
+            Pick {
+                min_disparity: 0,
+                subpixel: fit,
+                confidence: true,
+            },
+            (32, None),
+            &|_| {},
+        );
+        let (warmed, _) = select_in_bands(
+            costs,
+            geometry,
+            &penalties,
+            Pick {
+                min_disparity: 0,
+                subpixel: fit,
+                confidence: true,
+            },
+            (32, Some(32)),
+            &|_| {},
+        );
         let moved = exact
             .iter()
             .zip(&warmed)
@@ -1451,7 +1509,10 @@ mod tests {
                 assert!(made.data == expected.data, "sums differ");
             }
             let fit = Some(SubpixelFit::Equiangular);
-            let (disparity, confidence) = select_prepared(&prepared, shift, penalties, fit, &|_| {});
+            let (disparity, confidence) = select_prepared(&prepared, shift, penalties, fit, true, &|_| {});
+            // Without the confidence: the same winners, none rated.
+            let (unrated, zeros) = select_prepared(&prepared, shift, penalties, fit, false, &|_| {});
+            assert!(unrated == disparity && zeros.iter().all(|&c| c == 0.0));
             let (expected_disparity, expected_confidence) = select_volume(&stored, penalties, fit);
             assert!(disparity == expected_disparity && confidence == expected_confidence);
             // The scene: a plane at 5 px.

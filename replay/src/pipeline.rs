@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 use std::time::Instant;
 
-use fuse::methods::Method;
+use fuse::methods::{Method, Needs};
 use fuse::{DisparityImage, Problem};
 use serde::Serialize;
 
@@ -176,21 +176,24 @@ impl<'a> PreparedSet<'a> {
 
     /// Runs a method and evaluates it; `progress` gets the fraction done.
     pub fn run(&self, method: &dyn Method, progress: &(dyn Fn(f32) + Sync)) -> Result<MethodResult, ReplayError> {
-        let mut result = self.run_unevaluated(method, progress)?;
+        let mut result = self.run_unevaluated(method, Needs::ALL, progress)?;
         result.regions = self.evaluate(&result.disparity);
         Ok(result)
     }
 
     /// Runs a method without evaluating it (`regions` is `None`): `replay LOG` evaluates while
-    /// it writes the result files ([`crate::outputs::write_set_outputs_evaluating`]).
+    /// it writes the result files ([`crate::outputs::write_set_outputs_evaluating`]). `needs`
+    /// says what of the result is read besides the disparities (a method may then skip its
+    /// confidence: [`Method::run_for`]).
     pub fn run_unevaluated(
         &self,
         method: &dyn Method,
+        needs: Needs,
         progress: &(dyn Fn(f32) + Sync),
     ) -> Result<MethodResult, ReplayError> {
         let started = Instant::now();
         let disparity = method
-            .run(&self.problem, progress)
+            .run_for(&self.problem, needs, progress)
             .map_err(|source| ReplayError::Fuse {
                 set: self.set.index,
                 source,

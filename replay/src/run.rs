@@ -6,7 +6,7 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use fuse::methods::Method;
+use fuse::methods::{Method, Needs};
 use tracing::{debug, error, info, warn};
 use viz::stream::{Viewer, ViewerSink, VizError};
 
@@ -285,7 +285,15 @@ pub fn replay_log(
                 prepared.min_disparity,
                 prepared.problem.end_disparity()
             ));
-            let run = prepared.run_unevaluated(method.as_ref(), &|fraction| bar.set(fraction));
+            // The confidence where something reads it: its files, the evaluation's
+            // sparsification curves, the viewer, the result log.
+            let needs = Needs {
+                confidence: request.outputs.confidence
+                    || prepared.truth().is_some()
+                    || viewer.viewer.is_some()
+                    || result_log.is_some(),
+            };
+            let run = prepared.run_unevaluated(method.as_ref(), needs, &|fraction| bar.set(fraction));
             drop(bar);
             let mut result = match run {
                 Ok(result) => result,

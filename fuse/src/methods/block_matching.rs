@@ -6,14 +6,14 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::{Family, Method, MethodEntry, Progress, configure};
+use super::{Family, Method, MethodEntry, Needs, Progress, configure};
 use crate::FuseError;
 use crate::cost::PixelCost;
 use crate::fusion::{Fusion, SideRule};
 use crate::image::DisparityImage;
 use crate::postprocess::{WeightedMedian, weighted_median};
 use crate::volume::{BandScratch, CostSpec, PreparedProblem, Problem, band_rows};
-use crate::wta::{SubpixelFit, winner_take_all_confident};
+use crate::wta::{SubpixelFit, winner_take_all, winner_take_all_confident};
 
 /// Configuration of block matching.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -97,6 +97,10 @@ impl Method for BlockMatching {
     super::name_and_config!();
 
     fn run(&self, problem: &Problem, progress: Progress<'_>) -> Result<DisparityImage, FuseError> {
+        self.run_for(problem, Needs::ALL, progress)
+    }
+
+    fn run_for(&self, problem: &Problem, needs: Needs, progress: Progress<'_>) -> Result<DisparityImage, FuseError> {
         // Luma: the views converted once, before the search lines are laid out.
         let grey;
         let problem = if self.config.colour || problem.reference.channels == 1 {
@@ -112,12 +116,22 @@ impl Method for BlockMatching {
         let prepared = PreparedProblem::new(problem, spec, self.config.fusion)?.with_side_rule(self.config.side_rule);
         let (w, h, nd) = (prepared.width(), prepared.height(), prepared.num_disparities());
         let mut data = vec![f32::INFINITY; w * h];
-        let mut confidence = vec![0.0f32; w * h];
         let band = band_rows(h);
         let bands = h.div_ceil(band);
+        // Without the confidence, no buffer: each band's share of it is empty.
+        let mut confidence = if needs.confidence {
+            vec![0.0f32; w * h]
+        } else {
+            Vec::new()
+        };
+        let mut sure_bands: Vec<&mut [f32]> = if needs.confidence {
+            confidence.chunks_mut(band * w).collect()
+        } else {
+            (0..bands).map(|_| <&mut [f32]>::default()).collect()
+        };
         let done = AtomicUsize::new(0);
         data.par_chunks_mut(band * w)
-            .zip(confidence.par_chunks_mut(band * w))
+            .zip(sure_bands.par_iter_mut())
             .enumerate()
             .for_each_init(BandScratch::default, |buffers, (index, (out, sure))| {
                 let start = index * band;
@@ -126,14 +140,14 @@ impl Method for BlockMatching {
                 prepared.fused_band_with(rows, buffers, &mut |y, x_start, costs| {
                     let at = (y - start) * w + x_start;
                     let pixels = costs.len() / nd;
-                    winner_take_all_confident(
-                        costs,
-                        nd,
-                        problem.min_disparity,
-                        self.config.subpixel.then_some(self.config.subpixel_fit),
-                        &mut out[at..at + pixels],
-                        &mut sure[at..at + pixels],
-                    );
+                    let subpixel = self.config.subpixel.then_some(self.config.subpixel_fit);
+                    let out = &mut out[at..at + pixels];
+                    match sure.get_mut(at..at + pixels) {
+                        Some(sure) => {
+                            winner_take_all_confident(costs, nd, problem.min_disparity, subpixel, out, sure);
+                        }
+                        None => winner_take_all(costs, nd, problem.min_disparity, subpixel, out),
+                    }
                 });
                 progress((done.fetch_add(1, Ordering::Relaxed) + 1) as f32 / bands as f32);
             });
@@ -141,7 +155,7 @@ impl Method for BlockMatching {
             width: w,
             height: h,
             data,
-            confidence: Some(confidence),
+            confidence: needs.confidence.then_some(confidence),
         };
         if self.config.fill_invalid {
             disparity.fill_invalid_from_row_neighbours();
@@ -245,5 +259,11 @@ mod tests {
         let colour_off = inner(&colour).iter().filter(|d| (**d - 5.0).abs() > 0.5).count();
         assert_eq!(colour_off, 0, "colour: {:?}", inner(&colour));
         assert_ne!(on_luma, colour, "luma and colour gave one answer");
+        // Asked for the disparities alone: the same ones, no confidence.
+        let alone = BlockMatching::new("bm-heuristic", BlockMatchingConfig::default())
+            .run_for(&problem, Needs::DISPARITY, &|_| {})
+            .unwrap_or_else(|e| panic!("{e}"));
+        assert!(alone.data == colour.data && alone.confidence.is_none());
+        assert!(colour.confidence.is_some());
     }
 }

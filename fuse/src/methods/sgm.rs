@@ -4,7 +4,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 
 use serde::{Deserialize, Serialize};
 
-use super::{Family, Method, MethodEntry, Progress, configure};
+use super::{Family, Method, MethodEntry, Needs, Progress, configure};
 use crate::FuseError;
 use crate::cost::PixelCost;
 use crate::fusion::{Fusion, SideRule};
@@ -112,6 +112,10 @@ impl Method for Sgm {
     super::name_and_config!();
 
     fn run(&self, problem: &Problem, progress: Progress<'_>) -> Result<DisparityImage, FuseError> {
+        self.run_for(problem, Needs::ALL, progress)
+    }
+
+    fn run_for(&self, problem: &Problem, needs: Needs, progress: Progress<'_>) -> Result<DisparityImage, FuseError> {
         let spec = CostSpec {
             pixel: self.config.cost,
             block_radius_px: self.config.block_radius_px,
@@ -128,7 +132,10 @@ impl Method for Sgm {
         );
         let subpixel = self.config.subpixel.then_some(self.config.subpixel_fit);
         let (data, confidence) = if self.config.costs_in_passes {
-            select_prepared(&prepared, shift, (p1, p2), subpixel, &|done| progress(0.95 * done))
+            let confidence = needs.confidence;
+            select_prepared(&prepared, shift, (p1, p2), subpixel, confidence, &|done| {
+                progress(0.95 * done);
+            })
         } else {
             let volume = prepared.fused_volume(shift, &|| {
                 progress(0.5 * (done.fetch_add(1, Ordering::Relaxed) + 1) as f32 / bands as f32);
@@ -140,7 +147,7 @@ impl Method for Sgm {
             width: w,
             height: h,
             data,
-            confidence: Some(confidence),
+            confidence: needs.confidence.then_some(confidence),
         };
         disparity.fill_invalid_from_row_neighbours();
         if self.config.median {
@@ -248,6 +255,16 @@ mod tests {
         assert_eq!(progress.last(), Some(&1.0), "{progress:?}");
         let inside = stored.data[70 * w + 150];
         assert!((inside - 4.0).abs() < 0.5, "{inside}");
+        // Asked for the disparities alone: the same ones, no confidence.
+        let method = Sgm {
+            name: "sgm-heuristic",
+            config: SgmConfig::default(),
+        };
+        let alone = method
+            .run_for(&problem, Needs::DISPARITY, &|_| {})
+            .unwrap_or_else(|e| panic!("{e}"));
+        assert!(alone.data == made.data && alone.confidence.is_none());
+        assert!(made.confidence.is_some());
     }
 
     #[test]
