@@ -1419,7 +1419,7 @@ mod tests {
         }
         let sum = aggregate_volume(&as_volume(&volume, [w, h, nd], 20), 3, 12).data;
         let mut disparity = vec![0.0f32; w * h];
-        crate::wta::winner_take_all(&sum, nd, 0, None, &mut disparity);
+        winner_take_all(&sum, nd, 0, None, &mut disparity);
         assert!(disparity.iter().all(|d| *d == 2.0), "{disparity:?}");
     }
 
