@@ -1294,6 +1294,11 @@ mod tests {
                     let fit = Some(SubpixelFit::Parabola);
                     check(select(&volume, w, h, nd, max_cost, (40, 400), 3, fit), SELECT_BAND_ROWS);
                     // Bands of one row, of two, and bands that end inside the image.
+                    let pick = Pick {
+                        min_disparity: 3,
+                        subpixel: fit,
+                        confidence: true,
+                    };
                     for band_rows in [1, 2, 4] {
                         let geometry = Geometry {
                             width: w,
@@ -1303,34 +1308,12 @@ mod tests {
                         let penalties = Penalties::new(max_cost, 40, 400);
                         let costs = Costs::Stored(&volume);
                         check(
-                            select_in_bands(
-                                costs,
-                                geometry,
-                                &penalties,
-                                Pick {
-                                    min_disparity: 3,
-                                    subpixel: fit,
-                                    confidence: true,
-                                },
-                                (band_rows, None),
-                                &|_| {},
-                            ),
+                            select_in_bands(costs, geometry, &penalties, pick, (band_rows, None), &|_| {}),
                             band_rows,
                         );
                         // Warmed up from the first row: the exact paths.
                         check(
-                            select_in_bands(
-                                costs,
-                                geometry,
-                                &penalties,
-                                Pick {
-                                    min_disparity: 3,
-                                    subpixel: fit,
-                                    confidence: true,
-                                },
-                                (band_rows, Some(h)),
-                                &|_| {},
-                            ),
+                            select_in_bands(costs, geometry, &penalties, pick, (band_rows, Some(h)), &|_| {}),
                             band_rows,
                         );
                     }
@@ -1364,31 +1347,13 @@ mod tests {
         };
         let penalties = Penalties::new(250, 10, 120);
         let costs = Costs::Stored(&volume);
-        let fit = Some(SubpixelFit::Parabola);
-        let (exact, _) = select_in_bands(
-            costs,
-            geometry,
-            &penalties,
-            Pick {
-                min_disparity: 0,
-                subpixel: fit,
-                confidence: true,
-            },
-            (32, None),
-            &|_| {},
-        );
-        let (warmed, _) = select_in_bands(
-            costs,
-            geometry,
-            &penalties,
-            Pick {
-                min_disparity: 0,
-                subpixel: fit,
-                confidence: true,
-            },
-            (32, Some(32)),
-            &|_| {},
-        );
+        let pick = Pick {
+            min_disparity: 0,
+            subpixel: Some(SubpixelFit::Parabola),
+            confidence: true,
+        };
+        let (exact, _) = select_in_bands(costs, geometry, &penalties, pick, (32, None), &|_| {});
+        let (warmed, _) = select_in_bands(costs, geometry, &penalties, pick, (32, Some(32)), &|_| {});
         let moved = exact
             .iter()
             .zip(&warmed)
