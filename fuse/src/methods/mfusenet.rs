@@ -489,6 +489,11 @@ impl Method for MFuseNet {
             // instructions).
             let precision = conv::with_precision(self.config.precision, || conv::effective_precision(3));
             map.insert("precision".into(), serde_json::json!(precision));
+            // The 7³ layers' own where they differ (`auto` on Intel's matrix unit: bfloat16 there).
+            let wide_kernels = conv::with_precision(self.config.precision, || conv::effective_precision(7));
+            if wide_kernels != precision {
+                map.insert("precision_7x7x7".into(), serde_json::json!(wide_kernels));
+            }
         }
         details
     }

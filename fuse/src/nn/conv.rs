@@ -33,6 +33,7 @@ use rayon::prelude::*;
 use wide::f32x8;
 
 use super::Tensor;
+use super::amx_kernel;
 use super::bf16_kernel;
 use super::fma_kernel::{self, ACCUMULATORS};
 use super::int16_kernel;
@@ -414,10 +415,13 @@ pub enum Precision {
     #[default]
     F32,
     /// [`Precision::Bf16`] where the host's bfloat16 products are faster than its f32 ones
-    /// ([`bf16_kernel::preferred`]: AMD from Zen 4), else f32 (Intel's `vdpbf16ps` issues
-    /// on one port, so its pairs make no more products per cycle than two FMAs, and the
-    /// rounding costs the rest: the lite network 1.27 s in bfloat16 against 0.95 s in f32 on
-    /// a Xeon with AVX512-BF16; docs/benchmarks.md).
+    /// ([`bf16_kernel::preferred`]: AMD from Zen 4); on a host with Intel's matrix unit
+    /// ([`super::amx_kernel`]) for the 5³ and 7³ layers of an even number of input channels
+    /// (the paper networks' Middlebury scene 2.6 → 1.8 s on a Xeon); else f32 (Intel's
+    /// `vdpbf16ps` issues on one port, so its pairs make no more products per cycle than two
+    /// FMAs, and the rounding costs the rest: the lite network 1.27 s in bfloat16 against
+    /// 0.95 s in f32 on a Xeon with AVX512-BF16, and its 3³ layers no faster on the matrix unit,
+    /// whose loads wait on every row outside L1; docs/benchmarks.md).
     Auto,
     /// Inputs and weights rounded to bfloat16, the sums in f32 ([`super::bf16_kernel`]), for the
     /// 3³, 5³ and 7³ layers where the host has AVX512-BF16; elsewhere (and for 1³ layers) f32.
@@ -464,6 +468,11 @@ pub fn effective_precision_for(k: usize, cin: usize) -> Precision {
     match precision() {
         Precision::Bf16 if bf16 => Precision::Bf16,
         Precision::Auto if bf16 && bf16_kernel::preferred() => Precision::Bf16,
+        // Channel pairs of the 5³ and 7³ layers on the matrix unit (a single channel's pairs of
+        // taps, and the 3³ layers, stay in f32 there).
+        Precision::Auto if bf16 && k >= amx_kernel::MIN_KERNEL && cin.is_multiple_of(2) && amx_kernel::available() => {
+            Precision::Bf16
+        }
         Precision::Int16 if int16 => Precision::Int16,
         _ => Precision::F32,
     }
@@ -963,6 +972,17 @@ fn conv_k<const K: usize>(
     } else {
         cin * K * K * bf16_kernel::pairs_per_row(K) * GROUP
     };
+    // The channel pairs' weights as the matrix unit's tiles, one per input row, where it runs.
+    let amx = bf16_channels && amx_kernel::available();
+    let amx_tiles_per_group = cin.div_ceil(2) * K * K * amx_kernel::tile_len(K);
+    let amx_tiles: Vec<f32> = if amx {
+        pair_weights
+            .chunks_exact(pair_weights_per_group.max(1))
+            .flat_map(|group| amx_kernel::pack_weights::<K>(group, cin.div_ceil(2) * K * K))
+            .collect()
+    } else {
+        Vec::new()
+    };
     // Per group, the weights as quantised pairs of input channels, and the table of each pair's
     // `K²` rows (the even channel's rows, which hold the pairs).
     let int16_weights: Vec<int16_kernel::PairWeights> = if int16 {
@@ -1086,6 +1106,10 @@ fn conv_k<const K: usize>(
         // A whole tile's sums on 512-bit vectors, `[o][column]`, every value written by each
         // call (no zeroing or copying per row).
         let mut pair = [0f32; GROUP * TILE_BLOCKS * BLOCK];
+        // On the matrix unit, four output rows' sums at once ([`amx_kernel::ROWS_AT_ONCE`]):
+        // the rows `ahead_from + i · stride`, handed out one by one.
+        let mut ahead = [[0f32; GROUP * TILE_BLOCKS * BLOCK]; amx_kernel::ROWS_AT_ONCE];
+        let mut ahead_from = None;
         for t in 0..tiles {
             let c0 = t * TILE_BLOCKS * BLOCK;
             let tile_blocks = t * TILE_BLOCKS..((t + 1) * TILE_BLOCKS).min(blocks);
@@ -1104,7 +1128,31 @@ fn conv_k<const K: usize>(
                 );
                 let paired = if bf16_channels {
                     let pair_weights = &pair_weights[g * pair_weights_per_group..(g + 1) * pair_weights_per_group];
-                    if !bf16_kernel::channel_rows::<K>(&padded.data, base, &pair_rows, pair_weights, &mut pair) {
+                    let ahead_at = |from: usize| (y - from) / stride;
+                    let in_ahead = ahead_from.is_some_and(|(tile, from)| {
+                        tile == t && y >= from && ahead_at(from) < amx_kernel::ROWS_AT_ONCE
+                    });
+                    let on_tiles = amx
+                        && (in_ahead || {
+                            // This row and the next three (the last repeated past the plane).
+                            let bases = std::array::from_fn(|i| {
+                                let row = (y + i * stride).min((h - 1) / stride * stride);
+                                padded.tile_row_start(t, 0, z, row)
+                            });
+                            let tiles_g = amx_tiles
+                                .get(g * amx_tiles_per_group..(g + 1) * amx_tiles_per_group)
+                                .unwrap_or(&[]);
+                            let done =
+                                amx_kernel::channel_rows::<K>(&padded.data, bases, &pair_rows, tiles_g, &mut ahead);
+                            ahead_from = done.then_some((t, y));
+                            done
+                        });
+                    if on_tiles && let Some((_, from)) = ahead_from {
+                        pair = ahead[ahead_at(from)];
+                    }
+                    if !on_tiles
+                        && !bf16_kernel::channel_rows::<K>(&padded.data, base, &pair_rows, pair_weights, &mut pair)
+                    {
                         bf16_kernel::channel_rows_portable::<K>(
                             &padded.data,
                             base,
@@ -1201,17 +1249,29 @@ fn conv_k<const K: usize>(
                     let columns = BLOCK.min(w - x0);
                     match &mut dst {
                         Destination::Tiles(tiles) => {
-                            for (o, acc_o) in acc.iter().enumerate().take(cout) {
+                            let mut values = [[0f32; BLOCK]; GROUP];
+                            for (o, (acc_o, values_o)) in acc.iter().zip(&mut values).enumerate().take(cout) {
                                 let add = bias.map_or(0.0, |bias| bias[o]);
-                                let mut values = [0f32; BLOCK];
-                                for (v, lanes) in values.chunks_exact_mut(LANES).zip(acc_o) {
+                                for (v, lanes) in values_o.chunks_exact_mut(LANES).zip(acc_o) {
                                     let mut value = *lanes + f32x8::splat(add);
                                     if relu {
                                         value = value.max(f32x8::ZERO);
                                     }
                                     v.copy_from_slice(&value.to_array());
                                 }
-                                write_tiles(tiles, o, &values[..columns], x0, y, tile_plane);
+                            }
+                            if pairs_out {
+                                // Channels 2q and 2q + 1 as one row of bfloat16 pairs, in row 2q,
+                                // as the whole tiles write them for a layer that pairs channels.
+                                for o in (0..cout.min(GROUP)).step_by(2) {
+                                    let (low, high) = values[o..o + 2].split_at_mut(1);
+                                    bf16_kernel::pair_rows_into(&mut low[0], &high[0]);
+                                    write_tiles(tiles, o, &low[0][..columns], x0, y, tile_plane);
+                                }
+                            } else {
+                                for (o, values_o) in values.iter().enumerate().take(cout) {
+                                    write_tiles(tiles, o, &values_o[..columns], x0, y, tile_plane);
+                                }
                             }
                         }
                         Destination::Planes(planes) => {
@@ -1730,6 +1790,34 @@ pub(crate) mod tests {
                 assert_eq!(bits_differing(&in_f32.0, &in_f32.1), 0, "{d}x{h}x{w} in f32");
                 let mut a = made(3);
                 assert!(!a.combine(&made(3), |s, x| s + x), "pairs are not values to combine");
+            });
+        }
+    }
+
+    #[test]
+    fn an_f32_layer_writes_the_pairs_a_bfloat16_layer_after_it_reads() {
+        // On the matrix unit, `auto` runs a 3³ layer in f32 and the 7³ layer after it in
+        // bfloat16: the 3³ layer writes its output as that layer's channel pairs, in whole
+        // tiles and in the narrower last tile alike (widths 101, 49, 9). The 7³ layer then
+        // gives the bits it gives when it pairs the same values itself.
+        let precisions = with_precision(Precision::Auto, || {
+            (effective_precision_for(3, 4), effective_precision_for(7, 4))
+        });
+        if precisions != (Precision::F32, Precision::Bf16) {
+            println!("skipped: `auto` runs both kernels in one precision here ({precisions:?}; no matrix unit)");
+            return;
+        }
+        for (seed, &[d, h, w]) in [[3usize, 4, 101], [2, 3, 49], [2, 5, 9]].iter().enumerate() {
+            let layers: [(usize, usize, usize); 2] = [(4, 4, 3), (4, 4, 7)];
+            let (x, weights, biases) = chain_case(&layers, [d, h, w], seed as u64 * 10 + 5);
+            let relu = Epilogue { stride: 1, relu: true };
+            with_precision(Precision::Auto, || {
+                let padded = conv3d_padded_pairs(ConvInput::Borrowed(&x), &weights[0], 4, 3, Some(&biases[0]), true, 7);
+                assert!(padded.0.channel_pairs, "{d}x{h}x{w}: pairs written");
+                let paired = conv3d_input(ConvInput::Padded(padded), &weights[1], 4, 7, Some(&biases[1]), relu);
+                let values = conv3d_with(&x, &weights[0], 4, 3, Some(&biases[0]), relu);
+                let from_values = conv3d_input(ConvInput::Borrowed(&values), &weights[1], 4, 7, Some(&biases[1]), relu);
+                assert_eq!(bits_differing(&paired, &from_values), 0, "{d}x{h}x{w}");
             });
         }
     }

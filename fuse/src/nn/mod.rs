@@ -19,6 +19,7 @@
 //!
 //! Every layer has its forward and backward here; the network (`crate::mfusenet`) wires them.
 
+pub mod amx_kernel;
 pub mod batch_norm;
 pub mod bf16_kernel;
 pub mod conv;

@@ -90,10 +90,14 @@ fn keep_freed_pages() {
 }
 
 /// `MULTISCOPIC_NO_AVX512=1`: the hot loops keep to 256-bit vectors (and MFuseNet's products to
-/// what an AVX2 host runs) on a host with AVX-512, to measure here what an AVX2-only host runs.
+/// what an AVX2 host runs) on a host with AVX-512, to measure here what an AVX2-only host runs;
+/// `MULTISCOPIC_NO_AMX=1`: MFuseNet's bfloat16 products stay off Intel's matrix unit.
 fn narrow_vectors_if_asked() {
     if std::env::var_os("MULTISCOPIC_NO_AVX512").is_some_and(|v| v != "0") {
         fuse::wide::set_enabled(false);
+    }
+    if std::env::var_os("MULTISCOPIC_NO_AMX").is_some_and(|v| v != "0") {
+        fuse::nn::amx_kernel::set_enabled(false);
     }
 }
 
