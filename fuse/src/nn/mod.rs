@@ -8,7 +8,8 @@
 //!   Their inner loop runs on 512-bit vectors where the host has AVX-512F ([`wide_kernel`],
 //!   detected at run time), with the same sums bit for bit; in inference, where asked
 //!   ([`conv::set_precision`]), on bfloat16 pairs of taps where the host has AVX512-BF16
-//!   ([`bf16_kernel`]), or on 16-bit integer pairs of input channels on AVX2 hosts
+//!   ([`bf16_kernel`]; its channel pairs on Intel's matrix unit where the host has AMX,
+//!   [`amx_kernel`]), or on 16-bit integer pairs of input channels on AVX2 hosts
 //!   ([`int16_kernel`]).
 //! - [`batch_norm`]: BatchNorm3d in train mode (batch statistics, running-statistics update,
 //!   backward) and eval mode (folded into the preceding convolution).
