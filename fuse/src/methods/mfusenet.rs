@@ -1393,11 +1393,33 @@ mod tests {
         let (auto_ran, auto) = run("auto");
         let preferred = bf16_if(crate::nn::bf16_kernel::preferred());
         assert_eq!(auto_ran, preferred, "auto: bfloat16 where this host prefers it");
-        assert_eq!(
-            auto.data,
-            if preferred == "bf16" { &rounded } else { &exact }.data,
-            "auto gives what the precision it chose gives"
-        );
+        // On Intel's matrix unit, the 7³ layers in bfloat16 beside the others in f32, and the
+        // details say so; elsewhere auto runs one precision throughout.
+        let on_amx = preferred == "f32" && crate::nn::amx_kernel::available();
+        let auto_details = crate::methods::build("mfusenet", Some(&serde_json::json!({ "precision": "auto" })))
+            .unwrap_or_else(|e| panic!("{e}"))
+            .details(&problem);
+        let seven = &auto_details["precision_7x7x7"];
+        if on_amx {
+            assert_eq!(seven, "bf16", "{auto_details}");
+            let worst = exact
+                .data
+                .iter()
+                .zip(&auto.data)
+                .map(|(x, y)| (x - y).abs())
+                .fold(0f32, f32::max);
+            assert!(
+                worst < 0.5,
+                "a pixel moved by {worst} px with the 7³ layers in bfloat16"
+            );
+        } else {
+            assert!(seven.is_null(), "{auto_details}");
+            assert_eq!(
+                auto.data,
+                if preferred == "bf16" { &rounded } else { &exact }.data,
+                "auto gives what the precision it chose gives"
+            );
+        }
         let default = crate::methods::build("mfusenet", None).unwrap_or_else(|e| panic!("{e}"));
         assert_eq!(default.details(&problem)["precision"], preferred);
         let mean = |out: &DisparityImage| {
