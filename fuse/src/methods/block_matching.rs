@@ -142,11 +142,11 @@ impl Method for BlockMatching {
                     let pixels = costs.len() / nd;
                     let subpixel = self.config.subpixel.then_some(self.config.subpixel_fit);
                     let out = &mut out[at..at + pixels];
-                    match sure.get_mut(at..at + pixels) {
-                        Some(sure) => {
-                            winner_take_all_confident(costs, nd, problem.min_disparity, subpixel, out, sure);
-                        }
-                        None => winner_take_all(costs, nd, problem.min_disparity, subpixel, out),
+                    if needs.confidence {
+                        let sure = &mut sure[at..at + pixels];
+                        winner_take_all_confident(costs, nd, problem.min_disparity, subpixel, out, sure);
+                    } else {
+                        winner_take_all(costs, nd, problem.min_disparity, subpixel, out);
                     }
                 });
                 progress((done.fetch_add(1, Ordering::Relaxed) + 1) as f32 / bands as f32);
