@@ -32,6 +32,7 @@ use crate::nn::conv::{
     transposed_weight_grad,
 };
 use crate::nn::regression::{smooth_l1, soft_argmin, soft_argmin_backward};
+use crate::nn::transposed::transposed_conv3d_eval;
 
 /// How the BatchNorms behave in a training pass.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -249,6 +250,8 @@ impl ConvBn {
         // rows computed).
         let epilogue = |stride| Epilogue { stride, relu: true };
         match self.kind {
+            // By output parity: no zero-upsampled copy, an eighth of the products.
+            ConvKind::Up if self.k == 3 => transposed_conv3d_eval(x, &weight, self.cout, Some(&bias), true),
             ConvKind::Up => conv3d_with(
                 &self.conv_input(x),
                 &weight,

@@ -4,7 +4,8 @@
 //! - [`Tensor`]: `[channels][depth][height][width]` in one `f32` buffer, width fastest.
 //! - [`conv`]: the "same" stride-1 3D convolution (forward, input and weight gradients) as direct
 //!   convolutions vectorised along the image rows with four output channels in registers; the
-//!   stride-2 convolution and the stride-2 transposed convolution are expressed through it.
+//!   stride-2 convolution and the stride-2 transposed convolution are expressed through it
+//!   (the latter in eval mode by output parity instead, [`transposed`]).
 //!   Their inner loop runs on 512-bit vectors where the host has AVX-512F ([`wide_kernel`],
 //!   detected at run time), with the same sums bit for bit; in inference, where asked
 //!   ([`conv::set_precision`]), on bfloat16 pairs of taps where the host has AVX512-BF16
@@ -29,6 +30,7 @@ pub mod int16_kernel;
 pub mod pool;
 pub mod reference;
 pub mod regression;
+pub mod transposed;
 pub mod wide_kernel;
 
 /// A volume of `channels × depth × height × width` values, width fastest (PyTorch's `[C, D, H,
