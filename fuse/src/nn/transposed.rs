@@ -17,7 +17,7 @@ use super::Tensor;
 /// `2j` ← `(j, 1)`; `2j + 1` ← `(j, 0)` and `(j + 1, 2)` where `j + 1` is inside.
 fn taps(z: usize, n: usize) -> ([(usize, usize); 2], usize) {
     let j = z / 2;
-    if z % 2 == 0 {
+    if z.is_multiple_of(2) {
         ([(j, 1), (0, 0)], 1)
     } else if j + 1 < n {
         ([(j, 0), (j + 1, 2)], 2)
