@@ -162,6 +162,27 @@ fn mfusenet(c: &mut Criterion) {
     group.bench_function("conv_k3_4to4_forward", |b| {
         b.iter(|| black_box(conv3d_same(&x4, &weight3, 4, 3, None)))
     });
+    // The stride-2 transposed layer (`up2`, 4 → 4 channels) on a half-size input: by output
+    // parity (`fuse::nn::transposed`, inference's path) against the "same" convolution of the
+    // zero-upsampled input (training's form, inference's before).
+    let small = Tensor {
+        shape: [4, shape[1] / 2, shape[2] / 2, shape[3] / 2],
+        data: x4.data[..x4.data.len() / 8].to_vec(),
+    };
+    let up_weight = fuse::nn::conv::transposed_as_conv(&weight3, 4, 4);
+    group.bench_function("conv_transpose_4to4_forward_parity", |b| {
+        b.iter(|| {
+            black_box(fuse::nn::transposed::transposed_conv3d_eval(
+                &small, &up_weight, 4, None, true,
+            ))
+        })
+    });
+    group.bench_function("conv_transpose_4to4_forward_zero_upsampled", |b| {
+        b.iter(|| {
+            let up = small.upsample2_zeros([2 * small.shape[1], 2 * small.shape[2], 2 * small.shape[3]]);
+            black_box(conv3d_same(&up, &up_weight, 4, 3, None))
+        })
+    });
     group.bench_function("conv_k3_4to4_forward_256_bit", |b| {
         fuse::wide::set_enabled(false);
         b.iter(|| black_box(conv3d_same(&x4, &weight3, 4, 3, None)));
