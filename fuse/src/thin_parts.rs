@@ -655,7 +655,7 @@ fn window_or(values: &[u128], w: usize, h: usize, radius: usize) -> Vec<u128> {
 
 /// The smallest finite value of `values` (`w × h`) within `radius` of each pixel (a square
 /// window; `f32::INFINITY` where there is none): two passes of a running minimum.
-fn window_min(values: &[f32], w: usize, h: usize, radius: usize) -> Vec<f32> {
+pub(crate) fn window_min(values: &[f32], w: usize, h: usize, radius: usize) -> Vec<f32> {
     let finite: Vec<f32> = values
         .iter()
         .map(|&v| if v.is_finite() { v } else { f32::INFINITY })
