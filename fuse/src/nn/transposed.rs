@@ -29,7 +29,8 @@ fn taps(z: usize, n: usize) -> ([(usize, usize); 2], usize) {
 /// `max(0, ·)` where `relu`, of the transposed convolution of `x` (`[cin][d][h][w]`) with the
 /// equivalent "same" convolution's kernel `weight` (`[cout][cin][3][3][3]`, a BatchNorm folded in
 /// or not) plus `bias`: `[cout][2d][2h][2w]`. The sums differ from the zero-upsampled
-/// convolution's only by their order (rounding).
+/// convolution's only by their order (rounding). A `weight` shorter than `cout · cin · 27` (a
+/// caller's mistake) gives zeros rather than a read past its end.
 pub fn transposed_conv3d_eval(x: &Tensor, weight: &[f32], cout: usize, bias: Option<&[f32]>, relu: bool) -> Tensor {
     let [cin, d, h, w] = x.shape;
     let (od, oh, ow) = (2 * d, 2 * h, 2 * w);
