@@ -207,8 +207,7 @@ pub fn farther_by_wider_median(
 
 /// The least finite value within `radius` px (a square box) of each pixel, `+∞` where none: the
 /// running minimum of [`crate::thin_parts`] (blocks of `2r + 1` with their prefix and suffix
-/// minima, so its cost does not grow with the radius: at 1080p with the farther median's 20 px
-/// the box of 41 × 41 was read value by value, about 0.5 s).
+/// minima, so its cost does not grow with the radius).
 fn box_minimum(disparity: &DisparityImage, radius: usize) -> Vec<f32> {
     let (w, h) = (disparity.width, disparity.height);
     if w == 0 || h == 0 || disparity.data.len() != w * h {
@@ -935,7 +934,6 @@ mod tests {
         }
     }
 
-    /// The weighted median by the definition: every window value sorted, in f64.
     #[test]
     fn the_box_minimum_is_the_least_finite_value_of_each_box() {
         let (w, h) = (37, 23);
@@ -971,6 +969,7 @@ mod tests {
         }
     }
 
+    /// The weighted median by the definition: every window value sorted, in f64.
     fn plain_weighted_median(d: &DisparityImage, image: &Image, f: &WeightedMedian) -> Vec<(f32, f64)> {
         plain_with_votes(d, image, f, &vec![1.0; d.data.len()])
     }
